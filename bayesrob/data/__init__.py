@@ -1,0 +1,1 @@
+"""Shipped rig data (the embedded default rig)."""

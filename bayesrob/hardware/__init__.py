@@ -1,0 +1,1 @@
+"""Hardware: servo controllers, position trackers, data collection, simulated devices."""
