@@ -1,0 +1,5 @@
+import sys
+
+from bayesrob.cli import main
+
+sys.exit(main())

@@ -1,0 +1,244 @@
+"""Calibration of each arm's eight parameters from its measured end points, and observed accuracy.
+
+Two point-estimate methods:
+- ``least-squares`` (default): scipy's trust-region least squares on the x/y residuals, with
+  the JAX Jacobian; parameter standard errors from s^2 (J^T J)^-1.
+- ``hill-climb``: the paper's procedure, kept as the baseline: coordinate steps on the summed
+  Euclidean error, halving the steps when none helps, stopped as soon as the error on the
+  ``validation`` rows rises.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from bayesrob import kinematics as kin
+from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
+
+Method = Literal["least-squares", "hill-climb"]
+METHODS: tuple[str, ...] = ("least-squares", "hill-climb")
+
+
+@dataclass
+class ArmCalibration:
+    """A calibrated arm and how well it fits."""
+
+    arm: kin.Arm
+    method: str
+    params_se: np.ndarray  # (8,) in PARAM_NAMES order; NaN where not estimable
+    train_error_mm: float
+    validation_error_mm: float | None
+    n_train: int
+    iterations: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        se = kin.ArmParams.from_vector(jnp.asarray(self.params_se))
+        out = {
+            "params": self.arm.params.as_dict(),
+            "params_se": se.as_dict(),
+            "elbow": self.arm.elbow,
+            "train_error_mm": self.train_error_mm,
+            "validation_error_mm": self.validation_error_mm,
+            "n_train": self.n_train,
+            "iterations": self.iterations,
+        }
+        out.update(self.extra)
+        return out
+
+
+@jax.jit
+def _residuals(v: jax.Array, u: jax.Array, d: jax.Array) -> jax.Array:
+    return (kin.forward_u(kin.ArmParams.from_vector(v), u) - d).ravel()
+
+
+_residual_jac = jax.jit(jax.jacfwd(_residuals))
+
+
+def mean_error_mm(params: kin.ArmParams, u: np.ndarray, d: np.ndarray) -> float:
+    """Mean Euclidean distance between f(g(u)) and the observed end points."""
+    pred = np.asarray(kin.forward_u(params, jnp.asarray(u)))
+    return float(np.mean(np.linalg.norm(pred - d, axis=-1)))
+
+
+def _scales(v0: np.ndarray) -> np.ndarray:
+    """Typical sizes of the parameters, so steps and tolerances mean the same in each."""
+    return np.array([10.0, 10.0, 10.0, 10.0, 0.05 * abs(v0[4]), 0.05 * abs(v0[5]), 0.05, 0.05])
+
+
+def _least_squares(v0: np.ndarray, u: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, int]:
+    uj, dj = jnp.asarray(u), jnp.asarray(d)
+    res = scipy.optimize.least_squares(
+        lambda v: np.asarray(_residuals(jnp.asarray(v), uj, dj)),
+        v0,
+        jac=lambda v: np.asarray(_residual_jac(jnp.asarray(v), uj, dj)),
+        x_scale=_scales(v0),
+        method="trf",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=2000,
+    )
+    return res.x, int(res.nfev)
+
+
+def _standard_errors(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
+    r = np.asarray(_residuals(jnp.asarray(v), jnp.asarray(u), jnp.asarray(d)))
+    J = np.asarray(_residual_jac(jnp.asarray(v), jnp.asarray(u), jnp.asarray(d)))
+    dof = r.size - v.size
+    if dof <= 0:
+        return np.full(v.size, np.nan)
+    s2 = float(r @ r) / dof
+    cov = s2 * np.linalg.pinv(J.T @ J)
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def _hill_climb(v0: np.ndarray, u: np.ndarray, d: np.ndarray, u_val: np.ndarray | None,
+                d_val: np.ndarray | None, max_iter: int = 20000) -> tuple[np.ndarray, int]:
+    """The paper's hill climb on J = sum ||f(g(u_i)) - d_i||, halted when validation rises.
+
+    Each iteration takes the best of the +-step moves of every parameter; when none improves
+    the training cost the steps halve. The validation cost is checked at each halving (a
+    finished climb at one step size): checking after every single step would stop on the
+    first wobble of measurement noise, long before the fit is any good.
+    """
+    uj, dj = jnp.asarray(u), jnp.asarray(d)
+
+    @jax.jit
+    def costs(vs: jax.Array, uu: jax.Array, dd: jax.Array) -> jax.Array:
+        pred = jax.vmap(lambda v: kin.forward_u(kin.ArmParams.from_vector(v), uu))(vs)
+        return jnp.sum(jnp.linalg.norm(pred - dd, axis=-1), axis=-1)
+
+    has_val = u_val is not None and len(u_val) > 0
+    v = v0.copy()
+    scale = _scales(v0)
+    step = scale * 0.1
+    best = float(costs(jnp.asarray(v[None]), uj, dj)[0])
+    val = float(costs(jnp.asarray(v[None]), jnp.asarray(u_val), jnp.asarray(d_val))[0]) \
+        if has_val else None
+    kept = v.copy()
+    it = 0
+    moves = np.concatenate([np.eye(v.size), -np.eye(v.size)])
+    while it < max_iter and np.any(step > scale * 1e-7):
+        it += 1
+        trials = v[None] + moves * step[None]
+        c = np.asarray(costs(jnp.asarray(trials), uj, dj))
+        k = int(np.argmin(c))
+        if c[k] < best:
+            v, best = trials[k], float(c[k])
+            continue
+        step = step / 2
+        if has_val:
+            new_val = float(costs(jnp.asarray(v[None]), jnp.asarray(u_val),
+                                  jnp.asarray(d_val))[0])
+            if new_val > val:
+                return kept, it  # the paper's early stop: validation error rose
+            val, kept = new_val, v.copy()
+    return v, it
+
+
+def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = "least-squares",
+                  u_val: np.ndarray | None = None, d_val: np.ndarray | None = None
+                  ) -> ArmCalibration:
+    """Fit one arm's parameters to its training rows (u: pulses (N, 2), d: end points (N, 2))."""
+    if method not in METHODS:
+        raise ValueError(f"unknown calibration method {method!r}; use one of {METHODS}")
+    u = np.asarray(u, float)
+    d = np.asarray(d, float)
+    if len(u) * 2 < N_ARM_PARAMS:
+        raise ValueError(f"arm {spec.name!r}: {len(u)} train rows cannot fix {N_ARM_PARAMS} "
+                         "parameters")
+    v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
+    if method == "least-squares":
+        v, iters = _least_squares(v0, u, d)
+    else:
+        v, iters = _hill_climb(v0, u, d, u_val, d_val)
+    params = kin.ArmParams.from_vector(jnp.asarray(v))
+    elbow = kin.choose_elbow(params, u, d, spec.elbow)
+    arm = kin.Arm(spec.name, params, elbow, spec.pulse_limits)
+    return ArmCalibration(
+        arm=arm,
+        method=method,
+        params_se=_standard_errors(v, u, d),
+        train_error_mm=mean_error_mm(params, u, d),
+        validation_error_mm=(mean_error_mm(params, u_val, d_val)
+                             if u_val is not None and len(u_val) else None),
+        n_train=len(u),
+        iterations=iters,
+    )
+
+
+def calibrate(rig: Rig, method: Method = "least-squares") -> dict[str, ArmCalibration]:
+    """Calibrate every arm of a rig on its single-arm ``train`` rows."""
+    out = {}
+    for name, spec in rig.arms.items():
+        u, d = rig.arm_rows(name, "train")
+        uv, dv = rig.arm_rows(name, "validation")
+        out[name] = calibrate_arm(spec, u, d, method, uv, dv)
+    return out
+
+
+def mean_ci95(errors: np.ndarray) -> dict:
+    """Mean with the Student-t 95% confidence interval of the mean."""
+    e = np.asarray(errors, float)
+    n = len(e)
+    mean = float(np.mean(e)) if n else float("nan")
+    if n < 2:
+        return {"mean_mm": mean, "ci95_mm": [float("nan"), float("nan")], "n": n}
+    half = float(scipy.stats.t.ppf(0.975, n - 1) * np.std(e, ddof=1) / np.sqrt(n))
+    return {"mean_mm": mean, "ci95_mm": [mean - half, mean + half], "n": n}
+
+
+def predicted_points(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
+    """Where the model says the rows of a config ended up.
+
+    A single arm: f(g(u)) of the commands sent. Linked arms: the target the commands aimed at,
+    as the paper did (the commands came from the arms' own inverse models).
+    """
+    rows = rig.config_rows(config, set)
+    members = config.split("+")
+    if len(members) == 1:
+        return np.asarray(arms[config].forward_u(jnp.asarray(rows["commands"][config])))
+    target = rows["target"]
+    if np.isnan(target).any():
+        # No target recorded: fall back to the mean of the arms' forward predictions.
+        return np.mean([np.asarray(arms[a].forward_u(jnp.asarray(rows["commands"][a])))
+                        for a in members], axis=0)
+    return target
+
+
+def observed_errors(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
+    """Euclidean distance (mm) between predicted and observed end point, row by row."""
+    rows = rig.config_rows(config, set)
+    pred = predicted_points(rig, arms, config, set)
+    return np.linalg.norm(pred - rows["observed"], axis=-1)
+
+
+def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str, dict]]:
+    """Mean error with 95% CI per config and set, for every config and set present."""
+    out: dict[str, dict[str, dict]] = {}
+    for config in rig.configs:
+        for s in SETS:
+            if rig.measurements.mask(config, s).any():
+                out.setdefault(config, {})[s] = mean_ci95(observed_errors(rig, arms, config, s))
+    return out
+
+
+def calibration_report(rig: Rig, method: Method = "least-squares") -> dict:
+    """The ``bayesrob calibrate --json`` document."""
+    cal = calibrate(rig, method)
+    arms = {n: c.arm for n, c in cal.items()}
+    return {
+        "method": method,
+        "rig": rig.name,
+        "arms": {n: c.to_json() for n, c in cal.items()},
+        "accuracy": observed_accuracy(rig, arms),
+        "param_names": list(kin.PARAM_NAMES),
+    }

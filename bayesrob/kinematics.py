@@ -1,0 +1,192 @@
+"""Planar two-link arm kinematics and the servo map, as pure JAX functions.
+
+Notation follows the paper: ``f(theta)`` maps joint angles to the end point,
+``g(u) = gain * u + offset`` maps pulse widths (microseconds) to joint angles (radians).
+Everything broadcasts over leading dimensions, so the same functions serve one point,
+a grid of test points or a batch of targets, and they are differentiable for the
+samplers and the least-squares fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob.rig import ArmSpec
+
+PARAM_NAMES = ("bx", "by", "l1", "l2", "a1", "a2", "b1", "b2")
+
+
+class ArmParams(NamedTuple):
+    """The eight geometric and servo parameters of an arm (a JAX pytree)."""
+
+    base: jax.Array  # (2,) mm
+    links: jax.Array  # (2,) mm
+    gain: jax.Array  # (2,) rad per microsecond
+    offset: jax.Array  # (2,) rad
+
+    @classmethod
+    def from_vector(cls, v: jax.Array) -> ArmParams:
+        v = jnp.asarray(v)
+        return cls(v[..., 0:2], v[..., 2:4], v[..., 4:6], v[..., 6:8])
+
+    def to_vector(self) -> jax.Array:
+        return jnp.concatenate(
+            [jnp.asarray(self.base), jnp.asarray(self.links), jnp.asarray(self.gain),
+             jnp.asarray(self.offset)], axis=-1
+        )
+
+    @classmethod
+    def from_spec(cls, spec: ArmSpec) -> ArmParams:
+        return cls(*(jnp.asarray(x, dtype=jnp.float64)
+                     for x in (spec.base, spec.links, spec.gain, spec.offset)))
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {k: [float(x) for x in np.asarray(getattr(self, k))] for k in self._fields}
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+    """Map angles to (-pi, pi]; joint-angle differences are only meaningful wrapped."""
+    return jnp.pi - jnp.mod(jnp.pi - a, 2 * jnp.pi)
+
+
+def servo(params: ArmParams, u: jax.Array) -> jax.Array:
+    """g(u): pulse widths (..., 2) in microseconds to joint angles (..., 2)."""
+    return params.gain * u + params.offset
+
+
+def servo_inverse(params: ArmParams, theta: jax.Array) -> jax.Array:
+    """g^-1(theta): the pulse widths that command the joint angles."""
+    return (theta - params.offset) / params.gain
+
+
+def forward(params: ArmParams, theta: jax.Array) -> jax.Array:
+    """f(theta): end point (..., 2) in mm."""
+    t1 = theta[..., 0]
+    t12 = t1 + theta[..., 1]
+    l1, l2 = params.links[..., 0:1], params.links[..., 1:2]
+    c = jnp.stack([jnp.cos(t1), jnp.sin(t1)], -1)
+    c12 = jnp.stack([jnp.cos(t12), jnp.sin(t12)], -1)
+    return params.base + l1 * c + l2 * c12
+
+
+def elbow_point(params: ArmParams, theta: jax.Array) -> jax.Array:
+    t1 = theta[..., 0]
+    return params.base + params.links[..., 0:1] * jnp.stack([jnp.cos(t1), jnp.sin(t1)], -1)
+
+
+def forward_u(params: ArmParams, u: jax.Array) -> jax.Array:
+    """f(g(u)): the end point the model predicts for pulse widths u."""
+    return forward(params, servo(params, u))
+
+
+def inverse(params: ArmParams, d: jax.Array, elbow: int | jax.Array) -> tuple[jax.Array, jax.Array]:
+    """f^-1(d) by the law of cosines on the given elbow branch.
+
+    Returns ``(theta, reachable)``. ``elbow`` = +1 takes theta2 >= 0, -1 theta2 <= 0.
+    Unreachable points are clamped to the nearest reachable configuration (so gradients
+    stay finite) and flagged False in ``reachable``.
+    """
+    l1, l2 = params.links[..., 0], params.links[..., 1]
+    p = d - params.base
+    r2 = jnp.sum(p**2, axis=-1)
+    c2 = (r2 - l1**2 - l2**2) / (2 * l1 * l2)
+    reachable = jnp.abs(c2) <= 1.0
+    # Clamp just inside +-1: arccos has an infinite derivative at the boundary.
+    c2c = jnp.clip(c2, -1.0 + 1e-12, 1.0 - 1e-12)
+    t2 = elbow * jnp.arccos(c2c)
+    t1 = jnp.arctan2(p[..., 1], p[..., 0]) - jnp.arctan2(l2 * jnp.sin(t2), l1 + l2 * jnp.cos(t2))
+    return jnp.stack([wrap_angle(t1), t2], -1), reachable
+
+
+def command(params: ArmParams, d: jax.Array, elbow: int | jax.Array,
+            reference: jax.Array | None = None) -> jax.Array:
+    """u = g^-1(f^-1(d)): pulse widths aiming the arm at d.
+
+    Angles are only defined modulo 2 pi; ``reference`` (joint angles, e.g. g of the mid
+    pulse) picks the turn nearest the servo's range so the pulse is physically sensible.
+    """
+    theta, _ = inverse(params, d, elbow)
+    if reference is not None:
+        theta = reference + wrap_angle(theta - reference)
+    return servo_inverse(params, theta)
+
+
+def jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
+    """df/dtheta (..., 2, 2), analytic."""
+    t1 = theta[..., 0]
+    t12 = t1 + theta[..., 1]
+    l1, l2 = params.links[..., 0], params.links[..., 1]
+    s1, c1, s12, c12 = jnp.sin(t1), jnp.cos(t1), jnp.sin(t12), jnp.cos(t12)
+    row_x = jnp.stack([-l1 * s1 - l2 * s12, -l2 * s12], -1)
+    row_y = jnp.stack([l1 * c1 + l2 * c12, l2 * c12], -1)
+    return jnp.stack([row_x, row_y], -2)
+
+
+def log_abs_det_inverse_jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
+    """log |det d f^-1 / d d| at the configuration theta: -log |l1 l2 sin theta2|.
+
+    The change-of-variables term that turns a density on joint-angle errors into a
+    density on end points (NOTES: the paper omits it).
+    """
+    l1, l2 = params.links[..., 0], params.links[..., 1]
+    return -jnp.log(jnp.abs(l1 * l2 * jnp.sin(theta[..., 1])))
+
+
+def choose_elbow(params: ArmParams, u: np.ndarray, d: np.ndarray, default: int = 1) -> int:
+    """The elbow branch that lies closest to the training data, as the paper chose it.
+
+    Compares each branch's f^-1(d_obs) with the commanded angles g(u); falls back to the
+    rig's ``elbow`` when there is no data.
+    """
+    if len(u) == 0:
+        return default
+    theta_cmd = servo(params, jnp.asarray(u))
+    dist = []
+    for e in (1, -1):
+        theta, _ = inverse(params, jnp.asarray(d), e)
+        dist.append(float(jnp.sum(wrap_angle(theta - theta_cmd) ** 2)))
+    return 1 if dist[0] <= dist[1] else -1
+
+
+@dataclass(frozen=True)
+class Arm:
+    """A (calibrated or nominal) arm: parameters plus the branch and limits it works with."""
+
+    name: str
+    params: ArmParams
+    elbow: int
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
+
+    @classmethod
+    def nominal(cls, spec: ArmSpec) -> Arm:
+        return cls(spec.name, ArmParams.from_spec(spec), spec.elbow, spec.pulse_limits)
+
+    @property
+    def mid_pulse(self) -> np.ndarray:
+        return np.array([(lo + hi) / 2 for lo, hi in self.pulse_limits])
+
+    def forward_u(self, u: jax.Array) -> jax.Array:
+        return forward_u(self.params, jnp.asarray(u))
+
+    def inverse(self, d: jax.Array) -> jax.Array:
+        """Joint angles for end points d, on the turn nearest the servo's mid range."""
+        theta, _ = inverse(self.params, jnp.asarray(d), self.elbow)
+        ref = servo(self.params, jnp.asarray(self.mid_pulse))
+        return ref + wrap_angle(theta - ref)
+
+    def reachable(self, d: jax.Array) -> jax.Array:
+        return inverse(self.params, jnp.asarray(d), self.elbow)[1]
+
+    def command(self, d: jax.Array) -> jax.Array:
+        """Pulse widths aiming at end points d (not rounded, not limit-checked)."""
+        return servo_inverse(self.params, self.inverse(d))
+
+    def within_limits(self, u: np.ndarray) -> np.ndarray:
+        lim = np.asarray(self.pulse_limits)
+        u = np.asarray(u)
+        return np.all((u >= lim[:, 0]) & (u <= lim[:, 1]), axis=-1)

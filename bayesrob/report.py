@@ -1,0 +1,41 @@
+"""Terminal tables of the reports (the JSON documents are the contract; these are for people)."""
+
+from __future__ import annotations
+
+from bayesrob.kinematics import PARAM_NAMES
+
+
+def _fmt(x: float | None, nd: int = 2) -> str:
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def format_table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
+    line = "  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))
+    out = [line, "  ".join("-" * w for w in widths)]
+    out += ["  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
+    return "\n".join(out)
+
+
+def format_calibration(doc: dict) -> str:
+    """Parameters with standard errors per arm, then observed accuracy per config and set."""
+    parts = [f"calibration: {doc['method']}"]
+    for name, arm in doc["arms"].items():
+        rows = []
+        flat = [v for k in ("base", "links", "gain", "offset") for v in arm["params"][k]]
+        se = [v for k in ("base", "links", "gain", "offset") for v in arm["params_se"][k]]
+        for pname, v, s in zip(PARAM_NAMES, flat, se, strict=True):
+            nd = 6 if pname.startswith("a") else 4
+            rows.append([pname, f"{v:.{nd}f}", f"{s:.{nd}f}"])
+        parts.append(f"\narm {name} (elbow {arm['elbow']:+d}): train {_fmt(arm['train_error_mm'])} "
+                     f"mm, validation {_fmt(arm['validation_error_mm'])} mm")
+        parts.append(format_table(["param", "value", "std err"], rows))
+    rows = []
+    for config, sets in doc["accuracy"].items():
+        for s, acc in sets.items():
+            lo, hi = acc["ci95_mm"]
+            rows.append([config, s, f"{acc['mean_mm']:.2f}", f"[{lo:.2f}, {hi:.2f}]",
+                         str(acc["n"])])
+    parts.append("\nobserved accuracy (mean Euclidean error, mm)")
+    parts.append(format_table(["config", "set", "mean", "95% CI", "n"], rows))
+    return "\n".join(parts)

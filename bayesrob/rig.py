@@ -1,0 +1,449 @@
+"""The rig format: ``rig.toml`` (nominal arm values) and ``measurements.csv`` (observed end points).
+
+A rig directory is the only input of the pipeline. Everything is validated here, once, so
+nothing downstream re-parses or re-checks files. Every problem a person can make in these
+files raises :class:`RigError` with one line naming the file, the row or key and what is
+wrong; the command line turns it into that line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import tomllib
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+RIG_FILE = "rig.toml"
+MEASUREMENTS_FILE = "measurements.csv"
+SETS = ("train", "validation", "test")
+ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits")
+N_ARM_PARAMS = 8
+# A target a little outside the nominal reach is still accepted: nominal lengths are a
+# person's measurements, and the calibrated arm may reach what the nominal one does not.
+REACH_MARGIN = 0.02
+
+
+class RigError(ValueError):
+    """A rig file is missing or malformed; the message names the file, row or key."""
+
+
+@dataclass(frozen=True)
+class ArmSpec:
+    """Nominal values of one arm as a person measured them (calibration's starting point)."""
+
+    name: str
+    base: tuple[float, float]
+    links: tuple[float, float]
+    gain: tuple[float, float]
+    offset: tuple[float, float]
+    elbow: int = 1
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
+
+    @property
+    def reach_mm(self) -> tuple[float, float]:
+        l1, l2 = self.links
+        return abs(l1 - l2), l1 + l2
+
+    def reaches(self, point: Iterable[float], margin: float = REACH_MARGIN) -> bool:
+        lo, hi = self.reach_mm
+        r = math.dist(point, self.base)
+        return lo * (1 - margin) - 1e-9 <= r <= hi * (1 + margin) + 1e-9
+
+    def pulses_within_limits(self, u: Iterable[float]) -> bool:
+        return all(lo <= p <= hi for p, (lo, hi) in zip(u, self.pulse_limits, strict=True))
+
+
+@dataclass
+class Measurements:
+    """Column arrays of ``measurements.csv``; NaN where a cell is legitimately empty."""
+
+    config: np.ndarray  # (N,) str
+    set: np.ndarray  # (N,) str
+    target: np.ndarray  # (N, 2) mm, NaN where not given
+    commands: dict[str, np.ndarray]  # arm -> (N, 2) pulse widths (us), NaN where not in config
+    observed: np.ndarray  # (N, 2) mm
+    line: np.ndarray  # (N,) line number in the file, for messages
+    extra: dict[str, list[str]] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.config)
+
+    def mask(self, config: str | None = None, set: str | None = None) -> np.ndarray:
+        m = np.ones(len(self), bool)
+        if config is not None:
+            m &= self.config == config
+        if set is not None:
+            m &= self.set == set
+        return m
+
+
+@dataclass
+class Rig:
+    """A validated rig: nominal arms plus measurements."""
+
+    name: str
+    arms: dict[str, ArmSpec]
+    measurements: Measurements
+    gravity: tuple[float, float] = (0.0, -1.0)
+    workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
+    path: Path | None = None
+
+    @property
+    def configs(self) -> list[str]:
+        """Configs in order of first appearance."""
+        return list(dict.fromkeys(self.measurements.config.tolist()))
+
+    @property
+    def linked_configs(self) -> list[str]:
+        return [c for c in self.configs if "+" in c]
+
+    def arm_rows(self, arm: str, set: str) -> tuple[np.ndarray, np.ndarray]:
+        """Commands (N, 2) and observed end points (N, 2) of a single arm's rows in a set."""
+        m = self.measurements.mask(arm, set)
+        return self.measurements.commands[arm][m], self.measurements.observed[m]
+
+    def config_rows(self, config: str, set: str) -> dict[str, np.ndarray]:
+        """Rows of a config and set: ``commands`` per arm, ``target`` and ``observed``."""
+        meas = self.measurements
+        m = meas.mask(config, set)
+        return {
+            "commands": {a: meas.commands[a][m] for a in config.split("+")},
+            "target": meas.target[m],
+            "observed": meas.observed[m],
+        }
+
+
+def split_config(config: str) -> list[str]:
+    return config.split("+")
+
+
+# ----------------------------------------------------------------------------- rig.toml
+
+
+def _pair(value: object, where: str, positive: bool = False) -> tuple[float, float]:
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        raise RigError(f"{where}: expected a list of two numbers, got {value!r}")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise RigError(f"{where}: expected finite numbers, got {value!r}")
+        if positive and v <= 0:
+            raise RigError(f"{where}: values must be positive, got {value!r}")
+        out.append(float(v))
+    return out[0], out[1]
+
+
+def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
+    if not isinstance(table, dict):
+        raise RigError(f"{where}: [arms.{name}] must be a table")
+    for key in ("base", "links", "gain", "offset"):
+        if key not in table:
+            raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
+    if "+" in name or not name.strip() or "," in name:
+        raise RigError(f"{where}: arm name {name!r} may not be empty or contain '+' or ','")
+    base = _pair(table["base"], f"{where}: arms.{name}.base")
+    links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
+    gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
+    if 0.0 in gain:
+        raise RigError(f"{where}: arms.{name}.gain must be non-zero, got {list(gain)}")
+    offset = _pair(table["offset"], f"{where}: arms.{name}.offset")
+    elbow = table.get("elbow", 1)
+    if elbow not in (1, -1) or isinstance(elbow, bool):
+        raise RigError(f"{where}: arms.{name}.elbow must be +1 or -1, got {elbow!r}")
+    limits_raw = table.get("pulse_limits", [[500.0, 2500.0], [500.0, 2500.0]])
+    if not isinstance(limits_raw, list) or len(limits_raw) != 2:
+        raise RigError(
+            f"{where}: arms.{name}.pulse_limits must be [[lo, hi], [lo, hi]], got {limits_raw!r}"
+        )
+    limits = tuple(
+        _pair(lim, f"{where}: arms.{name}.pulse_limits[{j}]") for j, lim in enumerate(limits_raw)
+    )
+    for j, (lo, hi) in enumerate(limits):
+        if lo >= hi:
+            raise RigError(f"{where}: arms.{name}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
+    return ArmSpec(name, base, links, gain, offset, int(elbow), limits)  # type: ignore[arg-type]
+
+
+def load_rig_toml(path: Path) -> dict:
+    """Parse and validate ``rig.toml``; returns the pieces of a :class:`Rig` but its rows."""
+    if not path.is_file():
+        raise RigError(f"{path}: file not found")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        # Duplicate [arms.x] tables surface here: TOML forbids declaring a table twice.
+        raise RigError(f"{path}: invalid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise RigError(f"{path}: not a UTF-8 text file") from None
+    arms_raw = doc.get("arms")
+    if not isinstance(arms_raw, dict) or not arms_raw:
+        raise RigError(f"{path}: missing key 'arms' (at least one [arms.<name>] table)")
+    lowered = [a.lower() for a in arms_raw]
+    for a in arms_raw:
+        if lowered.count(a.lower()) > 1:
+            raise RigError(f"{path}: duplicate arm name {a!r} (names differ only by case)")
+    arms = {name: _parse_arm(name, tbl, str(path)) for name, tbl in arms_raw.items()}
+    gravity = doc.get("gravity", [0.0, -1.0])
+    gravity = _pair(gravity, f"{path}: gravity")
+    norm = math.hypot(*gravity)
+    if norm == 0:
+        raise RigError(f"{path}: gravity must be a non-zero vector")
+    gravity = (gravity[0] / norm, gravity[1] / norm)
+    workspace = doc.get("workspace")
+    if workspace is not None:
+        if not isinstance(workspace, list) or len(workspace) != 2:
+            raise RigError(f"{path}: workspace must be [[x0, x1], [y0, y1]], got {workspace!r}")
+        workspace = tuple(_pair(r, f"{path}: workspace") for r in workspace)
+    name = doc.get("name", path.parent.name)
+    if not isinstance(name, str):
+        raise RigError(f"{path}: name must be a string, got {name!r}")
+    return {"name": name, "arms": arms, "gravity": gravity, "workspace": workspace}
+
+
+# ----------------------------------------------------------------------------- measurements
+
+
+def _number(text: str, where: str, column: str, allow_empty: bool = False) -> float:
+    text = text.strip()
+    if text == "":
+        if allow_empty:
+            return math.nan
+        raise RigError(f"{where}: column '{column}' is empty")
+    try:
+        value = float(text)
+    except ValueError:
+        raise RigError(f"{where}: column '{column}' is not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise RigError(f"{where}: column '{column}' is not a finite number: {text!r}")
+    return value
+
+
+def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
+    """Parse and validate ``measurements.csv`` against the rig's arms."""
+    if not path.is_file():
+        raise RigError(f"{path}: file not found")
+    try:
+        with path.open(newline="") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            rows = list(reader)
+    except UnicodeDecodeError:
+        raise RigError(f"{path}: not a UTF-8 text file") from None
+    except csv.Error as exc:
+        raise RigError(f"{path}: malformed CSV: {exc}") from None
+    if not header:
+        raise RigError(f"{path}: empty file (a header row is required)")
+    header = [h.strip() for h in header]
+    dup = {h for h in header if header.count(h) > 1}
+    if dup:
+        raise RigError(f"{path}: duplicate column {sorted(dup)[0]!r} in header")
+    required = ["config", "set", "target_x", "target_y", "x", "y"]
+    for a in arms:
+        required += [f"{a}_u1", f"{a}_u2"]
+    for col in required:
+        if col not in header:
+            raise RigError(f"{path}: missing column '{col}'")
+    idx = {h: i for i, h in enumerate(header)}
+    known = set(required)
+    extra_cols = [h for h in header if h not in known]
+
+    n = len(rows)
+    config = np.empty(n, dtype=object)
+    sets = np.empty(n, dtype=object)
+    target = np.full((n, 2), np.nan)
+    observed = np.full((n, 2), np.nan)
+    commands = {a: np.full((n, 2), np.nan) for a in arms}
+    lines = np.zeros(n, int)
+    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
+    keep = np.ones(n, bool)
+    for r, row in enumerate(rows):
+        lineno = r + 2
+        where = f"{path}: line {lineno}"
+        if not row or all(not c.strip() for c in row):
+            keep[r] = False  # blank lines carry no measurement
+            continue
+        if len(row) != len(header):
+            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+        cfg = row[idx["config"]].strip()
+        members = cfg.split("+")
+        if not cfg or any(not m for m in members):
+            raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
+        for m in members:
+            if m not in arms:
+                raise RigError(
+                    f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
+                    f"{', '.join(arms)})"
+                )
+        if len(set(members)) != len(members):
+            raise RigError(f"{where}: config {cfg!r} names the same arm twice")
+        st = row[idx["set"]].strip()
+        if st not in SETS:
+            raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
+        for a in members:
+            spec = arms[a]
+            u = []
+            for j in (1, 2):
+                col = f"{a}_u{j}"
+                if row[idx[col]].strip() == "":
+                    what = "a linked row" if len(members) > 1 else "the row"
+                    raise RigError(f"{where}: {what} for {cfg!r} is missing arm {a!r}'s '{col}'")
+                u.append(_number(row[idx[col]], where, col))
+            for j, (p, (lo, hi)) in enumerate(zip(u, spec.pulse_limits, strict=True)):
+                if not lo <= p <= hi:
+                    raise RigError(
+                        f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm {a!r}'s "
+                        f"pulse_limits [{lo:g}, {hi:g}]"
+                    )
+            commands[a][r] = u
+        for a in arms:
+            if a not in members:
+                for j in (1, 2):
+                    # Cells of arms outside the config are ignored, but must not be garbage
+                    # that hides a mistyped config.
+                    _number(row[idx[f"{a}_u{j}"]], where, f"{a}_u{j}", allow_empty=True)
+        tx = _number(row[idx["target_x"]], where, "target_x", allow_empty=True)
+        ty = _number(row[idx["target_y"]], where, "target_y", allow_empty=True)
+        if math.isnan(tx) != math.isnan(ty):
+            raise RigError(f"{where}: target_x and target_y must both be given or both empty")
+        if len(members) > 1 and math.isnan(tx):
+            raise RigError(f"{where}: linked row {cfg!r} needs target_x and target_y")
+        if not math.isnan(tx):
+            for a in members:
+                if not arms[a].reaches((tx, ty)):
+                    lo, hi = arms[a].reach_mm
+                    raise RigError(
+                        f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s reach "
+                        f"({lo:g} to {hi:g} mm from its base)"
+                    )
+        target[r] = tx, ty
+        observed[r] = _number(row[idx["x"]], where, "x"), _number(row[idx["y"]], where, "y")
+        config[r], sets[r], lines[r] = cfg, st, lineno
+        for h in extra_cols:
+            extra[h].append(row[idx[h]])
+    meas = Measurements(
+        config=config[keep].astype(str),
+        set=sets[keep].astype(str),
+        target=target[keep],
+        commands={a: c[keep] for a, c in commands.items()},
+        observed=observed[keep],
+        line=lines[keep],
+        extra=extra,
+    )
+    if len(meas) == 0:
+        raise RigError(f"{path}: no measurement rows")
+    return meas
+
+
+def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
+    """Load and validate a rig directory.
+
+    ``min_train_rows``: each arm needs at least this many single-arm ``train`` rows (by default
+    as many as it has parameters); pass 0 for rigs still being collected.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise RigError(f"{directory}: rig directory not found")
+    meta = load_rig_toml(directory / RIG_FILE)
+    meas = load_measurements(directory / MEASUREMENTS_FILE, meta["arms"])
+    rig = Rig(measurements=meas, path=directory, **meta)
+    for a in rig.arms:
+        n_train = int(meas.mask(a, "train").sum())
+        if n_train < min_train_rows:
+            raise RigError(
+                f"{directory / MEASUREMENTS_FILE}: arm {a!r} has {n_train} train rows, fewer "
+                f"than its {N_ARM_PARAMS} parameters"
+            )
+    return rig
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def measurement_header(arm_names: Iterable[str]) -> list[str]:
+    cols = ["config", "set", "target_x", "target_y"]
+    for a in arm_names:
+        cols += [f"{a}_u1", f"{a}_u2"]
+    return cols + ["x", "y"]
+
+
+def format_row(
+    arm_names: Iterable[str],
+    config: str,
+    set: str,
+    target: Iterable[float] | None,
+    commands: dict[str, Iterable[float]],
+    observed: Iterable[float],
+) -> list[str]:
+    """One CSV row in :func:`measurement_header` order; pulse widths are written as given."""
+
+    def num(v: float) -> str:
+        return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.6g}"
+
+    row = [config, set]
+    row += [num(float(v)) for v in target] if target is not None else ["", ""]
+    for a in arm_names:
+        row += [num(float(v)) for v in commands[a]] if a in commands else ["", ""]
+    ox, oy = observed
+    return row + [f"{float(ox):.4f}", f"{float(oy):.4f}"]
+
+
+def _toml_value(v: object) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"cannot write non-finite number {v!r} to TOML")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string literal is a valid TOML basic string
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(doc: dict, _prefix: str = "") -> str:
+    """TOML text with arrays on one line, so rig files stay readable and hand-editable."""
+    lines = [f"{_bare(k)} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            name = f"{_prefix}{_bare(k)}"
+            scalars = {kk: vv for kk, vv in v.items() if not isinstance(vv, dict)}
+            if scalars or not v:
+                lines += ["", f"[{name}]"]
+            body = dump_toml(v, name + ".")
+            if body:
+                lines.append(body)
+    return "\n".join(lines).strip("\n") + ("\n" if not _prefix else "")
+
+
+def _bare(key: str) -> str:
+    ok = key and all(c.isalnum() or c in "_-" for c in key)
+    return key if ok else json.dumps(key)
+
+
+def rig_toml_dict(
+    name: str,
+    arms: dict[str, ArmSpec],
+    gravity: tuple[float, float] = (0.0, -1.0),
+    workspace: tuple[tuple[float, float], tuple[float, float]] | None = None,
+) -> dict:
+    doc: dict = {"name": name, "gravity": list(gravity)}
+    if workspace is not None:
+        doc["workspace"] = [list(r) for r in workspace]
+    doc["arms"] = {
+        a.name: {
+            "base": list(a.base),
+            "links": list(a.links),
+            "gain": list(a.gain),
+            "offset": list(a.offset),
+            "elbow": a.elbow,
+            "pulse_limits": [list(p) for p in a.pulse_limits],
+        }
+        for a in arms.values()
+    }
+    return doc

@@ -1,0 +1,442 @@
+"""A physical simulator of servo-driven planar arms: the test bed of the whole project.
+
+Physics, not curve fitting. Each joint is a position servo: a torsional spring of
+stiffness ``k`` (N mm / rad) pulling the joint towards its commanded angle, with an
+optional dead band (backlash) of half-width ``b`` in which the spring exerts nothing.
+Gravity acts in the arm plane on point masses (link masses at mid-link, the elbow servo,
+an end mass). An arm settles where its potential energy
+
+    U(theta) = sum_j 1/2 k_j deadzone(theta_j - theta_cmd_j, b_j)^2 + sum_m m g_acc h_m(theta)
+
+is least (h_m: height of mass m against the gravity direction). Linked arms share their end
+point d and settle at the d that minimises the summed energy of both arms, each arm's joint
+angles being its inverse kinematics at d: a tug of war between the servos' stiffnesses, not
+an average.
+
+Effects (names are a contract, see ``EFFECTS``):
+- ``gravity_sag``: gravity loads the joints with the servos' real stiffness. Without it the
+  servos are treated as ``STIFF_FACTOR`` times stiffer, so gravity still decides which side of
+  a dead band a joint rests on but no longer deflects it measurably.
+- ``backlash``: the dead band; where the gravity torque on a joint changes sign the joint
+  crosses its band and the end point jumps (the paper's bottom-arm discontinuity).
+- ``servo_nonlinearity``: the pulse-to-angle map gets a smooth ripple
+  ``c * sin(2 pi (u - u_mid) / period)``, as a feedback potentiometer's track and the gear
+  train give; over the few hundred microseconds a workspace uses it bends the map visibly.
+Always on: joint repeatability noise (on the commanded angle) and measurement noise on the
+observed end point.
+
+All randomness flows from one seed, so a rig is reproducible from its ``truth.toml``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from bayesrob import kinematics as kin
+from bayesrob.rig import (
+    MEASUREMENTS_FILE,
+    RIG_FILE,
+    ArmSpec,
+    dump_toml,
+    format_row,
+    measurement_header,
+    rig_toml_dict,
+)
+
+EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
+TRUTH_FILE = "truth.toml"
+G_ACC = 9.81  # m/s^2: with masses in kg and lengths in mm, energies come out in N mm
+STIFF_FACTOR = 1000.0
+
+
+@dataclass(frozen=True)
+class ArmTruth:
+    """True physical parameters of one arm (what ``truth.toml`` records)."""
+
+    name: str
+    base: tuple[float, float]
+    links: tuple[float, float]
+    gain: tuple[float, float]
+    offset: tuple[float, float]
+    elbow: int
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
+    link_mass_kg: tuple[float, float] = (0.05, 0.04)
+    elbow_mass_kg: float = 0.065  # the elbow servo
+    end_mass_kg: float = 0.02
+    # Soft enough that sag is not all absorbed by calibration: a hobby servo's position loop
+    # gives a few degrees under its rated load.
+    stiffness_nmm_per_rad: tuple[float, float] = (2500.0, 1800.0)
+    backlash_rad: tuple[float, float] = (0.008, 0.008)  # half-width of the dead band
+    nonlinearity_rad: tuple[float, float] = (0.01, 0.008)  # amplitude of the ripple
+    nonlinearity_period_us: tuple[float, float] = (900.0, 1100.0)
+
+    @property
+    def params(self) -> kin.ArmParams:
+        return kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64)
+                               for x in (self.base, self.links, self.gain, self.offset)))
+
+    @property
+    def u_mid(self) -> np.ndarray:
+        return np.array([(lo + hi) / 2 for lo, hi in self.pulse_limits])
+
+    @property
+    def u_half_span(self) -> np.ndarray:
+        return np.array([(hi - lo) / 2 for lo, hi in self.pulse_limits])
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Everything the simulator knows and the rig files do not."""
+
+    name: str
+    arms: dict[str, ArmTruth]
+    effects: tuple[str, ...] = ()
+    gravity: tuple[float, float] = (0.0, -1.0)
+    workspace: tuple[tuple[float, float], tuple[float, float]] = ((80.0, 260.0), (100.0, 280.0))
+    joint_noise_rad: float = 0.0008
+    measurement_noise_mm: float = 0.35
+    seed: int = 0
+    grid: int = 4
+    nominal_error: dict[str, float] = field(
+        default_factory=lambda: {"base_mm": 2.0, "links_mm": 1.5, "gain_rel": 0.02,
+                                 "offset_rad": 0.02}
+    )
+
+    def with_effects(self, effects: Iterable[str]) -> Truth:
+        effects = tuple(effects)
+        for e in effects:
+            if e not in EFFECTS:
+                raise ValueError(f"unknown effect {e!r}; known: {', '.join(EFFECTS)}")
+        return replace(self, effects=effects)
+
+    # -- file round trip ---------------------------------------------------------------
+    def to_toml(self) -> str:
+        doc = asdict(self)
+        doc["effects"] = list(self.effects)
+        return "# True parameters of a simulated rig. Only tests read this file.\n" + \
+            dump_toml(_lists(doc))
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Truth:
+        doc = tomllib.loads(Path(path).read_text())
+        arms = {n: ArmTruth(**_tuples(a)) for n, a in doc.pop("arms").items()}
+        doc = _tuples(doc)
+        return cls(arms=arms, **doc)
+
+
+def _lists(x):
+    if isinstance(x, dict):
+        return {k: _lists(v) for k, v in x.items()}
+    if isinstance(x, tuple | list):
+        return [_lists(v) for v in x]
+    return x
+
+
+def _tuples(x):
+    if isinstance(x, dict):
+        return {k: _tuples(v) if k != "nominal_error" else v for k, v in x.items()}
+    if isinstance(x, list):
+        return tuple(_tuples(v) for v in x)
+    return x
+
+
+def _offsets_for(base, links, gain, elbow, limits, workspace) -> tuple[float, float]:
+    """Servo offsets that put the workspace centre at mid pulse: how a person mounts horns."""
+    centre = jnp.array([np.mean(workspace[0]), np.mean(workspace[1])])
+    p = kin.ArmParams(jnp.array(base), jnp.array(links), jnp.array(gain), jnp.zeros(2))
+    theta, ok = kin.inverse(p, centre, elbow)
+    assert bool(ok)
+    mid = np.array([(lo + hi) / 2 for lo, hi in limits])
+    return tuple(float(round(t - g * m, 4)) for t, g, m in zip(np.asarray(theta), gain, mid,
+                                                                strict=True))
+
+
+def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Truth:
+    """The paper's setup: a top arm hung from a strut, a bottom arm standing on the base.
+
+    The bottom arm carries most of its mobile mass in the elbow servo and bends its elbow to
+    the left, so across the workspace the gravity torque on its shoulder changes sign and the
+    shoulder's backlash makes the end point jump, as the paper saw.
+    """
+    workspace = ((80.0, 260.0), (100.0, 280.0))
+    limits = ((600.0, 2400.0), (600.0, 2400.0))
+    arms = {}
+    for name, base, links, gain, elbow, masses in (
+        ("top", (20.0, 440.0), (240.0, 220.0), (0.00152, 0.00148), 1,
+         dict(link_mass_kg=(0.05, 0.04), elbow_mass_kg=0.065, end_mass_kg=0.02)),
+        ("bottom", (20.0, -20.0), (220.0, 200.0), (0.00150, 0.00155), -1,
+         dict(link_mass_kg=(0.04, 0.03), elbow_mass_kg=0.09, end_mass_kg=0.01)),
+    ):
+        offset = _offsets_for(base, links, gain, elbow, limits, workspace)
+        arms[name] = ArmTruth(name, base, links, gain, offset, elbow, limits, **masses)
+    return Truth("paper-rig", arms, seed=seed, grid=grid, workspace=workspace).with_effects(
+        effects)
+
+
+# ------------------------------------------------------------------------------ physics
+
+
+def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
+    """The angle each servo tries to hold for pulse widths u (..., 2)."""
+    theta = kin.servo(arm.params, u)
+    if "servo_nonlinearity" in effects:
+        phase = 2 * jnp.pi * (u - arm.u_mid) / jnp.asarray(arm.nonlinearity_period_us)
+        theta = theta + jnp.asarray(arm.nonlinearity_rad) * jnp.sin(phase)
+    return theta
+
+
+def _mass_points(arm: ArmTruth, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Positions (M, 2) and masses (M,) of the arm's point masses."""
+    p = arm.params
+    elbow = kin.elbow_point(p, theta)
+    end = kin.forward(p, theta)
+    pts = jnp.stack([(p.base + elbow) / 2, elbow, (elbow + end) / 2, end])
+    m = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1], arm.end_mass_kg])
+    return pts, m
+
+
+def gravity_torques(arm: ArmTruth, theta: jax.Array, gravity: Sequence[float]) -> jax.Array:
+    """Torque (N mm) that gravity exerts about each joint at configuration theta."""
+    pts, m = _mass_points(arm, theta)
+    force = G_ACC * m[:, None] * jnp.asarray(gravity)[None, :]  # N
+    joints = jnp.stack([arm.params.base, kin.elbow_point(arm.params, theta)])
+    distal = jnp.array([[1, 1, 1, 1], [0, 0, 1, 1]], dtype=float)  # masses beyond each joint
+    r = pts[None, :, :] - joints[:, None, :]
+    tz = r[..., 0] * force[None, :, 1] - r[..., 1] * force[None, :, 0]
+    return jnp.sum(distal * tz, axis=-1)
+
+
+def _deadzone(x: jax.Array, b: jax.Array) -> jax.Array:
+    return jnp.sign(x) * jnp.maximum(jnp.abs(x) - b, 0.0)
+
+
+def arm_energy(arm: ArmTruth, theta: jax.Array, theta_cmd: jax.Array, effects: Sequence[str],
+               gravity: Sequence[float]) -> jax.Array:
+    """Potential energy (N mm) of one arm at joint angles theta."""
+    k = jnp.asarray(arm.stiffness_nmm_per_rad)
+    if "gravity_sag" not in effects:
+        k = k * STIFF_FACTOR
+    b = jnp.asarray(arm.backlash_rad) if "backlash" in effects else jnp.zeros(2)
+    spring = 0.5 * jnp.sum(k * _deadzone(kin.wrap_angle(theta - theta_cmd), b) ** 2)
+    pts, m = _mass_points(arm, theta)
+    # Potential of a mass in a field along unit vector g_dir is -m g (g_dir . r).
+    grav = -G_ACC * jnp.sum(m * (pts @ jnp.asarray(gravity)))
+    return spring + grav
+
+
+class PhysicalRig:
+    """The simulated hardware: pulse widths in, settled end points out.
+
+    Used by ``bayesrob simulate`` and by the simulated serial device, so the files and the
+    pseudo-terminal answer with the same physics.
+    """
+
+    def __init__(self, truth: Truth, seed: int | None = None):
+        self.truth = truth
+        self.rng = np.random.default_rng(truth.seed if seed is None else seed)
+        g = truth.gravity
+        eff = truth.effects
+        self._single = {}
+        self._linked_cache = {}
+        for name, arm in truth.arms.items():
+            def energy(theta, theta_cmd, arm=arm):
+                return arm_energy(arm, theta, theta_cmd, eff, g)
+            self._single[name] = jax.jit(jax.value_and_grad(energy))
+
+    @classmethod
+    def from_rig_dir(cls, directory: str | Path, seed: int | None = None) -> PhysicalRig:
+        return cls(Truth.from_toml(Path(directory) / TRUTH_FILE), seed)
+
+    def _k_scale(self, arm: ArmTruth) -> float:
+        k = min(arm.stiffness_nmm_per_rad)
+        return k * (1.0 if "gravity_sag" in self.truth.effects else STIFF_FACTOR)
+
+    def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
+        """Equilibrium joint angles of a free arm holding commanded angles theta_cmd."""
+        arm = self.truth.arms[name]
+        fun = self._single[name]
+        scale = self._k_scale(arm)
+
+        def obj(t):
+            v, gr = fun(jnp.asarray(t), jnp.asarray(theta_cmd))
+            return float(v) / scale, np.asarray(gr) / scale
+
+        res = scipy.optimize.minimize(obj, np.asarray(theta_cmd, float), jac=True,
+                                      method="BFGS", options={"gtol": 1e-12, "maxiter": 500})
+        return res.x
+
+    def _linked_energy(self, names: tuple[str, ...]):
+        if names not in self._linked_cache:
+            arms = [self.truth.arms[n] for n in names]
+            eff, g = self.truth.effects, self.truth.gravity
+
+            def energy(d, theta_cmds):
+                total = 0.0
+                for arm, tc in zip(arms, theta_cmds, strict=True):
+                    theta, _ = kin.inverse(arm.params, d, arm.elbow)
+                    total = total + arm_energy(arm, theta, tc, eff, g)
+                return total
+
+            self._linked_cache[names] = jax.jit(jax.value_and_grad(energy))
+        return self._linked_cache[names]
+
+    def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
+        """Common end point of arms linked at their end points (least total energy)."""
+        names = tuple(theta_cmds)
+        fun = self._linked_energy(names)
+        tc = tuple(jnp.asarray(theta_cmds[n]) for n in names)
+        free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
+                for n in names]
+        d0 = np.mean(np.asarray(free), axis=0)
+        scale = sum(self._k_scale(self.truth.arms[n]) for n in names)
+
+        def obj(d):
+            v, gr = fun(jnp.asarray(d), tc)
+            return float(v) / scale, np.asarray(gr) / scale
+
+        res = scipy.optimize.minimize(obj, d0, jac=True, method="BFGS",
+                                      options={"gtol": 1e-12, "maxiter": 500})
+        return res.x
+
+    def end_point(self, commands: dict[str, Sequence[float]], noise: bool = True) -> np.ndarray:
+        """Observed end point (mm) for pulse widths per arm; several arms means linked."""
+        theta_cmds = {}
+        for name, u in commands.items():
+            arm = self.truth.arms[name]
+            tc = np.asarray(commanded_angles(arm, jnp.asarray(u, float), self.truth.effects))
+            if noise:
+                tc = tc + self.rng.normal(0.0, self.truth.joint_noise_rad, 2)
+            theta_cmds[name] = tc
+        if len(theta_cmds) == 1:
+            (name, tc), = theta_cmds.items()
+            arm = self.truth.arms[name]
+            d = np.asarray(kin.forward(arm.params, jnp.asarray(self.settle_arm(name, tc))))
+        else:
+            d = self.settle_linked(theta_cmds)
+        if noise:
+            d = d + self.rng.normal(0.0, self.truth.measurement_noise_mm, 2)
+        return d
+
+
+# ------------------------------------------------------------------------------ rig files
+
+
+def grid_points(workspace, n: int) -> np.ndarray:
+    """An n x n grid over the workspace, row by row from the top left."""
+    xs = np.linspace(*workspace[0], n)
+    ys = np.linspace(*workspace[1], n)[::-1]
+    return np.array([(x, y) for y in ys for x in xs])
+
+
+def nominal_specs(truth: Truth, rng: np.random.Generator) -> dict[str, ArmSpec]:
+    """Nominal values as a person would measure them: the truth plus measuring error."""
+    err = truth.nominal_error
+    specs = {}
+    for name, a in truth.arms.items():
+        def r(x, sd, rel=False):
+            x = np.asarray(x, float)
+            return tuple(float(round(v, 5)) for v in
+                         (x * (1 + rng.normal(0, sd, x.shape)) if rel else
+                          x + rng.normal(0, sd, x.shape)))
+        specs[name] = ArmSpec(
+            name, r(a.base, err["base_mm"]), r(a.links, err["links_mm"]),
+            r(a.gain, err["gain_rel"], rel=True), r(a.offset, err["offset_rad"]),
+            a.elbow, a.pulse_limits)
+    return specs
+
+
+def round_pulse(u: np.ndarray) -> np.ndarray:
+    """Controllers resolve a quarter microsecond (the Maestro's unit)."""
+    return np.round(np.asarray(u, float) * 4) / 4
+
+
+def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False) -> Path:
+    """Write a rig directory (rig.toml, measurements.csv, truth.toml) from the truth.
+
+    Training commands aim at the grid through each arm's *nominal* inverse model (a person
+    aiming approximately); validation repeats them; the linked ``test`` rows aim both arms at
+    each grid point through their own inverse models calibrated on the train rows.
+    """
+    from bayesrob.calibration import calibrate_arm  # calibration needs rig types only
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(truth.seed)
+    specs = nominal_specs(truth, rng)
+    plant = PhysicalRig(truth, seed=int(rng.integers(2**31)))
+    names = list(truth.arms)
+    grid = grid_points(truth.workspace, truth.grid)
+    rows = []
+    steps = len(names) * 2 * len(grid) + len(grid)
+    bar = _progress(steps, progress, "simulate")
+    train: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name in names:
+        nominal = kin.Arm.nominal(specs[name])
+        u_all = round_pulse(np.asarray(nominal.command(jnp.asarray(grid))))
+        _check_limits(name, u_all, truth.arms[name].pulse_limits)
+        for set_name in ("train", "validation"):
+            obs = []
+            for u in u_all:
+                d = plant.end_point({name: u})
+                obs.append(d)
+                rows.append(format_row(names, name, set_name, None, {name: u}, d))
+                bar.update()
+            if set_name == "train":
+                train[name] = (u_all, np.asarray(obs))
+    calibrated = {}
+    for name in names:
+        u, d = train[name]
+        calibrated[name] = calibrate_arm(specs[name], u, d).arm
+    linked = "+".join(names)
+    for target in grid:
+        cmds = {}
+        for name in names:
+            u = round_pulse(np.asarray(calibrated[name].command(jnp.asarray(target))))
+            _check_limits(name, u[None], truth.arms[name].pulse_limits)
+            cmds[name] = u
+        d = plant.end_point(cmds)
+        rows.append(format_row(names, linked, "test", target, cmds, d))
+        bar.update()
+    bar.close()
+
+    (out / RIG_FILE).write_text(dump_toml(rig_toml_dict(
+        truth.name, specs, truth.gravity, truth.workspace)))
+    import csv
+    with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(measurement_header(names))
+        w.writerows(rows)
+    (out / TRUTH_FILE).write_text(truth.to_toml())
+    return out
+
+
+def _check_limits(name: str, u: np.ndarray, limits) -> None:
+    lim = np.asarray(limits)
+    bad = ~np.all((u >= lim[:, 0]) & (u <= lim[:, 1]), axis=-1)
+    if bad.any():
+        raise ValueError(f"simulated arm {name!r}: a grid point needs pulses "
+                         f"{u[bad][0].tolist()} outside its limits {limits}")
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    from tqdm.auto import tqdm
+    return tqdm(total=total, disable=not enabled, desc=desc, unit="pt", leave=False)
+
+
+def describe_effect_size(truth: Truth) -> dict[str, float]:
+    """Rough magnitudes at full reach, for humans reading a truth file."""
+    out = {}
+    for name, a in truth.arms.items():
+        reach = sum(a.links)
+        out[f"{name}_backlash_jump_mm"] = 2 * a.backlash_rad[0] * reach
+        out[f"{name}_nonlinearity_mm"] = a.nonlinearity_rad[0] * reach
+    return {k: round(v, 2) for k, v in out.items() if math.isfinite(v)}
