@@ -447,3 +447,10 @@ def rig_toml_dict(
         for a in arms.values()
     }
     return doc
+
+
+def default_rig_dir() -> Path:
+    """The embedded default rig (simulated; see its README for the command that regenerates it)."""
+    from importlib.resources import files
+
+    return Path(str(files("bayesrob.data") / "default_rig"))
