@@ -64,6 +64,13 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _load_rig_arg(path: str | None):
+    """Load the rig a command was given, or the embedded default rig."""
+    from bayesrob.rig import default_rig_dir, load_rig
+
+    return load_rig(path if path is not None else default_rig_dir())
+
+
 # ------------------------------------------------------------------------------ simulate
 
 
@@ -102,7 +109,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", help="rig directory")
+    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
     p.add_argument("--method", choices=["least-squares", "hill-climb"], default="least-squares",
                    help="least-squares (default, scipy) or hill-climb (the paper's baseline)")
     p.add_argument("--json", metavar="OUT", help="write the report as JSON ('-' for stdout)")
@@ -113,9 +120,7 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
 def _calibrate(args: argparse.Namespace) -> int:
     from bayesrob.calibration import calibration_report
     from bayesrob.report import format_calibration
-    from bayesrob.rig import load_rig
-
-    rig = load_rig(args.rig)
+    rig = _load_rig_arg(args.rig)
     doc = calibration_report(rig, args.method)
     if args.json != "-":
         print(format_calibration(doc))

@@ -1,0 +1,101 @@
+"""Calibration recovers a clean rig's true parameters; effects make the error grow."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bayesrob import kinematics as kin
+from bayesrob import simulator as sim
+from bayesrob.calibration import calibrate, calibration_report, mean_ci95
+from bayesrob.rig import load_rig
+
+
+@pytest.fixture(scope="module")
+def clean_rig(tmp_path_factory):
+    # a 6x6 grid makes the parameters well determined, so the z-test below is sharp
+    truth = sim.paper_truth((), seed=11, grid=6)
+    d = sim.simulate_rig(tmp_path_factory.mktemp("clean6"), truth)
+    return load_rig(d), truth
+
+
+def test_least_squares_recovers_true_parameters_within_standard_errors(clean_rig):
+    rig, truth = clean_rig
+    cal = calibrate(rig)
+    z_all = []
+    for name, c in cal.items():
+        true = np.asarray(truth.arms[name].params.to_vector())
+        est = np.asarray(c.arm.params.to_vector())
+        z_all.append((est - true) / c.params_se)
+    z = np.concatenate(z_all)
+    # 16 z-scores; under the fit's own uncertainty |z| < 4 for all of them with
+    # probability > 0.999, and their RMS should be of order one (allow up to 2.5: the
+    # joint noise makes residuals slightly heteroscedastic).
+    assert np.all(np.abs(z) < 4.0), z
+    assert np.sqrt(np.mean(z**2)) < 2.5
+
+
+def test_clean_rig_validation_error_is_at_noise_level(clean_rig):
+    rig, truth = clean_rig
+    doc = calibration_report(rig)
+    # joint noise (0.0008 rad at ~300 mm) and 0.35 mm measurement noise per axis give a
+    # mean Euclidean error of about 0.55 mm; a broken fit would be several mm.
+    for arm in ("top", "bottom"):
+        assert 0.3 < doc["arms"][arm]["validation_error_mm"] < 0.8
+
+
+def test_effects_make_validation_error_grow(tmp_path):
+    errors = {}
+    for effects in ((), ("gravity_sag",), ("backlash",), ("servo_nonlinearity",)):
+        d = sim.simulate_rig(tmp_path / ("_".join(effects) or "none"),
+                             sim.paper_truth(effects, seed=5))
+        doc = calibration_report(load_rig(d))
+        errors[effects] = np.mean([doc["arms"][a]["validation_error_mm"]
+                                   for a in ("top", "bottom")])
+    clean = errors[()]
+    for effects, e in errors.items():
+        if effects:
+            assert e > 1.3 * clean, (effects, e, clean)
+
+
+def test_hill_climb_baseline_fits_and_stops(clean_rig):
+    rig, _ = clean_rig
+    ls = calibrate(rig, "least-squares")
+    hc = calibrate(rig, "hill-climb")
+    for name in ls:
+        # the paper's climb is cruder, but within a factor 2 of least squares on a clean rig
+        assert hc[name].train_error_mm < 2.0 * ls[name].train_error_mm + 0.2
+        assert hc[name].iterations > 0
+
+
+def test_linked_arms_are_more_accurate_on_the_default_rig():
+    from bayesrob.rig import default_rig_dir
+
+    rig = load_rig(default_rig_dir())
+    acc = calibration_report(rig)["accuracy"]
+    assert acc["top+bottom"]["test"]["mean_mm"] < acc["top"]["validation"]["mean_mm"]
+    assert acc["top+bottom"]["test"]["mean_mm"] < acc["bottom"]["validation"]["mean_mm"]
+
+
+def test_mean_ci95_matches_student_t():
+    e = np.array([1.0, 2.0, 3.0, 4.0])
+    out = mean_ci95(e)
+    # t(0.975, 3) = 3.182; sd = 1.291; half width = 3.182 * 1.291 / 2 = 2.054
+    assert out["n"] == 4 and out["mean_mm"] == 2.5
+    np.testing.assert_allclose(out["ci95_mm"], [2.5 - 2.0540, 2.5 + 2.0540], atol=1e-3)
+
+
+def test_calibrate_command_json(tmp_path, clean_rig):
+    rig, _ = clean_rig
+    out = tmp_path / "cal.json"
+    r = subprocess.run([sys.executable, "-m", "bayesrob", "calibrate", str(rig.path),
+                        "--json", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["method"] == "least-squares"
+    assert set(doc["arms"]["top"]["params"]) == {"base", "links", "gain", "offset"}
+    assert doc["accuracy"]["top+bottom"]["test"]["n"] == 36
+    assert "observed accuracy" in r.stdout
+    _ = kin  # the kinematics names used in the report

@@ -1,0 +1,123 @@
+"""The simulator's physics: sag, stiffness, backlash jumps, linked tug of war, determinism."""
+
+from dataclasses import replace
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bayesrob import kinematics as kin
+from bayesrob import simulator as sim
+
+
+def _sag_mm(truth: sim.Truth, name: str, u) -> float:
+    """Distance between the rigid-arm end point and where the loaded arm settles."""
+    plant = sim.PhysicalRig(truth)
+    arm = truth.arms[name]
+    rigid = np.asarray(kin.forward_u(arm.params, jnp.asarray(u)))
+    return float(np.linalg.norm(plant.end_point({name: u}, noise=False) - rigid))
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return sim.paper_truth(("gravity_sag",), seed=0)
+
+
+def test_sag_grows_with_mass_and_shrinks_with_stiffness(truth):
+    # arm stretched out horizontally: every mass loads the shoulder the same way
+    u = np.asarray(kin.servo_inverse(truth.arms["top"].params, jnp.array([0.0, 0.0])))
+    base = _sag_mm(truth, "top", u)
+    heavy = replace(truth, arms={**truth.arms, "top": replace(truth.arms["top"],
+                                                             elbow_mass_kg=0.2)})
+    stiff = replace(truth, arms={**truth.arms, "top": replace(
+        truth.arms["top"], stiffness_nmm_per_rad=(10000.0, 7200.0))})
+    assert base > 1.0  # sag at mid range is millimetres with the default servos
+    assert _sag_mm(heavy, "top", u) > 1.5 * base
+    assert _sag_mm(stiff, "top", u) < 0.5 * base
+
+
+def test_no_sag_without_the_effect(truth):
+    clean = truth.with_effects(())
+    assert _sag_mm(clean, "top", truth.arms["top"].u_mid) < 0.05
+
+
+def test_sag_points_along_gravity(truth):
+    """A horizontal arm sags downwards."""
+    arm = truth.arms["bottom"]
+    theta = jnp.array([0.0, 0.0])  # stretched out horizontally
+    u = np.asarray(kin.servo_inverse(arm.params, theta))
+    plant = sim.PhysicalRig(truth)
+    d = plant.end_point({"bottom": u}, noise=False)
+    rigid = np.asarray(kin.forward(arm.params, theta))
+    assert d[1] < rigid[1] - 1.0
+
+
+def test_backlash_jumps_where_gravity_torque_changes_sign():
+    truth = sim.paper_truth(("backlash",), seed=0)
+    arm = truth.arms["top"]
+    plant = sim.PhysicalRig(truth)
+    # sweep the shoulder through the vertical below the base: torque on joint 1 flips sign
+    t1 = np.linspace(-np.pi / 2 - 0.15, -np.pi / 2 + 0.15, 31)
+    theta_cmd = np.column_stack([t1, np.zeros_like(t1)])
+    settled = np.array([plant.settle_arm("top", tc) for tc in theta_cmd])
+    dev = settled[:, 0] - t1
+    b = arm.backlash_rad[0]
+    # on either side the joint rests against one edge of its dead band
+    assert np.isclose(dev[0], -b, atol=b * 0.05) or np.isclose(dev[0], b, atol=b * 0.05)
+    assert np.isclose(dev[-1], -dev[0], atol=b * 0.05)
+    # crossing the band within two 0.01 rad steps of the sweep: a jump of its full width,
+    # where a smooth sag would change by a fraction of it
+    jump = np.abs(dev[2:] - dev[:-2]).max()
+    assert jump > 1.5 * b
+
+
+def test_linked_arms_settle_near_the_much_stiffer_arm():
+    truth = sim.paper_truth(("gravity_sag",), seed=0)
+    stiff = replace(truth, arms={**truth.arms, "bottom": replace(
+        truth.arms["bottom"], stiffness_nmm_per_rad=(2.5e6, 1.8e6))})
+    plant = sim.PhysicalRig(stiff)
+    target = np.array([170.0, 190.0])
+    # aim the two arms at points 6 mm apart: the tug of war decides where they meet
+    u_top = np.asarray(kin.Arm("top", stiff.arms["top"].params, 1).command(
+        jnp.asarray(target + [3.0, 0.0])))
+    u_bot = np.asarray(kin.Arm("bottom", stiff.arms["bottom"].params, -1).command(
+        jnp.asarray(target - [3.0, 0.0])))
+    linked = plant.end_point({"top": u_top, "bottom": u_bot}, noise=False)
+    free_bot = plant.end_point({"bottom": u_bot}, noise=False)
+    free_top = plant.end_point({"top": u_top}, noise=False)
+    assert np.linalg.norm(linked - free_bot) < 0.5
+    assert np.linalg.norm(linked - free_top) > 5.0
+
+
+def test_equal_arms_meet_between_their_free_end_points():
+    truth = sim.paper_truth((), seed=0)
+    plant = sim.PhysicalRig(truth)
+    target = np.array([170.0, 190.0])
+    u_top = np.asarray(kin.Arm("top", truth.arms["top"].params, 1).command(
+        jnp.asarray(target + [2.0, 0.0])))
+    u_bot = np.asarray(kin.Arm("bottom", truth.arms["bottom"].params, -1).command(
+        jnp.asarray(target - [2.0, 0.0])))
+    linked = plant.end_point({"top": u_top, "bottom": u_bot}, noise=False)
+    # not an average and not either arm's own point: the compliances are anisotropic, so the
+    # meeting point may slide sideways, but it stays between the two aims
+    assert target[0] - 2.0 < linked[0] < target[0] + 2.0
+    assert abs(linked[1] - target[1]) < 2.0
+
+
+def test_simulated_rig_is_deterministic(tmp_path):
+    truth = sim.paper_truth(("backlash", "servo_nonlinearity"), seed=7, grid=3)
+    a = sim.simulate_rig(tmp_path / "a", truth)
+    b = sim.simulate_rig(tmp_path / "b", truth)
+    for f in ("rig.toml", "measurements.csv", "truth.toml"):
+        assert (a / f).read_bytes() == (b / f).read_bytes()
+    assert sim.Truth.from_toml(a / "truth.toml") == truth
+
+
+def test_noise_levels_match_their_settings():
+    truth = replace(sim.paper_truth((), seed=3), joint_noise_rad=0.0)
+    plant = sim.PhysicalRig(truth, seed=1)
+    u = truth.arms["top"].u_mid
+    exact = plant.end_point({"top": u}, noise=False)
+    draws = np.array([plant.end_point({"top": u}) - exact for _ in range(400)])
+    # sd estimate from 400 draws: relative standard error ~ 1/sqrt(800) = 3.5%; allow 12%
+    np.testing.assert_allclose(draws.std(axis=0), truth.measurement_noise_mm, rtol=0.12)
