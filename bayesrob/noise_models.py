@@ -1,0 +1,203 @@
+"""Joint-error models IND, CORR and COND: densities of the angular error at each arm's joints.
+
+The error an arm leaves after calibration is modelled as noise on its joint angles:
+d = f(g(u) + theta_err). From each arm's training rows, theta_err_i = f^-1(d_obs_i) - g(u_i)
+(NOTES item 1), and a Parzen density of theta_err is fitted under one of three assumptions:
+
+- IND: the two joints' errors are independent (a product of two 1-D densities);
+- CORR: they may be correlated (one 2-D density);
+- COND: their density depends on the commands sent, p(theta_err | u).
+
+Each variant is one declarative TOML file in ``models/`` (family, bandwidth selector,
+conditioning, bins, whether the Jacobian is applied); :func:`discover_models` finds them, so a
+new variant needs no code.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.kde import KDE, ConditionalKDE
+from bayesrob.rig import Rig
+
+FAMILIES = ("IND", "CORR", "COND")
+
+
+class ModelFileError(ValueError):
+    """A model file is malformed; the message names the file and key."""
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One joint-error model variant, as declared in a ``models/*.toml`` file."""
+
+    name: str
+    family: str
+    bandwidth: str | float | tuple[float, ...] = "loo-ml-diag"
+    conditioning: str = "kernel"
+    jacobian: bool = True
+    h_range: tuple[float, float] = (0.05, 2.0)
+    bins: int = 10
+    bin_widths: tuple[float, ...] | None = None
+    description: str = ""
+    path: Path | None = field(default=None, compare=False)
+
+    @property
+    def paper(self) -> bool:
+        """Whether this is a paper-faithful variant (by the bandwidth selector)."""
+        return self.bandwidth == "paper"
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> ModelSpec:
+        path = Path(path)
+        try:
+            doc = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ModelFileError(f"{path}: cannot read model file: {exc}") from None
+        known = {"name", "family", "bandwidth", "conditioning", "jacobian", "h_range", "bins",
+                 "bin_widths", "description"}
+        for key in doc:
+            if key not in known:
+                raise ModelFileError(f"{path}: unknown key {key!r} (known: {sorted(known)})")
+        for key in ("name", "family"):
+            if key not in doc:
+                raise ModelFileError(f"{path}: missing key {key!r}")
+        family = str(doc["family"]).upper()
+        if family not in FAMILIES:
+            raise ModelFileError(f"{path}: family must be one of {FAMILIES}, got {family!r}")
+        cond = doc.get("conditioning", "kernel")
+        if cond not in ("kernel", "histogram"):
+            raise ModelFileError(f"{path}: conditioning must be 'kernel' or 'histogram'")
+        bw = doc.get("bandwidth", "loo-ml-diag")
+        if isinstance(bw, list):
+            bw = tuple(float(b) for b in bw)
+        widths = doc.get("bin_widths")
+        return cls(
+            name=str(doc["name"]),
+            family=family,
+            bandwidth=bw,
+            conditioning=cond,
+            jacobian=bool(doc.get("jacobian", True)),
+            h_range=tuple(doc.get("h_range", (0.05, 2.0))),
+            bins=int(doc.get("bins", 10)),
+            bin_widths=tuple(float(w) for w in widths) if widths is not None else None,
+            description=str(doc.get("description", "")),
+            path=path,
+        )
+
+    def fit(self, theta_err: np.ndarray, u: np.ndarray) -> FittedNoiseModel:
+        """Fit the density to one arm's joint errors (N, 2) and commands (N, 2)."""
+        theta_err = np.asarray(theta_err, float)
+        u = np.asarray(u, float)
+        kw: dict[str, Any] = {"warn_on_bound": False}
+        if self.bandwidth in ("paper", "loo-ml"):
+            kw["h_range"] = self.h_range
+        if self.family == "IND":
+            parts = [KDE.fit(theta_err[:, j:j + 1], self.bandwidth, **kw) for j in range(2)]
+            return FittedNoiseModel(self, theta_err, u, parts=parts)
+        if self.family == "CORR":
+            return FittedNoiseModel(self, theta_err, u, parts=[KDE.fit(theta_err, self.bandwidth,
+                                                                         **kw)])
+        if self.conditioning == "histogram":
+            cond = ConditionalKDE.fit(theta_err, u, "histogram", self.bandwidth, bins=self.bins,
+                                      bin_widths=self.bin_widths, **kw)
+        else:
+            bw = None if self.bandwidth == "loo-ml-diag" else self.bandwidth
+            cond = ConditionalKDE.fit(theta_err, u, "kernel", bw, warn_on_bound=False)
+        return FittedNoiseModel(self, theta_err, u, conditional=cond)
+
+
+@dataclass(frozen=True, eq=False)
+class FittedNoiseModel:
+    """A fitted joint-error density for one arm: log p(theta_err | u), traceable in JAX."""
+
+    spec: ModelSpec
+    theta_err: np.ndarray
+    u: np.ndarray
+    parts: list[KDE] | None = None
+    conditional: ConditionalKDE | None = None
+
+    @property
+    def on_bound(self) -> bool:
+        """Whether any bandwidth search ended on its bound (the paper's J_LOO always does)."""
+        if self.conditional is not None:
+            return bool(self.conditional.on_bound)
+        return any(p.on_bound for p in self.parts)
+
+    @property
+    def bandwidth(self) -> np.ndarray:
+        if self.conditional is not None:
+            return np.asarray(self.conditional.bandwidth)
+        return np.concatenate([p.bandwidth for p in self.parts])
+
+    def logpdf(self, theta_err: jnp.ndarray, u: jnp.ndarray) -> jnp.ndarray:
+        """log p(theta_err | u) for (M, 2) errors; u is (M, 2) or one (2,) command."""
+        theta_err = jnp.atleast_2d(theta_err)
+        if self.spec.family == "IND":
+            return self.parts[0].logpdf(theta_err[:, :1]) + self.parts[1].logpdf(theta_err[:, 1:])
+        if self.spec.family == "CORR":
+            return self.parts[0].logpdf(theta_err)
+        return self.conditional.logpdf(theta_err, jnp.atleast_2d(u))
+
+
+def joint_errors(arm: kin.Arm, u: np.ndarray, d_obs: np.ndarray) -> np.ndarray:
+    """theta_err_i = f^-1(d_obs_i) - g(u_i), wrapped to (-pi, pi] (NOTES item 1)."""
+    theta, _ = kin.inverse(arm.params, jnp.asarray(d_obs), arm.elbow)
+    return np.asarray(kin.wrap_angle(theta - kin.servo(arm.params, jnp.asarray(u))))
+
+
+def _source_models_dir() -> Path | None:
+    # In a source checkout models/ sits beside the package; prefer it so edits show at once.
+    here = Path(__file__).resolve().parent.parent / "models"
+    return here if any(here.glob("*.toml")) else None
+
+
+def models_dir() -> Path:
+    """Where the shipped model files are: the checkout's models/ or the installed copy."""
+    src = _source_models_dir()
+    if src is not None:
+        return src
+    from importlib.resources import files
+
+    return Path(str(files("bayesrob.models")))
+
+
+def discover_models(directory: str | Path | None = None,
+                    names: Sequence[str] | None = None) -> list[ModelSpec]:
+    """All model files in a directory (default: the shipped ones), optionally by name."""
+    directory = Path(directory) if directory is not None else models_dir()
+    if not directory.is_dir():
+        raise ModelFileError(f"{directory}: models directory not found")
+    specs = [ModelSpec.from_file(p) for p in sorted(directory.glob("*.toml"))]
+    order = {f: i for i, f in enumerate(FAMILIES)}
+    specs.sort(key=lambda s: (order[s.family], not s.paper, s.name))
+    seen: dict[str, Path] = {}
+    for s in specs:
+        if s.name in seen:
+            raise ModelFileError(f"{s.path}: model name {s.name!r} also used by {seen[s.name]}")
+        seen[s.name] = s.path
+    if names:
+        missing = [n for n in names if n not in seen]
+        if missing:
+            raise ModelFileError(f"{directory}: no model named {missing[0]!r} (have "
+                                 f"{', '.join(seen)})")
+        specs = [s for s in specs if s.name in names]
+    return specs
+
+
+def fit_noise_models(rig: Rig, arms: dict[str, kin.Arm], specs: Sequence[ModelSpec]
+                     ) -> dict[str, dict[str, FittedNoiseModel]]:
+    """Fit every model to every arm's training rows: {model name: {arm: fitted}}."""
+    data = {}
+    for name, arm in arms.items():
+        u, d = rig.arm_rows(name, "train")
+        data[name] = (joint_errors(arm, u, d), u)
+    return {s.name: {a: s.fit(*data[a]) for a in arms} for s in specs}
