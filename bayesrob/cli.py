@@ -128,6 +128,46 @@ def _calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ reproduce
+
+
+def _reproduce_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    p.add_argument("--out", default="reproduction",
+                   help="directory for accuracy.json and the figures (default: ./reproduction)")
+    p.add_argument("--models", nargs="+", metavar="NAME",
+                   help="model names to fit (default: every file in models/)")
+    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--calibration", choices=["least-squares", "hill-climb"],
+                   default="least-squares", help="calibration method (default least-squares)")
+    p.add_argument("--grid-half-width", type=float, default=30.0,
+                   help="half width of the prediction grid around each target, mm (30)")
+    p.add_argument("--grid-n", type=_positive_int, default=100,
+                   help="grid cells per side (100)")
+
+
+@command("reproduce", "run the paper end to end: calibrate, fit IND/CORR/COND, predict, "
+                      "write Figures 3-8 and accuracy.json")(_reproduce_args)
+def _reproduce(args: argparse.Namespace) -> int:
+    from bayesrob.noise_models import ModelFileError
+    from bayesrob.prediction import Grid
+    from bayesrob.reproduction import format_accuracy, run_reproduction, write_reproduction
+
+    rig = _load_rig_arg(args.rig)
+    try:
+        rep = run_reproduction(rig, args.models, args.models_dir,
+                               Grid(args.grid_half_width, args.grid_n), args.calibration,
+                               progress=sys.stderr.isatty())
+    except ModelFileError as exc:
+        raise UsageError(str(exc)) from None
+    written = write_reproduction(rep, args.out)
+    print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
+          f"{rep.seconds:.1f} s")
+    print(format_accuracy(rep.accuracy))
+    print(f"wrote {len(written)} files to {args.out}/")
+    return 0
+
+
 # ------------------------------------------------------------------------------ main
 # Further commands register themselves above this line with @command.
 

@@ -1,0 +1,143 @@
+"""``bayesrob reproduce``: the paper's whole pipeline on a rig, with its figures and numbers.
+
+rig -> calibrated arms -> every joint-error model in ``models/`` -> grid predictions for each
+arm alone and for the linked arms -> accuracy.json, Figures 3-8, a terminal table.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.calibration import Method, calibrate
+from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
+from bayesrob.prediction import Grid, Prediction, accuracy_document, predict, setup_rows, setups
+from bayesrob.report import format_table
+from bayesrob.rig import Rig, RigError
+
+FIGURES = (
+    "fig3_workspace_errors.png",
+    "fig4_accuracy.png",
+    "fig5_ind_densities.png",
+    "fig6_corr_densities.png",
+    "fig7_cond_grid.png",
+    "fig8_error_densities.png",
+)
+
+
+@dataclass
+class Reproduction:
+    """Everything a reproduction computed, for reports and figures."""
+
+    rig: Rig
+    arms: dict[str, kin.Arm]
+    specs: list[ModelSpec]
+    fitted: dict[str, dict[str, FittedNoiseModel]]
+    predictions: dict[str, dict[str, Prediction]]  # model -> setup -> prediction
+    rows: dict[str, dict]  # setup -> commands, targets, observed
+    accuracy: dict
+    seconds: float
+
+    def training_errors(self, arm: str) -> tuple[np.ndarray, np.ndarray]:
+        """Joint errors (N, 2) and commands (N, 2) of an arm's training rows."""
+        u, d = self.rig.arm_rows(arm, "train")
+        return joint_errors(self.arms[arm], u, d), u
+
+
+def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
+                     models_dir: str | Path | None = None, grid: Grid | None = None,
+                     calibration: Method = "least-squares", progress: bool = False
+                     ) -> Reproduction:
+    """Calibrate, fit every model, predict every setup; no files written."""
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    grid = grid if grid is not None else Grid()
+    if not rig.linked_configs:
+        raise RigError(f"{rig.path}: no linked config (e.g. 'a+b' rows in set 'test') to "
+                       "reproduce the paper with")
+    specs = discover_models(models_dir, models)
+    configs = setups(rig)
+    steps = 1 + len(specs) * (len(rig.arms) + len(configs))
+    bar = tqdm(total=steps, disable=not progress, desc="reproduce", unit="step", leave=False)
+    arms = {n: c.arm for n, c in calibrate(rig, calibration).items()}
+    bar.update()
+    data = {}
+    for name, arm in arms.items():
+        u, d = rig.arm_rows(name, "train")
+        data[name] = (joint_errors(arm, u, d), u)
+    rows = {c: setup_rows(rig, arms, c) for c in configs}
+    fitted: dict[str, dict[str, FittedNoiseModel]] = {}
+    predictions: dict[str, dict[str, Prediction]] = {}
+    for spec in specs:
+        bar.set_postfix_str(spec.name)
+        fitted[spec.name] = {}
+        for a in arms:
+            fitted[spec.name][a] = spec.fit(*data[a])
+            bar.update()
+        predictions[spec.name] = {}
+        for c in configs:
+            r = rows[c]
+            predictions[spec.name][c] = predict(c, fitted[spec.name], arms, r["commands"],
+                                                r["targets"], grid, spec.name)
+            bar.update()
+    bar.close()
+    accuracy = accuracy_document(rig, arms, predictions)
+    accuracy["rig"] = rig.name
+    accuracy["calibration"] = calibration
+    accuracy["grid"] = {"half_width_mm": grid.half_width_mm, "n": grid.n}
+    accuracy["models"] = {s.name: {"family": s.family, "paper": s.paper,
+                                   "description": s.description,
+                                   "bandwidth_on_bound": any(f.on_bound for f in
+                                                             fitted[s.name].values())}
+                          for s in specs}
+    return Reproduction(rig, arms, specs, fitted, predictions, rows, accuracy,
+                        time.perf_counter() - t0)
+
+
+def format_accuracy(doc: dict) -> str:
+    """The accuracy table: observed error per setup and each model's predicted error."""
+    rows = []
+    for config, s in doc["setups"].items():
+        obs = s["observed"]
+        lo, hi = obs["ci95_mm"]
+        rows.append([config, "observed", f"{obs['mean_mm']:.2f}", f"[{lo:.2f}, {hi:.2f}]", ""])
+        for model, p in s["predicted"].items():
+            rows.append(["", model, f"{p['expected_error_mm']:.2f}", "",
+                         f"{p['ratio']:.2f}"])
+    return format_table(["setup", "observed / model", "error mm", "95% CI", "pred/obs"], rows)
+
+
+def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
+    """Write accuracy.json and Figures 3-8 into ``out``; returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bayesrob.plots import paper as figs
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "accuracy.json"]
+    written[0].write_text(json.dumps(rep.accuracy, indent=2) + "\n")
+    makers = {
+        "fig3_workspace_errors.png": figs.workspace_errors,
+        "fig4_accuracy.png": figs.accuracy,
+        "fig5_ind_densities.png": figs.ind_densities,
+        "fig6_corr_densities.png": figs.corr_densities,
+        "fig7_cond_grid.png": figs.cond_grid,
+        "fig8_error_densities.png": figs.error_densities,
+    }
+    for name, make in makers.items():
+        fig = make(rep)
+        fig.savefig(out / name, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        written.append(out / name)
+    return written
