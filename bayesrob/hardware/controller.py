@@ -1,0 +1,303 @@
+"""What every servo controller shares: the serial link, the safety checks and the settle loop.
+
+A controller moves named arms (each two channels) to pulse widths, waits until it reports them
+settled, and reads back what it actually commands. The read-back is the guard against a
+command lost or corrupted on the wire: a row is only measured once the controller confirms the
+pulses the row will record.
+
+Safety lives here, not in the protocols: every pulse width is checked against the rig's
+``pulse_limits`` before the first byte of a move is written, so an out-of-limit request raises
+:class:`LimitError` and the port sees nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+import serial
+
+Limits = tuple[tuple[float, float], tuple[float, float]]
+Channels = dict[str, tuple[int, int]]
+Commands = Mapping[str, Sequence[float]]
+
+DEFAULT_TIMEOUT_S = 0.5
+DEFAULT_RETRIES = 5
+DEFAULT_SPEED_US_PER_S = 500.0
+
+
+class ArgumentError(ValueError):
+    """A hardware option is wrong (channels, plan, fault rates); reported as a usage error."""
+
+
+class HardwareError(RuntimeError):
+    """A port cannot be used or a device does not answer as it should; one line for the user."""
+
+
+class LimitError(HardwareError):
+    """A requested pulse width is outside the rig's pulse_limits; nothing was sent."""
+
+
+class DisconnectedError(HardwareError):
+    """The port went away (cable pulled, device reset, power lost)."""
+
+
+class ShortReplyError(HardwareError):
+    """Fewer reply bytes than the command owes arrived before the timeout."""
+
+
+def open_port(port: str, baud: int, timeout_s: float, what: str) -> serial.Serial:
+    """Open a serial port exclusively, so no second program can interleave bytes with ours."""
+    if "://" not in port and not port.upper().startswith("COM") and not os.path.exists(port):
+        raise HardwareError(f"{what} port {port}: no such device")
+    try:
+        return serial.Serial(port, baud, timeout=timeout_s, write_timeout=max(timeout_s, 1.0),
+                             exclusive=True)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise HardwareError(f"{what} port {port}: cannot open it: {exc}") from None
+
+
+class SerialLink:
+    """A serial port whose failures all surface as :class:`HardwareError` naming the port."""
+
+    def __init__(self, port: serial.Serial, what: str):
+        self.port = port
+        self.what = what
+        self.name = getattr(port, "port", None) or what
+
+    def _lost(self, exc: BaseException) -> DisconnectedError:
+        return DisconnectedError(f"lost the {self.what} port {self.name}: {exc}")
+
+    def write(self, data: bytes) -> None:
+        if not isinstance(data, bytes | bytearray):
+            raise TypeError(f"serial data must be bytes, not {type(data).__name__}")
+        try:
+            n = self.port.write(bytes(data))
+            self.port.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+        if n is not None and n != len(data):
+            raise HardwareError(f"{self.what} port {self.name}: wrote {n} of {len(data)} bytes")
+
+    def read_exact(self, n: int, request: str) -> bytes:
+        try:
+            data = self.port.read(n)
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+        if len(data) != n:
+            raise ShortReplyError(f"{self.what} port {self.name}: {request} got {len(data)} of "
+                                  f"{n} reply bytes within {self.port.timeout} s")
+        return data
+
+    def read_until(self, terminator: bytes, request: str, limit: int = 256) -> bytes:
+        try:
+            data = self.port.read_until(terminator, limit)
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+        if not data.endswith(terminator):
+            raise ShortReplyError(f"{self.what} port {self.name}: {request} got no complete "
+                                  f"reply within {self.port.timeout} s (got {data!r})")
+        return data
+
+    def readline(self) -> bytes:
+        """One line or whatever arrived before the timeout (the caller judges it)."""
+        try:
+            return self.port.readline()
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+
+    def discard_input(self) -> None:
+        try:
+            self.port.reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+
+    @property
+    def timeout_s(self) -> float:
+        return float(self.port.timeout or 0.0)
+
+    def close(self) -> None:
+        try:
+            self.port.close()
+        except (serial.SerialException, OSError):
+            pass  # closing a port that vanished is not worth an error on the way out
+
+
+def quantize_us(u: Iterable[float], resolution_us: float) -> tuple[float, ...]:
+    """Round pulse widths to a controller's resolution (quarter-us for a Maestro)."""
+    return tuple(round(float(v) / resolution_us) * resolution_us for v in u)
+
+
+def check_limits(commands: Commands, channels: Mapping[str, tuple[int, int]],
+                 limits: Mapping[str, Limits]) -> dict[str, tuple[float, float]]:
+    """Validate a move before anything is sent; returns the commands as float pairs."""
+    out: dict[str, tuple[float, float]] = {}
+    for arm, u in commands.items():
+        if arm not in channels:
+            raise LimitError(f"arm {arm!r} has no channels on this controller "
+                             f"(known: {', '.join(channels)})")
+        if arm not in limits:
+            raise LimitError(f"arm {arm!r} has no pulse_limits")
+        pair = tuple(float(v) for v in u)
+        if len(pair) != 2:
+            raise LimitError(f"arm {arm!r}: expected two pulse widths, got {list(u)!r}")
+        for j, (p, (lo, hi)) in enumerate(zip(pair, limits[arm], strict=True)):
+            if not math.isfinite(p) or not lo <= p <= hi:
+                raise LimitError(f"arm {arm!r} joint {j + 1}: pulse {p:g} us is outside its "
+                                 f"pulse_limits [{lo:g}, {hi:g}]; nothing was sent")
+        out[arm] = pair  # type: ignore[assignment]
+    return out
+
+
+class ServoController(ABC):
+    """A servo controller driving named two-joint arms.
+
+    Subclasses speak one wire protocol; this class owns the safety check, the retries and the
+    settle loop, so both protocols behave the same to :func:`bayesrob.hardware.collect.collect`.
+    """
+
+    protocol: str = ""
+    resolution_us: float = 1.0  # smallest step the controller can command
+    readback_tolerance_us: float = 0.0  # how far a read-back may differ from the command
+
+    def __init__(self, link: SerialLink, channels: Mapping[str, tuple[int, int]],
+                 limits: Mapping[str, Limits], speed_us_per_s: float | None = None,
+                 retries: int = DEFAULT_RETRIES, poll_s: float = 0.005,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.link = link
+        self.channels: Channels = {a: (int(c[0]), int(c[1])) for a, c in channels.items()}
+        self.limits = dict(limits)
+        self.speed_us_per_s = speed_us_per_s
+        self.retries = max(1, int(retries))
+        self.poll_s = poll_s
+        self._sleep = sleep
+        self.resent_moves = 0
+        self.failed_queries = 0
+        self._targets: dict[int, float] = {}
+
+    # -- protocol hooks ------------------------------------------------------------------
+    @abstractmethod
+    def connect(self) -> str:
+        """Check that the device answers; returns a one-line description of it."""
+
+    @abstractmethod
+    def _send_move(self, moves: list[tuple[int, float]]) -> None:
+        """Write the bytes that move each (channel, pulse_us) pair."""
+
+    @abstractmethod
+    def is_moving(self) -> bool:
+        """Whether the controller is still ramping any output towards its target."""
+
+    @abstractmethod
+    def channel_position(self, channel: int) -> float:
+        """The pulse width (us) the controller currently outputs on a channel."""
+
+    def errors(self) -> list[str]:
+        """Error flags the controller reports (and clears); empty if it has no such query."""
+        return []
+
+    # -- shared behaviour ----------------------------------------------------------------
+    def quantize(self, u: Iterable[float]) -> tuple[float, ...]:
+        """Round pulse widths to what the controller can command, so rows record the truth."""
+        return quantize_us(u, self.resolution_us)
+
+    def check(self, commands: Commands) -> dict[str, tuple[float, float]]:
+        checked = check_limits(commands, self.channels, self.limits)
+        for arm, u in checked.items():
+            if self.quantize(u) != tuple(u):
+                raise LimitError(f"arm {arm!r}: pulses {list(u)} are not multiples of the "
+                                 f"{self.protocol} resolution {self.resolution_us:g} us")
+        return checked
+
+    def _moves(self, commands: Mapping[str, tuple[float, float]]) -> list[tuple[int, float]]:
+        return [(ch, u) for arm, pair in commands.items()
+                for ch, u in zip(self.channels[arm], pair, strict=True)]
+
+    def move(self, commands: Commands) -> None:
+        """Start a move of one or more arms; raises LimitError with nothing sent if unsafe."""
+        checked = self.check(commands)
+        moves = self._moves(checked)
+        self._send_move(moves)
+        self._targets.update(dict(moves))
+
+    def query(self, request: bytes, n_reply: int, what: str,
+              valid: Callable[[bytes], bool] | None = None) -> bytes:
+        """Send a request and read its fixed-length reply, retrying lost or garbled replies.
+
+        Stale bytes (a late reply to an earlier try) are discarded before each try, and after a
+        timeout we wait one more timeout before retrying, so a slow reply cannot be taken for
+        the answer to the next request.
+        """
+        last: HardwareError | None = None
+        for attempt in range(self.retries):
+            if attempt:
+                self.failed_queries += 1
+                self._sleep(self.link.timeout_s)
+            self.link.discard_input()
+            self.link.write(request)
+            try:
+                reply = self.link.read_exact(n_reply, what)
+            except ShortReplyError as exc:
+                last = exc
+                continue
+            if valid is None or valid(reply):
+                return reply
+            last = HardwareError(f"{self.link.what} port {self.link.name}: {what} got an "
+                                 f"invalid reply {reply.hex(' ')}")
+        assert last is not None
+        raise HardwareError(f"{last} (after {self.retries} tries)")
+
+    def read_positions(self, arms: Iterable[str]) -> dict[str, tuple[float, float]]:
+        return {a: (self.channel_position(self.channels[a][0]),
+                    self.channel_position(self.channels[a][1])) for a in arms}
+
+    def _matches(self, pos: Mapping[str, tuple[float, float]],
+                 commands: Mapping[str, tuple[float, float]]) -> bool:
+        tol = self.readback_tolerance_us + 1e-9
+        return all(abs(p - c) <= tol for a in commands
+                   for p, c in zip(pos[a], commands[a], strict=True))
+
+    def settle_timeout_s(self, commands: Mapping[str, tuple[float, float]]) -> float:
+        """Generous time for a full-range move at the configured speed, plus slack."""
+        span = max((hi - lo for a in commands for lo, hi in self.limits[a]), default=0.0)
+        ramp = span / self.speed_us_per_s if self.speed_us_per_s else 0.0
+        return 2.0 * ramp + 5.0 + 4 * self.retries * self.link.timeout_s
+
+    def move_and_settle(self, commands: Commands,
+                        timeout_s: float | None = None) -> dict[str, tuple[float, float]]:
+        """Move, wait until the controller reports the commanded pulses, return the read-back.
+
+        A controller that stops somewhere else (a command lost or garbled on the wire) gets the
+        move again; after ``retries`` moves the mismatch is an error, never a recorded row.
+        """
+        checked = self.check(commands)
+        timeout_s = self.settle_timeout_s(checked) if timeout_s is None else timeout_s
+        pos: dict[str, tuple[float, float]] = {}
+        for _ in range(self.retries):
+            self.move(checked)
+            deadline = time.monotonic() + timeout_s
+            stopped_elsewhere = 0
+            while True:
+                if not self.is_moving():
+                    pos = self.read_positions(checked)
+                    if self._matches(pos, checked):
+                        return pos
+                    # A read-back taken at the instant the ramp ends may lag; only a mismatch
+                    # seen twice while stopped means the target itself is wrong.
+                    stopped_elsewhere += 1
+                    if stopped_elsewhere >= 2:
+                        break
+                if time.monotonic() > deadline:
+                    raise HardwareError(f"{self.protocol}: arms did not settle within "
+                                        f"{timeout_s:.1f} s (last read-back {pos or 'none'})")
+                self._sleep(self.poll_s)
+            self.resent_moves += 1
+        raise HardwareError(f"{self.protocol}: controller outputs {pos} instead of the commanded "
+                            f"{dict(checked)} after {self.retries} tries; check its channel "
+                            "range settings and the wiring")
+
+    def close(self) -> None:
+        self.link.close()

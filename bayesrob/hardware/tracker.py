@@ -1,0 +1,192 @@
+"""Where the end point is: a streaming position tracker on a serial port, or a person typing.
+
+The streaming tracker sends lines continuously. Two formats:
+
+- ``pxyt`` (default): ``$PXYT,<x_mm>,<y_mm>*HH\\r\\n``, HH the hexadecimal XOR of every
+  character between ``$`` and ``*`` (the NMEA 0183 checksum), so a corrupted line is caught.
+- ``plain``: ``<x_mm>,<y_mm>\\r\\n``, for trackers without a checksum (a corrupted digit there
+  goes unnoticed; the median of several readings is the only defence).
+
+A reading is taken after the arm has settled: the input buffer (readings from while the arm
+moved) is discarded, the first, probably partial, line is dropped, and the median of
+``samples`` good lines is the measurement.
+
+Manual entry is for measuring as the paper did, with a ruler-like device: the operator types
+``x y`` for each point, and anything else is asked again, never recorded.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from typing import Literal, Protocol
+
+import numpy as np
+
+from bayesrob.hardware.controller import HardwareError, SerialLink
+
+TrackerFormat = Literal["pxyt", "plain"]
+FORMATS: tuple[str, ...] = ("pxyt", "plain")
+SENTENCE = "PXYT"
+
+
+class TrackerLineError(ValueError):
+    """A tracker line that cannot be used; ``kind`` is 'checksum' or 'malformed'."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind = kind
+
+
+class Tracker(Protocol):
+    def measure(self, label: str) -> np.ndarray:
+        """The end point (x, y) in mm of the current pose; ``label`` says which row it is."""
+        ...
+
+
+def checksum(body: str | bytes) -> int:
+    """XOR of the characters between '$' and '*'."""
+    data = body.encode("ascii") if isinstance(body, str) else body
+    c = 0
+    for b in data:
+        c ^= b
+    return c
+
+
+def format_pxyt(x_mm: float, y_mm: float, decimals: int = 3) -> bytes:
+    body = f"{SENTENCE},{x_mm:.{decimals}f},{y_mm:.{decimals}f}"
+    return f"${body}*{checksum(body):02X}\r\n".encode("ascii")
+
+
+def format_plain(x_mm: float, y_mm: float, decimals: int = 3) -> bytes:
+    return f"{x_mm:.{decimals}f},{y_mm:.{decimals}f}\r\n".encode("ascii")
+
+
+def _xy(fields: list[str], line: bytes) -> tuple[float, float]:
+    if len(fields) != 2:
+        raise TrackerLineError("malformed", f"expected two numbers in {line!r}")
+    try:
+        x, y = float(fields[0]), float(fields[1])
+    except ValueError:
+        raise TrackerLineError("malformed", f"not numbers in {line!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise TrackerLineError("malformed", f"not finite numbers in {line!r}")
+    return x, y
+
+
+def parse_line(line: bytes, fmt: TrackerFormat = "pxyt") -> tuple[float, float]:
+    """One complete tracker line (with or without its line ending) to (x_mm, y_mm)."""
+    try:
+        text = line.decode("ascii").strip("\r\n")
+    except UnicodeDecodeError:
+        raise TrackerLineError("malformed", f"non-ASCII bytes in {line!r}") from None
+    if fmt == "plain":
+        return _xy(text.split(","), line)
+    if fmt != "pxyt":
+        raise ValueError(f"unknown tracker format {fmt!r} (choose from {', '.join(FORMATS)})")
+    if not text.startswith("$") or text.count("*") != 1:
+        raise TrackerLineError("malformed", f"not a $PXYT sentence: {line!r}")
+    body, _, hh = text[1:].partition("*")
+    if len(hh) != 2 or any(c not in "0123456789abcdefABCDEF" for c in hh):
+        raise TrackerLineError("malformed", f"bad checksum field in {line!r}")
+    if int(hh, 16) != checksum(body):
+        raise TrackerLineError("checksum", f"checksum {hh} does not match "
+                                           f"{checksum(body):02X} in {line!r}")
+    fields = body.split(",")
+    if fields[0] != SENTENCE:
+        raise TrackerLineError("malformed", f"not a {SENTENCE} sentence: {line!r}")
+    return _xy(fields[1:], line)
+
+
+class StreamTracker:
+    """A tracker that streams readings continuously over a serial port."""
+
+    def __init__(self, link: SerialLink, fmt: TrackerFormat = "pxyt", samples: int = 5,
+                 timeout_s: float = 3.0):
+        if fmt not in FORMATS:
+            raise ValueError(f"unknown tracker format {fmt!r} (choose from {', '.join(FORMATS)})")
+        if samples < 1:
+            raise ValueError(f"samples must be at least 1, got {samples}")
+        self.link = link
+        self.fmt: TrackerFormat = fmt
+        self.samples = samples
+        self.timeout_s = timeout_s
+        self.bad_checksum = 0
+        self.malformed = 0
+        self.readings = 0
+
+    def read_samples(self) -> np.ndarray:
+        """``samples`` good readings (samples, 2) taken from now on."""
+        self.link.discard_input()
+        # Whatever arrives first may be the tail of a line the tracker was half-way through.
+        self.link.readline()
+        good: list[tuple[float, float]] = []
+        deadline = time.monotonic() + self.timeout_s
+        while len(good) < self.samples:
+            if time.monotonic() > deadline:
+                raise HardwareError(
+                    f"tracker port {self.link.name}: {len(good)} of {self.samples} good "
+                    f"readings within {self.timeout_s:g} s ({self.bad_checksum} bad checksums, "
+                    f"{self.malformed} malformed lines so far); check the port, baud and "
+                    f"--tracker-format")
+            line = self.link.readline()
+            if not line.endswith(b"\n"):
+                continue  # timed out mid-line: the deadline decides
+            try:
+                good.append(parse_line(line, self.fmt))
+            except TrackerLineError as exc:
+                if exc.kind == "checksum":
+                    self.bad_checksum += 1
+                else:
+                    self.malformed += 1
+        self.readings += len(good)
+        return np.asarray(good)
+
+    def measure(self, label: str = "") -> np.ndarray:
+        # The median ignores the odd wild reading that a checksum cannot catch.
+        return np.median(self.read_samples(), axis=0)
+
+
+def parse_manual(text: str) -> tuple[float, float]:
+    """``x y`` (or ``x,y``) in mm, as an operator types it; raises ValueError otherwise."""
+    parts = text.replace(",", " ").split()
+    if len(parts) != 2:
+        raise ValueError("type two numbers, x and y in mm, e.g. '123.5 208'")
+    try:
+        x, y = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise ValueError(f"not numbers: {text.strip()!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"not finite numbers: {text.strip()!r}")
+    return x, y
+
+
+class ManualTracker:
+    """The operator measures and types each end point."""
+
+    def __init__(self, read: Callable[[str], str] = input,
+                 write: Callable[[str], None] | None = None, max_attempts: int | None = None):
+        self.read = read
+        self.write = write or (lambda s: print(s, file=sys.stderr, flush=True))
+        self.max_attempts = max_attempts
+        self.rejected = 0
+
+    def measure(self, label: str = "") -> np.ndarray:
+        attempts = 0
+        while True:
+            try:
+                text = self.read(f"{label} end point x y (mm)> " if label else "x y (mm)> ")
+            except EOFError:
+                raise HardwareError("manual entry: input ended before the point was "
+                                    "measured") from None
+            try:
+                return np.asarray(parse_manual(text), float)
+            except ValueError as exc:
+                self.rejected += 1
+                attempts += 1
+                self.write(f"  not recorded: {exc}")
+                if self.max_attempts is not None and attempts >= self.max_attempts:
+                    raise HardwareError(f"manual entry: {attempts} invalid answers in a "
+                                        "row") from None
