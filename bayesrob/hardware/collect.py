@@ -1,0 +1,630 @@
+"""``bayesrob collect``: the paper's data-collection procedure on a real (or simulated) rig.
+
+For each arm: commands aimed at an N x N grid over the workspace through the arm's nominal
+model (``train``), then the very same commands again (``validation``). Then, once the operator
+has linked the arms' end points, every arm aims at each grid point through its own inverse
+model (calibrated on the train rows already recorded, if there are enough; else nominal): the
+linked ``test`` rows.
+
+Every row goes to ``measurements.csv`` as soon as it is measured, in one ``write`` of the whole
+line followed by ``fsync``, so a run cut short by Ctrl-C, a kill or a lost port leaves a valid
+file holding every completed row. ``resume`` re-plans the same run and skips the rows already
+recorded, matching them by config, set, commands and target in plan order.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bayesrob.hardware.controller import (
+    DEFAULT_RETRIES,
+    DEFAULT_SPEED_US_PER_S,
+    DEFAULT_TIMEOUT_S,
+    ArgumentError,
+    HardwareError,
+    LimitError,
+    SerialLink,
+    ServoController,
+    check_limits,
+    open_port,
+    quantize_us,
+)
+from bayesrob.hardware.tracker import ManualTracker, StreamTracker, Tracker, TrackerFormat
+from bayesrob.rig import (
+    MEASUREMENTS_FILE,
+    N_ARM_PARAMS,
+    RIG_FILE,
+    SETS,
+    ArmSpec,
+    RigError,
+    format_row,
+    load_rig_toml,
+    measurement_header,
+)
+
+PROTOCOLS = ("maestro", "ssc32")
+TARGET_DECIMALS = 2  # targets are rounded so the recorded text is exactly the point aimed at
+_MATCH_TOL = 1e-6
+
+
+# ------------------------------------------------------------------------------ arguments
+
+
+def parse_channels(tokens: Sequence[str]) -> dict[str, tuple[int, int]]:
+    """``["top=0,1", "bottom=2,3"]`` -> ``{"top": (0, 1), "bottom": (2, 3)}``."""
+    out: dict[str, tuple[int, int]] = {}
+    for tok in tokens:
+        name, eq, chans = tok.partition("=")
+        name = name.strip()
+        if not eq or not name:
+            raise ArgumentError(f"--channels: expected ARM=CH1,CH2, got {tok!r}")
+        parts = [p.strip() for p in chans.split(",")]
+        if len(parts) != 2 or not all(p.isdigit() for p in parts):
+            raise ArgumentError(f"--channels: arm {name!r} needs two channel numbers "
+                             f"(shoulder,elbow), got {chans!r}")
+        if name in out:
+            raise ArgumentError(f"--channels: arm {name!r} given twice")
+        out[name] = (int(parts[0]), int(parts[1]))
+    return out
+
+
+def check_channels(channels: dict[str, tuple[int, int]], arm_names: Iterable[str],
+                   n_channels: int) -> None:
+    """Every rig arm has two distinct channels the controller has; nothing else is named."""
+    arm_names = list(arm_names)
+    for name in channels:
+        if name not in arm_names:
+            raise ArgumentError(f"--channels: unknown arm {name!r} (rig.toml has "
+                             f"{', '.join(arm_names)})")
+    for name in arm_names:
+        if name not in channels:
+            raise ArgumentError(f"--channels: no channels given for arm {name!r}")
+    seen: dict[int, str] = {}
+    for name, chs in channels.items():
+        for ch in chs:
+            if not 0 <= ch < n_channels:
+                raise ArgumentError(f"--channels: channel {ch} of arm {name!r} does not exist "
+                                 f"(this controller has channels 0..{n_channels - 1})")
+            if ch in seen:
+                raise ArgumentError(f"--channels: channel {ch} is given to both {seen[ch]!r} "
+                                 f"and {name!r}")
+            seen[ch] = name
+
+
+def parse_plan(text: str) -> tuple[str, ...]:
+    """``train,validation,test`` (any non-empty subset); always run in that order."""
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    for s in items:
+        if s not in SETS:
+            raise ArgumentError(f"--plan: unknown set {s!r} (choose from {', '.join(SETS)})")
+    if not items:
+        raise ArgumentError("--plan: name at least one set")
+    return tuple(s for s in SETS if s in items)
+
+
+# ------------------------------------------------------------------------------ the plan
+
+
+@dataclass(frozen=True)
+class Step:
+    """One row to measure: which arms, which set, the commands and (linked rows) the target."""
+
+    config: str
+    set: str
+    commands: dict[str, tuple[float, float]]
+    target: tuple[float, float] | None = None
+
+    def matches(self, row: RecordedRow) -> bool:
+        if row.config != self.config or row.set != self.set:
+            return False
+        if (row.target is None) != (self.target is None):
+            return False
+        if self.target is not None and row.target is not None and not _close(
+                row.target, self.target):
+            return False
+        return set(row.commands) == set(self.commands) and all(
+            _close(row.commands[a], self.commands[a]) for a in self.commands)
+
+    def describe(self) -> str:
+        cmds = " ".join(f"{a}=[{u[0]:g}, {u[1]:g}]" for a, u in self.commands.items())
+        aim = f" aiming at ({self.target[0]:g}, {self.target[1]:g})" if self.target else ""
+        return f"{self.config} {self.set}{aim}: {cmds}"
+
+
+def _close(a: Sequence[float], b: Sequence[float]) -> bool:
+    return all(abs(x - y) <= _MATCH_TOL * max(1.0, abs(y)) for x, y in zip(a, b, strict=True))
+
+
+def grid_targets(workspace, n: int) -> np.ndarray:
+    """The N x N grid of ``bayesrob.simulator.grid_points``, rounded to TARGET_DECIMALS."""
+    from bayesrob.simulator import grid_points
+
+    return np.round(grid_points(workspace, n), TARGET_DECIMALS)
+
+
+def _aim(arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[float, ...]],
+         what: str) -> list[tuple[float, float]]:
+    import jax.numpy as jnp
+
+    reach = np.asarray(arm.reachable(jnp.asarray(points)))
+    if not reach.all():
+        p = points[~reach][0]
+        raise RigError(f"grid point ({p[0]:g}, {p[1]:g}) is out of reach of arm "
+                       f"{arm.name!r}'s {what} model; shrink the workspace in {RIG_FILE}")
+    u = np.asarray(arm.command(jnp.asarray(points)))
+    return [quantize(row) for row in u]  # type: ignore[misc]
+
+
+def single_arm_steps(specs: dict[str, ArmSpec], workspace, grid: int,
+                     quantize: Callable[[Iterable[float]], tuple[float, ...]],
+                     sets: Sequence[str] = SETS) -> list[Step]:
+    """Train then validation rows of each arm, in rig order, aimed through the nominal model."""
+    from bayesrob.kinematics import Arm
+
+    points = grid_targets(workspace, grid)
+    steps = []
+    for name, spec in specs.items():
+        cmds = _aim(Arm.nominal(spec), points, quantize, "nominal")
+        for s in ("train", "validation"):
+            if s in sets:
+                steps += [Step(name, s, {name: u}) for u in cmds]
+    return steps
+
+
+def linked_steps(specs: dict[str, ArmSpec], arms: dict, workspace, grid: int,
+                 quantize: Callable[[Iterable[float]], tuple[float, ...]]) -> list[Step]:
+    """Test rows: every arm aims at each grid point through its own model (``arms``)."""
+    points = grid_targets(workspace, grid)
+    config = "+".join(specs)
+    per_arm = {name: _aim(arms[name], points, quantize, "calibrated") for name in specs}
+    return [Step(config, "test", {n: per_arm[n][i] for n in specs},
+                 (float(p[0]), float(p[1]))) for i, p in enumerate(points)]
+
+
+def check_plan(steps: Sequence[Step], specs: dict[str, ArmSpec]) -> None:
+    """Every planned pulse inside the rig's pulse_limits, before the first move."""
+    channels = {n: (0, 1) for n in specs}
+    limits = {n: s.pulse_limits for n, s in specs.items()}
+    for step in steps:
+        try:
+            check_limits(step.commands, channels, limits)
+        except LimitError as exc:
+            where = (f"target ({step.target[0]:g}, {step.target[1]:g})" if step.target
+                     else f"a {step.set} grid point")
+            raise LimitError(f"{where} needs pulses outside the limits: {exc}; shrink the "
+                             f"workspace or widen pulse_limits in {RIG_FILE}") from None
+
+
+def arm_models(specs: dict[str, ArmSpec], rows: Sequence[RecordedRow],
+               log: Callable[[str], None] = lambda s: None) -> tuple[dict, dict[str, str]]:
+    """Each arm's model for the test rows: calibrated on its train rows if there are enough.
+
+    Only train rows recorded before the first test row count, so a resumed run plans the test
+    rows exactly as the interrupted one did.
+    """
+    from bayesrob.calibration import calibrate_arm
+    from bayesrob.kinematics import Arm
+
+    first_test = next((i for i, r in enumerate(rows) if r.set == "test"), len(rows))
+    models, kinds = {}, {}
+    for name, spec in specs.items():
+        train = [r for r in rows[:first_test] if r.config == name and r.set == "train"]
+        if len(train) >= N_ARM_PARAMS:
+            u = np.array([r.commands[name] for r in train])
+            d = np.array([r.observed for r in train])
+            try:
+                cal = calibrate_arm(spec, u, d)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                log(f"arm {name!r}: calibration failed ({exc}); aiming with the nominal model")
+            else:
+                models[name], kinds[name] = cal.arm, "calibrated"
+                log(f"arm {name!r}: aiming the test rows with the model calibrated on "
+                    f"{len(train)} train rows (train error {cal.train_error_mm:.2f} mm)")
+                continue
+        else:
+            log(f"arm {name!r}: {len(train)} train rows are fewer than {N_ARM_PARAMS}; aiming "
+                "the test rows with the nominal model")
+        models[name], kinds[name] = Arm.nominal(spec), "nominal"
+    return models, kinds
+
+
+# ------------------------------------------------------------------------------ the file
+
+
+@dataclass(frozen=True)
+class RecordedRow:
+    config: str
+    set: str
+    target: tuple[float, float] | None
+    commands: dict[str, tuple[float, float]]
+    observed: tuple[float, float]
+    line: int
+
+
+def _csv_line(fields: Sequence[str]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(fields)
+    return buf.getvalue()
+
+
+def _float(text: str, where: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise RigError(f"{where}: not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise RigError(f"{where}: not a finite number: {text!r}")
+    return v
+
+
+class MeasurementLog:
+    """``measurements.csv`` opened for appending rows that survive any interruption."""
+
+    def __init__(self, path: str | Path, arm_names: Sequence[str], resume: bool = False):
+        self.path = Path(path)
+        self.arm_names = list(arm_names)
+        self.header = measurement_header(self.arm_names)
+        self.truncated_bytes = 0
+        self.rows: list[RecordedRow] = []
+        data = self.path.read_bytes() if self.path.exists() else b""
+        header_line = _csv_line(self.header).encode()
+        if data and not resume:
+            # Only a (possibly cut) header may be reused without --resume.
+            if not header_line.startswith(data) and data.rstrip(b"\r\n") != header_line.rstrip():
+                raise RigError(f"{self.path}: already holds measurements; pass --resume to "
+                               "continue that run, or move the file away to start afresh")
+        if data and not data.endswith(b"\n"):
+            # A row cut short by a kill or power loss: keep every complete line, drop the rest.
+            keep = data.rfind(b"\n") + 1
+            self.truncated_bytes = len(data) - keep
+            os.truncate(self.path, keep)
+            data = data[:keep]
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            if not data:
+                self._write(header_line)
+                _fsync_dir(self.path.parent)
+            else:
+                self._parse(data)
+        except BaseException:
+            os.close(self._fd)
+            raise
+
+    def _parse(self, data: bytes) -> None:
+        try:
+            text = data.decode("utf-8-sig")  # a BOM from a spreadsheet is not data
+        except UnicodeDecodeError:
+            raise RigError(f"{self.path}: not a UTF-8 text file") from None
+        reader = csv.reader(io.StringIO(text, newline=""))
+        header = [h.strip() for h in next(reader)]
+        if header != self.header:
+            raise RigError(f"{self.path}: header {','.join(header)!r} does not match this rig's "
+                           f"{','.join(self.header)!r}; resume needs the same rig.toml")
+        idx = {h: i for i, h in enumerate(header)}
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            where = f"{self.path}: line {lineno}"
+            if len(row) != len(header):
+                raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+            config, set_ = row[idx["config"]].strip(), row[idx["set"]].strip()
+            commands = {}
+            for a in config.split("+"):
+                if a not in self.arm_names:
+                    raise RigError(f"{where}: config {config!r} names unknown arm {a!r}")
+                commands[a] = (_float(row[idx[f"{a}_u1"]], where),
+                               _float(row[idx[f"{a}_u2"]], where))
+            tx, ty = row[idx["target_x"]].strip(), row[idx["target_y"]].strip()
+            target = (_float(tx, where), _float(ty, where)) if tx or ty else None
+            observed = (_float(row[idx["x"]], where), _float(row[idx["y"]], where))
+            self.rows.append(RecordedRow(config, set_, target, commands, observed, lineno))
+
+    def _write(self, data: bytes) -> None:
+        before = os.fstat(self._fd).st_size
+        n = os.write(self._fd, data)  # one call: a row is on disk whole or not at all
+        if n != len(data):
+            os.ftruncate(self._fd, before)
+            raise HardwareError(f"{self.path}: wrote {n} of {len(data)} bytes (disk full?); "
+                                "the partial row was removed")
+        os.fsync(self._fd)
+
+    def append(self, fields: Sequence[str], parsed: RecordedRow | None = None) -> None:
+        self._write(_csv_line(fields).encode())
+        if parsed is not None:
+            self.rows.append(parsed)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> MeasurementLog:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return  # not supported here (Windows); the file's own fsync still holds its rows
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# ------------------------------------------------------------------------------ the run
+
+
+@dataclass
+class CollectResult:
+    path: Path
+    recorded: int = 0  # rows measured by this run
+    skipped: int = 0  # rows found already recorded (resume)
+    total: int = 0  # rows in the plan
+    complete: bool = False
+    truncated_bytes: int = 0
+    models: dict[str, str] = field(default_factory=dict)  # arm -> calibrated | nominal
+    notes: list[str] = field(default_factory=list)
+
+
+def terminal_confirm(message: str) -> bool:
+    """Ask at the terminal; Enter goes on, 'q' stops."""
+    try:
+        answer = input(f"{message}\n  press Enter when done, or q then Enter to stop: ")
+    except EOFError:
+        raise HardwareError(f"cannot ask '{message}': no terminal input (pass --yes to "
+                            "confirm in advance)") from None
+    return answer.strip().lower() not in ("q", "quit", "n", "no")
+
+
+def _match(steps: Sequence[Step], pending: list[RecordedRow]) -> list[bool]:
+    """Which steps are already recorded; consumes matched rows from ``pending``."""
+    done = []
+    for step in steps:
+        hit = next((i for i, r in enumerate(pending) if step.matches(r)), None)
+        if hit is not None:
+            pending.pop(hit)
+        done.append(hit is not None)
+    return done
+
+
+def _unplanned(rows: Sequence[RecordedRow], path: Path) -> RigError:
+    r = rows[0]
+    return RigError(f"{path}: line {r.line} ({r.config} {r.set}) is not part of this plan; "
+                    "resume needs the same rig.toml, --grid, --plan and --protocol")
+
+
+def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, *,
+            grid: int = 4, plan: Sequence[str] = SETS, settle_s: float = 1.0,
+            resume: bool = False, confirm: Callable[[str], bool] | None = None,
+            progress: bool = False, log: Callable[[str], None] | None = None) -> CollectResult:
+    """Run the paper's procedure on a connected controller and tracker; see the module doc.
+
+    ``confirm`` is asked before each arm's rows (to put the tracker on it; only for a
+    streaming tracker) and before the linked rows (to link the arms); ``None`` confirms
+    everything. Returns what was done; raises HardwareError/RigError with every completed row
+    already safe on disk.
+    """
+    from tqdm.auto import tqdm
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    rig_dir = Path(rig_dir)
+    meta = load_rig_toml(rig_dir / RIG_FILE)
+    specs: dict[str, ArmSpec] = meta["arms"]
+    workspace = meta["workspace"]
+    if workspace is None:
+        raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
+                       "to lay out the grid")
+    if grid < 2:
+        raise ValueError(f"grid must be at least 2, got {grid}")
+    names = list(specs)
+    for name in names:
+        if name not in controller.channels:
+            raise HardwareError(f"arm {name!r} has no channels on the controller")
+        controller.limits[name] = specs[name].pulse_limits
+    singles = single_arm_steps(specs, workspace, grid, controller.quantize, plan)
+    check_plan(singles, specs)
+    do_test = "test" in plan and len(names) > 1
+    n_test = grid * grid if do_test else 0
+    if "test" in plan and len(names) < 2:
+        log("one arm only: no linked test rows to collect")
+
+    result = CollectResult(rig_dir / MEASUREMENTS_FILE, total=len(singles) + n_test)
+    with MeasurementLog(result.path, names, resume) as mlog:
+        result.truncated_bytes = mlog.truncated_bytes
+        if mlog.truncated_bytes:
+            log(f"{result.path}: removed a partial last row ({mlog.truncated_bytes} bytes) left "
+                "by the interrupted run")
+        pending = list(mlog.rows)
+        single_done = _match(singles, pending)
+        tests: list[Step] | None = None
+        test_done: list[bool] = []
+        if do_test and any(r.set == "test" for r in mlog.rows):
+            # Test rows were recorded: re-plan them now, from the same train rows, to match.
+            models, result.models = arm_models(specs, mlog.rows, log)
+            tests = linked_steps(specs, models, workspace, grid, controller.quantize)
+            test_done = _match(tests, pending)
+        if pending:
+            raise _unplanned(pending, result.path)
+        result.skipped = sum(single_done) + sum(test_done)
+        if result.skipped:
+            log(f"resuming: {result.skipped} of {result.total} rows already recorded")
+
+        bar = tqdm(total=result.total, initial=result.skipped, disable=not progress,
+                   desc="collect", unit="row", file=sys.stderr, leave=False)
+
+        def run(step: Step, index: int) -> None:
+            controller.move_and_settle(step.commands)
+            if settle_s > 0:
+                time.sleep(settle_s)
+            observed = tracker.measure(f"[{index + 1}/{result.total}] {step.describe()}")
+            fields = format_row(names, step.config, step.set, step.target, step.commands,
+                                observed)
+            parsed = RecordedRow(step.config, step.set, step.target, step.commands,
+                                 (float(fields[-2]), float(fields[-1])), 0)
+            mlog.append(fields, parsed)
+            result.recorded += 1
+            bar.update(1)
+
+        try:
+            index = 0
+            for name in names:
+                arm_steps = [(s, d) for s, d in zip(singles, single_done, strict=True)
+                             if s.config == name]
+                if confirm and isinstance(tracker, StreamTracker) and not all(
+                        d for _, d in arm_steps):
+                    if not confirm(f"Measuring arm {name!r}: put the tracker's marker on its end "
+                                   "point and unlink the arms."):
+                        result.notes.append("stopped by the operator")
+                        return result
+                for step, done in arm_steps:
+                    if not done:
+                        run(step, index)
+                    index += 1
+            if do_test:
+                if tests is None:
+                    models, result.models = arm_models(specs, mlog.rows, log)
+                    tests = linked_steps(specs, models, workspace, grid, controller.quantize)
+                    test_done = [False] * len(tests)
+                check_plan(tests, specs)
+                if not all(test_done):
+                    if confirm and not confirm(f"Link the end points of {', '.join(names)} for "
+                                               "the test rows."):
+                        result.notes.append("stopped by the operator before the linked rows")
+                        return result
+                for step, done in zip(tests, test_done, strict=True):
+                    if not done:
+                        run(step, index)
+                    index += 1
+        except KeyboardInterrupt:
+            log(f"interrupted: {len(mlog.rows)} rows are safe in {result.path}; continue with "
+                "--resume")
+            raise
+        except HardwareError as exc:
+            raise type(exc)(f"{exc}; {len(mlog.rows)} rows are safe in {result.path}, continue "
+                            "with --resume") from exc
+        finally:
+            bar.close()
+    result.complete = True
+    errs = controller.errors()
+    if errs:
+        result.notes.append(f"controller reported: {', '.join(errs)}")
+    if isinstance(tracker, StreamTracker) and (tracker.bad_checksum or tracker.malformed):
+        result.notes.append(f"tracker: {tracker.bad_checksum} lines with bad checksums and "
+                            f"{tracker.malformed} malformed lines were ignored")
+    if controller.resent_moves or controller.failed_queries:
+        result.notes.append(f"controller: {controller.resent_moves} moves re-sent, "
+                            f"{controller.failed_queries} queries retried")
+    return result
+
+
+# ------------------------------------------------------------------------------ ports
+
+
+def controller_class(protocol: str) -> type[ServoController]:
+    from bayesrob.hardware.maestro import Maestro
+    from bayesrob.hardware.ssc32 import SSC32
+
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
+    return SSC32 if protocol == "ssc32" else Maestro
+
+
+def n_channels(protocol: str) -> int:
+    from bayesrob.hardware import maestro, ssc32
+
+    return ssc32.MAX_CHANNELS if controller_class(protocol) is ssc32.SSC32 else \
+        maestro.MAX_CHANNELS
+
+
+def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int]],
+                    limits: dict, *, baud: int = 9600, maestro_protocol: str = "compact",
+                    device_number: int = 12,
+                    speed_us_per_s: float | None = DEFAULT_SPEED_US_PER_S,
+                    timeout_s: float = DEFAULT_TIMEOUT_S,
+                    retries: int = DEFAULT_RETRIES) -> ServoController:
+    """Open the servo port exclusively and check that the controller answers."""
+    from bayesrob.hardware.maestro import Maestro
+
+    cls = controller_class(protocol)
+    link = SerialLink(open_port(port, baud, timeout_s, "servo"), "servo")
+    try:
+        ctl: ServoController
+        if cls is Maestro:
+            ctl = Maestro(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries,
+                          protocol=maestro_protocol,  # type: ignore[arg-type]
+                          device=device_number)
+        else:
+            ctl = cls(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries)
+        ctl.connect()
+    except BaseException:
+        link.close()
+        raise
+    return ctl
+
+
+def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
+                     channels: dict[str, tuple[int, int]], tracker_port: str | None = None,
+                     manual: bool = False, grid: int = 4, plan: Sequence[str] = SETS,
+                     settle_s: float = 1.0, resume: bool = False,
+                     tracker_format: TrackerFormat = "pxyt", tracker_baud: int = 115200,
+                     samples: int = 5, baud: int = 9600, maestro_protocol: str = "compact",
+                     device_number: int = 12,
+                     speed_us_per_s: float | None = DEFAULT_SPEED_US_PER_S,
+                     timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
+                     confirm: Callable[[str], bool] | None = terminal_confirm,
+                     progress: bool = False,
+                     log: Callable[[str], None] | None = None) -> CollectResult:
+    """What ``bayesrob collect`` does: check the arguments, open the ports, run :func:`collect`.
+
+    Everything that can be checked without hardware (rig.toml, channels, the planned pulses
+    against pulse_limits) is checked before a port is opened, so a bad request sends nothing.
+    """
+    if (tracker_port is None) == (not manual):
+        raise ArgumentError("give either a tracker port or manual entry")
+    rig_dir = Path(rig_dir)
+    meta = load_rig_toml(rig_dir / RIG_FILE)
+    check_channels(channels, meta["arms"], n_channels(protocol))
+    if meta["workspace"] is None:
+        raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
+                       "to lay out the grid")
+    cls = controller_class(protocol)
+    check_plan(single_arm_steps(meta["arms"], meta["workspace"], grid,
+                                lambda u: quantize_us(u, cls.resolution_us), plan), meta["arms"])
+    limits = {n: s.pulse_limits for n, s in meta["arms"].items()}
+    controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
+                                 maestro_protocol=maestro_protocol, device_number=device_number,
+                                 speed_us_per_s=speed_us_per_s, timeout_s=timeout_s,
+                                 retries=retries)
+    tlink = None
+    try:
+        if manual:
+            tracker: Tracker = ManualTracker()
+        else:
+            assert tracker_port is not None
+            tlink = SerialLink(open_port(tracker_port, tracker_baud, timeout_s, "tracker"),
+                               "tracker")
+            tracker = StreamTracker(tlink, tracker_format, samples,
+                                    timeout_s=max(3.0, 10 * timeout_s))
+        return collect(rig_dir, controller, tracker, grid=grid, plan=plan, settle_s=settle_s,
+                       resume=resume, confirm=confirm, progress=progress, log=log)
+    finally:
+        controller.close()
+        if tlink is not None:
+            tlink.close()
