@@ -168,6 +168,166 @@ def _reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ hardware
+# collect and sim-device; the work is in bayesrob.hardware. HardwareError (a port that cannot
+# be opened, a device that stops answering) is reported here like a rig error: one line, exit 2.
+
+
+def _hw_number(kind: type, low: float, high: float | None = None, low_open: bool = False):
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if v != v or (low_open and v <= low) or (not low_open and v < low) or (
+                high is not None and v > high):
+            hi = f" and at most {high:g}" if high is not None else ""
+            raise argparse.ArgumentTypeError(
+                f"must be {'above' if low_open else 'at least'} {low:g}{hi}, got {text}")
+        return v
+    return parse
+
+
+def _collect_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", metavar="RIG_DIR",
+                   help="rig directory with rig.toml (nominal arms and workspace); "
+                        "measurements.csv is written there row by row")
+    p.add_argument("--servo-port", required=True, metavar="PORT",
+                   help="serial port of the servo controller (e.g. /dev/ttyACM0, COM3)")
+    p.add_argument("--protocol", choices=["maestro", "ssc32"], required=True,
+                   help="Pololu Maestro or Lynxmotion SSC-32/SSC-32U")
+    p.add_argument("--channels", nargs="+", required=True, metavar="ARM=CH1,CH2",
+                   help="controller channels of each arm's shoulder and elbow servo, "
+                        "e.g. top=0,1 bottom=2,3")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--tracker-port", metavar="PORT",
+                        help="serial port of a position tracker streaming $PXYT lines")
+    source.add_argument("--manual", action="store_true",
+                        help="type each end point ('x y' in mm) at the prompt instead")
+    p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
+    p.add_argument("--plan", default="train,validation,test",
+                   help="sets to collect, run in this order (train,validation,test)")
+    p.add_argument("--settle", type=_hw_number(float, 0.0), default=1.0, metavar="SECONDS",
+                   help="wait after the controller reports a move done, before measuring (1.0)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run: keep the rows in measurements.csv and "
+                        "collect only the missing ones")
+    p.add_argument("--yes", action="store_true",
+                   help="do not ask before each arm and before linking (the arms must already "
+                        "be set up; for scripts and tests)")
+    p.add_argument("--speed", type=_hw_number(float, 0.0, low_open=True), default=500.0,
+                   metavar="US_PER_S", help="servo speed limit, us of pulse width per second "
+                                            "(500)")
+    p.add_argument("--baud", type=_hw_number(int, 1), default=9600,
+                   help="servo port baud rate (9600)")
+    p.add_argument("--maestro-protocol", choices=["compact", "pololu"], default="compact",
+                   help="Maestro command protocol (compact)")
+    p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
+                   help="Maestro device number for the Pololu protocol (12)")
+    p.add_argument("--timeout", type=_hw_number(float, 0.0, low_open=True), default=0.5,
+                   metavar="SECONDS", help="reply timeout on every read (0.5)")
+    p.add_argument("--retries", type=_hw_number(int, 1), default=5,
+                   help="tries per query or move before giving up (5)")
+    p.add_argument("--tracker-format", choices=["pxyt", "plain"], default="pxyt",
+                   help="tracker lines: $PXYT,x,y*HH with checksum (default) or plain x,y")
+    p.add_argument("--tracker-baud", type=_hw_number(int, 1), default=115200,
+                   help="tracker port baud rate (115200)")
+    p.add_argument("--samples", type=_hw_number(int, 1), default=5,
+                   help="tracker readings per point; their median is recorded (5)")
+
+
+@command("collect", "run the paper's data collection on a servo rig, appending to "
+                    "measurements.csv")(_collect_args)
+def _collect(args: argparse.Namespace) -> int:
+    from bayesrob.hardware import HardwareError
+    from bayesrob.hardware.collect import (
+        ArgumentError,
+        collect_on_ports,
+        parse_channels,
+        parse_plan,
+        terminal_confirm,
+    )
+
+    try:
+        result = collect_on_ports(
+            args.rig, servo_port=args.servo_port, protocol=args.protocol,
+            channels=parse_channels(args.channels), tracker_port=args.tracker_port,
+            manual=args.manual, grid=args.grid, plan=parse_plan(args.plan),
+            settle_s=args.settle, resume=args.resume, tracker_format=args.tracker_format,
+            tracker_baud=args.tracker_baud, samples=args.samples, baud=args.baud,
+            maestro_protocol=args.maestro_protocol, device_number=args.device_number,
+            speed_us_per_s=args.speed, timeout_s=args.timeout, retries=args.retries,
+            confirm=None if args.yes else terminal_confirm,
+            progress=sys.stderr.isatty() and not args.manual)
+    except ArgumentError as exc:
+        raise UsageError(str(exc)) from None
+    except HardwareError as exc:
+        print(f"bayesrob collect: error: {exc}", file=sys.stderr)
+        return 2
+    for note in result.notes:
+        print(note, file=sys.stderr)
+    print(f"{result.path}: {result.recorded} rows recorded, {result.skipped} already there, "
+          f"{result.recorded + result.skipped} of {result.total} planned")
+    if not result.complete:
+        print("stopped before the end; continue with --resume", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _sim_device_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", metavar="RIG_DIR",
+                   help="a simulated rig (truth.toml) from 'bayesrob simulate'")
+    p.add_argument("--protocol", choices=["maestro", "ssc32"], required=True,
+                   help="answer as a Pololu Maestro (compact and Pololu protocol) or an SSC-32")
+    p.add_argument("--effects", type=_effects_list, default=None,
+                   help="physical effects, overriding the truth's (comma-separated; '' = none)")
+    p.add_argument("--seed", type=int, default=None, help="noise seed (the truth's seed)")
+    p.add_argument("--channels", nargs="+", metavar="ARM=CH1,CH2",
+                   help="channels of each arm (default: arms in order on 0,1 then 2,3 ...)")
+    p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
+                   help="Maestro device number for the Pololu protocol (12)")
+    p.add_argument("--linked", choices=["auto", "always", "never"], default="auto",
+                   help="auto: arms are linked while a move commands more than one arm (what "
+                        "collect does after the link confirmation); always; never")
+    p.add_argument("--tracker-format", choices=["pxyt", "plain"], default="pxyt")
+    p.add_argument("--tracker-rate", type=_hw_number(float, 0.0, low_open=True), default=100.0,
+                   metavar="HZ", help="tracker lines per second (100)")
+    p.add_argument("--tracker-noise-mm", type=_hw_number(float, 0.0), default=0.02,
+                   help="jitter of each tracker reading, sd in mm (0.02)")
+    for name, what in (("drop-rate", "bytes sent that are lost"),
+                       ("garble-rate", "bytes sent that arrive changed"),
+                       ("rx-garble-rate", "servo bytes received that are corrupted"),
+                       ("bad-checksum-rate", "tracker lines sent with a wrong checksum")):
+        p.add_argument(f"--{name}", type=_hw_number(float, 0.0, 1.0), default=0.0,
+                       metavar="P", help=f"fault: fraction of {what} (0)")
+    p.add_argument("--reply-delay", type=_hw_number(float, 0.0), default=0.0, metavar="SECONDS",
+                   help="fault: delay every servo reply (0)")
+    p.add_argument("--disconnect-after", type=_hw_number(int, 1), default=None, metavar="K",
+                   help="fault: close the servo port after K commands")
+    p.add_argument("--byte-log", metavar="FILE",
+                   help="append every byte received on the servo port to FILE")
+
+
+@command("sim-device", "serve a simulated rig on pseudo-terminals as a servo controller and "
+                       "tracker (prints the ports; runs until killed)")(_sim_device_args)
+def _sim_device(args: argparse.Namespace) -> int:
+    from bayesrob.hardware.collect import ArgumentError, parse_channels
+    from bayesrob.hardware.simdevice import Faults, run_sim_device
+
+    faults = Faults(args.drop_rate, args.garble_rate, args.rx_garble_rate,
+                    args.bad_checksum_rate, args.reply_delay, args.disconnect_after)
+    try:
+        channels = parse_channels(args.channels) if args.channels else None
+        run_sim_device(args.rig, args.protocol, effects=args.effects, seed=args.seed,
+                       channels=channels, device_number=args.device_number, linked=args.linked,
+                       tracker_format=args.tracker_format, tracker_rate_hz=args.tracker_rate,
+                       tracker_noise_mm=args.tracker_noise_mm, faults=faults,
+                       byte_log=args.byte_log)
+    except ArgumentError as exc:
+        raise UsageError(str(exc)) from None
+    return 0
+
+
 # ------------------------------------------------------------------------------ main
 # Further commands register themselves above this line with @command.
 
