@@ -39,7 +39,7 @@ def move_command(moves: Sequence[tuple[int, float]], speed_us_per_s: float | Non
     for ch, pw in moves:
         p = int(round(float(pw)))
         if not PULSE_RANGE_US[0] <= p <= PULSE_RANGE_US[1]:
-            raise ValueError(f"SSC-32 pulse width must be {PULSE_RANGE_US[0]}..."
+            raise ValueError(f"SSC-32 pulse width must be {PULSE_RANGE_US[0]}.."
                              f"{PULSE_RANGE_US[1]} us, got {pw}")
         part = f"#{_channel(ch)}P{p}"
         if speed_us_per_s:
