@@ -9,8 +9,10 @@ wrong; the command line turns it into that line and exit code 2.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
+import re
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -125,6 +127,22 @@ def split_config(config: str) -> list[str]:
 # ----------------------------------------------------------------------------- rig.toml
 
 
+def _read_text(path: Path) -> str:
+    """A rig file's text: UTF-8 whatever the locale, a leading BOM (Excel, Notepad) dropped."""
+    if not path.is_file():
+        raise RigError(f"{path}: file not found")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise RigError(f"{path}: line {line}: not UTF-8 text (byte {data[exc.start]:#04x})"
+                       ) from None
+
+
 def _pair(value: object, where: str, positive: bool = False) -> tuple[float, float]:
     if not isinstance(value, list | tuple) or len(value) != 2:
         raise RigError(f"{where}: expected a list of two numbers, got {value!r}")
@@ -144,8 +162,9 @@ def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
     for key in ("base", "links", "gain", "offset"):
         if key not in table:
             raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
-    if "+" in name or not name.strip() or "," in name:
-        raise RigError(f"{where}: arm name {name!r} may not be empty or contain '+' or ','")
+    if "+" in name or not name.strip() or "," in name or name != name.strip():
+        raise RigError(f"{where}: arm name {name!r} may not be empty, contain '+' or ',', or "
+                       "start or end with a space")
     base = _pair(table["base"], f"{where}: arms.{name}.base")
     links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
     gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
@@ -171,18 +190,23 @@ def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
 
 def load_rig_toml(path: Path) -> dict:
     """Parse and validate ``rig.toml``; returns the pieces of a :class:`Rig` but its rows."""
-    if not path.is_file():
-        raise RigError(f"{path}: file not found")
+    text = _read_text(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         # Duplicate [arms.x] tables surface here: TOML forbids declaring a table twice.
+        dup = re.match(r"Cannot declare \('arms', '(.*)'\) twice \(at (line \d+)", str(exc))
+        if dup:
+            raise RigError(f"{path}: {dup[2]}: duplicate arm name {dup[1]!r} "
+                           f"([arms.{dup[1]}] declared twice)") from None
         raise RigError(f"{path}: invalid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise RigError(f"{path}: not a UTF-8 text file") from None
     arms_raw = doc.get("arms")
-    if not isinstance(arms_raw, dict) or not arms_raw:
+    if "arms" not in doc:
         raise RigError(f"{path}: missing key 'arms' (at least one [arms.<name>] table)")
+    if not isinstance(arms_raw, dict) or not arms_raw:
+        what = "an empty table" if arms_raw == {} else f"a {type(arms_raw).__name__}"
+        raise RigError(f"{path}: key 'arms' must hold one [arms.<name>] table per arm, "
+                       f"got {what}")
     lowered = [a.lower() for a in arms_raw]
     for a in arms_raw:
         if lowered.count(a.lower()) > 1:
@@ -225,17 +249,19 @@ def _number(text: str, where: str, column: str, allow_empty: bool = False) -> fl
 
 def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     """Parse and validate ``measurements.csv`` against the rig's arms."""
-    if not path.is_file():
-        raise RigError(f"{path}: file not found")
+    text = _read_text(path)
+    reader = csv.reader(io.StringIO(text, newline=""))
+    rows: list[list[str]] = []
+    starts: list[int] = []  # line each record starts on: a quoted field may span lines
     try:
-        with path.open(newline="") as fh:
-            reader = csv.reader(fh)
-            header = next(reader, None)
-            rows = list(reader)
-    except UnicodeDecodeError:
-        raise RigError(f"{path}: not a UTF-8 text file") from None
+        header = next(reader, None)
+        end = reader.line_num
+        for row in reader:
+            rows.append(row)
+            starts.append(end + 1)
+            end = reader.line_num
     except csv.Error as exc:
-        raise RigError(f"{path}: malformed CSV: {exc}") from None
+        raise RigError(f"{path}: line {reader.line_num}: malformed CSV: {exc}") from None
     if not header:
         raise RigError(f"{path}: empty file (a header row is required)")
     header = [h.strip() for h in header]
@@ -262,15 +288,15 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     extra: dict[str, list[str]] = {h: [] for h in extra_cols}
     keep = np.ones(n, bool)
     for r, row in enumerate(rows):
-        lineno = r + 2
+        lineno = starts[r]
         where = f"{path}: line {lineno}"
         if not row or all(not c.strip() for c in row):
             keep[r] = False  # blank lines carry no measurement
             continue
         if len(row) != len(header):
             raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
-        cfg = row[idx["config"]].strip()
-        members = cfg.split("+")
+        members = [m.strip() for m in row[idx["config"]].split("+")]
+        cfg = "+".join(members)  # 'top + bottom' is 'top+bottom'
         if not cfg or any(not m for m in members):
             raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
         for m in members:

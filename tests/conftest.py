@@ -1,0 +1,114 @@
+"""Shared fixtures: one small simulated rig per test session, and fresh copies to break."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def clean_rig_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A valid two-arm rig (grid 4, no physical effects, seed 0), simulated once per session.
+
+    Shared by every test: read it, never write to it (use ``rig_copy`` to mutate).
+    """
+    from bayesrob.simulator import paper_truth, simulate_rig
+
+    return simulate_rig(tmp_path_factory.mktemp("clean_rig"), paper_truth((), seed=0, grid=4))
+
+
+@pytest.fixture
+def rig_copy(clean_rig_dir: Path, tmp_path: Path) -> Path:
+    """A private copy of ``clean_rig_dir`` that a test may edit or break."""
+    dest = tmp_path / "rig"
+    shutil.copytree(clean_rig_dir, dest)
+    return dest
+
+
+# A rig written by hand, as another tool or a person would: three arms with other names,
+# integers where floats are expected, no gravity/workspace, optional keys left out, a
+# column order of its own, extra columns, empty targets and a three-arm linked config.
+HANDMADE_TOML = """\
+# bench rig, measured with calipers
+name = "bench"
+
+[arms.left]
+base = [0, 0]
+links = [200, 150]
+gain = [0.0015, 0.0015]
+offset = [-1.65, -1.25]
+pulse_limits = [[1000, 2000], [900, 2100]]
+
+[arms.right]
+base = [300.0, 0.0]
+links = [200.0, 150.0]
+gain = [-0.0015, -0.0015]
+offset = [4.8, 3.5]
+elbow = -1
+
+[arms.middle]
+base = [150, 320]
+links = [190.5, 160.25]
+gain = [0.0016, 0.0014]
+offset = [-6.9, -1.1]
+elbow = 1
+"""
+HANDMADE_ARMS = {
+    "left": ((0.0, 0.0), (200.0, 150.0), (0.0015, 0.0015), (-1.65, -1.25)),
+    "right": ((300.0, 0.0), (200.0, 150.0), (-0.0015, -0.0015), (4.8, 3.5)),
+    "middle": ((150.0, 320.0), (190.5, 160.25), (0.0016, 0.0014), (-6.9, -1.1)),
+}
+HANDMADE_COLUMNS = ["timestamp", "x", "y", "set", "config", "right_u2", "right_u1", "middle_u1",
+                    "middle_u2", "left_u1", "left_u2", "target_y", "target_x", "operator"]
+HANDMADE_LINKED = {"left+right": [(150.0, 120.0), (140.0, 150.0), (170.0, 100.0)],
+                   "left+middle+right": [(150.0, 120.0), (160.0, 140.0)]}
+
+
+def handmade_rows() -> list[dict[str, str]]:
+    """Rows of the hand-made rig as column -> text; observed points follow the nominal arms."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    rows = []
+    for name, (base, links, gain, offset) in HANDMADE_ARMS.items():
+        pulses = [(u1, u2) for u1 in (1300, 1450, 1600) for u2 in (1350, 1500, 1650)]
+        pulses += [(1375, 1425), (1525, 1575), (1450.5, 1600.25)]
+        for i, (u1, u2) in enumerate(pulses):
+            t1 = gain[0] * u1 + offset[0]
+            t12 = t1 + gain[1] * u2 + offset[1]
+            x = base[0] + links[0] * np.cos(t1) + links[1] * np.cos(t12) + rng.normal(0, 0.3)
+            y = base[1] + links[0] * np.sin(t1) + links[1] * np.sin(t12) + rng.normal(0, 0.3)
+            rows.append({"config": name, "set": "train" if i < 9 else "validation",
+                         f"{name}_u1": str(u1), f"{name}_u2": str(u2),
+                         "x": f"{x:.3f}", "y": f"{y:.3f}"})
+    for config, targets in HANDMADE_LINKED.items():
+        for tx, ty in targets:
+            row = {"config": config, "set": "test", "target_x": f"{tx:g}", "target_y": f"{ty:g}",
+                   "x": f"{tx + 0.4:.2f}", "y": f"{ty - 0.3:.2f}"}
+            for arm in config.split("+"):
+                row[f"{arm}_u1"], row[f"{arm}_u2"] = "1500", "1499.75"
+            rows.append(row)
+    for i, row in enumerate(rows):
+        row["timestamp"] = f"2024-05-0{1 + i % 9}T10:{i % 60:02d}:00"
+        row["operator"] = "kim"
+    return rows
+
+
+def write_handmade_rig(directory: Path) -> Path:
+    import csv
+
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "rig.toml").write_text(HANDMADE_TOML, encoding="utf-8")
+    with (directory / "measurements.csv").open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(HANDMADE_COLUMNS)
+        w.writerows([[row.get(c, "") for c in HANDMADE_COLUMNS] for row in handmade_rows()])
+    return directory
+
+
+@pytest.fixture
+def handmade_rig_dir(tmp_path: Path) -> Path:
+    """A valid three-arm rig (left, right, middle) written without this project's simulator."""
+    return write_handmade_rig(tmp_path / "bench")

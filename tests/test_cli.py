@@ -1,0 +1,313 @@
+"""The ``bayesrob`` command, run as a user runs it (a subprocess).
+
+Bad rigs and bad arguments give exit code 2 and no traceback; a bad rig gives exactly one
+line on stderr and leaves the rig's files untouched; ``calibrate --json`` writes the
+documented schema, also for a rig this project's simulator did not write.
+Each subprocess pays the JAX import, so the cases here are a representative subset of
+``test_rig.py``'s, and the failing runs are started together, a few at a time.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from bayesrob.cli import COMMANDS, main
+from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, load_rig
+
+
+def bayesrob(*args: str, cwd: Path, columns: int = 80) -> subprocess.CompletedProcess:
+    env = dict(os.environ, COLUMNS=str(columns), PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "bayesrob", *map(str, args)], cwd=cwd,
+                          env=env, capture_output=True, text=True, timeout=300)
+
+
+def snapshot(directory: Path) -> dict[str, bytes | None]:
+    """Every file's bytes (None for folders) under a directory."""
+    return {str(p.relative_to(directory)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(directory.rglob("*"))}
+
+
+def edit_csv(rig: Path, edit: Callable[[list[str], list[list[str]]], int]) -> int:
+    path = rig / MEASUREMENTS_FILE
+    with path.open(newline="", encoding="utf-8") as fh:
+        header, *rows = list(csv.reader(fh))
+    line = edit(header, rows)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        csv.writer(fh, lineterminator="\n").writerows([header, *rows])
+    return line
+
+
+def set_cells(config: str, set_name: str, /, **cells: str):
+    """An ``edit_csv`` edit: change cells of the last row of a config and set."""
+    def edit(header: list[str], rows: list[list[str]]) -> int:
+        i = max(i for i, r in enumerate(rows)
+                if r[header.index("config")] == config and r[header.index("set")] == set_name)
+        for column, value in cells.items():
+            rows[i][header.index(column)] = value
+        return i + 2
+    return edit
+
+
+def _missing_measurements(rig: Path) -> tuple[str, list[str]]:
+    (rig / MEASUREMENTS_FILE).unlink()
+    return MEASUREMENTS_FILE, ["not found"]
+
+
+def _unknown_arm(rig: Path) -> tuple[str, list[str]]:
+    line = edit_csv(rig, set_cells("top+bottom", "test", config="top+elbow"))
+    return MEASUREMENTS_FILE, [f"line {line}:", "unknown arm 'elbow'"]
+
+
+def _pulse_outside_limits(rig: Path) -> tuple[str, list[str]]:
+    line = edit_csv(rig, set_cells("bottom", "train", bottom_u1="3000"))
+    return MEASUREMENTS_FILE, [f"line {line}:", "'bottom_u1'", "pulse_limits"]
+
+
+def _linked_row_missing_commands(rig: Path) -> tuple[str, list[str]]:
+    line = edit_csv(rig, set_cells("top+bottom", "test", top_u1="", top_u2=""))
+    return MEASUREMENTS_FILE, [f"line {line}:", "missing arm 'top'"]
+
+
+def _nan_observed(rig: Path) -> tuple[str, list[str]]:
+    line = edit_csv(rig, set_cells("top", "validation", y="NaN"))
+    return MEASUREMENTS_FILE, [f"line {line}:", "'y'", "finite"]
+
+
+def _non_utf8(rig: Path) -> tuple[str, list[str]]:
+    path = rig / MEASUREMENTS_FILE
+    lines = path.read_bytes().split(b"\n")
+    lines[20] = lines[20].replace(b"validation", b"valid\xe9ation")  # Latin-1
+    path.write_bytes(b"\n".join(lines))
+    return MEASUREMENTS_FILE, ["line 21:", "UTF-8"]
+
+
+def _fewer_rows_than_parameters(rig: Path) -> tuple[str, list[str]]:
+    def edit(header: list[str], rows: list[list[str]]) -> int:
+        bottom_train = [r for r in rows if r[0] == "bottom" and r[1] == "train"]
+        rows[:] = [r for r in rows if r not in bottom_train] + bottom_train[:5]
+        return 0
+    edit_csv(rig, edit)
+    return MEASUREMENTS_FILE, ["arm 'bottom'", "5 train rows"]
+
+
+def _invalid_toml(rig: Path) -> tuple[str, list[str]]:
+    path = rig / RIG_FILE
+    path.write_text(path.read_text(encoding="utf-8").replace("elbow = -1", "elbow = -", 1),
+                    encoding="utf-8")
+    return RIG_FILE, ["invalid TOML", "line "]
+
+
+def _elbow_not_pm1(rig: Path) -> tuple[str, list[str]]:
+    path = rig / RIG_FILE
+    path.write_text(path.read_text(encoding="utf-8").replace("elbow = -1", "elbow = -2", 1),
+                    encoding="utf-8")
+    return RIG_FILE, ["arms.bottom.elbow", "+1 or -1"]
+
+
+BAD_RIGS = {f.__name__.lstrip("_"): f for f in (
+    _missing_measurements, _unknown_arm, _pulse_outside_limits, _linked_row_missing_commands,
+    _nan_observed, _non_utf8, _fewer_rows_than_parameters, _invalid_toml, _elbow_not_pm1)}
+
+
+BAD_ARGUMENTS = {
+    "unknown-effect": (["simulate", "{out}", "--effects", "gravity_sag,wobble"],
+                       "unknown effect 'wobble'"),
+    "grid-1": (["simulate", "{out}", "--grid", "1"], "at least 2"),
+    "unknown-method": (["calibrate", "{rig}", "--method", "newton"], "invalid choice: 'newton'"),
+}
+
+
+@pytest.fixture(scope="module")
+def failing_runs(clean_rig_dir, tmp_path_factory) -> dict[str, dict]:
+    """Every run expected to fail, prepared first and then run a few at a time."""
+    jobs: dict[str, dict] = {}
+    for case, prepare in BAD_RIGS.items():
+        work = tmp_path_factory.mktemp(case)
+        rig = work / "rig"
+        shutil.copytree(clean_rig_dir, rig)
+        file, parts = prepare(rig)
+        jobs[case] = dict(work=work, rig=rig, parts=[str(rig / file), *parts],
+                          before=snapshot(rig), report=work / "report.json",
+                          args=["calibrate", rig, "--json", work / "report.json"])
+    work = tmp_path_factory.mktemp("missing-rig")
+    jobs["missing_rig_directory"] = dict(
+        work=work, rig=work / "no-such-rig", parts=[str(work / "no-such-rig"), "not found"],
+        before={}, report=work / "report.json",
+        args=["calibrate", work / "no-such-rig", "--json", work / "report.json"])
+    for case, (args, expected) in BAD_ARGUMENTS.items():
+        work = tmp_path_factory.mktemp(case)
+        jobs[case] = dict(work=work, out=work / "out", expected=expected,
+                          args=[a.format(out=work / "out", rig=clean_rig_dir) for a in args])
+    workers = min(4, max(2, os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:
+        procs = {case: pool.submit(bayesrob, *job["args"], cwd=job["work"])
+                 for case, job in jobs.items()}
+        for case, proc in procs.items():
+            jobs[case]["proc"] = proc.result()
+    return jobs
+
+
+@pytest.mark.parametrize("case", [*BAD_RIGS, "missing_rig_directory"])
+def test_calibrate_bad_rig_one_line_exit_2_files_untouched(failing_runs, case):
+    job = failing_runs[case]
+    proc = job["proc"]
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("bayesrob calibrate: error: "), lines[0]
+    for part in job["parts"]:
+        assert part in lines[0], f"{part!r} not in {lines[0]!r}"
+    assert proc.stdout == ""
+    rig = job["rig"]
+    assert (snapshot(rig) if rig.exists() else {}) == job["before"], \
+        "calibrate modified the rig's files"
+    assert not job["report"].exists()
+
+
+# ----------------------------------------------------------------------------- bad arguments
+
+
+@pytest.mark.parametrize("case", list(BAD_ARGUMENTS))
+def test_bad_arguments_exit_2(failing_runs, case):
+    job = failing_runs[case]
+    proc = job["proc"]
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.splitlines()[-1]
+    command = job["args"][0]
+    assert last.startswith(f"bayesrob {command}: error: ") and job["expected"] in last, \
+        proc.stderr
+    assert proc.stdout == ""
+    assert not job["out"].exists()
+
+
+@pytest.mark.parametrize("argv", [[], ["frobnicate"], ["simulate"], ["simulate", "x", "--grid",
+                                                                     "four"]])
+def test_more_bad_arguments_in_process(argv, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "error:" in err.splitlines()[-1]
+    assert not (tmp_path / "x").exists()
+
+
+# ----------------------------------------------------------------------------- help
+
+
+@pytest.fixture(scope="module")
+def help_text(tmp_path_factory) -> str:
+    proc = bayesrob("--help", cwd=tmp_path_factory.mktemp("help"), columns=80)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    return proc.stdout
+
+
+def test_help_lists_every_registered_command(help_text):
+    assert COMMANDS, "no commands registered"
+    listed = {m[1] for m in re.finditer(r"^ {4}(\S+)", help_text, re.MULTILINE)}
+    assert set(COMMANDS) <= listed, help_text
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "bayesrob/cli.py: argparse's default help layout (help column at 24, wrapping at the "
+    "terminal width) puts a command longer than 8 letters ('calibrate') on a line of its own "
+    "and wraps long help texts ('simulate') at 80 columns"))
+def test_help_gives_each_command_one_line(help_text):
+    lines = help_text.splitlines()
+    for name, (summary, _, _) in COMMANDS.items():
+        pattern = re.compile(rf"\s+{re.escape(name)}\s+{re.escape(summary)}")
+        assert any(pattern.fullmatch(line) for line in lines), f"{name!r}:\n{help_text}"
+
+
+# ----------------------------------------------------------------------------- calibrate --json
+
+
+def _check_number(x, *, nonnegative: bool = False) -> None:
+    assert isinstance(x, float | int) and not isinstance(x, bool), x
+    assert math.isfinite(x), x
+    if nonnegative:
+        assert x >= 0
+
+
+def _check_pair(x) -> None:
+    assert isinstance(x, list) and len(x) == 2, x
+    for v in x:
+        _check_number(v)
+
+
+def _no_nan(name: str):
+    raise AssertionError(f"report is not strict JSON: {name}")
+
+
+def check_calibration_json(doc: dict, rig_dir: Path, method: str) -> None:
+    """The documented ``calibrate --json`` schema, with counts checked against the rig."""
+    rig = load_rig(rig_dir)
+    assert doc["method"] == method
+    assert list(doc["arms"]) == list(rig.arms)
+    for arm in doc["arms"].values():
+        assert set(arm["params"]) == {"base", "links", "gain", "offset"}
+        for pair in arm["params"].values():
+            _check_pair(pair)
+        assert all(v > 0 for v in arm["params"]["links"])
+        _check_number(arm["train_error_mm"], nonnegative=True)
+        _check_number(arm["validation_error_mm"], nonnegative=True)
+    expected = {c: {s for s in ("train", "validation", "test")
+                    if rig.measurements.mask(c, s).any()} for c in rig.configs}
+    assert {c: set(v) for c, v in doc["accuracy"].items()} == expected
+    for config, sets in doc["accuracy"].items():
+        for s, acc in sets.items():
+            assert set(acc) >= {"mean_mm", "ci95_mm", "n"}
+            _check_number(acc["mean_mm"], nonnegative=True)
+            _check_pair(acc["ci95_mm"])
+            lo, hi = acc["ci95_mm"]
+            assert lo <= acc["mean_mm"] <= hi
+            assert isinstance(acc["n"], int) and not isinstance(acc["n"], bool)
+            assert acc["n"] == int(rig.measurements.mask(config, s).sum())
+
+
+def test_calibrate_json_report(clean_rig_dir, tmp_path):
+    before = snapshot(clean_rig_dir)
+    out = tmp_path / "reports" / "cal.json"  # the folder does not exist yet
+    proc = bayesrob("calibrate", clean_rig_dir, "--json", out, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "least-squares" in proc.stdout  # the table for people still goes to stdout
+    doc = json.loads(out.read_text(encoding="utf-8"), parse_constant=_no_nan)
+    check_calibration_json(doc, clean_rig_dir, "least-squares")
+    assert set(doc["arms"]) == {"top", "bottom"}
+    assert set(doc["accuracy"]) == {"top", "bottom", "top+bottom"}
+    assert set(doc["accuracy"]["top"]) == {"train", "validation"}
+    assert set(doc["accuracy"]["top+bottom"]) == {"test"}
+    assert doc["accuracy"]["top"]["validation"]["n"] == 16
+    assert doc["accuracy"]["top+bottom"]["test"]["n"] == 16
+    for arm in doc["arms"].values():
+        assert arm["train_error_mm"] < 5 and arm["validation_error_mm"] < 5
+    assert snapshot(clean_rig_dir) == before
+
+
+def test_calibrate_handmade_rig_json_to_stdout(handmade_rig_dir, tmp_path):
+    """A rig from another tool: three arms with other names, a three-arm linked config."""
+    before = snapshot(handmade_rig_dir)
+    proc = bayesrob("calibrate", handmade_rig_dir, "--method", "hill-climb", "--json", "-",
+                    cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout, parse_constant=_no_nan)  # stdout holds the JSON alone
+    check_calibration_json(doc, handmade_rig_dir, "hill-climb")
+    assert set(doc["arms"]) == {"left", "right", "middle"}
+    assert doc["accuracy"]["left+middle+right"]["test"]["n"] == 2
+    assert snapshot(handmade_rig_dir) == before
