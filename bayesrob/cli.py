@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -332,9 +333,26 @@ def _sim_device(args: argparse.Namespace) -> int:
 # Further commands register themselves above this line with @command.
 
 
+class _CommandListFormatter(argparse.HelpFormatter):
+    """Every command's summary on one line after its name.
+
+    argparse measures sub-command names without their extra indent, so names longer than
+    eight letters would wrap onto a line of their own; the width keeps summaries unbroken.
+    """
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=30, width=160)
+
+    def add_argument(self, action: argparse.Action) -> None:
+        super().add_argument(action)
+        if isinstance(action, argparse._SubParsersAction):
+            self._action_max_length += 2 * self._indent_increment
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bayesrob",
+        formatter_class=_CommandListFormatter,
         description="Predict how accurately modular robot arms place their end point, alone "
                     "and linked.")
     from bayesrob import __version__
@@ -359,6 +377,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader (e.g. `| head`) went away; point stdout at devnull so the interpreter's
+        # final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":

@@ -223,10 +223,6 @@ def test_help_lists_every_registered_command(help_text):
     assert set(COMMANDS) <= listed, help_text
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "bayesrob/cli.py: argparse's default help layout (help column at 24, wrapping at the "
-    "terminal width) puts a command longer than 8 letters ('calibrate') on a line of its own "
-    "and wraps long help texts ('simulate') at 80 columns"))
 def test_help_gives_each_command_one_line(help_text):
     lines = help_text.splitlines()
     for name, (summary, _, _) in COMMANDS.items():
