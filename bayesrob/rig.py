@@ -9,6 +9,7 @@ wrong; the command line turns it into that line and exit code 2.
 from __future__ import annotations
 
 import csv
+import difflib
 import io
 import json
 import math
@@ -159,6 +160,14 @@ def _pair(value: object, where: str, positive: bool = False) -> tuple[float, flo
 def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
     if not isinstance(table, dict):
         raise RigError(f"{where}: [arms.{name}] must be a table")
+    for key in table:
+        if key not in ARM_KEYS:
+            # Keys other tools add are ignored, but a near miss of a known key (say
+            # 'pulse_limit') would silently fall back to a default: refuse it.
+            near = difflib.get_close_matches(key, ARM_KEYS, n=1, cutoff=0.75)
+            if near:
+                raise RigError(f"{where}: [arms.{name}] has unknown key {key!r}; did you mean "
+                               f"{near[0]!r}?")
     for key in ("base", "links", "gain", "offset"):
         if key not in table:
             raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")

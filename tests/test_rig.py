@@ -844,3 +844,17 @@ def test_every_set_name_is_accepted(rig_copy):
     write_csv(rig_copy / MEASUREMENTS_FILE, header, rows)
     sets = set(load_rig(rig_copy).measurements.set.tolist())
     assert sets == set(SETS)
+
+
+def test_misspelled_arm_key_is_refused_not_defaulted(rig_copy):
+    toml = rig_copy / "rig.toml"
+    toml.write_text(toml.read_text().replace("pulse_limits", "pulse_limit", 1))
+    with pytest.raises(RigError, match=r"rig\.toml.*unknown key 'pulse_limit'.*'pulse_limits'"):
+        load_rig(rig_copy)
+
+
+def test_unrelated_extra_arm_key_from_another_tool_is_kept_quiet(rig_copy):
+    toml = rig_copy / "rig.toml"
+    text = toml.read_text().replace("[arms.top]\n", "[arms.top]\nservo_model = \"HSR-5995TG\"\n")
+    toml.write_text(text)
+    assert load_rig(rig_copy).arms["top"].links
