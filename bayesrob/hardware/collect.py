@@ -270,35 +270,43 @@ def _float(text: str, where: str) -> float:
 class MeasurementLog:
     """``measurements.csv`` opened for appending rows that survive any interruption."""
 
-    def __init__(self, path: str | Path, arm_names: Sequence[str], resume: bool = False):
+    def __init__(self, path: str | Path, arm_names: Sequence[str], resume: bool = False,
+                 check_only: bool = False):
+        """Open (creating it with its header if needed); ``check_only`` validates, writes
+        nothing and leaves the file closed."""
         self.path = Path(path)
         self.arm_names = list(arm_names)
         self.header = measurement_header(self.arm_names)
         self.truncated_bytes = 0
+        self.truncated_text = ""
         self.rows: list[RecordedRow] = []
+        self._fd = -1
         data = self.path.read_bytes() if self.path.exists() else b""
         header_line = _csv_line(self.header).encode()
-        if data and not resume:
+        if not resume and len([ln for ln in data.splitlines() if ln.strip()]) > 1:
             # Only a (possibly cut) header may be reused without --resume.
-            if not header_line.startswith(data) and data.rstrip(b"\r\n") != header_line.rstrip():
-                raise RigError(f"{self.path}: already holds measurements; pass --resume to "
-                               "continue that run, or move the file away to start afresh")
+            raise RigError(f"{self.path}: already holds measurements; pass --resume to "
+                           "continue that run, or move the file away to start afresh")
         if data and not data.endswith(b"\n"):
             # A row cut short by a kill or power loss: keep every complete line, drop the rest.
             keep = data.rfind(b"\n") + 1
             self.truncated_bytes = len(data) - keep
-            os.truncate(self.path, keep)
+            self.truncated_text = data[keep:].decode("utf-8", "replace")
             data = data[:keep]
+            if not check_only:
+                os.truncate(self.path, keep)
+        if data:
+            self._parse(data)
+        if check_only:
+            return
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        try:
-            if not data:
+        if not data:
+            try:
                 self._write(header_line)
-                _fsync_dir(self.path.parent)
-            else:
-                self._parse(data)
-        except BaseException:
-            os.close(self._fd)
-            raise
+            except BaseException:
+                self.close()
+                raise
+            _fsync_dir(self.path.parent)
 
     def _parse(self, data: bytes) -> None:
         try:
@@ -410,6 +418,30 @@ def _unplanned(rows: Sequence[RecordedRow], path: Path) -> RigError:
                     "resume needs the same rig.toml, --grid, --plan and --protocol")
 
 
+def match_recorded(specs: dict[str, ArmSpec], workspace, grid: int,
+                   quantize: Callable[[Iterable[float]], tuple[float, ...]],
+                   singles: Sequence[Step], do_test: bool, rows: Sequence[RecordedRow],
+                   path: Path, log: Callable[[str], None] = lambda s: None
+                   ) -> tuple[list[bool], list[Step] | None, list[bool], dict[str, str]]:
+    """Which planned steps ``rows`` already hold; raises RigError for a row the plan lacks.
+
+    Test steps are only planned here when test rows were recorded (re-planned from the same
+    train rows, so they match); otherwise they are planned when the run gets to them.
+    """
+    pending = list(rows)
+    single_done = _match(singles, pending)
+    tests: list[Step] | None = None
+    test_done: list[bool] = []
+    kinds: dict[str, str] = {}
+    if do_test and any(r.set == "test" for r in rows):
+        models, kinds = arm_models(specs, rows, log)
+        tests = linked_steps(specs, models, workspace, grid, quantize)
+        test_done = _match(tests, pending)
+    if pending:
+        raise _unplanned(pending, path)
+    return single_done, tests, test_done, kinds
+
+
 def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, *,
             grid: int = 4, plan: Sequence[str] = SETS, settle_s: float = 1.0,
             resume: bool = False, confirm: Callable[[str], bool] | None = None,
@@ -449,19 +481,13 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     with MeasurementLog(result.path, names, resume) as mlog:
         result.truncated_bytes = mlog.truncated_bytes
         if mlog.truncated_bytes:
-            log(f"{result.path}: removed a partial last row ({mlog.truncated_bytes} bytes) left "
-                "by the interrupted run")
-        pending = list(mlog.rows)
-        single_done = _match(singles, pending)
-        tests: list[Step] | None = None
-        test_done: list[bool] = []
-        if do_test and any(r.set == "test" for r in mlog.rows):
-            # Test rows were recorded: re-plan them now, from the same train rows, to match.
-            models, result.models = arm_models(specs, mlog.rows, log)
-            tests = linked_steps(specs, models, workspace, grid, controller.quantize)
-            test_done = _match(tests, pending)
-        if pending:
-            raise _unplanned(pending, result.path)
+            log(f"{result.path}: removed a partial last row left by the interrupted run: "
+                f"{mlog.truncated_text!r}")
+        single_done, tests, test_done, models = match_recorded(
+            specs, workspace, grid, controller.quantize, singles, do_test, mlog.rows,
+            result.path, log)
+        if models:
+            result.models = models
         result.skipped = sum(single_done) + sum(test_done)
         if result.skipped:
             log(f"resuming: {result.skipped} of {result.total} rows already recorded")
@@ -605,8 +631,18 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
         raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
                        "to lay out the grid")
     cls = controller_class(protocol)
-    check_plan(single_arm_steps(meta["arms"], meta["workspace"], grid,
-                                lambda u: quantize_us(u, cls.resolution_us), plan), meta["arms"])
+    def quantize(u: Iterable[float]) -> tuple[float, ...]:
+        return quantize_us(u, cls.resolution_us)
+
+    singles = single_arm_steps(meta["arms"], meta["workspace"], grid, quantize, plan)
+    check_plan(singles, meta["arms"])
+    # Refuse to touch an existing file without --resume, or to resume a different plan,
+    # before any port is opened.
+    existing = MeasurementLog(rig_dir / MEASUREMENTS_FILE, list(meta["arms"]), resume,
+                              check_only=True)
+    if existing.rows:
+        match_recorded(meta["arms"], meta["workspace"], grid, quantize, singles,
+                       "test" in plan and len(meta["arms"]) > 1, existing.rows, existing.path)
     limits = {n: s.pulse_limits for n, s in meta["arms"].items()}
     controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
                                  maestro_protocol=maestro_protocol, device_number=device_number,

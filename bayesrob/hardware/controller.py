@@ -20,6 +20,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import serial
 
+try:
+    import termios
+except ImportError:  # Windows
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError)
+else:
+    # pyserial lets termios.error through from flush() (tcdrain) on a port that went away.
+    _PORT_ERRORS = (serial.SerialException, OSError, termios.error)
+
 Limits = tuple[tuple[float, float], tuple[float, float]]
 Channels = dict[str, tuple[int, int]]
 Commands = Mapping[str, Sequence[float]]
@@ -77,7 +85,7 @@ class SerialLink:
         try:
             n = self.port.write(bytes(data))
             self.port.flush()
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise self._lost(exc) from None
         if n is not None and n != len(data):
             raise HardwareError(f"{self.what} port {self.name}: wrote {n} of {len(data)} bytes")
@@ -85,7 +93,7 @@ class SerialLink:
     def read_exact(self, n: int, request: str) -> bytes:
         try:
             data = self.port.read(n)
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise self._lost(exc) from None
         if len(data) != n:
             raise ShortReplyError(f"{self.what} port {self.name}: {request} got {len(data)} of "
@@ -95,7 +103,7 @@ class SerialLink:
     def read_until(self, terminator: bytes, request: str, limit: int = 256) -> bytes:
         try:
             data = self.port.read_until(terminator, limit)
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise self._lost(exc) from None
         if not data.endswith(terminator):
             raise ShortReplyError(f"{self.what} port {self.name}: {request} got no complete "
@@ -106,13 +114,13 @@ class SerialLink:
         """One line or whatever arrived before the timeout (the caller judges it)."""
         try:
             return self.port.readline()
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
     def discard_input(self) -> None:
         try:
             self.port.reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
     @property
@@ -122,7 +130,7 @@ class SerialLink:
     def close(self) -> None:
         try:
             self.port.close()
-        except (serial.SerialException, OSError):
+        except _PORT_ERRORS:
             pass  # closing a port that vanished is not worth an error on the way out
 
 

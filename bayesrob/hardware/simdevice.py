@@ -127,7 +127,10 @@ class MaestroDecoder:
             if command == mae.SET_MULTIPLE_TARGETS:
                 if len(buf) < head + 1:
                     break
-                n = 2 + 2 * buf[head] if buf[head] < 0x80 else 0
+                if buf[head] >= 0x80:
+                    self._error(head)
+                    continue
+                n = 2 + 2 * buf[head]
             elif command in _MAESTRO_DATA:
                 n = _MAESTRO_DATA[command]
             else:
@@ -421,7 +424,14 @@ class SimDevice:
             else:
                 commands = [("s", c) for c in self._ssc32.feed(data)]
             for kind, cmd in commands:
-                reply = self._maestro_command(*cmd) if kind == "m" else self._ssc32_command(cmd)
+                try:
+                    reply = (self._maestro_command(*cmd) if kind == "m"
+                             else self._ssc32_command(cmd))
+                except (IndexError, ValueError, KeyError):
+                    # A command the decoder let through but cannot be carried out: a real
+                    # controller flags it and keeps serving, and so do we.
+                    self._maestro.errors |= PROTOCOL_ERROR_BIT
+                    reply = b""
                 if reply:
                     self._reply(master, reply)
                 self.commands_handled += 1

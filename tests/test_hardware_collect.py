@@ -1,0 +1,555 @@
+"""``bayesrob collect`` against the simulated device, through real pseudo-terminal serial ports.
+
+The device (``SimDevice``) answers as a Maestro or an SSC-32 and streams tracker lines, with the
+end points of the physical simulator; nothing here is a mock. Grids are small (2 or 3) and
+settle times zero so the whole file runs in well under a minute.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import serial
+
+from bayesrob.calibration import calibration_report
+from bayesrob.cli import main
+from bayesrob.hardware import DisconnectedError, HardwareError, LimitError
+from bayesrob.hardware.collect import (
+    MeasurementLog,
+    collect,
+    collect_on_ports,
+    linked_steps,
+    open_controller,
+    single_arm_steps,
+)
+from bayesrob.hardware.controller import SerialLink, open_port, quantize_us
+from bayesrob.hardware.simdevice import Faults, SimDevice
+from bayesrob.hardware.tracker import ManualTracker, StreamTracker
+from bayesrob.kinematics import Arm
+from bayesrob.rig import RigError, dump_toml, load_measurements, load_rig, load_rig_toml
+from bayesrob.rig import rig_toml_dict as _rig_toml_dict
+from bayesrob.simulator import PhysicalRig, nominal_specs, paper_truth
+
+CHANNELS = {"top": (0, 1), "bottom": (2, 3)}
+CHANNEL_ARGS = ["top=0,1", "bottom=2,3"]
+# Fast enough for CI, slow enough that the controllers really ramp (a few ms per move).
+FAST = dict(settle_s=0.0, speed_us_per_s=50000.0, timeout_s=1.0, confirm=None, progress=False)
+PROTOCOLS = [("maestro", "compact"), ("maestro", "pololu"), ("ssc32", "compact")]
+RESOLUTION = {"maestro": 0.25, "ssc32": 1.0}
+
+
+# ------------------------------------------------------------------------------ fixtures
+
+
+@pytest.fixture(scope="module")
+def sim_rig(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """truth.toml and rig.toml of the paper's clean two-arm rig; no measurements."""
+    truth = paper_truth((), seed=3, grid=3)
+    d = tmp_path_factory.mktemp("hw_sim_rig")
+    specs = nominal_specs(truth, np.random.default_rng(truth.seed))
+    (d / "rig.toml").write_text(dump_toml(_rig_toml_dict(truth.name, specs, truth.gravity,
+                                                         truth.workspace)))
+    (d / "truth.toml").write_text(truth.to_toml())
+    return d
+
+
+@pytest.fixture(scope="module")
+def plant(sim_rig: Path) -> PhysicalRig:
+    # One plant for the module: its solvers compile once. Each device reseeds its noise.
+    return PhysicalRig.from_rig_dir(sim_rig)
+
+
+@pytest.fixture
+def rig_dir(sim_rig: Path, tmp_path: Path) -> Path:
+    """A fresh collection directory: the rig's rig.toml only, as a user starts."""
+    d = tmp_path / "rig"
+    d.mkdir()
+    shutil.copy(sim_rig / "rig.toml", d / "rig.toml")
+    return d
+
+
+@contextlib.contextmanager
+def device(plant: PhysicalRig, protocol: str = "maestro", seed: int = 0, **kw):
+    """A served SimDevice whose physics noise starts from ``seed``, like a fresh process."""
+    plant.rng = np.random.default_rng(seed)
+    kw.setdefault("tracker_rate_hz", 500.0)
+    kw.setdefault("tracker_noise_mm", 0.0)
+    dev = SimDevice(plant, protocol, seed=seed, **kw)
+    with dev:
+        yield dev
+
+
+def run(dev: SimDevice, rig_dir: Path, protocol: str = "maestro", **kw):
+    logs: list[str] = []
+    args = {**FAST, **kw}
+    res = collect_on_ports(rig_dir, servo_port=dev.servo_port, protocol=protocol,
+                           channels=CHANNELS, tracker_port=dev.tracker_port, log=logs.append,
+                           **args)
+    res.logs = logs  # type: ignore[attr-defined]
+    return res
+
+
+def open_pair(dev: SimDevice, protocol: str = "maestro", timeout_s: float = 1.0,
+              retries: int = 5, maestro_protocol: str = "compact"):
+    ctl = open_controller(protocol, dev.servo_port, CHANNELS,
+                          {n: ((500.0, 2500.0),) * 2 for n in CHANNELS},
+                          speed_us_per_s=50000.0, timeout_s=timeout_s, retries=retries,
+                          maestro_protocol=maestro_protocol)
+    link = SerialLink(open_port(dev.tracker_port, 115200, timeout_s, "tracker"), "tracker")
+    return ctl, StreamTracker(link, "pxyt", 5, timeout_s=3.0)
+
+
+class Watching:
+    """A tracker wrapper that notes, at each measurement, the device's pose, and can act."""
+
+    def __init__(self, tracker, dev: SimDevice, after=None):
+        self.tracker, self.dev, self.after = tracker, dev, after
+        self.seen: list[tuple[dict, np.ndarray, np.ndarray]] = []
+
+    def measure(self, label: str = "") -> np.ndarray:
+        if self.after is not None:
+            self.after(len(self.seen))
+        d = self.tracker.measure(label)
+        pose = self.dev.poses[-1]
+        self.seen.append((pose.commands, pose.end_point, d))
+        return d
+
+
+def keys(rig_dir: Path) -> list[tuple[str, ...]]:
+    """Each row's config, set, target and commands, as text: what resume must reproduce."""
+    with (rig_dir / "measurements.csv").open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    return [tuple(r[:-2]) for r in rows[1:] if r]
+
+
+def planned(rig_dir: Path, grid: int, protocol: str = "maestro",
+            sets=("train", "validation", "test")) -> list[tuple[str, ...]]:
+    """The rows a run with nominal test commands (grid 2: too few train rows) must produce."""
+    from bayesrob.rig import format_row
+
+    meta = load_rig_toml(rig_dir / "rig.toml")
+    specs = meta["arms"]
+    q = lambda u: quantize_us(u, RESOLUTION[protocol])  # noqa: E731
+    steps = single_arm_steps(specs, meta["workspace"], grid, q, sets)
+    if "test" in sets:
+        steps += linked_steps(specs, {n: Arm.nominal(s) for n, s in specs.items()},
+                              meta["workspace"], grid, q)
+    return [tuple(format_row(list(specs), s.config, s.set, s.target, s.commands, (0, 0))[:-2])
+            for s in steps]
+
+
+# ------------------------------------------------------------------------------ the procedure
+
+
+@pytest.mark.parametrize(("protocol", "wire"), PROTOCOLS)
+def test_collect_produces_a_rig_that_calibrates(plant, rig_dir, protocol, wire) -> None:
+    with device(plant, protocol, seed=11) as dev:
+        res = run(dev, rig_dir, protocol, grid=3, maestro_protocol=wire)
+        poses = list(dev.poses)
+        received = dev.received
+    assert res.complete and (res.recorded, res.skipped, res.total) == (45, 0, 45)
+    assert res.models == {"top": "calibrated", "bottom": "calibrated"}
+    rig = load_rig(rig_dir)
+    m = rig.measurements
+    assert m.config.tolist() == ["top"] * 18 + ["bottom"] * 18 + ["top+bottom"] * 9
+    assert m.set.tolist() == (["train"] * 9 + ["validation"] * 9) * 2 + ["test"] * 9
+    # Validation repeats the train commands exactly.
+    for arm in ("top", "bottom"):
+        assert np.array_equal(rig.arm_rows(arm, "train")[0], rig.arm_rows(arm, "validation")[0])
+    # The device settled each row's commands, linked exactly for the test rows.
+    assert [p.arms for p in poses] == [("top",)] * 18 + [("bottom",)] * 18 + \
+        [("top", "bottom")] * 9
+    for i, pose in enumerate(poses):
+        for arm, u in pose.commands.items():
+            assert np.allclose(m.commands[arm][i], u)
+        assert np.allclose(m.observed[i], pose.end_point, atol=1e-3)
+    rep = calibration_report(rig)
+    for arm in ("top", "bottom"):
+        assert 0.2 < rep["accuracy"][arm]["validation"]["mean_mm"] < 1.2
+    assert 0.1 < rep["accuracy"]["top+bottom"]["test"]["mean_mm"] < 1.5
+    first = {"compact": b"\xa1", "pololu": bytes([0xAA, 12, 0x21])}[wire] \
+        if protocol == "maestro" else b"VER\r"
+    assert received.startswith(first)
+    assert main(["calibrate", str(rig_dir)]) == 0
+
+
+def test_rows_are_written_whole_one_write_each_and_fsynced(plant, rig_dir, monkeypatch) -> None:
+    writes: list[bytes] = []
+    syncs: list[int] = []
+    real_write, real_fsync = os.write, os.fsync
+
+    def spy_write(fd, data):
+        if b"train" in bytes(data) or b"config" in bytes(data):
+            writes.append(bytes(data))
+        return real_write(fd, data)
+
+    def spy_fsync(fd):
+        syncs.append(fd)
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "write", spy_write)
+    monkeypatch.setattr(os, "fsync", spy_fsync)
+    with device(plant) as dev:
+        res = run(dev, rig_dir, grid=2, plan=("train",))
+    assert res.recorded == 8
+    assert len(writes) == 9  # the header, then one write per row
+    assert all(w.endswith(b"\n") and w.count(b"\n") == 1 for w in writes)
+    assert len(syncs) >= 9
+    assert b"".join(writes) == (rig_dir / "measurements.csv").read_bytes()
+
+
+def test_interrupted_run_keeps_every_row_and_resume_matches_an_uninterrupted_run(
+        plant, rig_dir, tmp_path) -> None:
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    shutil.copy(rig_dir / "rig.toml", ref / "rig.toml")
+    with device(plant, seed=5) as dev:
+        run(dev, ref, grid=2)
+
+    def ctrl_c(n: int) -> None:
+        if n == 6:
+            raise KeyboardInterrupt
+
+    logs: list[str] = []
+    with device(plant, seed=5) as dev:
+        ctl, tracker = open_pair(dev)
+        with pytest.raises(KeyboardInterrupt):
+            collect(rig_dir, ctl, Watching(tracker, dev, ctrl_c), grid=2, settle_s=0,
+                    log=logs.append)
+        ctl.close()
+        tracker.link.close()
+        assert any("6 rows are safe" in s and "--resume" in s for s in logs)
+        assert len(load_measurements(rig_dir / "measurements.csv",
+                                     load_rig_toml(rig_dir / "rig.toml")["arms"])) == 6
+        assert keys(rig_dir) == keys(ref)[:6]
+        res = run(dev, rig_dir, grid=2, resume=True)
+    assert (res.skipped, res.recorded, res.total) == (6, 14, 20)
+    assert keys(rig_dir) == keys(ref) == planned(rig_dir, 2)
+
+
+def test_resume_drops_a_partial_last_line(plant, rig_dir) -> None:
+    with device(plant) as dev:
+        run(dev, rig_dir, grid=2, plan=("train",))
+        before = (rig_dir / "measurements.csv").read_bytes()
+        with (rig_dir / "measurements.csv").open("ab") as fh:
+            fh.write(b"bottom,train,,,1532.25,14")  # power lost mid-row
+        res = run(dev, rig_dir, grid=2, plan=("train", "validation"), resume=True)
+    assert res.truncated_bytes == len(b"bottom,train,,,1532.25,14")
+    assert any("partial last row" in s for s in res.logs)
+    assert (rig_dir / "measurements.csv").read_bytes().startswith(before)
+    assert (res.skipped, res.recorded) == (8, 8)
+    assert sorted(keys(rig_dir)) == sorted(planned(rig_dir, 2, sets=("train", "validation")))
+
+
+def test_existing_rows_are_never_touched_without_resume_or_with_another_plan(
+        plant, rig_dir) -> None:
+    with device(plant) as dev:
+        run(dev, rig_dir, grid=2, plan=("train",))
+        before = (rig_dir / "measurements.csv").read_bytes()
+        n_received = len(dev.received)
+        with pytest.raises(RigError, match="already holds measurements.*--resume"):
+            run(dev, rig_dir, grid=2)
+        with pytest.raises(RigError, match="line 2 .* not part of this plan"):
+            run(dev, rig_dir, grid=2, plan=("validation",), resume=True)
+        with pytest.raises(RigError, match="line 2 .* not part of this plan"):
+            run(dev, rig_dir, "ssc32", grid=2, resume=True)  # whole microseconds
+        time.sleep(0.05)
+        assert len(dev.received) == n_received  # refused before a port was opened
+    assert (rig_dir / "measurements.csv").read_bytes() == before
+    with pytest.raises(RigError, match="header"):
+        MeasurementLog(rig_dir / "measurements.csv", ["top", "left"], resume=True)
+
+
+# ------------------------------------------------------------------------------ faults
+
+
+def _check_integrity(watch: Watching, rig_dir: Path) -> None:
+    """Every recorded row was measured at the pose of its own commands, and reads true."""
+    rig = load_rig(rig_dir, min_train_rows=0)
+    assert len(watch.seen) == len(rig.measurements)
+    for i, (commands, true_d, measured) in enumerate(watch.seen):
+        for arm, u in commands.items():
+            assert np.allclose(rig.measurements.commands[arm][i], u)
+        assert np.allclose(measured, true_d, atol=2e-3)
+        assert np.allclose(rig.measurements.observed[i], measured, atol=1e-4)
+
+
+@pytest.mark.parametrize(("protocol", "faults", "exercised"), [
+    ("maestro", Faults(drop_rate=0.03), "queries"),
+    ("ssc32", Faults(drop_rate=0.03), "queries"),
+    ("maestro", Faults(garble_rate=0.03), "tracker"),
+    ("ssc32", Faults(garble_rate=0.03), "tracker"),
+    ("maestro", Faults(rx_garble_rate=0.03), "controller"),
+    ("maestro", Faults(bad_checksum_rate=0.3), "checksum"),
+    ("maestro", Faults(reply_delay_s=0.02), None),
+], ids=["drop-maestro", "drop-ssc32", "garble-maestro", "garble-ssc32", "rx-garble-maestro",
+        "bad-checksum", "slow-replies"])
+def test_collect_survives_faults_without_a_wrong_row(plant, rig_dir, protocol, faults,
+                                                     exercised) -> None:
+    with device(plant, protocol, seed=7, faults=faults, tracker_noise_mm=0.0) as dev:
+        ctl, tracker = open_pair(dev, protocol, timeout_s=0.15)
+        watch = Watching(tracker, dev)
+        try:
+            res = collect(rig_dir, ctl, watch, grid=2, settle_s=0, log=lambda s: None)
+        finally:
+            ctl.close()
+            tracker.link.close()
+    assert res.complete and res.recorded == 20
+    assert keys(rig_dir) == planned(rig_dir, 2, protocol)
+    _check_integrity(watch, rig_dir)
+    if exercised == "queries":
+        assert ctl.failed_queries > 0
+    elif exercised == "tracker":
+        assert tracker.bad_checksum + tracker.malformed > 0
+    elif exercised == "controller":
+        assert ctl.failed_queries + ctl.resent_moves > 0
+    elif exercised == "checksum":
+        assert tracker.bad_checksum > 0
+
+
+def test_replies_slower_than_the_timeout_stop_the_run_cleanly(plant, rig_dir) -> None:
+    def slow_down(n: int) -> None:
+        if n == 3:
+            dev.faults = Faults(reply_delay_s=0.4)
+
+    with device(plant) as dev:
+        ctl, tracker = open_pair(dev, timeout_s=0.1, retries=2)
+        # The 4th row is measured as the replies slow down; the 5th move fails.
+        with pytest.raises(HardwareError, match=r"reply bytes within 0.1 s.*4 rows are safe"):
+            collect(rig_dir, ctl, Watching(tracker, dev, slow_down), grid=2, settle_s=0,
+                    log=lambda s: None)
+        ctl.close()
+        tracker.link.close()
+        assert keys(rig_dir) == planned(rig_dir, 2)[:4]
+        dev.faults = Faults()
+        time.sleep(1.0)  # let the device work off the requests it was sleeping on
+        res = run(dev, rig_dir, grid=2, resume=True)
+    assert (res.skipped, res.recorded) == (4, 16)
+    assert keys(rig_dir) == planned(rig_dir, 2)
+
+
+@pytest.mark.parametrize("protocol", ["maestro", "ssc32"])
+def test_disconnect_is_reported_and_resume_completes(plant, rig_dir, protocol) -> None:
+    with device(plant, protocol, faults=Faults(disconnect_after=40)) as dev:
+        with pytest.raises(DisconnectedError, match=r"lost the servo port.*rows are safe"):
+            run(dev, rig_dir, protocol, grid=2)
+        assert dev.disconnected
+    n = len(keys(rig_dir))
+    assert 1 <= n < 20
+    assert keys(rig_dir) == planned(rig_dir, 2, protocol)[:n]
+    with device(plant, protocol) as dev:  # plugged in again: new ports
+        res = run(dev, rig_dir, protocol, grid=2, resume=True)
+    assert (res.skipped, res.recorded) == (n, 20 - n)
+    assert keys(rig_dir) == planned(rig_dir, 2, protocol)
+
+
+def test_plain_tracker_lines(plant, rig_dir) -> None:
+    with device(plant, tracker_format="plain") as dev:
+        res = run(dev, rig_dir, grid=2, plan=("train",), tracker_format="plain")
+        poses = list(dev.poses)
+    assert res.recorded == 8
+    obs = load_rig(rig_dir, min_train_rows=0).measurements.observed
+    assert np.allclose(obs, [p.end_point for p in poses], atol=1e-3)
+
+
+# ------------------------------------------------------------------------------ safety
+
+
+def test_a_plan_outside_the_pulse_limits_sends_nothing(plant, rig_dir) -> None:
+    text = (rig_dir / "rig.toml").read_text()
+    narrow = text.replace("pulse_limits = [[600.0, 2400.0], [600.0, 2400.0]]",
+                          "pulse_limits = [[1300.0, 1700.0], [1300.0, 1700.0]]")
+    assert narrow != text
+    (rig_dir / "rig.toml").write_text(narrow)
+    with device(plant) as dev:
+        with pytest.raises(LimitError, match="outside the limits"):
+            run(dev, rig_dir, grid=3)
+        time.sleep(0.1)
+        assert dev.received == b""
+    assert not (rig_dir / "measurements.csv").exists()
+
+
+def test_the_link_prompt_can_stop_the_run_before_linked_rows(plant, rig_dir) -> None:
+    asked: list[str] = []
+
+    def confirm(message: str) -> bool:
+        asked.append(message)
+        return "Link" not in message
+
+    with device(plant) as dev:
+        res = run(dev, rig_dir, grid=2, confirm=confirm)
+        poses = list(dev.poses)
+    assert not res.complete and res.recorded == 16
+    assert [m.split(":")[0] for m in asked] == ["Measuring arm 'top'", "Measuring arm 'bottom'",
+                                                "Link the end points of top, bottom for the test "
+                                                "rows."]
+    assert all(len(p.arms) == 1 for p in poses)  # no linked move was sent
+
+
+# ------------------------------------------------------------------------------ manual entry
+
+
+def test_manual_entry_records_only_valid_answers(plant, rig_dir) -> None:
+    typed: list[str] = []
+    with device(plant) as dev:
+        def operator(prompt: str) -> str:
+            if len(typed) % 2 == 0:
+                typed.append("12.5")  # one number: asked again
+                return typed[-1]
+            x, y = dev.end_point
+            typed.append(f"{x:.2f} {y:.2f}")
+            return typed[-1]
+
+        ctl, _ = open_pair(dev)
+        tracker = ManualTracker(operator, lambda s: None)
+        res = collect(rig_dir, ctl, tracker, grid=2, plan=("train",), settle_s=0,
+                      log=lambda s: None)
+        ctl.close()
+    assert res.recorded == 8 and tracker.rejected == 8
+    obs = load_rig(rig_dir, min_train_rows=0).measurements.observed
+    assert obs.tolist() == [[float(v) for v in t.split()] for t in typed[1::2]]
+
+
+def test_manual_entry_from_the_command_line(plant, rig_dir, monkeypatch, capsys) -> None:
+    answers = ["", "abc def", "101 202", "nan 4", "103.5 204", "105 206", "107 208", "109 210",
+               "111 212", "113 214", "115 216"]
+    monkeypatch.setattr(sys, "stdin", __import__("io").StringIO("\n".join(answers) + "\n"))
+    with device(plant) as dev:
+        code = main(["collect", str(rig_dir), "--servo-port", dev.servo_port, "--protocol",
+                     "maestro", "--channels", *CHANNEL_ARGS, "--manual", "--grid", "2",
+                     "--plan", "train", "--settle", "0", "--speed", "50000", "--yes"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert err.count("not recorded") == 3
+    obs = load_rig(rig_dir, min_train_rows=0).measurements.observed
+    assert obs.tolist() == [[101, 202], [103.5, 204], [105, 206], [107, 208], [109, 210],
+                            [111, 212], [113, 214], [115, 216]]
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+def _collect_argv(rig_dir: Path, servo: str, tracker: str, *extra: str) -> list[str]:
+    return ["collect", str(rig_dir), "--servo-port", servo, "--protocol", "maestro",
+            "--tracker-port", tracker, "--settle", "0", "--speed", "50000", "--yes", *extra]
+
+
+@pytest.mark.parametrize(("channels", "message"), [
+    (["top=0,1", "middle=2,3"], "unknown arm 'middle'"),
+    (["top=0,1", "bottom=2,30"], "channel 30 of arm 'bottom' does not exist"),
+    (["top=0,1", "bottom=1,2"], "channel 1 is given to both 'top' and 'bottom'"),
+    (["top=0", "bottom=2,3"], "arm 'top' needs two channel numbers"),
+    (["top=0,1"], "no channels given for arm 'bottom'"),
+])
+def test_bad_channels_are_one_line_errors(plant, rig_dir, capsys, channels, message) -> None:
+    with device(plant) as dev:
+        argv = _collect_argv(rig_dir, dev.servo_port, dev.tracker_port)
+        code = main([*argv, "--channels", *channels])
+        time.sleep(0.05)
+        assert dev.received == b""
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("bayesrob collect: error:") and message in err
+    assert not (rig_dir / "measurements.csv").exists()
+
+
+def test_bad_ports_and_plans_are_one_line_errors(plant, rig_dir, capsys, tmp_path) -> None:
+    with device(plant) as dev:
+        cases = [
+            (_collect_argv(rig_dir, "/dev/no-such-servo", dev.tracker_port), "no such device"),
+            (_collect_argv(rig_dir, dev.servo_port, dev.tracker_port, "--plan", "train,tset"),
+             "unknown set 'tset'"),
+            (_collect_argv(tmp_path / "missing", dev.servo_port, dev.tracker_port),
+             "file not found"),
+        ]
+        with serial.Serial(dev.servo_port, exclusive=True):
+            cases.append((_collect_argv(rig_dir, dev.servo_port, dev.tracker_port),
+                          "cannot open it"))  # another program holds the port
+            for argv, message in cases:
+                code = main([*argv, "--channels", *CHANNEL_ARGS])
+                err = capsys.readouterr().err
+                assert code == 2, argv
+                assert err.count("\n") == 1 and message in err, err
+        time.sleep(0.05)
+        assert dev.received == b""
+
+
+def test_sim_device_command_serves_both_ports_and_logs_bytes(sim_rig, tmp_path) -> None:
+    log = tmp_path / "bytes.bin"
+    proc = subprocess.Popen([sys.executable, "-m", "bayesrob", "sim-device", str(sim_rig),
+                             "--protocol", "ssc32", "--byte-log", str(log), "--tracker-rate",
+                             "200"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines = [proc.stdout.readline() for _ in range(2)]
+        assert lines[0].startswith("servo: /dev/") and lines[1].startswith("tracker: /dev/")
+        servo_path, tracker_path = (ln.split(": ", 1)[1].strip() for ln in lines)
+        with serial.Serial(servo_path, timeout=2) as s, serial.Serial(tracker_path,
+                                                                     timeout=2) as t:
+            s.write(b"VER\r")
+            assert s.read_until(b"\r").startswith(b"SSC32")
+            s.write(b"#0P1500#1P1610\rQP0\rQP1\r")
+            assert s.read(2) == bytes([150, 161])
+            t.reset_input_buffer()
+            t.readline()
+            line = t.readline()
+            assert line.startswith(b"$PXYT,") and line.endswith(b"\r\n")
+        assert log.read_bytes() == b"VER\r#0P1500#1P1610\rQP0\rQP1\r"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+
+
+def test_sim_device_without_truth_is_a_one_line_error(rig_dir, capsys) -> None:
+    assert main(["sim-device", str(rig_dir), "--protocol", "maestro"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "truth.toml: file not found" in err
+
+
+def test_killed_collect_resumes_to_the_rows_of_an_uninterrupted_run(plant, rig_dir,
+                                                                    tmp_path) -> None:
+    """SIGKILL a collect process during the linked rows, then --resume.
+
+    Grid 3 gives each arm enough train rows to calibrate, so the linked rows' commands come
+    from the recorded train rows; the resumed run must plan exactly the same ones.
+    """
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    shutil.copy(rig_dir / "rig.toml", ref / "rig.toml")
+    with device(plant, seed=21) as dev:
+        assert run(dev, ref, grid=3).models == {"top": "calibrated", "bottom": "calibrated"}
+
+    csv_path = rig_dir / "measurements.csv"
+    with device(plant, seed=21) as dev:
+        argv = _collect_argv(rig_dir, dev.servo_port, dev.tracker_port, "--grid", "3",
+                             "--timeout", "1", "--channels", *CHANNEL_ARGS)
+        proc = subprocess.Popen([sys.executable, "-m", "bayesrob", *argv],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            deadline = time.monotonic() + 90
+            while time.monotonic() < deadline and proc.poll() is None:
+                if csv_path.exists() and csv_path.read_bytes().count(b"\n") >= 1 + 36 + 2:
+                    break
+                time.sleep(0.005)
+            assert proc.poll() is None, proc.stderr.read().decode()
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        n = len(keys(rig_dir))
+        assert 38 <= n < 45
+        assert keys(rig_dir) == keys(ref)[:n]
+        assert main([*argv, "--resume"]) == 0
+    assert keys(rig_dir) == keys(ref)
+    assert main(["calibrate", str(rig_dir)]) == 0
