@@ -11,6 +11,7 @@ normalised over the grid. Everything is vectorised over targets and grid points.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +46,17 @@ class Grid:
         return np.column_stack([gx.ravel(), gy.ravel()])
 
 
+@partial(jax.jit, static_argnames="elbow")
+def _arm_geometry(params: kin.ArmParams, elbow: int, u: jax.Array, points: jax.Array
+                  ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Joint errors, paired commands, log-Jacobian and reachability at (T, M, 2) points."""
+    t, m = points.shape[:2]
+    theta, ok = kin.inverse(params, points, elbow)
+    err = kin.wrap_angle(theta - kin.servo(params, u)[:, None, :])
+    u_rep = jnp.broadcast_to(u[:, None, :], (t, m, 2)).reshape(-1, 2)
+    return err.reshape(-1, 2), u_rep, kin.log_abs_det_inverse_jacobian(params, theta), ok
+
+
 def arm_log_likelihood(model: FittedNoiseModel, arm: kin.Arm, u: jnp.ndarray,
                        points: jnp.ndarray) -> jnp.ndarray:
     """log p(d | u) of one arm at end points (T, M, 2) for commands u (T, 2), unnormalised.
@@ -52,13 +64,11 @@ def arm_log_likelihood(model: FittedNoiseModel, arm: kin.Arm, u: jnp.ndarray,
     Points the arm cannot reach get -inf: a linked end point there is impossible.
     """
     t, m = points.shape[:2]
-    theta, ok = kin.inverse(arm.params, points, arm.elbow)
-    theta_cmd = kin.servo(arm.params, u)[:, None, :]
-    err = kin.wrap_angle(theta - theta_cmd)
-    u_rep = jnp.broadcast_to(u[:, None, :], (t, m, 2)).reshape(-1, 2)
-    lp = model.logpdf(err.reshape(-1, 2), u_rep).reshape(t, m)
+    err, u_rep, log_jac, ok = _arm_geometry(arm.params, int(arm.elbow), jnp.asarray(u, float),
+                                            jnp.asarray(points, float))
+    lp = model.logpdf(err, u_rep).reshape(t, m)
     if model.spec.jacobian:
-        lp = lp + kin.log_abs_det_inverse_jacobian(arm.params, theta)
+        lp = lp + log_jac
     return jnp.where(ok, lp, -jnp.inf)
 
 

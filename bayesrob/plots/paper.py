@@ -204,7 +204,8 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
     models = [s.name for s in rep.specs]
     nrow = 1 + len(models)
     fig, axes = plt.subplots(nrow, len(configs), figsize=(3.3 * len(configs), 3.0 * nrow),
-                             squeeze=False, sharex=True, sharey=True)
+                             squeeze=False, sharex=True, sharey=True,
+                             gridspec_kw={"hspace": 0.35, "wspace": 0.1})
     for j, c in enumerate(configs):
         r = rep.rows[c]
         err = r["observed"] - r["targets"]
@@ -218,7 +219,8 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
             keep = np.abs(g) <= zoom_mm
             dens = pred.error_density[np.ix_(keep, keep)] / pred.grid.cell_area_mm2
             ax = axes[i, j]
-            ax.contourf(g[keep], g[keep], dens, levels=10, cmap="Blues")
+            ext = [g[keep][0], g[keep][-1], g[keep][0], g[keep][-1]]
+            ax.imshow(dens, origin="lower", extent=ext, cmap="Blues", interpolation="bilinear")
             ax.plot(err[:, 0], err[:, 1], ".", color="tab:red", ms=2, alpha=0.6)
             ax.set_title(f"{name}: expected {pred.mean_expected_error_mm:.2f} mm", fontsize=9)
     for ax in axes.ravel():
@@ -232,6 +234,5 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
     for ax in axes[:, 0]:
         ax.set_ylabel("y error (mm)")
     fig.suptitle("Figure 8. End-point error densities summed over the targets\n"
-                 "(top: observed; red dots repeat them)")
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
+                 "(top: observed; red dots repeat them)", y=0.93)
     return fig
