@@ -1,0 +1,829 @@
+"""Model criticism: find where the forward model and the measurements disagree, name the
+missing physical effect, add it and show the gap shrink.
+
+The paper could only conclude that its kinematic model "was too constrained". This module
+says which effect is missing, how big it is and how much the model gains from it:
+
+1. Fit each arm's base model (the eight-parameter geometric calibration).
+2. Look at the residuals for structure noise would not show: lack of fit against the
+   repeated (``validation``) measurements, spatial autocorrelation (Moran's I, permutation
+   test), the residuals regressed on each candidate effect's signature (a score test) and
+   jumps between neighbouring points; and say where in the workspace the disagreement is.
+3. Fit every candidate effect (:mod:`bayesrob.effects`) added to the current model, arm by
+   arm, and score it on data it was not fitted on: the ``validation`` rows, K-fold
+   cross-validation over ``train``, and PSIS-LOO (arviz) of a Gaussian measurement model
+   with a fitted scale.
+4. Name the best candidate that passes :class:`DecisionRule`, add it, repeat until none
+   passes.
+
+Everything works on the rig files alone; nothing here knows how the data were made.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from bayesrob import effects as fx
+from bayesrob import kinematics as kin
+from bayesrob.rig import ArmSpec, Rig
+
+N_BASE = len(kin.PARAM_NAMES)
+CV_SETTINGS = 3  # structural settings re-profiled in each cross-validation fold
+
+
+# ------------------------------------------------------------------------------ decision
+
+
+@dataclass(frozen=True)
+class DecisionRule:
+    """When a candidate effect counts as missing from the model.
+
+    A candidate is named when, pooled over the arms it is added to,
+    - its PSIS-LOO elpd gain exceeds ``z`` standard errors of the difference
+      (``elpd_diff > z * elpd_diff_se``) and ``min_elpd_diff`` nats, and
+    - the mean error on the held-out ``validation`` rows shrinks, and
+    - the K-fold cross-validated mean error over ``train`` shrinks.
+    An arm gets the effect when the effect raises that arm's own elpd. Among the candidates
+    that pass, the one with the largest elpd gain is named first.
+    """
+
+    z: float = 2.0
+    min_elpd_diff: float = 4.0
+    require_heldout: bool = True
+    require_cv: bool = True
+
+    def passes(self, s: dict) -> bool:
+        if not s["arms"]:
+            return False
+        ok = s["elpd_diff"] > self.z * s["elpd_diff_se"] and s["elpd_diff"] > self.min_elpd_diff
+        if self.require_heldout and s["heldout_error_before_mm"] is not None:
+            ok &= s["heldout_error_after_mm"] < s["heldout_error_before_mm"]
+        if self.require_cv:
+            ok &= s["cv_error_after_mm"] < s["cv_error_before_mm"]
+        return bool(ok)
+
+    def text(self) -> str:
+        parts = [f"elpd_diff > {self.z:g} * se and > {self.min_elpd_diff:g}"]
+        if self.require_heldout:
+            parts.append("validation error shrinks")
+        if self.require_cv:
+            parts.append("cross-validated error shrinks")
+        return " AND ".join(parts)
+
+
+# ------------------------------------------------------------------------------ data
+
+
+@dataclass
+class ArmData:
+    """One arm's single-arm rows: what the diagnosis fits and scores."""
+
+    name: str
+    spec: ArmSpec
+    u: np.ndarray  # (n, 2) train pulses
+    d: np.ndarray  # (n, 2) train end points
+    u_val: np.ndarray  # (m, 2)
+    d_val: np.ndarray  # (m, 2)
+    ctx: fx.EffectContext
+
+    @classmethod
+    def from_rig(cls, rig: Rig, name: str) -> ArmData:
+        u, d = rig.arm_rows(name, "train")
+        uv, dv = rig.arm_rows(name, "validation")
+        return cls(name, rig.arms[name], u, d, uv, dv,
+                   fx.EffectContext.from_commands(u, rig.gravity))
+
+    @property
+    def ctx_array(self) -> jax.Array:
+        return self.ctx.to_array()
+
+    def replicate_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Indices (train, validation) of rows that repeat the same command."""
+        ti, vi = [], []
+        for j, uv in enumerate(self.u_val):
+            hit = np.flatnonzero(np.all(np.abs(self.u - uv) < 1e-9, axis=1))
+            if len(hit):
+                ti.append(int(hit[0]))
+                vi.append(j)
+        return np.array(ti, int), np.array(vi, int)
+
+
+# ------------------------------------------------------------------------------ models
+
+
+class _ModelFns:
+    """Jitted functions of one model structure (base + named effects), shared by all arms.
+
+    The arm's context is an argument, not a constant, so one compilation serves every arm
+    and rig with the same number of rows.
+    """
+
+    def __init__(self, names: tuple[str, ...]):
+        self.names = names
+        self.classes = [fx.REGISTRY[n] for n in names]
+        probe = [c(fx.EffectContext()) for c in self.classes]
+        self.sizes = [len(e.param_names()) for e in probe]
+        self.n_params = N_BASE + sum(self.sizes)
+        self.param_names = list(kin.PARAM_NAMES) + [
+            f"{n}.{p}" for n, e in zip(names, probe, strict=True) for p in e.param_names()]
+        self.effect_scales = (np.concatenate([e.scales() for e in probe]) if probe
+                              else np.zeros(0))
+        self.prior_sd = (np.concatenate([e.prior_sd() for e in probe]) if probe
+                         else np.zeros(0))
+        self.initial_extra = [e.initial() for e in probe]
+
+        def pred(v, ctx, settings, u):
+            params, effs, extras = self.unpack(v, ctx, settings)
+            return kin.forward(params, fx.apply_effects(effs, params, extras, u))
+
+        prior_sd = jnp.asarray(self.prior_sd)
+
+        def res_prior(v, ctx, settings, u, d, w):
+            # Residuals of the rows (weight 0 drops a row, for cross-validation) and a weak
+            # Gaussian penalty on the effects' parameters as pseudo-residuals: it keeps
+            # directions the data cannot see (a sign that never flips in a fold) at "no
+            # effect" instead of wherever the solver happened to leave them.
+            r = ((pred(v, ctx, settings, u) - d) * w[:, None]).ravel()
+            return jnp.concatenate([r, v[N_BASE:] / prior_sd])
+
+        def with_jac(f):
+            def flat(v, *args):
+                J, val = jax.jacfwd(lambda x: (f(x, *args),) * 2, has_aux=True)(v)
+                return jnp.concatenate([val.ravel(), J.ravel()])
+            jitted = jax.jit(flat)
+
+            def both(v, *args):
+                # One array back from the device: each transfer costs more than the maths.
+                out = np.asarray(jitted(v, *args))
+                m = out.size // (1 + self.n_params)
+                return out[:m], out[m:].reshape(m, self.n_params)
+            return both
+
+        # One compiled function per job, value and Jacobian together: scipy asks for both
+        # at the same points, and compilation and transfers, not arithmetic, are what
+        # these small models cost.
+        self._residuals = with_jac(res_prior)
+
+        def predict(v, ctx, settings, u):
+            r, J = self._predict(v, ctx, settings, u)
+            return r.reshape(-1, 2), J.reshape(-1, 2, self.n_params)
+
+        self._predict = with_jac(pred)
+        self.residuals = self._residuals  # (2n + q,), (2n + q, p)
+        self.predict = predict  # (n, 2), (n, 2, p)
+
+    def unpack(self, v, ctx, settings):
+        c = fx.EffectContext.from_array(ctx)
+        params = kin.ArmParams.from_vector(v[:N_BASE])
+        effs, extras, k = [], [], N_BASE
+        for cls, s, size in zip(self.classes, settings, self.sizes, strict=True):
+            effs.append(cls(c, s))
+            extras.append(v[k:k + size])
+            k += size
+        return params, tuple(effs), extras
+
+    def effects_for(self, ctx: fx.EffectContext, settings: Sequence) -> list[fx.Effect]:
+        return [cls(ctx, s) for cls, s in zip(self.classes, settings, strict=True)]
+
+
+@cache
+def model_fns(names: tuple[str, ...]) -> _ModelFns:
+    return _ModelFns(names)
+
+
+def _base_scales(v: np.ndarray) -> np.ndarray:
+    """Typical sizes of the base parameters, so the solver's steps mean the same in each."""
+    return np.array([10.0, 10.0, 10.0, 10.0, 0.05 * abs(v[4]) + 1e-9, 0.05 * abs(v[5]) + 1e-9,
+                     0.05, 0.05])
+
+
+@dataclass
+class _Fit:
+    v: np.ndarray
+    settings: tuple
+    cost: float  # sum of squared (weighted) residuals
+    nfev: int
+    J: np.ndarray  # Jacobian of the residuals and penalty at v
+    all: list = field(default_factory=list)  # every setting's fit, when profiled
+
+
+def _least_squares(fns: _ModelFns, v0: np.ndarray, ctx: jax.Array, settings: tuple,
+                   u: jax.Array, d: jax.Array, w: jax.Array) -> _Fit:
+    scale = np.concatenate([_base_scales(v0), fns.effect_scales])
+    settings_j = _jsettings(settings)
+    last: dict = {}
+
+    def fun(v: np.ndarray) -> np.ndarray:
+        r, J = fns.residuals(v, ctx, settings_j, u, d, w)
+        last.update(v=v.copy(), r=r, J=J)
+        return last["r"]
+
+    def jac(v: np.ndarray, *_) -> np.ndarray:
+        if "v" not in last or not np.array_equal(last["v"], v):
+            fun(v)
+        return last["J"]
+
+    res = scipy.optimize.least_squares(fun, v0, jac=jac, x_scale=scale, method="trf",
+                                       xtol=1e-9, ftol=1e-9, gtol=1e-9, max_nfev=200)
+    r = fun(res.x)[: 2 * len(w)]
+    return _Fit(res.x, settings, float(r @ r), int(res.nfev), last["J"])
+
+
+def _profile_fit(fns: _ModelFns, v0: np.ndarray, ctx: jax.Array, grid: list[tuple],
+                 u: jax.Array, d: jax.Array, w: jax.Array) -> _Fit:
+    """Best fit over the structural settings (a gradient cannot move them)."""
+    fits = [_least_squares(fns, v0, ctx, s, u, d, w) for s in grid]
+    best = min(fits, key=lambda f: f.cost)
+    best.all = fits
+    return best
+
+
+def _gauss2_logpdf(r: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """log N(r | 0, cov) for r (n, 2), cov (n, 2, 2)."""
+    det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
+    inv = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
+                    np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], -2) / det[:, None, None]
+    quad = np.einsum("ni,nij,nj->n", r, inv, r)
+    return -np.log(2 * np.pi) - 0.5 * np.log(det) - 0.5 * quad
+
+
+# ------------------------------------------------------------------------------ evaluation
+
+
+@dataclass
+class ArmEval:
+    """A model of one arm fitted on ``train`` and scored on data it was not fitted on."""
+
+    arm: str
+    effects: tuple[str, ...]
+    v: np.ndarray
+    settings: tuple
+    cov: np.ndarray  # (p, p) of v
+    sigma_mm: float  # fitted scale of the Gaussian measurement model, per axis
+    dof: int
+    train_errors: np.ndarray  # (n,) mm
+    train_lpd: np.ndarray  # (n,) in-sample log density (for p_loo: lppd - elpd)
+    val_errors: np.ndarray  # (m,) mm
+    val_lpd: np.ndarray  # (m,) log predictive density of the validation rows
+    cv_errors: np.ndarray  # (n,) mm, each from a fit that did not see the point
+    cv_lpd: np.ndarray  # (n,) log predictive density of each point from that fit
+    resid_train: np.ndarray  # (n, 2) observed - predicted
+    resid_val: np.ndarray  # (m, 2)
+    _magnitudes: dict | None = None
+
+    def magnitudes(self, data: ArmData) -> dict:
+        """Each effect's fitted size in physical terms, with standard errors (computed once,
+        and only for models someone asks about: candidates that lose never need it)."""
+        if self._magnitudes is None:
+            self._magnitudes = _magnitudes(model_fns(self.effects), data, self)
+        return self._magnitudes
+
+    @property
+    def params(self) -> kin.ArmParams:
+        return kin.ArmParams.from_vector(jnp.asarray(self.v[:N_BASE]))
+
+
+def elpd_data(cv_lpd: np.ndarray, train_lpd: np.ndarray):
+    """Cross-validated pointwise log predictive densities as arviz ``ELPDData`` ("loo").
+
+    The values are exact (refitted) leave-one-out or K-fold predictive densities, not PSIS
+    estimates: with 16 points and 8-14 parameters the posterior moves too much when a point
+    is left out for importance sampling from the full posterior (Pareto k > 1 on most points
+    when tried), so the refits are done instead. Wrapped this way, ``az.compare`` computes
+    the difference and its standard error from the pointwise values as usual.
+    """
+    import arviz as az
+    import xarray as xr
+
+    n = len(cv_lpd)
+    obs = {"obs": np.arange(n)}
+    return az.ELPDData(
+        data=[float(np.sum(cv_lpd)), float(np.sqrt(n * np.var(cv_lpd))),
+              float(np.sum(train_lpd) - np.sum(cv_lpd)), 1, n, False,
+              xr.DataArray(cv_lpd, dims=["obs"], coords=obs, name="loo_i"),
+              xr.DataArray(np.zeros(n), dims=["obs"], coords=obs), "log", 0.7],
+        index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning", "loo_i",
+               "pareto_k", "scale", "good_k"])
+
+
+def _folds(n: int, k: int | None, seed: int) -> list[np.ndarray]:
+    if k is None:
+        k = n if n <= 40 else 10  # exact leave-one-out while refits are cheap
+    k = max(2, min(k, n))
+    perm = np.random.default_rng(seed).permutation(n)
+    return [np.sort(perm[i::k]) for i in range(k)]
+
+
+def _predictive(fns: _ModelFns, fit: _Fit, ctx: jax.Array, u: np.ndarray, d: np.ndarray,
+                s2: float, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals (n, 2), errors (mm) and log predictive densities of rows (u, d) under a fit.
+
+    The predictive is Gaussian: measurement scale s2 plus the parameters' uncertainty
+    pushed through the model's Jacobian at each row.
+    """
+    pred, J = fns.predict(fit.v, ctx, _jsettings(fit.settings), jnp.asarray(u))
+    pcov = s2 * np.eye(2)[None] + np.einsum("nip,pq,njq->nij", J, cov, J)
+    r = d - pred
+    return r, np.linalg.norm(r, axis=1), _gauss2_logpdf(r, pcov)
+
+
+def _jsettings(settings: tuple) -> tuple:
+    return tuple(None if s is None else jnp.asarray(s) for s in settings)
+
+
+def _cov(fit: _Fit, dof: int) -> tuple[float, np.ndarray]:
+    """Measurement variance and the parameters' covariance s^2 (J'J)^-1 at the fit."""
+    s2 = fit.cost / dof
+    return s2, s2 * np.linalg.pinv(fit.J.T @ fit.J)
+
+
+def evaluate_arm(data: ArmData, names: tuple[str, ...], start: ArmEval | None = None,
+                 k_folds: int | None = None, seed: int = 0) -> ArmEval:
+    """Fit ``base + names`` to the arm's train rows and score it on held-out data.
+
+    ``start``: a fitted model whose effects are a prefix of ``names`` (warm start; the new
+    effects start at their ``initial`` values). Without it the base model is fitted first,
+    from the nominal values as :func:`bayesrob.calibration.calibrate_arm` does.
+    ``k_folds``: None for exact leave-one-out up to 40 points, else 10-fold.
+    """
+    names = tuple(names)
+    fns = model_fns(names)
+    ctx = data.ctx_array
+    u, d = jnp.asarray(data.u), jnp.asarray(data.d)
+    n = len(data.u)
+    ones = jnp.ones(n)
+    if start is None and names:
+        start = evaluate_arm(data, (), None, k_folds=2, seed=seed)
+    if start is None:
+        v0 = np.asarray(kin.ArmParams.from_spec(data.spec).to_vector())
+    else:
+        k = len(start.effects)
+        if names[:k] != start.effects:
+            raise ValueError(f"start model {start.effects} is not a prefix of {names}")
+        v0 = np.concatenate([start.v, *fns.initial_extra[k:]])
+    grid = _settings_grid(fns, data, v0)
+
+    fit = _profile_fit(fns, v0, ctx, grid, u, d, ones)
+    p = fns.n_params
+    dof = max(2 * n - p, 1)
+    s2, cov = _cov(fit, dof)
+    resid, train_err, train_lpd = _predictive(fns, fit, ctx, data.u, data.d, s2,
+                                              np.zeros_like(cov))
+    if len(data.u_val):
+        resid_val, val_err, val_lpd = _predictive(fns, fit, ctx, data.u_val, data.d_val, s2, cov)
+    else:
+        val_err, val_lpd, resid_val = np.zeros(0), np.zeros(0), np.zeros((0, 2))
+
+    # Folds profile only the settings that fit all the data best: a setting far worse on
+    # all points will not win because one of them is left out.
+    ranked = [f.settings for f in sorted(fit.all, key=lambda f: f.cost)][:CV_SETTINGS]
+    cv_err, cv_lpd = _cross_validate(fns, data, fit.v, ranked, k_folds, seed)
+    ev = ArmEval(
+        arm=data.name, effects=names, v=fit.v, settings=fit.settings, cov=cov,
+        sigma_mm=math.sqrt(s2), dof=dof, train_errors=train_err, train_lpd=train_lpd,
+        val_errors=val_err, val_lpd=val_lpd, cv_errors=cv_err, cv_lpd=cv_lpd,
+        resid_train=resid, resid_val=resid_val)
+    return ev
+
+
+def _settings_grid(fns: _ModelFns, data: ArmData, v: np.ndarray) -> list[tuple]:
+    params = kin.ArmParams.from_vector(jnp.asarray(v[:N_BASE]))
+    per_effect = []
+    for eff in fns.effects_for(data.ctx, [None] * len(fns.names)):
+        s = eff.settings(params, data.u)
+        per_effect.append([None] if s is None else [np.asarray(r) for r in s])
+    return [tuple(c) for c in itertools.product(*per_effect)]
+
+
+def _cross_validate(fns: _ModelFns, data: ArmData, v: np.ndarray, grid: list[tuple],
+                    k_folds: int | None, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Refit without each fold (structural settings profiled again), predict the fold."""
+    ctx = data.ctx_array
+    u, d = jnp.asarray(data.u), jnp.asarray(data.d)
+    n, p = len(data.u), fns.n_params
+    errs, lpd = np.zeros(n), np.zeros(n)
+    for fold in _folds(n, k_folds, seed):
+        w = np.ones(n)
+        w[fold] = 0.0
+        wj = jnp.asarray(w)
+        fit = _profile_fit(fns, v, ctx, grid, u, d, wj)
+        s2, cov = _cov(fit, max(2 * (n - len(fold)) - p, 1))
+        # Predict every row (one compiled shape for all folds), keep the fold's.
+        _, e, lp = _predictive(fns, fit, ctx, data.u, data.d, s2, cov)
+        errs[fold], lpd[fold] = e[fold], lp[fold]
+    return errs, lpd
+
+
+def _magnitudes(fns: _ModelFns, data: ArmData, ev: ArmEval) -> dict:
+    out = {}
+    params = ev.params
+    k = N_BASE
+    for eff, size in zip(fns.effects_for(data.ctx, ev.settings), fns.sizes, strict=True):
+        extra = ev.v[k:k + size]
+        idx = list(range(N_BASE)) + list(range(k, k + size))
+        cov = ev.cov[np.ix_(idx, idx)]
+        rep = eff.magnitude_report(params, extra, cov)
+        rep["params"] = {name: {"value": float(x), "se": float(math.sqrt(max(ev.cov[i, i], 0)))}
+                         for i, (name, x) in enumerate(zip(eff.param_names(), extra,
+                                                           strict=True), start=k)}
+        if eff.setting is not None:
+            rep["setting"] = np.asarray(eff.setting).tolist()
+        out[eff.name] = rep
+        k += size
+    return out
+
+
+# ------------------------------------------------------------------------------ residual tests
+
+
+def workspace_regions(points: np.ndarray) -> list[str]:
+    """Name each point's third of the workspace: 'lower-left', 'middle-centre', ..."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    span = np.where(hi - lo > 0, hi - lo, 1.0)
+    f = (points - lo) / span
+    cols = np.array(["left", "centre", "right"])[np.minimum((f[:, 0] * 3).astype(int), 2)]
+    rows = np.array(["lower", "middle", "upper"])[np.minimum((f[:, 1] * 3).astype(int), 2)]
+    return [f"{r}-{c}" for r, c in zip(rows, cols, strict=True)]
+
+
+def neighbour_pairs(points: np.ndarray) -> list[tuple[int, int]]:
+    """Pairs of grid neighbours: closer than 1.5 times the typical nearest-neighbour gap."""
+    dist = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    gap = np.median(dist.min(axis=1))
+    i, j = np.nonzero(np.triu(dist < 1.5 * gap, 1))
+    return list(zip(i.tolist(), j.tolist(), strict=True))
+
+
+def morans_i(resid: np.ndarray, pairs: list[tuple[int, int]]) -> float:
+    """Moran's I of a vector field over neighbour pairs: do neighbours err alike?"""
+    r = resid - resid.mean(axis=0)
+    if not pairs:
+        return float("nan")
+    i, j = np.array(pairs).T
+    num = np.sum(r[i] * r[j]) / len(pairs)
+    den = np.sum(r * r) / len(r)
+    return float(num / den) if den > 0 else float("nan")
+
+
+def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
+                   n_perm: int = 999, seed: int = 0) -> dict:
+    """Structure in one arm's residual field that noise would not show, and where it is."""
+    rng = np.random.default_rng(seed)
+    resid = ev.resid_train
+    ti, vi = data.replicate_pairs()
+    # Where each command was repeated, the mean of both residuals halves the noise.
+    field_ = resid.copy()
+    if len(ti):
+        field_[ti] = (resid[ti] + ev.resid_val[vi]) / 2
+    points = data.d
+    pairs = neighbour_pairs(points)
+    out: dict = {"arm": data.name, "n": len(resid), "sigma_mm": ev.sigma_mm}
+
+    moran = morans_i(field_, pairs)
+    perm = np.array([morans_i(field_[rng.permutation(len(field_))], pairs)
+                     for _ in range(n_perm)])
+    out["morans_i"] = {"value": moran,
+                       "p_value": float((1 + np.sum(perm >= moran)) / (n_perm + 1))}
+
+    # Lack of fit against pure error from the repeated commands (an F test).
+    if len(ti) >= 3:
+        pure = data.d[ti] - data.d_val[vi]
+        ss_pe = float(np.sum(pure**2) / 2)
+        df_pe = 2 * len(ti)
+        mean_res = field_[ti]
+        ss_lof = float(2 * np.sum(mean_res**2))
+        df_lof = max(2 * len(ti) - (ev.v.size if len(ti) == len(resid) else 0), 1)
+        F = (ss_lof / df_lof) / (ss_pe / df_pe)
+        out["lack_of_fit"] = {"F": F, "df": [df_lof, df_pe],
+                              "p_value": float(scipy.stats.f.sf(F, df_lof, df_pe)),
+                              "pure_error_sigma_mm": math.sqrt(ss_pe / df_pe)}
+
+    # Jumps: neighbours whose residuals differ by more than noise allows.
+    if pairs:
+        i, j = np.array(pairs).T
+        jumps = np.linalg.norm(field_[i] - field_[j], axis=1)
+        k = int(np.argmax(jumps))
+        perm_max = np.array([np.max(np.linalg.norm(
+            (q := field_[rng.permutation(len(field_))])[i] - q[j], axis=1))
+            for _ in range(n_perm)])
+        regions = workspace_regions(points)
+        out["largest_jump"] = {
+            "mm": float(jumps[k]), "between": [int(i[k]), int(j[k])],
+            "where": _pair_where(regions[i[k]], regions[j[k]]),
+            "p_value": float((1 + np.sum(perm_max >= jumps[k])) / (n_perm + 1))}
+
+    # Where: the workspace third whose residuals are largest against the rest.
+    mag = np.linalg.norm(field_, axis=1)
+    regions = workspace_regions(points)
+    names = sorted(set(regions))
+    means = {r: float(np.mean(mag[[g == r for g in regions]])) for r in names}
+    worst = max(means, key=means.get)
+    rest = mag[[g != worst for g in regions]]
+    out["worst_region"] = {"region": worst, "mean_mm": means[worst],
+                           "elsewhere_mm": float(np.mean(rest)) if len(rest) else float("nan")}
+    out["score_tests"] = {c: _score_test(data, ev, c) for c in candidates
+                          if c not in ev.effects}
+    return out
+
+
+def _pair_where(a: str, b: str) -> str:
+    (ra, ca), (rb, cb) = a.split("-"), b.split("-")
+    if ca == cb and ra != rb:
+        return f"{ca} column, {ra} to {rb}"
+    if ra == rb and ca != cb:
+        return f"{ra} row, {ca} to {cb}"
+    return a if a == b else f"{a} to {b}"
+
+
+def _score_test(data: ArmData, ev: ArmEval, name: str) -> dict:
+    """Regress the residuals on the effect's signature, orthogonal to what the fit can absorb.
+
+    The Lagrange-multiplier test at the current fit: T = r'P S (S'P S)^-1 S'P r / s^2 with
+    S = d prediction / d extra at no effect and P the projection off the fitted parameters'
+    Jacobian; chi2 with as many degrees of freedom as the effect has parameters. Effects with
+    structural settings report the best setting (so their p value is optimistic).
+    """
+    names = (*ev.effects, name)
+    fns = model_fns(names)
+    ctx = data.ctx_array
+    u, d = jnp.asarray(data.u), jnp.asarray(data.d)
+    n = len(data.u)
+    v = np.concatenate([ev.v, *fns.initial_extra[len(ev.effects):]])
+    p0 = ev.v.size
+    best = None
+    for s in _settings_grid(fns, data, ev.v):
+        sj = _jsettings((*ev.settings, *s[len(ev.effects):]))
+        r, J = fns.residuals(v, ctx, sj, u, d, jnp.ones(n))
+        r, J = -r[: 2 * n], J[: 2 * n]
+        A, S = J[:, :p0], J[:, p0:]
+        Q, _ = np.linalg.qr(A)
+        Sp = S - Q @ (Q.T @ S)
+        rp = r - Q @ (Q.T @ r)
+        coef, *_ = np.linalg.lstsq(Sp, rp, rcond=None)
+        explained = float(rp @ (Sp @ coef))
+        T = explained / ev.sigma_mm**2
+        q = S.shape[1]
+        if best is None or T > best["chi2"]:
+            best = {"chi2": T, "df": q, "p_value": float(scipy.stats.chi2.sf(T, q)),
+                    "explained_fraction": explained / max(float(rp @ rp), 1e-300)}
+    return best
+
+
+# ------------------------------------------------------------------------------ the workflow
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`; ``to_json`` is the ``--json`` document."""
+
+    rig: str
+    arms: list[str]
+    rule: DecisionRule
+    candidates: list[str]
+    baseline: dict[str, ArmEval]
+    final: dict[str, ArmEval]
+    history: list[dict[str, ArmEval]]  # model after each step, starting with the baseline
+    steps: list[dict]
+    rounds: list[list[dict]]  # every candidate's score in every round
+    tests_before: dict[str, dict]
+    tests_after: dict[str, dict]
+    data: dict[str, ArmData]
+
+    @property
+    def effects(self) -> list[str]:
+        return [s["effect"] for s in self.steps]
+
+    def to_json(self) -> dict:
+        base = _pooled_errors(self.baseline)
+        fin = _pooled_errors(self.final)
+        return {
+            "effects": self.effects,
+            "steps": self.steps,
+            "baseline_heldout_error_mm": base["heldout"],
+            "final_heldout_error_mm": fin["heldout"],
+            "baseline_cv_error_mm": base["cv"],
+            "final_cv_error_mm": fin["cv"],
+            "rig": self.rig,
+            "rule": self.rule.text(),
+            "candidates": self.candidates,
+            "rounds": self.rounds,
+            "arms": {a: _arm_json(self.baseline[a], self.final[a], self.data[a])
+                     for a in self.arms},
+            "residual_tests": {"before": self.tests_before, "after": self.tests_after},
+        }
+
+
+def _mean(x: list[np.ndarray]) -> float | None:
+    x = np.concatenate(x) if x else np.zeros(0)
+    return float(np.mean(x)) if len(x) else None
+
+
+def _pooled_errors(model: dict[str, ArmEval]) -> dict:
+    return {"heldout": _mean([e.val_errors for e in model.values()]),
+            "cv": _mean([e.cv_errors for e in model.values()]),
+            "train": _mean([e.train_errors for e in model.values()])}
+
+
+def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
+    def errs(e: ArmEval) -> dict:
+        return {"train_error_mm": float(np.mean(e.train_errors)),
+                "heldout_error_mm": float(np.mean(e.val_errors)) if len(e.val_errors) else None,
+                "cv_error_mm": float(np.mean(e.cv_errors)), "sigma_mm": e.sigma_mm}
+
+    return {"effects": list(after.effects), "before": errs(before), "after": errs(after),
+            "magnitudes": after.magnitudes(data),
+            "params": {k: float(x) for k, x in zip(model_fns(after.effects).param_names,
+                                                    after.v, strict=True)}}
+
+
+def _pooled_lpd(model: dict[str, ArmEval]) -> tuple[np.ndarray, np.ndarray]:
+    return (np.concatenate([model[a].cv_lpd for a in model]),
+            np.concatenate([model[a].train_lpd for a in model]))
+
+
+def compare_models(current: dict[str, ArmEval], candidate: dict[str, ArmEval]
+                   ) -> tuple[float, float]:
+    """elpd difference (candidate - current) and its standard error, via ``az.compare``."""
+    import arviz as az
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stacking weights of two models: nothing to warn
+        cmp = az.compare({"current": elpd_data(*_pooled_lpd(current)),
+                          "candidate": elpd_data(*_pooled_lpd(candidate))}, ic="loo")
+    diff = float(cmp.loc["candidate", "elpd_loo"] - cmp.loc["current", "elpd_loo"])
+    return diff, float(cmp["dse"].max())
+
+
+def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, ArmEval],
+                     rule: DecisionRule) -> dict:
+    """Pool a candidate's arms: the arms it helps get it, the rest keep their model."""
+    gains = {a: float(np.sum(cand[a].cv_lpd - current[a].cv_lpd)) for a in cand}
+    arms = [a for a in cand if gains[a] > 0]
+    after = {a: (cand[a] if a in arms else current[a]) for a in current}
+    diff, dse = compare_models(current, after)
+    b, a = _pooled_errors(current), _pooled_errors(after)
+    s = {"effect": name, "arms": arms, "heldout_error_before_mm": b["heldout"],
+         "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
+         "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
+         "elpd_gain_per_arm": gains,
+         "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - current[x].val_lpd)
+                                        for x in current))}
+    s["passes"] = rule.passes(s)
+    return s
+
+
+def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRule | None = None,
+             k_folds: int | None = None, seed: int = 0, progress: bool = False,
+             max_steps: int | None = None) -> Diagnosis:
+    """Run the model-criticism workflow on a rig's single-arm rows (see the module docstring).
+
+    ``candidates``: effect names to try (default: every registered effect).
+    """
+    rule = rule or DecisionRule()
+    candidates = list(candidates if candidates is not None else fx.effect_names())
+    for c in candidates:
+        if c not in fx.REGISTRY:
+            raise ValueError(f"unknown effect {c!r}; known: {', '.join(fx.REGISTRY)}")
+    arms = list(rig.arms)
+    data = {a: ArmData.from_rig(rig, a) for a in arms}
+    bar = _bar(progress, len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2))
+
+    def ev(a: str, names: tuple[str, ...], start: ArmEval | None) -> ArmEval:
+        out = evaluate_arm(data[a], names, start, k_folds=k_folds, seed=seed)
+        bar.update()
+        return out
+
+    current = {a: ev(a, (), None) for a in arms}
+    baseline = dict(current)
+    tests_before = {a: residual_tests(data[a], current[a], candidates, seed=seed) for a in arms}
+    history, steps, rounds = [dict(current)], [], []
+    remaining = list(candidates)
+    while remaining and (max_steps is None or len(steps) < max_steps):
+        scores, fitted = [], {}
+        for name in remaining:
+            fitted[name] = {a: ev(a, (*current[a].effects, name), current[a]) for a in arms}
+            scores.append(_score_candidate(name, current, fitted[name], rule))
+        rounds.append(scores)
+        passing = [s for s in scores if s["passes"]]
+        if not passing:
+            break
+        best = max(passing, key=lambda s: s["elpd_diff"])
+        name = best["effect"]
+        for a in best["arms"]:
+            current[a] = fitted[name][a]
+        steps.append({k: best[k] for k in (
+            "effect", "arms", "heldout_error_before_mm", "heldout_error_after_mm", "elpd_diff",
+            "elpd_diff_se", "cv_error_before_mm", "cv_error_after_mm", "heldout_elpd_diff")})
+        steps[-1]["magnitudes"] = {a: current[a].magnitudes(data[a])[name]
+                                   for a in best["arms"]}
+        history.append(dict(current))
+        remaining.remove(name)
+    bar.close()
+    tests_after = {a: residual_tests(data[a], current[a], candidates, seed=seed) for a in arms}
+    return Diagnosis(rig.name, arms, rule, candidates, baseline, current, history, steps,
+                     rounds, tests_before, tests_after, data)
+
+
+def _bar(enabled: bool, total: int):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, disable=not enabled, desc="diagnose", unit="fit", leave=False)
+
+
+# ------------------------------------------------------------------------------ output
+
+
+def format_diagnosis(doc: dict) -> str:
+    """The terminal report: residual structure, each round's candidates, the named effects."""
+    from bayesrob.report import format_table
+
+    def f(x: float | None, nd: int = 2) -> str:
+        return "-" if x is None else f"{x:.{nd}f}"
+
+    out = [f"diagnosis of rig {doc['rig']!r}", f"decision rule: {doc['rule']}", "",
+           "residual structure of the base model (p values: small means not noise)"]
+    rows = []
+    for a, t in doc["residual_tests"]["before"].items():
+        lof = t.get("lack_of_fit", {})
+        jump = t.get("largest_jump", {})
+        w = t["worst_region"]
+        rows.append([a, f(lof.get("p_value"), 3), f(t["morans_i"]["p_value"], 3),
+                     f"{f(jump.get('mm'))} ({f(jump.get('p_value'), 3)})",
+                     f"{w['region']} {f(w['mean_mm'])} vs {f(w['elsewhere_mm'])}",
+                     " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
+    out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
+                             "worst region (mm)", "signature p"], rows))
+    for r, scores in enumerate(doc["rounds"], start=1):
+        out += ["", f"round {r}: candidates added to "
+                    f"{' + '.join(doc['steps'][r - 2]['effect'] for _ in [0]) if r > 1 else 'base'}"
+                    if False else f"round {r}"]
+        rows = [[s["effect"], ",".join(s["arms"]) or "-",
+                 f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
+                 f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
+                 f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
+                 "yes" if s["passes"] else "no"] for s in scores]
+        out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
+                                 "elpd diff", "passes"], rows))
+    out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
+    gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
+    gap += [f"+{s['effect']} {f(s['heldout_error_after_mm'])} mm" for s in doc["steps"]]
+    out.append("held-out error per step: " + " -> ".join(gap))
+    for s in doc["steps"]:
+        for a, m in s["magnitudes"].items():
+            out.append(f"  {s['effect']} in {a}: {m['text']}")
+    if not doc["steps"]:
+        out.append("residuals are consistent with measurement noise: no effect is missing")
+    return "\n".join(out)
+
+
+def write_report(diag: Diagnosis, directory: str | Path) -> list[Path]:
+    """Save the diagnosis figures (PNG) into ``directory``; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for a in diag.arms:
+        fig = residual_quiver_figure(diag, a)
+        path = out / f"residuals_{a}.png"
+        fig.savefig(path, dpi=110)
+        written.append(path)
+    fig = gap_figure(diag)
+    path = out / "gap_per_step.png"
+    fig.savefig(path, dpi=110)
+    written.append(path)
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
+    return written
+
+
+def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
+                 progress: bool = False, **kwargs) -> Diagnosis:
+    """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
+    from bayesrob.rig import load_rig
+
+    return diagnose(load_rig(path), candidates, progress=progress, **kwargs)
+
+
+# Re-exported for callers that want to score their own effect sets.
+__all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
+           "evaluate_arm", "format_diagnosis", "residual_tests", "write_report"]
+
+_unused: Callable | None = None

@@ -1,0 +1,404 @@
+"""Physical effects that augment an arm's forward model, for the model-criticism workflow.
+
+The base model says an arm holds exactly the angles its servo map commands,
+``theta = g(u) = gain * u + offset``. An *effect* is a physically parameterised correction
+to those angles,
+
+    theta_actual = effect.apply(params, extra, u, theta)
+
+where ``params`` are the eight base parameters (:class:`~bayesrob.kinematics.ArmParams`),
+``extra`` the effect's own unknowns (fitted together with ``params`` by least squares, so
+``apply`` is written in JAX and the Jacobian comes from JAX), ``u`` the pulse widths and
+``theta`` the angles before the effect. The end point is then ``f(theta_actual)``.
+
+The forms here are deliberately *not* the simulator's (a dead band, a sinusoidal ripple,
+point masses on ideal springs): the diagnosis has to recognise an effect in data made by
+physics it does not know, so each candidate is the simplest family that a physicist would
+write down for the effect, with unknown coefficients.
+
+Adding an effect is one small class::
+
+    @register
+    class Droop(Effect):
+        name = "droop"
+        summary = "one line for the report"
+        def param_names(self): return ("k",)
+        def scales(self): return np.array([1e-3])
+        def apply(self, params, extra, u, theta): return theta + extra[0] * ...
+
+and nothing else changes: ``bayesrob diagnose`` picks up every registered name.
+An effect may also expose *structural settings* (``settings()``), values that a gradient
+cannot fit (which side of a sign change a point lies on); the fit profiles over them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cache
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+
+
+@dataclass(frozen=True)
+class EffectContext:
+    """What an effect may know about an arm besides its parameters: fixed, not fitted.
+
+    ``u_centre`` / ``u_half_span``: centre and half-width (us) of the pulses the arm was
+    commanded with, so polynomial terms are written in a normalised pulse in [-1, 1] and
+    their coefficients are comparable between arms and rigs.
+    """
+
+    gravity: tuple[float, float] = (0.0, -1.0)
+    u_centre: tuple[float, float] = (1500.0, 1500.0)
+    u_half_span: tuple[float, float] = (300.0, 300.0)
+
+    def to_array(self) -> jax.Array:
+        return jnp.asarray([*self.gravity, *self.u_centre, *self.u_half_span],
+                           dtype=jnp.float64)
+
+    @classmethod
+    def from_array(cls, a: jax.Array) -> EffectContext:
+        """The inverse of ``to_array``; inside jit the fields are traced arrays."""
+        return cls(a[0:2], a[2:4], a[4:6])
+
+    @classmethod
+    def from_commands(cls, u: np.ndarray, gravity: tuple[float, float]) -> EffectContext:
+        u = np.asarray(u, float)
+        lo, hi = u.min(axis=0), u.max(axis=0)
+        half = np.maximum((hi - lo) / 2, 1.0)  # one command only: avoid dividing by zero
+        return cls(tuple(float(g) for g in gravity), tuple(float(c) for c in (lo + hi) / 2),
+                   tuple(float(h) for h in half))
+
+
+@dataclass(frozen=True)
+class Effect:
+    """Base class of a candidate effect (see the module docstring for the contract)."""
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    # Effects are applied in increasing stage: 0 acts on the servo map (what the servo
+    # tries to hold), 1 on the load path (what the joint does under that command).
+    stage: ClassVar[int] = 1
+
+    ctx: EffectContext = field(default_factory=EffectContext)
+    # The structural setting in use (one row of ``settings()``); a JAX array while fitting.
+    setting: object = None
+
+    # -- what an effect must define ----------------------------------------------------
+    def param_names(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    def scales(self) -> np.ndarray:
+        """Typical size of each extra parameter (radians unless named otherwise)."""
+        raise NotImplementedError
+
+    def apply(self, params: kin.ArmParams, extra: jax.Array, u: jax.Array,
+              theta: jax.Array) -> jax.Array:
+        raise NotImplementedError
+
+    # -- what it may define -------------------------------------------------------------
+    def prior_sd(self) -> np.ndarray:
+        """Width of the weak zero-centred penalty on the parameters (see the diagnosis).
+
+        Generous on purpose (ten typical sizes): it only decides what happens in directions
+        the data cannot see at all.
+        """
+        return 10.0 * self.scales()
+
+    def initial(self) -> np.ndarray:
+        """Start of the fit: no effect at all, so the base fit is the starting point."""
+        return np.zeros(len(self.param_names()))
+
+    def settings(self, params: kin.ArmParams, u: np.ndarray) -> np.ndarray | None:
+        """Candidate structural settings (G, s) to profile over, or None if there are none.
+
+        ``params``/``u`` (the base fit and the arm's commands) let an effect drop settings
+        that make no difference on these commands.
+        """
+        return None
+
+    def with_setting(self, setting: object) -> Effect:
+        return replace(self, setting=setting)
+
+    def magnitudes(self, params: kin.ArmParams, extra: jax.Array) -> dict[str, jax.Array]:
+        """Physical sizes (JAX scalars) derived from the fit; their keys end in their unit.
+
+        Uncertainties come from the delta method on the fit's covariance, so these must be
+        differentiable in ``params`` and ``extra``.
+        """
+        return {}
+
+    def describe(self, values: dict[str, tuple[float, float]]) -> str:
+        """One line for people from ``{magnitude: (value, standard error)}``."""
+        return ", ".join(f"{k} {v:.3g} +- {s:.2g}" for k, (v, s) in values.items())
+
+    def magnitude_report(self, params: kin.ArmParams, extra: np.ndarray,
+                         cov: np.ndarray | None) -> dict:
+        """Magnitudes with standard errors from ``cov`` (over the base 8 + extra parameters).
+
+        Returns ``{"values": {name: {"value", "se"}}, "text": str}``.
+        """
+        v = jnp.concatenate([params.to_vector(), jnp.asarray(extra, dtype=jnp.float64)])
+        setting = None if self.setting is None else jnp.asarray(self.setting)
+        value_fn, jac_fn = _magnitude_fns(type(self))
+        val = value_fn(v, self.ctx.to_array(), setting)
+        if not val:
+            return {"values": {}, "text": ""}
+        if cov is None:
+            se = {k: np.nan for k in val}
+        else:
+            jac = jac_fn(v, self.ctx.to_array(), setting)
+            c = np.asarray(cov)
+            se = {k: float(np.sqrt(max(np.asarray(jac[k]) @ c @ np.asarray(jac[k]), 0.0)))
+                  for k in val}
+        values = {k: (float(val[k]), se[k]) for k in val}
+        return {"values": {k: {"value": a, "se": b} for k, (a, b) in values.items()},
+                "text": self.describe(values)}
+
+
+@cache
+def _magnitude_fns(cls: type[Effect]):
+    """Jitted magnitudes of an effect class and their gradient (compiled once per class)."""
+
+    def mags(vec: jax.Array, ctx: jax.Array, setting) -> dict[str, jax.Array]:
+        eff = cls(EffectContext.from_array(ctx), setting)
+        return eff.magnitudes(kin.ArmParams.from_vector(vec[:8]), vec[8:])
+
+    return jax.jit(mags), jax.jit(jax.jacfwd(mags))
+
+
+REGISTRY: dict[str, type[Effect]] = {}
+
+
+def register(cls: type[Effect]) -> type[Effect]:
+    """Class decorator: make an effect a candidate of the diagnosis under ``cls.name``."""
+    if not cls.name:
+        raise ValueError(f"{cls.__name__} needs a non-empty class attribute 'name'")
+    if cls.name in REGISTRY and REGISTRY[cls.name] is not cls:
+        raise ValueError(f"an effect named {cls.name!r} is already registered")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+def effect_names() -> tuple[str, ...]:
+    return tuple(REGISTRY)
+
+
+def make_effect(name: str, ctx: EffectContext) -> Effect:
+    try:
+        return REGISTRY[name](ctx)
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(REGISTRY)}") from None
+
+
+def apply_effects(effects: tuple[Effect, ...], params: kin.ArmParams, extras: list[jax.Array],
+                  u: jax.Array) -> jax.Array:
+    """Joint angles of the augmented model: g(u) corrected by each effect in stage order."""
+    theta = kin.servo(params, u)
+    order = sorted(range(len(effects)), key=lambda i: effects[i].stage)
+    for i in order:
+        theta = effects[i].apply(params, extras[i], u, theta)
+    return theta
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _cross(a: jax.Array, g: jax.Array) -> jax.Array:
+    """z of a x g: the torque per unit weight of a mass at lever a about the pivot."""
+    return a[..., 0] * g[1] - a[..., 1] * g[0]
+
+
+def lever_signatures(theta: jax.Array, gravity: tuple[float, float]) -> tuple[jax.Array, jax.Array]:
+    """Gravity torque per unit (mass x lever) of mass along link 1 and along link 2.
+
+    Any mass distribution on straight links, lumped or spread, gives a shoulder torque
+    ``A * s1 + B * s12`` and an elbow torque ``B' * s12`` with A, B, B' >= 0: these two
+    functions of the configuration are all the torque geometry there is.
+    """
+    g = jnp.asarray(gravity, dtype=jnp.float64)
+    t1 = theta[..., 0]
+    t12 = t1 + theta[..., 1]
+    e1 = jnp.stack([jnp.cos(t1), jnp.sin(t1)], -1)
+    e12 = jnp.stack([jnp.cos(t12), jnp.sin(t12)], -1)
+    return _cross(e1, g), _cross(e12, g)
+
+
+def _straight_reach_mm(params: kin.ArmParams) -> tuple[jax.Array, jax.Array]:
+    return params.links[0] + params.links[1], params.links[1]
+
+
+# ------------------------------------------------------------------------------ effects
+
+
+@register
+@dataclass(frozen=True)
+class GravitySag(Effect):
+    """Joints give way under the gravity torque, in proportion to it (compliant servos).
+
+    deflection_1 = c11 * s1 + c12 * s12,  deflection_2 = c22 * s12,
+    with s1, s12 the lever signatures (:func:`lever_signatures`) at the commanded angles and
+    c = (mass x lever x g) / stiffness in radians. Three coefficients cover any mass
+    distribution along straight links; no spring law or mass positions are assumed.
+    """
+
+    name: ClassVar[str] = "gravity_sag"
+    summary: ClassVar[str] = "joint deflection proportional to the gravity torque"
+    stage: ClassVar[int] = 1
+
+    def param_names(self) -> tuple[str, ...]:
+        return ("c11_rad", "c12_rad", "c22_rad")
+
+    def scales(self) -> np.ndarray:
+        return np.full(3, 0.01)
+
+    def apply(self, params, extra, u, theta):
+        s1, s12 = lever_signatures(theta, self.ctx.gravity)
+        d1 = extra[0] * s1 + extra[1] * s12
+        d2 = extra[2] * s12
+        return theta + jnp.stack([d1, d2], -1)
+
+    def magnitudes(self, params, extra):
+        reach, l2 = _straight_reach_mm(params)
+        # Arm straight and square to gravity: both signatures are 1, the torque is largest.
+        d1 = extra[0] + extra[1]
+        d2 = extra[2]
+        return {"sag_full_reach_mm": reach * d1 + l2 * d2,
+                "shoulder_deflection_deg": jnp.rad2deg(d1),
+                "elbow_deflection_deg": jnp.rad2deg(d2)}
+
+    def describe(self, values):
+        s, se = values["sag_full_reach_mm"]
+        a, ase = values["shoulder_deflection_deg"]
+        b, bse = values["elbow_deflection_deg"]
+        return (f"sag at full reach {s:.2f} +- {se:.2f} mm (shoulder {a:.2f} +- {ase:.2f} deg, "
+                f"elbow {b:.2f} +- {bse:.2f} deg, arm straight and level)")
+
+
+@register
+@dataclass(frozen=True)
+class Backlash(Effect):
+    """Play in a joint: it rests against one side of its gear play, the side gravity pulls to.
+
+    delta_j = beta_j * sign(torque_j): a constant offset whose sign flips where the gravity
+    torque on the joint changes sign (absorbed into the servo offset where it never does).
+    The elbow's torque has the sign of s12; the shoulder's that of (1 - rho) s1 + rho s12,
+    where rho in [0, 1] is where the arm's mass sits (0: all on link 1, 1: all at the end).
+    rho cannot be found by gradient (the sign is flat in it), so it is a structural setting
+    the fit profiles over.
+    """
+
+    name: ClassVar[str] = "backlash"
+    summary: ClassVar[str] = "joint offset whose sign follows the gravity torque"
+    stage: ClassVar[int] = 1
+    RHO_GRID: ClassVar[np.ndarray] = np.linspace(0.0, 1.0, 41)
+
+    def param_names(self) -> tuple[str, ...]:
+        return ("beta1_rad", "beta2_rad")
+
+    def scales(self) -> np.ndarray:
+        return np.full(2, 0.005)
+
+    def _rho(self) -> jax.Array:
+        return jnp.asarray(0.3 if self.setting is None else jnp.reshape(self.setting, (-1,))[0])
+
+    def signs(self, theta: jax.Array) -> jax.Array:
+        s1, s12 = lever_signatures(theta, self.ctx.gravity)
+        rho = self._rho()
+        return jnp.stack([jnp.sign((1 - rho) * s1 + rho * s12), jnp.sign(s12)], -1)
+
+    def apply(self, params, extra, u, theta):
+        return theta + extra * self.signs(theta)
+
+    def settings(self, params, u):
+        # Settings that sort the arm's commands into the same sign pattern fit identically:
+        # keep one rho per distinct pattern (its middle one, robust to small refits).
+        theta = np.asarray(params.gain) * np.asarray(u, float) + np.asarray(params.offset)
+        g = np.asarray(self.ctx.gravity, float)
+        t12 = theta[:, 0] + theta[:, 1]
+        s1 = np.cos(theta[:, 0]) * g[1] - np.sin(theta[:, 0]) * g[0]
+        s12 = np.cos(t12) * g[1] - np.sin(t12) * g[0]
+        rho = self.RHO_GRID[:, None]
+        signs = np.sign((1 - rho) * s1[None] + rho * s12[None])  # (G, n)
+        patterns: dict[bytes, list[float]] = {}
+        for r, row in zip(self.RHO_GRID, signs, strict=True):
+            patterns.setdefault(row.tobytes(), []).append(float(r))
+        return np.array([[r[len(r) // 2]] for r in patterns.values()])
+
+    def magnitudes(self, params, extra):
+        reach, l2 = _straight_reach_mm(params)
+        return {"shoulder_play_deg": jnp.rad2deg(extra[0]),
+                "elbow_play_deg": jnp.rad2deg(extra[1]),
+                # Crossing a sign change moves a joint across the whole play, 2 beta.
+                "shoulder_jump_full_reach_mm": 2 * jnp.abs(extra[0]) * reach,
+                "elbow_jump_full_reach_mm": 2 * jnp.abs(extra[1]) * l2}
+
+    def describe(self, values):
+        a, ase = values["shoulder_play_deg"]
+        b, bse = values["elbow_play_deg"]
+        ja, jase = values["shoulder_jump_full_reach_mm"]
+        jb, jbse = values["elbow_jump_full_reach_mm"]
+        rho = float(self._rho())
+        return (f"play (half-width) shoulder {a:.2f} +- {ase:.2f} deg, elbow {b:.2f} +- "
+                f"{bse:.2f} deg; jump where the torque flips: shoulder {ja:.2f} +- {jase:.2f} "
+                f"mm, elbow {jb:.2f} +- {jbse:.2f} mm at full reach (mass position rho "
+                f"{rho:.2f})")
+
+
+@register
+@dataclass(frozen=True)
+class ServoNonlinearity(Effect):
+    """A curved pulse-to-angle map: quadratic and cubic terms in the normalised pulse.
+
+    delta_j = q_j x_j^2 + k_j x_j^3 with x = (u - u_centre) / u_half_span over the commanded
+    range. Constant and linear parts are the servo map's own offset and gain.
+    """
+
+    name: ClassVar[str] = "servo_nonlinearity"
+    summary: ClassVar[str] = "quadratic + cubic terms in the pulse-to-angle map"
+    stage: ClassVar[int] = 0
+
+    def param_names(self) -> tuple[str, ...]:
+        return ("q1_rad", "k1_rad", "q2_rad", "k2_rad")
+
+    def scales(self) -> np.ndarray:
+        return np.full(4, 0.005)
+
+    def _x(self, u: jax.Array) -> jax.Array:
+        return (u - jnp.asarray(self.ctx.u_centre)) / jnp.asarray(self.ctx.u_half_span)
+
+    def apply(self, params, extra, u, theta):
+        x = self._x(u)
+        q = jnp.stack([extra[0], extra[2]])
+        k = jnp.stack([extra[1], extra[3]])
+        return theta + q * x**2 + k * x**3
+
+    def magnitudes(self, params, extra):
+        # The part a straight line cannot take: deviation from the best line over [-1, 1].
+        x = jnp.linspace(-1.0, 1.0, 41)
+        basis = jnp.stack([jnp.ones_like(x), x], -1)
+        proj = basis @ jnp.linalg.pinv(basis)
+        reach, l2 = _straight_reach_mm(params)
+        out = {}
+        for j, (q, k) in enumerate(((extra[0], extra[1]), (extra[2], extra[3]))):
+            curve = q * x**2 + k * x**3
+            dev = curve - proj @ curve
+            # A smooth maximum keeps the delta method's derivative defined.
+            peak = jnp.sqrt(jnp.max(dev**2) + 1e-18)
+            out[f"joint{j + 1}_bend_deg"] = jnp.rad2deg(peak)
+            out[f"joint{j + 1}_bend_mm"] = peak * (reach if j == 0 else l2)
+        return out
+
+    def describe(self, values):
+        parts = []
+        for j in (1, 2):
+            d, dse = values[f"joint{j}_bend_deg"]
+            m, mse = values[f"joint{j}_bend_mm"]
+            parts.append(f"joint {j} {d:.2f} +- {dse:.2f} deg ({m:.2f} +- {mse:.2f} mm)")
+        return "pulse-to-angle map departs from a straight line by " + ", ".join(parts) + \
+            " at most over the commanded range"

@@ -1,0 +1,249 @@
+"""Rig generators whose physics deliberately differs from ``bayesrob.simulator``.
+
+The diagnosis must recognise an effect in data it did not make: real sag does not come from
+point masses on linear springs, real play does not sit exactly on the gravity side, real
+servos are not bent by a sinusoid. So these generators write rig directories in the rig
+format from other physics:
+
+- ``gravity_sag``: uniform rods plus point masses on *hardening* springs
+  (k d + k3 d^3 = torque, the torque taken at the deflected pose, solved by fixed point),
+  plus link 2 bending like a cantilever under the load across it (an end-point shift, not a
+  joint rotation).
+- ``backlash``: play with *hysteresis*: a joint whose gravity torque exceeds its friction
+  rests on the gravity side; below that, on the side it was approached from (the order the
+  commands were sent in matters, as on hardware).
+- ``servo_nonlinearity``: a saturating map, theta = g(u) + A tanh((u - u0) / w) with u0 off
+  the centre of the commanded range: odd *and* even curvature, not a sinusoid.
+
+Only numpy and the kinematics module are used; nothing reads ``truth.toml``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.rig import ArmSpec, dump_toml, format_row, measurement_header, rig_toml_dict
+
+G_ACC = 9.81
+EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
+
+
+@dataclass(frozen=True)
+class GenArm:
+    name: str
+    base: tuple[float, float]
+    links: tuple[float, float]
+    gain: tuple[float, float]
+    elbow: int
+    link_mass_kg: tuple[float, float] = (0.05, 0.04)
+    elbow_mass_kg: float = 0.07
+    end_mass_kg: float = 0.02
+    stiffness: tuple[float, float] = (2500.0, 1800.0)  # N mm / rad
+    hardening: tuple[float, float] = (2.0e5, 1.5e5)  # N mm / rad^3
+    link2_flex_mm_per_n: float = 2.0  # end shift per N of load across link 2
+    play_rad: tuple[float, float] = (0.008, 0.008)  # half-width
+    friction_nmm: tuple[float, float] = (8.0, 8.0)  # torque below which play follows approach
+    tanh_amp_rad: tuple[float, float] = (0.02, 0.015)
+    tanh_width_us: tuple[float, float] = (350.0, 400.0)
+    tanh_shift_us: tuple[float, float] = (120.0, -90.0)  # u0 relative to the range centre
+    limits: tuple[tuple[float, float], tuple[float, float]] = ((600.0, 2400.0),) * 2
+
+
+@dataclass(frozen=True)
+class GenRig:
+    arms: tuple[GenArm, ...]
+    effects: tuple[str, ...] = ()
+    gravity: tuple[float, float] = (0.0, -1.0)
+    workspace: tuple[tuple[float, float], tuple[float, float]] = ((80.0, 260.0), (100.0, 280.0))
+    grid: int = 4
+    seed: int = 0
+    joint_noise_rad: float = 0.0008
+    measurement_noise_mm: float = 0.35
+    scale: dict = field(default_factory=dict)  # effect -> magnitude multiplier
+
+    def with_effects(self, *effects: str, **scale: float) -> GenRig:
+        for e in effects:
+            if e not in EFFECTS:
+                raise ValueError(e)
+        return replace(self, effects=tuple(effects), scale=dict(scale))
+
+
+def paper_like(grid: int = 4, seed: int = 0) -> GenRig:
+    """Two arms as in the paper (one hung above, one standing below), own numbers."""
+    return GenRig((
+        GenArm("top", (25.0, 445.0), (235.0, 225.0), (0.00151, 0.00149), 1,
+               link_mass_kg=(0.06, 0.035), elbow_mass_kg=0.06, end_mass_kg=0.025),
+        GenArm("bottom", (15.0, -25.0), (225.0, 195.0), (0.00149, 0.00153), -1,
+               link_mass_kg=(0.045, 0.025), elbow_mass_kg=0.095, end_mass_kg=0.012),
+    ), grid=grid, seed=seed)
+
+
+def tilted(grid: int = 4, seed: int = 0) -> GenRig:
+    """Another geometry: arms on a plane tilted 20 degrees, bases left and right."""
+    t = math.radians(20)
+    return GenRig((
+        GenArm("left", (-120.0, 120.0), (250.0, 210.0), (0.00150, 0.00152), -1,
+               link_mass_kg=(0.05, 0.03), elbow_mass_kg=0.09, end_mass_kg=0.015,
+               stiffness=(2000.0, 1600.0)),
+        GenArm("right", (420.0, 140.0), (240.0, 220.0), (0.00152, 0.00148), 1,
+               link_mass_kg=(0.05, 0.04), elbow_mass_kg=0.07, end_mass_kg=0.02,
+               stiffness=(2000.0, 1600.0)),
+    ), gravity=(math.sin(t), -math.cos(t)), workspace=((90.0, 230.0), (90.0, 250.0)),
+        grid=grid, seed=seed)
+
+
+# ------------------------------------------------------------------------------ physics
+
+
+def _unit(a: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(a), np.sin(a)], -1)
+
+
+def _cross(a: np.ndarray, g: np.ndarray) -> float:
+    return float(a[0] * g[1] - a[1] * g[0])
+
+
+def _torques(arm: GenArm, theta: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Gravity torques (N mm) about shoulder and elbow: uniform rods and point masses."""
+    l1, l2 = arm.links
+    e1, e12 = _unit(theta[0]), _unit(theta[0] + theta[1])
+    m1, m2 = arm.link_mass_kg
+    # Moment of the distal masses about the elbow (kg mm), along link 2.
+    elbow_moment = (m2 * l2 / 2 + arm.end_mass_kg * l2) * e12
+    distal_mass = m2 + arm.end_mass_kg + arm.elbow_mass_kg
+    shoulder_moment = m1 * l1 / 2 * e1 + distal_mass * l1 * e1 + elbow_moment
+    return G_ACC * np.array([_cross(shoulder_moment, g), _cross(elbow_moment, g)])
+
+
+def _solve_spring(k: float, k3: float, tau: float) -> float:
+    """The deflection d with k d + k3 d^3 = tau (a hardening spring), by Newton."""
+    d = tau / k
+    for _ in range(20):
+        d -= (k * d + k3 * d**3 - tau) / (k + 3 * k3 * d**2)
+    return d
+
+
+def _offsets(arm: GenArm, workspace) -> tuple[float, float]:
+    centre = jnp.array([np.mean(workspace[0]), np.mean(workspace[1])])
+    p = kin.ArmParams(jnp.array(arm.base), jnp.array(arm.links), jnp.array(arm.gain),
+                      jnp.zeros(2))
+    theta, ok = kin.inverse(p, centre, arm.elbow)
+    if not bool(ok):
+        raise ValueError(f"arm {arm.name}: workspace centre out of reach")
+    mid = np.array([(lo + hi) / 2 for lo, hi in arm.limits])
+    return tuple(float(t - g * m) for t, g, m in zip(np.asarray(theta), arm.gain, mid,
+                                                      strict=True))
+
+
+class _Plant:
+    """One arm's hardware: remembers where its joints came from (for hysteresis)."""
+
+    def __init__(self, arm: GenArm, rig: GenRig, rng: np.random.Generator):
+        self.arm, self.rig, self.rng = arm, rig, rng
+        self.offset = np.array(_offsets(arm, rig.workspace))
+        self.g = np.asarray(rig.gravity, float) / np.linalg.norm(rig.gravity)
+        self.prev_cmd: np.ndarray | None = None
+        self.u_mid = np.array([(lo + hi) / 2 for lo, hi in arm.limits])
+
+    def s(self, effect: str) -> float:
+        return float(self.rig.scale.get(effect, 1.0))
+
+    def commanded(self, u: np.ndarray) -> np.ndarray:
+        a = self.arm
+        theta = np.asarray(a.gain) * u + self.offset
+        if "servo_nonlinearity" in self.rig.effects:
+            u0 = self.u_mid + np.asarray(a.tanh_shift_us)
+            theta = theta + self.s("servo_nonlinearity") * np.asarray(a.tanh_amp_rad) * \
+                np.tanh((u - u0) / np.asarray(a.tanh_width_us))
+        return theta
+
+    def end_point(self, u: np.ndarray) -> np.ndarray:
+        a, eff = self.arm, self.rig.effects
+        cmd = self.commanded(np.asarray(u, float))
+        cmd = cmd + self.rng.normal(0.0, self.rig.joint_noise_rad, 2)
+        sag = "gravity_sag" in eff
+        k = np.asarray(a.stiffness) / (self.s("gravity_sag") if sag else 1e-3)
+        theta = cmd.copy()
+        for _ in range(30):  # the torque depends on the pose it deflects: fixed point
+            tau = _torques(a, theta, self.g)
+            defl = np.array([_solve_spring(k[j], a.hardening[j] if sag else 0.0, tau[j])
+                             for j in range(2)])
+            new = cmd + defl
+            if "backlash" in eff:
+                play = self.s("backlash") * np.asarray(a.play_rad)
+                approach = np.sign(cmd - (self.prev_cmd if self.prev_cmd is not None
+                                          else cmd - 1e-3))
+                # The gear trails the motion unless gravity is strong enough to pull the
+                # joint across its play.
+                side = np.where(np.abs(tau) > np.asarray(a.friction_nmm), np.sign(tau),
+                                -approach)
+                new = new + play * side
+            if np.max(np.abs(new - theta)) < 1e-12:
+                break
+            theta = new
+        self.prev_cmd = cmd
+        e12 = _unit(theta[0] + theta[1])
+        end = np.asarray(kin.forward(kin.ArmParams(jnp.asarray(a.base), jnp.asarray(a.links),
+                                                   jnp.zeros(2), jnp.zeros(2)),
+                                     jnp.asarray(theta)))
+        if sag:
+            # Link 2 bends under the load across it: a shift square to the link.
+            normal = np.array([-e12[1], e12[0]])
+            load = G_ACC * (a.end_mass_kg + 0.4 * a.link_mass_kg[1]) * float(normal @ self.g)
+            end = end + self.s("gravity_sag") * a.link2_flex_mm_per_n * load * normal
+        return end + self.rng.normal(0.0, self.rig.measurement_noise_mm, 2)
+
+
+def _grid(workspace, n: int) -> np.ndarray:
+    xs = np.linspace(*workspace[0], n)
+    ys = np.linspace(*workspace[1], n)[::-1]
+    return np.array([(x, y) for y in ys for x in xs])
+
+
+def write_rig(out_dir: str | Path, rig: GenRig) -> Path:
+    """Write rig.toml and measurements.csv (no truth file: the diagnosis must not need one)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(rig.seed)
+    names = [a.name for a in rig.arms]
+    specs = {}
+    for a in rig.arms:
+        off = _offsets(a, rig.workspace)
+        specs[a.name] = ArmSpec(
+            a.name, tuple(float(round(x + rng.normal(0, 2.0), 4)) for x in a.base),
+            tuple(float(round(x + rng.normal(0, 1.5), 4)) for x in a.links),
+            tuple(float(round(x * (1 + rng.normal(0, 0.02)), 7)) for x in a.gain),
+            tuple(float(round(x + rng.normal(0, 0.02), 4)) for x in off), a.elbow, a.limits)
+    plants = {a.name: _Plant(a, rig, rng) for a in rig.arms}
+    grid = _grid(rig.workspace, rig.grid)
+    rows = []
+    commands = {}
+    for a in rig.arms:
+        nominal = kin.Arm.nominal(specs[a.name])
+        u_all = np.round(np.asarray(nominal.command(jnp.asarray(grid))) * 4) / 4
+        commands[a.name] = u_all
+        for set_name in ("train", "validation"):
+            for u in u_all:
+                d = plants[a.name].end_point(u)
+                rows.append(format_row(names, a.name, set_name, None, {a.name: u}, d))
+    # Linked rows: the arms share the end point; a stiffness-free average is enough here
+    # (the diagnosis uses single-arm rows only, the rows just keep the rig complete).
+    for i, target in enumerate(grid):
+        cmds = {n: commands[n][i] for n in names}
+        d = np.mean([plants[n].end_point(cmds[n]) for n in names], axis=0)
+        rows.append(format_row(names, "+".join(names), "test", target, cmds, d))
+    (out / "rig.toml").write_text(dump_toml(rig_toml_dict(
+        "generated", specs, tuple(float(x) for x in np.asarray(rig.gravity) /
+                                  np.linalg.norm(rig.gravity)), rig.workspace)))
+    with (out / "measurements.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(measurement_header(names))
+        w.writerows(rows)
+    return out
