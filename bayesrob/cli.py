@@ -329,6 +329,50 @@ def _sim_device(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ diagnose
+
+
+def _candidate_effects(text: str) -> tuple[str, ...]:
+    from bayesrob.effects import effect_names
+
+    items = tuple(e.strip() for e in text.split(",") if e.strip())
+    if not items:
+        raise argparse.ArgumentTypeError("name at least one effect")
+    for e in items:
+        if e not in effect_names():
+            raise argparse.ArgumentTypeError(
+                f"unknown effect {e!r} (choose from {', '.join(effect_names())})")
+    return items
+
+
+def _diagnose_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
+    p.add_argument("--report", metavar="DIR", help="write the figures (PNG) into DIR")
+    p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
+                   help="comma-separated candidate effects to try (default: all registered: "
+                        "gravity_sag,backlash,servo_nonlinearity)")
+    p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
+
+
+@command("diagnose", "find the physical effects the forward model is missing, add them and "
+                     "show the gap shrink")(_diagnose_args)
+def _diagnose(args: argparse.Namespace) -> int:
+    from bayesrob.diagnosis import diagnose, format_diagnosis, write_report
+
+    rig = _load_rig_arg(args.rig)
+    diag = diagnose(rig, args.effects, seed=args.seed, progress=sys.stderr.isatty())
+    doc = diag.to_json()
+    if args.json != "-":
+        print(format_diagnosis(doc))
+    if args.report:
+        for path in write_report(diag, args.report):
+            if args.json != "-":
+                print(f"wrote {path}")
+    _write_json(doc, args.json)
+    return 0
+
+
 # ------------------------------------------------------------------------------ main
 # Further commands register themselves above this line with @command.
 
