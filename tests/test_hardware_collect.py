@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import os
 import shutil
 import signal
@@ -21,7 +22,6 @@ import numpy as np
 import pytest
 import serial
 
-from bayesrob.calibration import calibration_report
 from bayesrob.cli import main
 from bayesrob.hardware import DisconnectedError, HardwareError, LimitError
 from bayesrob.hardware.collect import (
@@ -173,14 +173,15 @@ def test_collect_produces_a_rig_that_calibrates(plant, rig_dir, protocol, wire) 
         for arm, u in pose.commands.items():
             assert np.allclose(m.commands[arm][i], u)
         assert np.allclose(m.observed[i], pose.end_point, atol=1e-3)
-    rep = calibration_report(rig)
-    for arm in ("top", "bottom"):
-        assert 0.2 < rep["accuracy"][arm]["validation"]["mean_mm"] < 1.2
-    assert 0.1 < rep["accuracy"]["top+bottom"]["test"]["mean_mm"] < 1.5
     first = {"compact": b"\xa1", "pololu": bytes([0xAA, 12, 0x21])}[wire] \
         if protocol == "maestro" else b"VER\r"
     assert received.startswith(first)
-    assert main(["calibrate", str(rig_dir)]) == 0
+    report = rig_dir / "calibration.json"
+    assert main(["calibrate", str(rig_dir), "--json", str(report)]) == 0
+    acc = json.loads(report.read_text())["accuracy"]
+    for arm in ("top", "bottom"):
+        assert 0.2 < acc[arm]["validation"]["mean_mm"] < 1.2
+    assert 0.1 < acc["top+bottom"]["test"]["mean_mm"] < 1.5
 
 
 def test_rows_are_written_whole_one_write_each_and_fsynced(plant, rig_dir, monkeypatch) -> None:
@@ -394,6 +395,51 @@ def test_the_link_prompt_can_stop_the_run_before_linked_rows(plant, rig_dir) -> 
                                                 "Link the end points of top, bottom for the test "
                                                 "rows."]
     assert all(len(p.arms) == 1 for p in poses)  # no linked move was sent
+
+
+@pytest.mark.parametrize(("linked", "move", "settled"), [
+    ("auto", ("top",), ("top",)), ("auto", ("top", "bottom"), ("top", "bottom")),
+    ("always", ("bottom",), ("top", "bottom")), ("never", ("top", "bottom"), ("top",))])
+def test_sim_device_linking_modes(plant, linked, move, settled) -> None:
+    with device(plant, linked=linked) as dev:
+        ctl, tracker = open_pair(dev)
+        try:
+            u = {"top": (1500.0, 1600.0), "bottom": (1450.0, 1350.0)}
+            ctl.move_and_settle({a: u[a] for a in move})
+            free = {a: plant.end_point({a: u[a] if a in move else dev_home(dev, a)},
+                                       noise=False) for a in ("top", "bottom")}
+            d = tracker.measure()
+        finally:
+            ctl.close()
+            tracker.link.close()
+        assert dev.poses[-1].arms == settled
+    if len(settled) == 1:
+        assert np.allclose(d, free[settled[0]], atol=3.0)  # noise only
+    else:  # linked: a tug of war between the arms, not either arm's free end point
+        assert min(np.linalg.norm(d - free["top"]), np.linalg.norm(d - free["bottom"])) > 3.0
+
+
+def dev_home(dev: SimDevice, arm: str) -> tuple[float, float]:
+    c1, c2 = dev.channels[arm]
+    return dev.home_us[c1], dev.home_us[c2]
+
+
+def test_maestro_go_home_and_errors_on_the_sim_device(plant) -> None:
+    with device(plant) as dev:
+        ctl, tracker = open_pair(dev)
+        try:
+            ctl.move_and_settle({"top": (1500.0, 1600.25)})
+            assert ctl.read_positions(["top"]) == {"top": (1500.0, 1600.25)}
+            ctl.home()
+            time.sleep(0.05)
+            assert ctl.read_positions(["top"]) == {"top": dev_home(dev, "top")}
+            ctl.link.write(bytes([0x84, 0x00, 0x70]))  # a Set Target cut short ...
+            assert not ctl.is_moving()  # ... by the next command byte
+            assert ctl.errors() == ["serial protocol error"]
+            assert ctl.errors() == []  # reading clears them
+        finally:
+            ctl.close()
+            tracker.link.close()
 
 
 # ------------------------------------------------------------------------------ manual entry

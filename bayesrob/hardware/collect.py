@@ -455,7 +455,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     """
     from tqdm.auto import tqdm
 
-    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    log = log or _stderr
     rig_dir = Path(rig_dir)
     meta = load_rig_toml(rig_dir / RIG_FILE)
     specs: dict[str, ArmSpec] = meta["arms"]
@@ -563,6 +563,10 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
 # ------------------------------------------------------------------------------ ports
 
 
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
 def controller_class(protocol: str) -> type[ServoController]:
     from bayesrob.hardware.maestro import Maestro
     from bayesrob.hardware.ssc32 import SSC32
@@ -598,7 +602,7 @@ def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int
                           device=device_number)
         else:
             ctl = cls(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries)
-        ctl.connect()
+        ctl.description = ctl.connect()
     except BaseException:
         link.close()
         raise
@@ -648,6 +652,7 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
                                  maestro_protocol=maestro_protocol, device_number=device_number,
                                  speed_us_per_s=speed_us_per_s, timeout_s=timeout_s,
                                  retries=retries)
+    (log or _stderr)(f"connected: {controller.description}")
     tlink = None
     try:
         if manual:

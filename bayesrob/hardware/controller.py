@@ -184,6 +184,7 @@ class ServoController(ABC):
         self._sleep = sleep
         self.resent_moves = 0
         self.failed_queries = 0
+        self.description = f"{self.protocol} on {link.name}"
         self._targets: dict[int, float] = {}
 
     # -- protocol hooks ------------------------------------------------------------------
