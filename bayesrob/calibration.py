@@ -6,6 +6,8 @@ Two point-estimate methods:
 - ``hill-climb``: the paper's procedure, kept as the baseline: coordinate steps on the summed
   Euclidean error, halving the steps when none helps, stopped as soon as the error on the
   ``validation`` rows rises.
+A third, ``bayes``, samples the posterior of the parameters by NUTS (params = posterior mean,
+params_se = posterior sd); it lives in :mod:`bayesrob.bayes_calibration`.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ import scipy.stats
 from bayesrob import kinematics as kin
 from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
-Method = Literal["least-squares", "hill-climb"]
-METHODS: tuple[str, ...] = ("least-squares", "hill-climb")
+Method = Literal["least-squares", "hill-climb", "bayes"]
+METHODS: tuple[str, ...] = ("least-squares", "hill-climb", "bayes")
 
 
 @dataclass
@@ -155,6 +157,10 @@ def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = 
     if len(u) * 2 < N_ARM_PARAMS:
         raise ValueError(f"arm {spec.name!r}: {len(u)} train rows cannot fix {N_ARM_PARAMS} "
                          "parameters")
+    if method == "bayes":  # posterior by NUTS, see bayesrob.bayes_calibration
+        from bayesrob.bayes_calibration import calibrate_arm_bayes
+
+        return calibrate_arm_bayes(spec, u, d, u_val, d_val)
     v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
     if method == "least-squares":
         v, iters = _least_squares(v0, u, d)
@@ -235,10 +241,15 @@ def calibration_report(rig: Rig, method: Method = "least-squares") -> dict:
     """The ``bayesrob calibrate --json`` document."""
     cal = calibrate(rig, method)
     arms = {n: c.arm for n, c in cal.items()}
-    return {
+    doc = {
         "method": method,
         "rig": rig.name,
         "arms": {n: c.to_json() for n, c in cal.items()},
         "accuracy": observed_accuracy(rig, arms),
         "param_names": list(kin.PARAM_NAMES),
     }
+    if method == "bayes":  # adds predicted accuracy with parameter uncertainty
+        from bayesrob.bayes_calibration import report_extras
+
+        doc.update(report_extras(rig, cal))
+    return doc

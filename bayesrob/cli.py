@@ -111,8 +111,10 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
-    p.add_argument("--method", choices=["least-squares", "hill-climb"], default="least-squares",
-                   help="least-squares (default, scipy) or hill-climb (the paper's baseline)")
+    p.add_argument("--method", choices=["least-squares", "hill-climb", "bayes"],
+                   default="least-squares",
+                   help="least-squares (default, scipy), hill-climb (the paper's baseline) or "
+                        "bayes (NUTS posterior; params = posterior mean, std err = posterior sd)")
     p.add_argument("--json", metavar="OUT", help="write the report as JSON ('-' for stdout)")
 
 
