@@ -102,7 +102,7 @@ def run(dev: SimDevice, rig_dir: Path, protocol: str = "maestro", **kw):
 def open_pair(dev: SimDevice, protocol: str = "maestro", timeout_s: float = 1.0,
               retries: int = 5, maestro_protocol: str = "compact"):
     ctl = open_controller(protocol, dev.servo_port, CHANNELS,
-                          {n: ((500.0, 2500.0),) * 2 for n in CHANNELS},
+                          {n: arm.pulse_limits for n, arm in dev.truth.arms.items()},
                           speed_us_per_s=50000.0, timeout_s=timeout_s, retries=retries,
                           maestro_protocol=maestro_protocol)
     link = SerialLink(open_port(dev.tracker_port, 115200, timeout_s, "tracker"), "tracker")
@@ -437,6 +437,12 @@ def test_maestro_go_home_and_errors_on_the_sim_device(plant) -> None:
             assert not ctl.is_moving()  # ... by the next command byte
             assert ctl.errors() == ["serial protocol error"]
             assert ctl.errors() == []  # reading clears them
+            time.sleep(0.05)
+            before = dev.received
+            with pytest.raises(LimitError):
+                ctl.move_and_settle({"top": (1500.0, 2400.25)})  # rig limit 2400
+            time.sleep(0.05)
+            assert dev.received == before
         finally:
             ctl.close()
             tracker.link.close()

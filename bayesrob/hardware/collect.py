@@ -548,9 +548,13 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         finally:
             bar.close()
     result.complete = True
-    errs = controller.errors()
-    if errs:
-        result.notes.append(f"controller reported: {', '.join(errs)}")
+    try:
+        errs = controller.errors()
+    except HardwareError as exc:  # every row is on disk; a last query failing changes nothing
+        result.notes.append(f"could not read the controller's error flags: {exc}")
+    else:
+        if errs:
+            result.notes.append(f"controller reported: {', '.join(errs)}")
     if isinstance(tracker, StreamTracker) and (tracker.bad_checksum or tracker.malformed):
         result.notes.append(f"tracker: {tracker.bad_checksum} lines with bad checksums and "
                             f"{tracker.malformed} malformed lines were ignored")

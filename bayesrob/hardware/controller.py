@@ -64,7 +64,7 @@ def open_port(port: str, baud: int, timeout_s: float, what: str) -> serial.Seria
     try:
         return serial.Serial(port, baud, timeout=timeout_s, write_timeout=max(timeout_s, 1.0),
                              exclusive=True)
-    except (serial.SerialException, OSError, ValueError) as exc:
+    except (*_PORT_ERRORS, ValueError) as exc:
         raise HardwareError(f"{what} port {port}: cannot open it: {exc}") from None
 
 
