@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,7 +53,12 @@ from bayesrob.rig import (
     measurement_header,
 )
 
+if TYPE_CHECKING:
+    from bayesrob.kinematics import Arm
+
 PROTOCOLS = ("maestro", "ssc32")
+Workspace = tuple[tuple[float, float], tuple[float, float]]  # ((x0, x1), (y0, y1)) in mm
+Quantize = Callable[[Iterable[float]], tuple[float, ...]]
 TARGET_DECIMALS = 2  # targets are rounded so the recorded text is exactly the point aimed at
 _MATCH_TOL = 1e-6
 
@@ -145,14 +151,14 @@ def _close(a: Sequence[float], b: Sequence[float]) -> bool:
     return all(abs(x - y) <= _MATCH_TOL * max(1.0, abs(y)) for x, y in zip(a, b, strict=True))
 
 
-def grid_targets(workspace, n: int) -> np.ndarray:
+def grid_targets(workspace: Workspace, n: int) -> np.ndarray:
     """The N x N grid of ``bayesrob.simulator.grid_points``, rounded to TARGET_DECIMALS."""
     from bayesrob.simulator import grid_points
 
     return np.round(grid_points(workspace, n), TARGET_DECIMALS)
 
 
-def _aim(arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[float, ...]],
+def _aim(arm: Arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[float, ...]],
          what: str) -> list[tuple[float, float]]:
     import jax.numpy as jnp
 
@@ -165,7 +171,7 @@ def _aim(arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[fl
     return [quantize(row) for row in u]  # type: ignore[misc]
 
 
-def single_arm_steps(specs: dict[str, ArmSpec], workspace, grid: int,
+def single_arm_steps(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
                      quantize: Callable[[Iterable[float]], tuple[float, ...]],
                      sets: Sequence[str] = SETS) -> list[Step]:
     """Train then validation rows of each arm, in rig order, aimed through the nominal model."""
@@ -181,12 +187,13 @@ def single_arm_steps(specs: dict[str, ArmSpec], workspace, grid: int,
     return steps
 
 
-def linked_steps(specs: dict[str, ArmSpec], arms: dict, workspace, grid: int,
+def linked_steps(specs: dict[str, ArmSpec], arms: dict[str, Arm], workspace: Workspace,
+                 grid: int,
                  quantize: Callable[[Iterable[float]], tuple[float, ...]]) -> list[Step]:
     """Test rows: every arm aims at each grid point through its own model (``arms``)."""
     points = grid_targets(workspace, grid)
     config = "+".join(specs)
-    per_arm = {name: _aim(arms[name], points, quantize, "calibrated") for name in specs}
+    per_arm = {name: _aim(arms[name], points, quantize, "aiming") for name in specs}
     return [Step(config, "test", {n: per_arm[n][i] for n in specs},
                  (float(p[0]), float(p[1]))) for i, p in enumerate(points)]
 
@@ -206,7 +213,8 @@ def check_plan(steps: Sequence[Step], specs: dict[str, ArmSpec]) -> None:
 
 
 def arm_models(specs: dict[str, ArmSpec], rows: Sequence[RecordedRow],
-               log: Callable[[str], None] = lambda s: None) -> tuple[dict, dict[str, str]]:
+               log: Callable[[str], None] = lambda s: None
+               ) -> tuple[dict[str, Arm], dict[str, str]]:
     """Each arm's model for the test rows: calibrated on its train rows if there are enough.
 
     Only train rows recorded before the first test row count, so a resumed run plans the test
@@ -418,7 +426,7 @@ def _unplanned(rows: Sequence[RecordedRow], path: Path) -> RigError:
                     "resume needs the same rig.toml, --grid, --plan and --protocol")
 
 
-def match_recorded(specs: dict[str, ArmSpec], workspace, grid: int,
+def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
                    quantize: Callable[[Iterable[float]], tuple[float, ...]],
                    singles: Sequence[Step], do_test: bool, rows: Sequence[RecordedRow],
                    path: Path, log: Callable[[str], None] = lambda s: None
