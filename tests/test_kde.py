@@ -86,12 +86,25 @@ def test_blocked_evaluation_equals_single_block(monkeypatch: pytest.MonkeyPatch)
     data = jnp.asarray(rng.normal(size=(300, 3)))
     pts = jnp.asarray(rng.normal(size=(1001, 3)))
     bw = jnp.asarray([0.3, 0.4, 0.5])
-    whole = kde_logpdf(pts, data, bw)
-    monkeypatch.setattr(kde_mod, "_BLOCK_ELEMENTS", 300 * 64)  # 64-row blocks, ragged last one
+    theta = jnp.log(bw)
+
+    def everything():
+        return [
+            kde_logpdf(pts, data, bw),
+            *kde_mod._loo_value_and_grad(theta, data, dx=3, conditional=False),
+            *kde_mod._loo_value_and_grad(theta, data, dx=1, conditional=True),
+            kde_mod._j_loo_normalised(jnp.float64(0.4), data, jnp.float64(0.0)),
+        ]
+
+    whole = everything()
+    # 64-row blocks over 300 data points and 1001 query points: both leave a ragged last
+    # block, which exercises the padding and its masking out of the sums.
+    monkeypatch.setattr(kde_mod, "_BLOCK_ELEMENTS", 300 * 64)
     jax.clear_caches()
-    blocked = kde_logpdf(pts, data, bw)
+    blocked = everything()
     jax.clear_caches()
-    np.testing.assert_allclose(np.asarray(blocked), np.asarray(whole), rtol=0, atol=1e-12)
+    for b, w in zip(blocked, whole, strict=True):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(w), rtol=1e-12, atol=1e-12)
 
 
 def test_far_points_do_not_underflow() -> None:
@@ -339,6 +352,23 @@ def test_kernel_conditional_integrates_to_one_over_x() -> None:
         dens = np.asarray(cond.pdf(grid, np.array(zq))).reshape(xx.shape)
         # Grid spacing 0.033-0.04 against widths >= 0.1: trapezoid error well below 1e-3.
         assert np.trapezoid(np.trapezoid(dens, gy, axis=1), gx) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_one_dimensional_conditionals_integrate_to_one() -> None:
+    rng = np.random.default_rng(16)
+    z = rng.normal(size=(50,))
+    x = np.sin(2 * z) + 0.3 * rng.normal(size=(50,))
+    grid = np.linspace(-6, 6, 6001)
+    kern = ConditionalKDE.fit(x, z, "kernel", bandwidth=[0.2, 0.3])
+    # Spacing 2e-3 against widths >= 0.2: trapezoid error ~1e-7.
+    assert np.trapezoid(np.asarray(kern.pdf(grid, np.array([0.4]))), grid) == pytest.approx(
+        1.0, abs=1e-6
+    )
+    hist = ConditionalKDE.fit(x, z, "histogram", bandwidth="loo-ml")
+    dens = np.asarray(hist.pdf(grid, np.array([0.4])))
+    # Piecewise constant: the trapezoid rule errs only at the 11 bin edges, ~spacing/width each.
+    assert np.trapezoid(dens, grid) == pytest.approx(1.0, abs=5e-3)
+    assert hist.joint.selector == "loo-ml" and hist.joint.h is not None
 
 
 def test_kernel_conditional_broadcasting_and_weights() -> None:
