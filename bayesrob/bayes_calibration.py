@@ -466,15 +466,20 @@ def report_extras(rig: Rig, cal: dict[str, BayesArmCalibration]) -> dict:
 # ----------------------------------------------------------------------------- SBC
 
 
-def draw_from_prior(spec: ArmSpec, u: np.ndarray, priors: Priors, rng: np.random.Generator
-                    ) -> tuple[np.ndarray, float, np.ndarray]:
-    """One data set from the model itself: params and noise from the prior, then end points
-    from the Gaussian likelihood at commands u. Returns (params (8,), noise_sd, d (N, 2))."""
+def draw_from_prior(spec: ArmSpec, u: np.ndarray, n: int, priors: Priors = Priors(),
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` data sets from the model itself (numpyro's prior predictive of :func:`arm_model`):
+    parameters and noise sd from the prior, end points from the Gaussian likelihood at the
+    commands u. Returns params (n, 8), noise sd (n,) and end points (n, N, 2)."""
+    from numpyro.infer import Predictive
+
     nominal = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
-    v = nominal + priors.scales(nominal) * rng.standard_normal(N_PARAMS)
-    sigma = float(abs(priors.noise_mm * rng.standard_normal()))
-    mu = np.asarray(kin.forward_u(kin.ArmParams.from_vector(jnp.asarray(v)), jnp.asarray(u)))
-    return v, sigma, mu + sigma * rng.standard_normal(mu.shape)
+    scale = priors.scales(nominal)
+    sim = Predictive(arm_model, num_samples=n)(
+        jax.random.PRNGKey(seed), jnp.asarray(u, float), None, jnp.asarray(nominal),
+        jnp.asarray(scale), jnp.asarray(float(priors.noise_mm)))
+    return (nominal + scale * np.asarray(sim["z"]), np.asarray(sim["noise_sd"]),
+            np.asarray(sim["d"]))
 
 
 @dataclass
@@ -531,16 +536,16 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
     if n_draws > total:
         raise ValueError(f"n_draws {n_draws} exceeds the {total} posterior draws")
     keep = np.linspace(0, total - 1, n_draws).round().astype(int)
-    truths, draws, divs = [], [], []
+    params, noise_sd, data = draw_from_prior(spec, u, n_datasets, priors,
+                                             seed=int(rng.integers(2**31)))
+    draws, divs = [], []
     t0 = time.perf_counter()
-    for _ in range(n_datasets):
-        v, sigma, d = draw_from_prior(spec, u, priors, rng)
+    for d in data:
         nominal, scale, z, noise, diverging, _ = _run_chains(
             spec, u, d, priors, settings, seed=int(rng.integers(2**31)))
         flat = np.concatenate([(nominal + scale * z).reshape(-1, N_PARAMS),
                                noise.reshape(-1, 1)], axis=1)
-        truths.append(np.append(v, sigma))
         draws.append(flat[keep])
         divs.append(int(diverging.sum()))
-    return SBCResult(np.array(truths), np.array(draws), np.array(divs),
+    return SBCResult(np.column_stack([params, noise_sd]), np.array(draws), np.array(divs),
                      time.perf_counter() - t0)
