@@ -154,7 +154,12 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
 def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
     from bayesrob.prediction import Grid
-    from bayesrob.reproduction import format_accuracy, run_reproduction, write_reproduction
+    from bayesrob.reproduction import (
+        format_accuracy,
+        grid_warnings,
+        run_reproduction,
+        write_reproduction,
+    )
 
     rig = _load_rig_arg(args.rig)
     try:
@@ -167,6 +172,8 @@ def _reproduce(args: argparse.Namespace) -> int:
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
+    for line in grid_warnings(rep):
+        print(line, file=sys.stderr)
     print(f"wrote {len(written)} files to {args.out}/")
     return 0
 

@@ -47,6 +47,7 @@ class ModelSpec:
     h_range: tuple[float, float] = (0.05, 2.0)
     bins: int = 10
     bin_widths: tuple[float, ...] | None = None
+    bin_margin: float = 0.0
     description: str = ""
     path: Path | None = field(default=None, compare=False)
 
@@ -63,7 +64,7 @@ class ModelSpec:
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise ModelFileError(f"{path}: cannot read model file: {exc}") from None
         known = {"name", "family", "bandwidth", "conditioning", "jacobian", "h_range", "bins",
-                 "bin_widths", "description"}
+                 "bin_widths", "bin_margin", "description"}
         for key in doc:
             if key not in known:
                 raise ModelFileError(f"{path}: unknown key {key!r} (known: {sorted(known)})")
@@ -89,6 +90,7 @@ class ModelSpec:
             h_range=tuple(doc.get("h_range", (0.05, 2.0))),
             bins=int(doc.get("bins", 10)),
             bin_widths=tuple(float(w) for w in widths) if widths is not None else None,
+            bin_margin=float(doc.get("bin_margin", 0.0)),
             description=str(doc.get("description", "")),
             path=path,
         )
@@ -108,11 +110,27 @@ class ModelSpec:
                                                                          **kw)])
         if self.conditioning == "histogram":
             cond = ConditionalKDE.fit(theta_err, u, "histogram", self.bandwidth, bins=self.bins,
-                                      bin_widths=self.bin_widths, **kw)
+                                      bin_widths=self._bin_widths(theta_err, u), **kw)
         else:
             bw = None if self.bandwidth == "loo-ml-diag" else self.bandwidth
             cond = ConditionalKDE.fit(theta_err, u, "kernel", bw, warn_on_bound=False)
         return FittedNoiseModel(self, theta_err, u, conditional=cond)
+
+
+    def _bin_widths(self, theta_err: np.ndarray, u: np.ndarray) -> tuple[float, ...] | None:
+        """Histogram bin widths: as declared, or the data's extent plus ``bin_margin``.
+
+        The histogram is centred on the data mean; each half-span covers the farthest data
+        point from the mean plus ``bin_margin`` times the data range, so no training point and
+        few test points fall outside, where the density is only a floor value.
+        """
+        if self.bin_widths is not None or self.bin_margin <= 0:
+            return self.bin_widths
+        x = np.hstack([theta_err, u])
+        mean = x.mean(axis=0)
+        half = np.maximum(x.max(axis=0) - mean, mean - x.min(axis=0))
+        half = half + self.bin_margin * (x.max(axis=0) - x.min(axis=0))
+        return tuple(float(w) for w in 2 * half / self.bins)
 
 
 @dataclass(frozen=True, eq=False)

@@ -87,6 +87,18 @@ class Prediction:
     hdr90_mm2: np.ndarray  # (T,)
 
     @property
+    def edge_mass(self) -> np.ndarray:
+        """(T,) probability in the grid's outermost cells: large means the grid cut the mass off.
+
+        It happens when the commands do not aim near the target, or the spread is wider than
+        the grid; the expected error is then an underestimate clipped by the grid.
+        """
+        n = self.grid.n
+        p = self.prob.reshape(-1, n, n)
+        inner = p[:, 1:-1, 1:-1].sum(axis=(1, 2))
+        return 1.0 - inner
+
+    @property
     def mean_expected_error_mm(self) -> float:
         return float(np.mean(self.expected_error_mm))
 
@@ -188,6 +200,7 @@ def accuracy_document(rig: Rig, arms: dict[str, kin.Arm],
                     "ratio": e / obs["mean_mm"] if obs["mean_mm"] > 0 else float("nan"),
                     "hdr50_mm2": float(np.mean(p.hdr50_mm2)),
                     "hdr90_mm2": float(np.mean(p.hdr90_mm2)),
+                    "edge_mass_max": float(np.max(p.edge_mass)),
                 }
         out[config] = {"observed": obs, "predicted": pred, "set": setup_set(config)}
     return {"setups": out}

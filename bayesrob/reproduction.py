@@ -101,6 +101,24 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
                         time.perf_counter() - t0)
 
 
+EDGE_MASS_WARN = 0.01
+
+
+def grid_warnings(rep: Reproduction) -> list[str]:
+    """One line per setup and model whose predicted mass reaches the edge of the grid."""
+    out = []
+    for model, by_setup in rep.predictions.items():
+        for config, p in by_setup.items():
+            bad = int(np.sum(p.edge_mass > EDGE_MASS_WARN))
+            if bad:
+                out.append(
+                    f"warning: {config} / {model}: up to {100 * p.edge_mass.max():.0f}% of the "
+                    f"predicted mass lies on the +-{p.grid.half_width_mm:g} mm grid edge at {bad} "
+                    f"of {len(p.edge_mass)} targets; the expected error is clipped (do the "
+                    "commands aim at the targets? else widen --grid-half-width)")
+    return out
+
+
 def format_accuracy(doc: dict) -> str:
     """The accuracy table: observed error per setup and each model's predicted error."""
     rows = []

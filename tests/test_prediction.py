@@ -117,3 +117,29 @@ def test_linked_prediction_is_sharper_than_each_arm(default):
 def test_setups_are_single_arms_then_linked(default):
     rig, _ = default
     assert setups(rig) == ["top", "bottom", "top+bottom"]
+
+
+def test_mass_cut_off_by_the_grid_is_reported(default):
+    """Commands that do not aim at the targets push the mass to the grid edge: say so."""
+    rig, arms = default
+    (spec,) = discover_models(names=["ind"])
+    fitted = fit_noise_models(rig, arms, [spec])["ind"]
+    rows = setup_rows(rig, arms, "top")
+    good = predict("top", fitted, arms, rows["commands"], rows["targets"])
+    assert good.edge_mass.max() < 1e-6
+    far = predict("top", fitted, arms, rows["commands"], rows["targets"] + [40.0, 0.0])
+    assert far.edge_mass.min() > 0.5
+
+
+def test_histogram_margin_keeps_every_training_point_inside(tmp_path, default):
+    rig, arms = default
+    (spec,) = discover_models(names=["cond_paper"])
+    u, d = rig.arm_rows("bottom", "train")
+    err = joint_errors(arms["bottom"], u, d)
+    widths = np.asarray(spec._bin_widths(err, u))
+    x = np.hstack([err, u])
+    lo = x.mean(axis=0) - widths * spec.bins / 2
+    hi = x.mean(axis=0) + widths * spec.bins / 2
+    span = x.max(axis=0) - x.min(axis=0)
+    assert np.all(x.min(axis=0) - lo >= spec.bin_margin * span - 1e-9)
+    assert np.all(hi - x.max(axis=0) >= spec.bin_margin * span - 1e-9)
