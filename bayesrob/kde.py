@@ -825,8 +825,11 @@ class ConditionalKDE:
 
     ``method="histogram"`` (the paper's COND): the joint KDE of (x, z) is evaluated at the
     centres of a regular grid of bins and normalised over the x-bins of each z-bin, then divided
-    by the x-bin volume so the result is a (piecewise-constant) density in x. Points outside the
-    grid (in x or z) get ``log(floor)``.
+    by the x-bin volume so the result is a (piecewise-constant) density in x. By default the
+    grid spans the data range [min, max] of every dimension (its top edge closed so the maxima
+    fall inside); with ``bin_widths`` it is centred on the data mean. Points outside the grid
+    (in x or z) get ``log(floor)``, a stand-in for "no support here" that keeps log-densities
+    finite (default floor 1e-300, i.e. about -690.8).
     """
 
     method: str
@@ -929,6 +932,7 @@ class ConditionalKDE:
                 h_range=h_range,
                 n_grid=n_grid,
                 warn_on_bound=warn_on_bound,
+                multistart=multistart,
             )
             nb, widths, lo, table = _histogram_table(joint, dx, bins, bin_widths)
             return cls(
