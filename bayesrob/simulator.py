@@ -34,7 +34,9 @@ import math
 import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -194,21 +196,38 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
     return theta
 
 
-def _mass_points(arm: ArmTruth, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Positions (M, 2) and masses (M,) of the arm's point masses."""
-    p = arm.params
-    elbow = kin.elbow_point(p, theta)
-    end = kin.forward(p, theta)
-    pts = jnp.stack([(p.base + elbow) / 2, elbow, (elbow + end) / 2, end])
+class _ArmArrays(NamedTuple):
+    """An arm's physics as arrays, so one compiled energy serves every arm and every rig."""
+
+    params: kin.ArmParams
+    masses: jax.Array  # (4,) kg: link 1, elbow servo, link 2, end
+    stiffness: jax.Array  # (2,) N mm / rad, already scaled for the effects in force
+    backlash: jax.Array  # (2,) rad half-width, zero without the effect
+
+
+def _arm_arrays(arm: ArmTruth, effects: Sequence[str]) -> _ArmArrays:
+    k = jnp.asarray(arm.stiffness_nmm_per_rad, dtype=jnp.float64)
+    if "gravity_sag" not in effects:
+        k = k * STIFF_FACTOR
+    b = jnp.asarray(arm.backlash_rad, dtype=jnp.float64) if "backlash" in effects else jnp.zeros(2)
     m = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1], arm.end_mass_kg])
-    return pts, m
+    return _ArmArrays(arm.params, m, k, b)
+
+
+def _mass_points(params: kin.ArmParams, theta: jax.Array) -> jax.Array:
+    """Positions (4, 2) of the point masses: mid link 1, elbow, mid link 2, end."""
+    elbow = kin.elbow_point(params, theta)
+    end = kin.forward(params, theta)
+    return jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
 
 
 def gravity_torques(arm: ArmTruth, theta: jax.Array, gravity: Sequence[float]) -> jax.Array:
     """Torque (N mm) that gravity exerts about each joint at configuration theta."""
-    pts, m = _mass_points(arm, theta)
+    p = arm.params
+    pts = _mass_points(p, theta)
+    m = _arm_arrays(arm, ()).masses
     force = G_ACC * m[:, None] * jnp.asarray(gravity)[None, :]  # N
-    joints = jnp.stack([arm.params.base, kin.elbow_point(arm.params, theta)])
+    joints = jnp.stack([p.base, kin.elbow_point(p, theta)])
     distal = jnp.array([[1, 1, 1, 1], [0, 0, 1, 1]], dtype=float)  # masses beyond each joint
     r = pts[None, :, :] - joints[:, None, :]
     tz = r[..., 0] * force[None, :, 1] - r[..., 1] * force[None, :, 0]
@@ -219,18 +238,35 @@ def _deadzone(x: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sign(x) * jnp.maximum(jnp.abs(x) - b, 0.0)
 
 
+def _energy(theta: jax.Array, theta_cmd: jax.Array, a: _ArmArrays, gravity: jax.Array
+            ) -> jax.Array:
+    spring = 0.5 * jnp.sum(a.stiffness * _deadzone(kin.wrap_angle(theta - theta_cmd),
+                                                   a.backlash) ** 2)
+    # Potential of a mass in a field along unit vector g_dir is -m g (g_dir . r).
+    grav = -G_ACC * jnp.sum(a.masses * (_mass_points(a.params, theta) @ gravity))
+    return spring + grav
+
+
 def arm_energy(arm: ArmTruth, theta: jax.Array, theta_cmd: jax.Array, effects: Sequence[str],
                gravity: Sequence[float]) -> jax.Array:
     """Potential energy (N mm) of one arm at joint angles theta."""
-    k = jnp.asarray(arm.stiffness_nmm_per_rad)
-    if "gravity_sag" not in effects:
-        k = k * STIFF_FACTOR
-    b = jnp.asarray(arm.backlash_rad) if "backlash" in effects else jnp.zeros(2)
-    spring = 0.5 * jnp.sum(k * _deadzone(kin.wrap_angle(theta - theta_cmd), b) ** 2)
-    pts, m = _mass_points(arm, theta)
-    # Potential of a mass in a field along unit vector g_dir is -m g (g_dir . r).
-    grav = -G_ACC * jnp.sum(m * (pts @ jnp.asarray(gravity)))
-    return spring + grav
+    return _energy(theta, theta_cmd, _arm_arrays(arm, effects), jnp.asarray(gravity, float))
+
+
+_arm_energy_vg = jax.jit(jax.value_and_grad(_energy))
+
+
+@partial(jax.jit, static_argnames="elbows")
+def _linked_energy_vg(d: jax.Array, theta_cmds: tuple, arms: tuple, gravity: jax.Array,
+                      elbows: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    def total(d):
+        out = 0.0
+        for a, tc, e in zip(arms, theta_cmds, elbows, strict=True):
+            theta, _ = kin.inverse(a.params, d, e)
+            out = out + _energy(theta, tc, a, gravity)
+        return out
+
+    return jax.value_and_grad(total)(d)
 
 
 class PhysicalRig:
@@ -243,64 +279,45 @@ class PhysicalRig:
     def __init__(self, truth: Truth, seed: int | None = None):
         self.truth = truth
         self.rng = np.random.default_rng(truth.seed if seed is None else seed)
-        g = truth.gravity
-        eff = truth.effects
-        self._single = {}
-        self._linked_cache = {}
-        for name, arm in truth.arms.items():
-            def energy(theta, theta_cmd, arm=arm):
-                return arm_energy(arm, theta, theta_cmd, eff, g)
-            self._single[name] = jax.jit(jax.value_and_grad(energy))
+        self._gravity = jnp.asarray(truth.gravity, dtype=jnp.float64)
+        self._arrays = {n: _arm_arrays(a, truth.effects) for n, a in truth.arms.items()}
 
     @classmethod
     def from_rig_dir(cls, directory: str | Path, seed: int | None = None) -> PhysicalRig:
         return cls(Truth.from_toml(Path(directory) / TRUTH_FILE), seed)
 
-    def _k_scale(self, arm: ArmTruth) -> float:
-        k = min(arm.stiffness_nmm_per_rad)
-        return k * (1.0 if "gravity_sag" in self.truth.effects else STIFF_FACTOR)
+    def _k_scale(self, name: str) -> float:
+        # Energies are divided by the softest spring so the optimiser's tolerances mean the
+        # same for stiff and soft servos.
+        return float(jnp.min(self._arrays[name].stiffness))
 
     def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
         """Equilibrium joint angles of a free arm holding commanded angles theta_cmd."""
-        arm = self.truth.arms[name]
-        fun = self._single[name]
-        scale = self._k_scale(arm)
+        a = self._arrays[name]
+        scale = self._k_scale(name)
+        tc = jnp.asarray(theta_cmd, dtype=jnp.float64)
 
         def obj(t):
-            v, gr = fun(jnp.asarray(t), jnp.asarray(theta_cmd))
+            v, gr = _arm_energy_vg(jnp.asarray(t), tc, a, self._gravity)
             return float(v) / scale, np.asarray(gr) / scale
 
         res = scipy.optimize.minimize(obj, np.asarray(theta_cmd, float), jac=True,
                                       method="BFGS", options={"gtol": 1e-12, "maxiter": 500})
         return res.x
 
-    def _linked_energy(self, names: tuple[str, ...]):
-        if names not in self._linked_cache:
-            arms = [self.truth.arms[n] for n in names]
-            eff, g = self.truth.effects, self.truth.gravity
-
-            def energy(d, theta_cmds):
-                total = 0.0
-                for arm, tc in zip(arms, theta_cmds, strict=True):
-                    theta, _ = kin.inverse(arm.params, d, arm.elbow)
-                    total = total + arm_energy(arm, theta, tc, eff, g)
-                return total
-
-            self._linked_cache[names] = jax.jit(jax.value_and_grad(energy))
-        return self._linked_cache[names]
-
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
         """Common end point of arms linked at their end points (least total energy)."""
         names = tuple(theta_cmds)
-        fun = self._linked_energy(names)
-        tc = tuple(jnp.asarray(theta_cmds[n]) for n in names)
+        arrays = tuple(self._arrays[n] for n in names)
+        elbows = tuple(int(self.truth.arms[n].elbow) for n in names)
+        tc = tuple(jnp.asarray(theta_cmds[n], dtype=jnp.float64) for n in names)
         free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
                 for n in names]
         d0 = np.mean(np.asarray(free), axis=0)
-        scale = sum(self._k_scale(self.truth.arms[n]) for n in names)
+        scale = sum(self._k_scale(n) for n in names)
 
         def obj(d):
-            v, gr = fun(jnp.asarray(d), tc)
+            v, gr = _linked_energy_vg(jnp.asarray(d), tc, arrays, self._gravity, elbows)
             return float(v) / scale, np.asarray(gr) / scale
 
         res = scipy.optimize.minimize(obj, d0, jac=True, method="BFGS",
