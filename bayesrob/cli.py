@@ -155,6 +155,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
     from bayesrob.prediction import Grid
     from bayesrob.reproduction import (
+        bound_notes,
         format_accuracy,
         grid_warnings,
         run_reproduction,
@@ -172,7 +173,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
-    for line in grid_warnings(rep):
+    for line in bound_notes(rep) + grid_warnings(rep):
         print(line, file=sys.stderr)
     print(f"wrote {len(written)} files to {args.out}/")
     return 0

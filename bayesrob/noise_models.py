@@ -151,6 +151,13 @@ class FittedNoiseModel:
         return any(p.on_bound for p in self.parts)
 
     @property
+    def search_range(self) -> tuple[float, float] | None:
+        """The range the bandwidth search covered (normalised units)."""
+        if self.conditional is not None:
+            return self.conditional.search_range
+        return self.parts[0].search_range
+
+    @property
     def bandwidth(self) -> np.ndarray:
         if self.conditional is not None:
             return np.asarray(self.conditional.bandwidth)

@@ -119,6 +119,22 @@ def grid_warnings(rep: Reproduction) -> list[str]:
     return out
 
 
+def bound_notes(rep: Reproduction) -> list[str]:
+    """Models whose bandwidth search ended on its bound (the paper's J_LOO always does)."""
+    out = []
+    for spec in rep.specs:
+        for arm, fitted in rep.fitted[spec.name].items():
+            if fitted.on_bound:
+                lo, hi = fitted.search_range or (float("nan"), float("nan"))
+                why = (" (J_LOO decreases monotonically in h, see NOTES.md)"
+                       if spec.bandwidth == "paper" else
+                       " (a width at the upper bound means the data show no structure along "
+                       "that dimension)")
+                out.append(f"note: {spec.name} / {arm}: bandwidth on the bound of its search "
+                           f"range [{lo:g}, {hi:g}] (in data standard deviations){why}")
+    return out
+
+
 def format_accuracy(doc: dict) -> str:
     """The accuracy table: observed error per setup and each model's predicted error."""
     rows = []
