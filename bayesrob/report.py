@@ -29,7 +29,8 @@ def format_calibration(doc: dict) -> str:
             rows.append([pname, f"{v:.{nd}f}", f"{s:.{nd}f}"])
         parts.append(f"\narm {name} (elbow {arm['elbow']:+d}): train {_fmt(arm['train_error_mm'])} "
                      f"mm, validation {_fmt(arm['validation_error_mm'])} mm")
-        parts.append(format_table(["param", "value", "std err"], rows))
+        spread = "posterior sd" if doc["method"] == "bayes" else "std err"
+        parts.append(format_table(["param", "value", spread], rows))
     rows = []
     for config, sets in doc["accuracy"].items():
         for s, acc in sets.items():
