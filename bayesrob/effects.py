@@ -250,6 +250,7 @@ class GravitySag(Effect):
     name: ClassVar[str] = "gravity_sag"
     summary: ClassVar[str] = "joint deflection proportional to the gravity torque"
     stage: ClassVar[int] = 1
+    ITERATIONS: ClassVar[int] = 3
 
     def param_names(self) -> tuple[str, ...]:
         return ("c11_rad", "c12_rad", "c22_rad")
@@ -257,11 +258,17 @@ class GravitySag(Effect):
     def scales(self) -> np.ndarray:
         return np.full(3, 0.01)
 
-    def apply(self, params, extra, u, theta):
+    def _deflection(self, extra, theta):
         s1, s12 = lever_signatures(theta, self.ctx.gravity)
-        d1 = extra[0] * s1 + extra[1] * s12
-        d2 = extra[2] * s12
-        return theta + jnp.stack([d1, d2], -1)
+        return jnp.stack([extra[0] * s1 + extra[1] * s12, extra[2] * s12], -1)
+
+    def apply(self, params, extra, u, theta):
+        # The torque acts at the pose the arm sags into, not the commanded one: two
+        # fixed-point steps catch that (it matters once the sag is a few degrees).
+        out = theta
+        for _ in range(self.ITERATIONS):
+            out = theta + self._deflection(extra, out)
+        return out
 
     def magnitudes(self, params, extra):
         reach, l2 = _straight_reach_mm(params)
@@ -297,6 +304,9 @@ class Backlash(Effect):
     summary: ClassVar[str] = "joint offset whose sign follows the gravity torque"
     stage: ClassVar[int] = 1
     RHO_GRID: ClassVar[np.ndarray] = np.linspace(0.0, 1.0, 41)
+    # Lever signature (sine of the lever's angle off the vertical) over which the side of
+    # the play changes: 0.05 is about 3 degrees of arm rotation.
+    FLOAT_WIDTH: ClassVar[float] = 0.05
 
     def param_names(self) -> tuple[str, ...]:
         return ("beta1_rad", "beta2_rad")
@@ -308,9 +318,15 @@ class Backlash(Effect):
         return jnp.asarray(0.3 if self.setting is None else jnp.reshape(self.setting, (-1,))[0])
 
     def signs(self, theta: jax.Array) -> jax.Array:
+        """Which side of its play each joint rests on, -1..1.
+
+        A smooth step, not a sign: near zero torque a joint floats in its play, and a hard
+        step would make the fit jump whenever a parameter moves a point across the line.
+        """
         s1, s12 = lever_signatures(theta, self.ctx.gravity)
         rho = self._rho()
-        return jnp.stack([jnp.sign((1 - rho) * s1 + rho * s12), jnp.sign(s12)], -1)
+        lever = jnp.stack([(1 - rho) * s1 + rho * s12, s12], -1)
+        return jnp.tanh(lever / self.FLOAT_WIDTH)
 
     def apply(self, params, extra, u, theta):
         return theta + extra * self.signs(theta)
@@ -324,7 +340,9 @@ class Backlash(Effect):
         s1 = np.cos(theta[:, 0]) * g[1] - np.sin(theta[:, 0]) * g[0]
         s12 = np.cos(t12) * g[1] - np.sin(t12) * g[0]
         rho = self.RHO_GRID[:, None]
-        signs = np.sign((1 - rho) * s1[None] + rho * s12[None])  # (G, n)
+        # Patterns compare the sides far from the line: floating points do not split them.
+        signs = np.round(np.tanh(((1 - rho) * s1[None] + rho * s12[None]) / self.FLOAT_WIDTH),
+                         1)  # (G, n)
         patterns: dict[bytes, list[float]] = {}
         for r, row in zip(self.RHO_GRID, signs, strict=True):
             patterns.setdefault(row.tobytes(), []).append(float(r))

@@ -46,12 +46,12 @@ class GenArm:
     elbow_mass_kg: float = 0.07
     end_mass_kg: float = 0.02
     stiffness: tuple[float, float] = (2500.0, 1800.0)  # N mm / rad
-    hardening: tuple[float, float] = (2.0e5, 1.5e5)  # N mm / rad^3
+    hardening: tuple[float, float] = (2.0e4, 1.5e4)  # N mm / rad^3: +10% at 0.1 rad
     link2_flex_mm_per_n: float = 2.0  # end shift per N of load across link 2
     play_rad: tuple[float, float] = (0.008, 0.008)  # half-width
     friction_nmm: tuple[float, float] = (8.0, 8.0)  # torque below which play follows approach
-    tanh_amp_rad: tuple[float, float] = (0.02, 0.015)
-    tanh_width_us: tuple[float, float] = (350.0, 400.0)
+    tanh_amp_rad: tuple[float, float] = (0.04, 0.03)
+    tanh_width_us: tuple[float, float] = (300.0, 350.0)
     tanh_shift_us: tuple[float, float] = (120.0, -90.0)  # u0 relative to the range centre
     limits: tuple[tuple[float, float], tuple[float, float]] = ((600.0, 2400.0),) * 2
 
@@ -247,3 +247,62 @@ def write_rig(out_dir: str | Path, rig: GenRig) -> Path:
         w.writerow(measurement_header(names))
         w.writerows(rows)
     return out
+
+
+# ------------------------------------------------------------------------------ sweeps
+
+
+@dataclass(frozen=True)
+class Case:
+    """One rig of a sweep: which physics made it and with what."""
+
+    source: str  # "simulator" (bayesrob.simulator) or "generator" (this module)
+    geometry: str  # "paper" for the simulator; "paper_like" or "tilted" here
+    effects: tuple[str, ...]
+    grid: int = 4
+    seed: int = 1
+    scale: float = 1.0  # multiplies every effect's magnitude
+    noise_mm: float | None = None  # measurement noise sd (None: the default 0.35)
+
+    @property
+    def label(self) -> str:
+        return "+".join(self.effects) or "none"
+
+
+def make_rig(case: Case, out_dir: str | Path) -> Path:
+    """Write the case's rig directory."""
+    if case.source == "simulator":
+        from bayesrob.simulator import paper_truth, simulate_rig
+
+        truth = paper_truth(case.effects, seed=case.seed, grid=case.grid)
+        s = case.scale
+        arms = {n: replace(a, stiffness_nmm_per_rad=tuple(k / s for k in a.stiffness_nmm_per_rad),
+                           backlash_rad=tuple(b * s for b in a.backlash_rad),
+                           nonlinearity_rad=tuple(c * s for c in a.nonlinearity_rad))
+                for n, a in truth.arms.items()}
+        truth = replace(truth, arms=arms)
+        if case.noise_mm is not None:
+            truth = replace(truth, measurement_noise_mm=case.noise_mm)
+        return simulate_rig(out_dir, truth)
+    make = {"paper_like": paper_like, "tilted": tilted}[case.geometry]
+    rig = make(grid=case.grid, seed=case.seed).with_effects(
+        *case.effects, **{e: case.scale for e in case.effects})
+    if case.noise_mm is not None:
+        rig = replace(rig, measurement_noise_mm=case.noise_mm)
+    return write_rig(out_dir, rig)
+
+
+TRUTHS = [(), ("gravity_sag",), ("backlash",), ("servo_nonlinearity",),
+          ("gravity_sag", "backlash")]
+
+
+def confusion_cases() -> list[Case]:
+    """The sweep behind the confusion matrix: 40 rigs, two kinds of physics, 4x4 and 6x6."""
+    cases = []
+    for eff in TRUTHS:
+        for grid, seed in ((4, 21), (4, 22), (6, 23)):
+            cases.append(Case("simulator", "paper", eff, grid, seed))
+        for geometry, grid, seed in (("paper_like", 4, 31), ("tilted", 4, 32),
+                                     ("paper_like", 6, 33), ("tilted", 6, 34), ("tilted", 4, 35)):
+            cases.append(Case("generator", geometry, eff, grid, seed))
+    return cases

@@ -1,0 +1,312 @@
+"""The model-criticism workflow: effects, scoring, naming, the command and its figures.
+
+The representative rigs here are each diagnosed once per session (a few seconds each after
+JAX has compiled); the 40-rig sweep behind the confusion matrix is in
+``test_diagnosis_slow.py`` (``pytest -m slow``). Every rig is diagnosed from its files alone.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from generators import Case, make_rig
+
+import bayesrob  # noqa: F401  (x64)
+from bayesrob import effects as fx
+from bayesrob import kinematics as kin
+from bayesrob.diagnosis import (
+    ArmData,
+    DecisionRule,
+    diagnose,
+    evaluate_arm,
+    neighbour_pairs,
+    workspace_regions,
+)
+from bayesrob.rig import default_rig_dir, load_rig
+
+CONTRACT_KEYS = {"effects", "steps", "baseline_heldout_error_mm", "final_heldout_error_mm"}
+STEP_KEYS = {"effect", "arms", "heldout_error_before_mm", "heldout_error_after_mm", "elpd_diff",
+             "elpd_diff_se"}
+
+
+# ------------------------------------------------------------------------------ effects
+
+
+def _ctx() -> fx.EffectContext:
+    return fx.EffectContext((0.0, -1.0), (1500.0, 1500.0), (300.0, 300.0))
+
+
+def test_the_three_named_effects_are_registered():
+    assert {"gravity_sag", "backlash", "servo_nonlinearity"} <= set(fx.effect_names())
+
+
+@pytest.mark.parametrize("name", ["gravity_sag", "backlash", "servo_nonlinearity"])
+def test_an_effect_at_its_initial_values_changes_nothing(name):
+    eff = fx.make_effect(name, _ctx())
+    s = eff.settings(kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3,
+                                                          -2.0, -1.0])),
+                     np.array([[1400.0, 1500.0], [1600.0, 1550.0]]))
+    if s is not None:
+        eff = eff.with_setting(jnp.asarray(s[0]))
+    theta = jnp.array([[0.3, 1.2], [1.1, -0.4]])
+    params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3, 0, 0.0]))
+    out = eff.apply(params, jnp.asarray(eff.initial()), jnp.full((2, 2), 1500.0), theta)
+    np.testing.assert_allclose(out, theta, atol=0)
+    assert len(eff.param_names()) == len(eff.scales()) == len(eff.initial())
+
+
+def test_gravity_sag_deflects_towards_the_gravity_torque():
+    """A level arm pointing right under gravity (0, -1) sags clockwise (negative angles)."""
+    eff = fx.make_effect("gravity_sag", _ctx())
+    params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 150, 1e-3, 1e-3, 0, 0.0]))
+    out = eff.apply(params, jnp.array([0.01, 0.005, 0.02]), None, jnp.array([0.0, 0.0]))
+    assert out[0] < 0 and out[1] < 0
+    # Small deflections: to first order the sum of the coefficients (tolerance: the pose
+    # moves by 0.015 rad, so the torque changes by 1 - cos(0.015) ~ 1e-4 of itself).
+    np.testing.assert_allclose(out, [-0.015, -0.02], rtol=1e-3)
+
+
+def test_gravity_sag_magnitude_is_the_sag_of_a_straight_level_arm():
+    eff = fx.make_effect("gravity_sag", _ctx())
+    params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 150, 1e-3, 1e-3, 0, 0.0]))
+    rep = eff.magnitude_report(params, np.array([0.01, 0.002, 0.004]), np.eye(11) * 1e-8)
+    assert rep["values"]["sag_full_reach_mm"]["value"] == pytest.approx(350 * 0.012 + 150 * 0.004)
+    assert rep["values"]["sag_full_reach_mm"]["se"] > 0
+    assert "sag at full reach" in rep["text"]
+
+
+def test_backlash_keeps_one_setting_per_sign_pattern():
+    eff = fx.make_effect("backlash", _ctx())
+    params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3, -1.0, -3.0]))
+    u = np.stack(np.meshgrid(np.linspace(1100, 1900, 5), np.linspace(1100, 1900, 5)),
+                 -1).reshape(-1, 2)
+    settings = eff.settings(params, u)
+    theta = kin.servo(params, jnp.asarray(u))
+    patterns = {np.asarray(eff.with_setting(jnp.asarray(s)).signs(theta)).tobytes()
+                for s in settings}
+    assert len(patterns) == len(settings) <= len(fx.Backlash.RHO_GRID)
+
+
+@dataclass(frozen=True)
+class _Droop(fx.Effect):
+    """A test effect: the shoulder droops by a constant times its own angle squared."""
+
+    name: ClassVar[str] = "droop_for_test"
+
+    def param_names(self):
+        return ("k",)
+
+    def scales(self):
+        return np.array([0.01])
+
+    def apply(self, params, extra, u, theta):
+        return theta.at[..., 0].add(extra[0] * theta[..., 0] ** 2)
+
+
+def test_a_new_effect_is_one_registered_class(clean_rig_dir):
+    fx.register(_Droop)
+    try:
+        rig = load_rig(clean_rig_dir)
+        diag = diagnose(rig, ["droop_for_test"])
+        assert diag.candidates == ["droop_for_test"]
+        assert [s["effect"] for s in diag.rounds[0]] == ["droop_for_test"]
+        # Its Jacobian comes from JAX like every other effect's.
+        ev = evaluate_arm(ArmData.from_rig(rig, "top"), ("droop_for_test",))
+        assert np.all(np.isfinite(ev.cov))
+    finally:
+        fx.REGISTRY.pop("droop_for_test")
+
+
+def test_registering_a_second_class_under_a_taken_name_fails():
+    @dataclass(frozen=True)
+    class Other(_Droop):
+        name: ClassVar[str] = "gravity_sag"
+
+    with pytest.raises(ValueError, match="already registered"):
+        fx.register(Other)
+
+
+# ------------------------------------------------------------------------------ pieces
+
+
+def test_regions_and_neighbours_of_a_grid():
+    pts = np.array([(x, y) for y in (3.0, 2.0, 1.0, 0.0) for x in (0.0, 1.0, 2.0, 3.0)])
+    regions = workspace_regions(pts)
+    assert regions[0] == "upper-left" and regions[-1] == "lower-right"
+    pairs = neighbour_pairs(pts)
+    assert len(pairs) == 24  # 4 x 3 horizontal + 3 x 4 vertical
+
+
+def test_base_model_matches_the_calibration(clean_rig_dir):
+    """The diagnosis's base fit is the geometric calibration (same data, same model)."""
+    from bayesrob.calibration import calibrate
+
+    rig = load_rig(clean_rig_dir)
+    ev = evaluate_arm(ArmData.from_rig(rig, "bottom"), ())
+    cal = calibrate(rig)["bottom"]
+    # Tolerance: both are least-squares optima of the same residuals; they differ by the
+    # solvers' stopping rules, far below a micrometre at the end point.
+    assert np.mean(ev.train_errors) == pytest.approx(cal.train_error_mm, abs=1e-4)
+
+
+def test_decision_rule_text_and_logic():
+    rule = DecisionRule()
+    s = {"arms": ["top"], "elpd_diff": 10.0, "elpd_diff_se": 3.0,
+         "heldout_error_before_mm": 1.0, "heldout_error_after_mm": 0.8,
+         "cv_error_before_mm": 1.0, "cv_error_after_mm": 0.9}
+    assert rule.passes(s)
+    assert not rule.passes({**s, "elpd_diff_se": 6.0})
+    assert not rule.passes({**s, "heldout_error_after_mm": 1.1})
+    assert not rule.passes({**s, "arms": []})
+    assert "elpd_diff >" in rule.text()
+
+
+# ------------------------------------------------------------------------------ rigs
+
+
+REPRESENTATIVE = {
+    # name: (how the rig is made, the effects that must be named)
+    "clean_simulator": (None, []),
+    "default_rig": ("default", ["backlash", "gravity_sag"]),
+    "sag_generator": (Case("generator", "paper_like", ("gravity_sag",), 4, 31), ["gravity_sag"]),
+    "backlash_hysteresis": (Case("generator", "paper_like", ("backlash",), 4, 31), ["backlash"]),
+    "tanh_servo": (Case("generator", "paper_like", ("servo_nonlinearity",), 4, 31),
+                   ["servo_nonlinearity"]),
+}
+
+
+@pytest.fixture(scope="session")
+def diagnoses(clean_rig_dir, tmp_path_factory) -> dict:
+    out = {}
+    for name, (how, _) in REPRESENTATIVE.items():
+        if how is None:
+            path = clean_rig_dir
+        elif how == "default":
+            path = default_rig_dir()
+        else:
+            path = make_rig(how, tmp_path_factory.mktemp(name))
+        out[name] = diagnose(load_rig(path))
+    return out
+
+
+@pytest.mark.parametrize("name", list(REPRESENTATIVE))
+def test_names_exactly_the_hidden_effects(diagnoses, name):
+    expected = REPRESENTATIVE[name][1]
+    assert sorted(diagnoses[name].effects) == sorted(expected)
+
+
+@pytest.mark.parametrize("name", [n for n, (_, e) in REPRESENTATIVE.items() if e])
+def test_each_named_effect_shrinks_the_held_out_gap(diagnoses, name):
+    doc = diagnoses[name].to_json()
+    for step in doc["steps"]:
+        assert step["heldout_error_after_mm"] < step["heldout_error_before_mm"]
+        # The decision rule itself: the elpd gain is clearly beyond its uncertainty.
+        assert step["elpd_diff"] > 2 * step["elpd_diff_se"]
+    # A hidden effect of the size used here costs 0.3-1 mm; naming it must win back a
+    # clear part of that (20%, far beyond the 2-3% run-to-run wobble of held-out noise).
+    assert doc["final_heldout_error_mm"] < 0.8 * doc["baseline_heldout_error_mm"]
+
+
+def test_json_contract(diagnoses):
+    for diag in diagnoses.values():
+        doc = diag.to_json()
+        assert CONTRACT_KEYS <= set(doc)
+        assert doc["effects"] == [s["effect"] for s in doc["steps"]]
+        for step in doc["steps"]:
+            assert STEP_KEYS <= set(step)
+            assert set(step["arms"]) <= set(diag.arms) and step["arms"]
+        json.dumps(doc)  # plain JSON types only
+    clean = diagnoses["clean_simulator"].to_json()
+    assert clean["effects"] == [] and clean["steps"] == []
+    assert clean["final_heldout_error_mm"] == clean["baseline_heldout_error_mm"]
+
+
+def test_clean_residuals_look_like_noise(diagnoses):
+    """On a rig with no hidden effect the residual tests see noise.
+
+    Tolerance: each p value is uniform under noise; 0.001 leaves a 1-in-1000 chance per test
+    of a false alarm on this fixed seed (the seed is fixed, so the test is deterministic).
+    """
+    for arm, t in diagnoses["clean_simulator"].tests_before.items():
+        assert t["lack_of_fit"]["p_value"] > 0.001, arm
+        assert t["morans_i"]["p_value"] > 0.001, arm
+        for name, st in t["score_tests"].items():
+            assert st["p_value"] > 0.001, (arm, name)
+
+
+def test_hidden_sag_shows_in_the_residual_tests(diagnoses):
+    """Before any effect is added, the structure is there to see (p < 0.001 with 16 points)."""
+    tests = diagnoses["sag_generator"].tests_before
+    assert all(t["lack_of_fit"]["p_value"] < 1e-3 for t in tests.values())
+    assert any(t["score_tests"]["gravity_sag"]["p_value"] < 1e-3 for t in tests.values())
+
+
+def test_default_rig_magnitudes_are_physical(diagnoses):
+    doc = diagnoses["default_rig"].to_json()
+    steps = {s["effect"]: s for s in doc["steps"]}
+    # The bottom arm's shoulder torque changes sign in the workspace: its play is resolved.
+    bl = steps["backlash"]["magnitudes"]["bottom"]["values"]["shoulder_play_deg"]
+    assert 0.1 < abs(bl["value"]) < 2.0 and bl["se"] < abs(bl["value"]) / 2
+    sag = steps["gravity_sag"]["magnitudes"]
+    assert all(m["values"]["sag_full_reach_mm"]["value"] > 0 for m in sag.values())
+
+
+# ------------------------------------------------------------------------------ command
+
+
+def test_command_writes_json_and_figures(clean_rig_dir, tmp_path, capsys):
+    from bayesrob.cli import main
+
+    out, report = tmp_path / "d.json", tmp_path / "report"
+    code = main(["diagnose", str(clean_rig_dir), "--json", str(out), "--report", str(report),
+                 "--effects", "gravity_sag,backlash"])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert CONTRACT_KEYS <= set(doc) and doc["candidates"] == ["gravity_sag", "backlash"]
+    printed = capsys.readouterr().out
+    assert "named effects: none" in printed and "round 1" in printed
+    pngs = sorted(p.name for p in report.glob("*.png"))
+    assert pngs == ["gap_per_step.png", "residuals_bottom.png", "residuals_top.png"]
+    assert all((report / p).stat().st_size > 10_000 for p in pngs)
+
+
+def test_command_rejects_an_unknown_effect(clean_rig_dir, capsys):
+    from bayesrob.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["diagnose", str(clean_rig_dir), "--effects", "friction"])
+    assert exc.value.code == 2
+    assert "unknown effect 'friction'" in capsys.readouterr().err
+
+
+def test_figures_are_figures(diagnoses):
+    from matplotlib.figure import Figure
+
+    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
+
+    diag = diagnoses["default_rig"]
+    assert isinstance(gap_figure(diag), Figure)
+    fig = residual_quiver_figure(diag, "bottom")
+    assert len(fig.axes) == 3  # before, after, colour bar
+
+
+def test_jacobian_of_every_model_is_finite(clean_rig_dir):
+    from bayesrob.diagnosis import model_fns
+
+    rig = load_rig(clean_rig_dir)
+    data = ArmData.from_rig(rig, "top")
+    base = evaluate_arm(data, ())
+    for names in (("gravity_sag",), ("backlash",), ("servo_nonlinearity",)):
+        fns = model_fns(names)
+        v = np.concatenate([base.v, *fns.initial_extra])
+        settings = tuple(None if n != "backlash" else jnp.array([0.3]) for n in names)
+        r, J = fns.residuals(v, data.ctx_array, settings, jnp.asarray(data.u),
+                             jnp.asarray(data.d), jnp.ones(len(data.u)))
+        assert np.all(np.isfinite(J)) and J.shape == (r.size, fns.n_params)
+    assert jax.config.jax_enable_x64

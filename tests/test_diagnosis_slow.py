@@ -1,0 +1,62 @@
+"""The sweep behind the confusion matrix (``pytest -m slow``): 40 rigs, two kinds of physics.
+
+Rigs come from ``tests/generators.py``: this project's simulator (paper geometry, 4x4 and
+6x6 grids) and the deliberately different generators (hardening springs and bending links,
+play with hysteresis, a tanh servo map; two geometries, one on a tilted plane). Each is
+diagnosed from its files alone. ``benchmarks/bench_diagnose.py --confusion`` prints the same
+sweep as a markdown table.
+"""
+
+from __future__ import annotations
+
+import pytest
+from generators import confusion_cases, make_rig
+
+import bayesrob  # noqa: F401
+from bayesrob.diagnosis import diagnose
+from bayesrob.rig import load_rig
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> list[tuple]:
+    out = []
+    for i, case in enumerate(confusion_cases()):
+        rig = load_rig(make_rig(case, tmp_path_factory.mktemp(f"case{i}")))
+        doc = diagnose(rig).to_json()
+        out.append((case, sorted(doc["effects"]), doc))
+    return out
+
+
+def test_sweep_has_at_least_30_rigs(sweep):
+    assert len(sweep) >= 30
+
+
+def test_clean_rigs_name_nothing(sweep):
+    """No false alarm on any of the 8 clean rigs (each has its own seed)."""
+    named = [(c, e) for c, e, _ in sweep if not c.effects and e]
+    assert not named
+
+
+def test_simulator_rigs_name_exactly_the_hidden_effects(sweep):
+    wrong = [(c, e) for c, e, _ in sweep if c.source == "simulator" and e != sorted(c.effects)]
+    assert not wrong
+
+
+def test_generator_rigs_mostly_name_the_hidden_effects(sweep):
+    """Physics unlike the candidates' forms: most rigs right, never a clean rig wrong.
+
+    Tolerance: 80% of the effect rigs. The misses are documented (README section): play on
+    a tilted plane whose gravity torque never changes sign in the workspace is invisible to
+    any offset model, and is counted as a miss here rather than dropped.
+    """
+    rigs = [(c, e) for c, e, _ in sweep if c.source == "generator" and c.effects]
+    right = sum(e == sorted(c.effects) for c, e in rigs)
+    assert right >= 0.8 * len(rigs), [(c.label, c.geometry, c.grid, e) for c, e in rigs]
+
+
+def test_named_effects_shrink_the_gap(sweep):
+    for case, effects, doc in sweep:
+        if effects:
+            assert doc["final_heldout_error_mm"] < doc["baseline_heldout_error_mm"], case
