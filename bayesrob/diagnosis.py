@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -818,10 +818,16 @@ def format_diagnosis(doc: dict) -> str:
                      " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
     out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
                              "worst region (mm)", "signature p"], rows))
+    for t in doc["residual_tests"]["before"].values():
+        w, jump = t["worst_region"], t.get("largest_jump")
+        line = (f"  {t['arm']} arm: largest residuals {w['region']} ({w['mean_mm']:.2f} mm "
+                f"against {w['elsewhere_mm']:.2f} mm elsewhere)")
+        if jump:
+            line += f"; largest jump between neighbours {jump['mm']:.2f} mm, {jump['where']}"
+        out.append(line)
+    model = "base"
     for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: candidates added to "
-                    f"{' + '.join(doc['steps'][r - 2]['effect'] for _ in [0]) if r > 1 else 'base'}"
-                    if False else f"round {r}"]
+        out += ["", f"round {r}: each candidate added to the current model ({model})"]
         rows = [[s["effect"], ",".join(s["arms"]) or "-",
                  f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
                  f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
@@ -829,9 +835,13 @@ def format_diagnosis(doc: dict) -> str:
                  "yes" if s["passes"] else "no"] for s in scores]
         out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
                                  "elpd diff", "passes"], rows))
+        if r <= len(doc["steps"]):
+            step = doc["steps"][r - 1]
+            model += f" + {step['effect']} ({','.join(step['arms'])})"
     out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
     gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
-    gap += [f"+{s['effect']} {f(s['heldout_error_after_mm'])} mm" for s in doc["steps"]]
+    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
+            for s in doc["steps"]]
     out.append("held-out error per step: " + " -> ".join(gap))
     for s in doc["steps"]:
         for a, m in s["magnitudes"].items():
@@ -874,8 +884,5 @@ def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
     return diagnose(load_rig(path), candidates, progress=progress, **kwargs)
 
 
-# Re-exported for callers that want to score their own effect sets.
 __all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
            "evaluate_arm", "format_diagnosis", "residual_tests", "write_report"]
-
-_unused: Callable | None = None

@@ -275,16 +275,26 @@ class GravitySag(Effect):
         # Arm straight and square to gravity: both signatures are 1, the torque is largest.
         d1 = extra[0] + extra[1]
         d2 = extra[2]
+        # And where the arm works: the largest end-point sag over the commanded pulses.
+        g = jnp.linspace(-1.0, 1.0, 7)
+        x = jnp.stack(jnp.meshgrid(g, g), -1).reshape(-1, 2)
+        u = jnp.asarray(self.ctx.u_centre) + x * jnp.asarray(self.ctx.u_half_span)
+        theta = kin.servo(params, u)
+        shift = kin.forward(params, self.apply(params, extra, u, theta)) - \
+            kin.forward(params, theta)
         return {"sag_full_reach_mm": reach * d1 + l2 * d2,
+                "sag_workspace_max_mm": jnp.sqrt(jnp.max(jnp.sum(shift**2, -1)) + 1e-18),
                 "shoulder_deflection_deg": jnp.rad2deg(d1),
                 "elbow_deflection_deg": jnp.rad2deg(d2)}
 
     def describe(self, values):
         s, se = values["sag_full_reach_mm"]
+        w, wse = values["sag_workspace_max_mm"]
         a, ase = values["shoulder_deflection_deg"]
         b, bse = values["elbow_deflection_deg"]
-        return (f"sag at full reach {s:.2f} +- {se:.2f} mm (shoulder {a:.2f} +- {ase:.2f} deg, "
-                f"elbow {b:.2f} +- {bse:.2f} deg, arm straight and level)")
+        return (f"sag at full reach {s:.2f} +- {se:.2f} mm (arm straight and level: shoulder "
+                f"{a:.2f} +- {ase:.2f} deg, elbow {b:.2f} +- {bse:.2f} deg); up to {w:.2f} +- "
+                f"{wse:.2f} mm over the commanded workspace")
 
 
 @register
