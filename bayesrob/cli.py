@@ -383,6 +383,100 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------ sample
+
+
+def _target(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number (mm), got {text!r}") from None
+
+
+def _sample_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    p.add_argument("--config", default=None,
+                   help="one arm or arms joined by '+' (default: the rig's first linked config)")
+    p.add_argument("--target", nargs=2, type=_target, required=True, metavar=("X", "Y"),
+                   help="where every arm of the config is aimed, mm")
+    p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
+    p.add_argument("--sampler", choices=["nuts", "emcee", "grid", "all"], default="all",
+                   help="nuts, emcee, grid or all (default); the grid always runs: it is the "
+                        "reference of the check and starts the chains")
+    p.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
+    p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
+                "0.1 mm, covariance within 10% Frobenius, r_hat <= 1.01, bulk ESS >= 400), "
+                "1 when the check fails (the failures are printed and in the JSON), 2 on a "
+                "usage or rig error.")
+
+
+@command("sample", "sample the end point of one arm or linked arms with NUTS and emcee, and "
+                   "check both against the grid")(_sample_args)
+def _sample(args: argparse.Namespace) -> int:
+    from bayesrob.inference import format_sample, sample_linked
+    from bayesrob.noise_models import ModelFileError
+
+    rig = _load_rig_arg(args.rig)
+    config = args.config
+    if config is None:
+        if not rig.linked_configs:
+            raise UsageError("the rig has no linked config; name one with --config")
+        config = rig.linked_configs[0]
+    try:
+        report = sample_linked(rig, config, args.target, args.model, args.sampler,
+                               seed=args.seed, progress=sys.stderr.isatty(),
+                               models_dir=args.models_dir)
+    except (ModelFileError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
+    if args.json != "-":
+        print(format_sample(report))
+    _write_json(report.document, args.json)
+    return 0 if report.passed else 1
+
+
+# ------------------------------------------------------------------------------ compare
+
+
+def _compare_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    p.add_argument("--models", nargs="+", metavar="NAME",
+                   help="model names to compare (default: every file in models/)")
+    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
+    p.add_argument("--plot", metavar="PATH",
+                   help="write the comparison plot (PNG) here (default: next to --json OUT, "
+                        "as OUT with .png)")
+
+
+@command("compare", "score every joint-error model on held-out end points and by "
+                    "leave-one-out, with arviz's comparison table")(_compare_args)
+def _compare(args: argparse.Namespace) -> int:
+    from bayesrob.comparison import compare_models, comparison_figure, format_comparison
+    from bayesrob.noise_models import ModelFileError
+
+    rig = _load_rig_arg(args.rig)
+    try:
+        comp = compare_models(rig, args.models, args.models_dir, progress=sys.stderr.isatty())
+    except ModelFileError as exc:
+        raise UsageError(str(exc)) from None
+    doc = comp.document()
+    plot = args.plot
+    if plot is None and args.json not in (None, "-"):
+        plot = str(Path(args.json).with_suffix(".png"))
+    if plot is not None:
+        Path(plot).parent.mkdir(parents=True, exist_ok=True)
+        comparison_figure(comp).savefig(plot, dpi=120)
+        doc["plot"] = plot
+    if args.json != "-":
+        print(format_comparison(doc))
+        if plot is not None:
+            print(f"wrote {plot}")
+    _write_json(doc, args.json)
+    return 0
+
+
 # ------------------------------------------------------------------------------ main
 # Further commands register themselves above this line with @command.
 

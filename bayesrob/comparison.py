@@ -1,0 +1,327 @@
+"""Model comparison: every joint-error model scored on end points it was not fitted on.
+
+The score of a point is its log predictive density: the log of the model's predicted density
+(per mm^2) of the observed end point, normalised over the grid box like every grid
+prediction (:func:`bayesrob.inference.grid_posterior`). Two sets of points:
+
+- held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
+  linked ``test`` rows (predicted from both arms' models), the data no model has seen;
+- leave-one-out over the training rows: training row i scored by the model refitted without
+  row i. The refit keeps the bandwidths chosen on all rows (re-selecting them 16 times per
+  arm would cost minutes for COND), which flatters the LOO-ML variants a little: their
+  bandwidths maximise a leave-one-out likelihood in joint-error space. The calibrated arm is
+  kept as well. This is exact LOO, so no Pareto-smoothed approximation is needed: a KDE has
+  no posterior draws to importance-weight, but dropping one of its points is cheap.
+
+Both go through ``arviz.compare`` (as ``ELPDData`` built from the exact pointwise values), which
+gives the elpd differences, their standard errors ``dse = sqrt(n) sd(pointwise differences)``
+and stacking weights; ``arviz.plot_compare`` draws them. Alongside, the calibration of each
+model's predictive regions: the HDR level of each held-out point (the predicted mass denser
+than the observation; uniform on (0, 1) for a calibrated model) and the 50% / 90% coverage.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import arviz as az
+import jax.numpy as jnp
+import numpy as np
+import xarray as xr
+
+from bayesrob import kinematics as kin
+from bayesrob.calibration import calibrate
+from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
+from bayesrob.kde import KDE, ConditionalKDE
+from bayesrob.noise_models import (
+    FittedNoiseModel,
+    ModelSpec,
+    discover_models,
+    fit_noise_models,
+)
+from bayesrob.prediction import setup_rows, setups
+from bayesrob.report import format_table
+from bayesrob.rig import Rig
+
+__all__ = [
+    "PointScores",
+    "ModelComparison",
+    "score_points",
+    "score_setup",
+    "loo_training_scores",
+    "compare_models",
+    "comparison_figure",
+    "format_comparison",
+]
+
+MASSES = (0.5, 0.9)
+
+
+@dataclass
+class PointScores:
+    """Scores of observed end points under one model's predictions."""
+
+    lpd: np.ndarray  # (n,) log density per mm^2 at the observed end point
+    hdr_level: np.ndarray  # (n,) predicted mass denser than the observation, in [0, 1]
+
+    def coverage(self, mass: float) -> float:
+        """Fraction of points inside the ``mass`` highest-density region."""
+        return float(np.mean(self.hdr_level <= mass)) if self.lpd.size else float("nan")
+
+
+def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                 commands: Sequence[np.ndarray], targets: np.ndarray, observed: np.ndarray,
+                 **grid_kw: Any) -> tuple[PointScores, GridPosterior]:
+    """Log predictive density and HDR level of ``observed`` (T, 2), one point per target.
+
+    ``models``/``arms``/``commands`` describe the setup: one arm, or arms linked at their end
+    point; the prediction for row t is the grid's, centred at ``targets[t]``.
+    """
+    post = grid_posterior(models, arms, commands, targets, **grid_kw)
+    lpd = point_log_density(post, models, arms, commands, observed)
+    return PointScores(lpd, post.hdr_level(lpd)), post
+
+
+def score_setup(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
+                config: str) -> PointScores:
+    """Scores of a setup's judged rows: validation for one arm, test for linked arms."""
+    rows = setup_rows(rig, arms, config)
+    members = config.split("+")
+    scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
+                             [rows["commands"][a] for a in members], rows["targets"],
+                             rows["observed"])
+    return scores
+
+
+def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel:
+    """The model refitted on the rows ``keep`` (boolean mask) at its current bandwidths."""
+    x, u = model.theta_err[keep], model.u[keep]
+    spec = model.spec
+    if model.conditional is None:
+        if spec.family == "IND":
+            parts = [KDE.fit(x[:, j:j + 1], p.bandwidth) for j, p in enumerate(model.parts)]
+        else:
+            parts = [KDE.fit(x, model.parts[0].bandwidth)]
+        return FittedNoiseModel(spec, x, u, parts=parts)
+    c = model.conditional
+    if c.method == "kernel":
+        cond = ConditionalKDE.fit(x, u, "kernel", np.concatenate([c.bw_x, c.bw_z]))
+    else:
+        cond = ConditionalKDE.fit(x, u, "histogram", c.joint.bandwidth, bins=spec.bins,
+                                  bin_widths=spec.bin_widths, floor=c.floor,
+                                  warn_on_bound=False)
+    return FittedNoiseModel(spec, x, u, conditional=cond)
+
+
+def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel) -> np.ndarray:
+    """Exact leave-one-out log predictive density of each of an arm's training rows.
+
+    Row i's observed end point is scored by the single-arm prediction for its command u_i,
+    with the model refitted on the other rows (same bandwidths; see the module docstring).
+    """
+    u, d = rig.arm_rows(arm.name, "train")
+    target = np.asarray(arm.forward_u(jnp.asarray(u)))
+    out = np.empty(len(u))
+    for i in range(len(u)):
+        keep = np.arange(len(u)) != i
+        m = refit_without(model, keep)
+        scores, _ = score_points([m], [arm], [u[i:i + 1]], target[i:i + 1], d[i:i + 1])
+        out[i] = scores.lpd[0]
+    return out
+
+
+def _in_sample_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel) -> np.ndarray:
+    u, d = rig.arm_rows(arm.name, "train")
+    target = np.asarray(arm.forward_u(jnp.asarray(u)))
+    scores, _ = score_points([model], [arm], [u], target, d)
+    return scores.lpd
+
+
+def _elpd_data(pointwise: np.ndarray, p: float) -> Any:
+    """An arviz ``ELPDData`` (kind loo) holding exact pointwise values, for ``az.compare``."""
+    n = pointwise.size
+    return az.ELPDData(
+        data=[float(pointwise.sum()), float(np.sqrt(n * np.var(pointwise))), p, n, n, False,
+              xr.DataArray(pointwise, dims=["obs"]), "log"],
+        index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning", "loo_i",
+               "scale"],
+    )
+
+
+def _table(compared: Any) -> list[dict]:
+    rows = []
+    for name, r in compared.iterrows():
+        rows.append({"model": str(name), "rank": int(r["rank"]), "elpd": float(r["elpd_loo"]),
+                     "se": float(r["se"]), "elpd_diff": float(r["elpd_diff"]),
+                     "dse": float(r["dse"]), "weight": float(r["weight"]),
+                     "p": float(r["p_loo"])})
+    return rows
+
+
+@dataclass
+class ModelComparison:
+    """Held-out and leave-one-out scores of every model, with arviz's comparison tables."""
+
+    rig: Rig
+    specs: list[ModelSpec]
+    heldout: dict[str, dict[str, PointScores]]  # model -> setup -> scores
+    loo: dict[str, np.ndarray]  # model -> pointwise LOO lpd over all arms' training rows
+    in_sample: dict[str, np.ndarray]
+    heldout_compare: Any  # az.compare DataFrame
+    loo_compare: Any
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+    def heldout_pointwise(self, model: str) -> np.ndarray:
+        return np.concatenate([s.lpd for s in self.heldout[model].values()])
+
+    def document(self) -> dict:
+        """The ``bayesrob compare --json`` document."""
+        models = {}
+        for spec in self.specs:
+            name = spec.name
+            by_setup = {}
+            for config, s in self.heldout[name].items():
+                by_setup[config] = {
+                    "n": int(s.lpd.size), "elpd": float(s.lpd.sum()),
+                    "mean_lpd": float(s.lpd.mean()),
+                    "coverage50": s.coverage(0.5), "coverage90": s.coverage(0.9),
+                    "mean_hdr_level": float(s.hdr_level.mean()),
+                }
+            pw = self.heldout_pointwise(name)
+            loo = self.loo[name]
+            models[name] = {
+                "description": spec.description, "paper": spec.paper,
+                "heldout": {"n": int(pw.size), "elpd": float(pw.sum()),
+                            "se": float(np.sqrt(pw.size * np.var(pw))),
+                            "mean_lpd": float(pw.mean()), "by_setup": by_setup},
+                "loo_train": {"n": int(loo.size), "elpd": float(loo.sum()),
+                              "se": float(np.sqrt(loo.size * np.var(loo))),
+                              "p_loo": float(self.in_sample[name].sum() - loo.sum())},
+            }
+        held = _table(self.heldout_compare)
+        loo = _table(self.loo_compare)
+        winner = held[0]
+        runner_up = held[1] if len(held) > 1 else None
+        return {
+            "rig": self.rig.name,
+            "score": "log predictive density per mm^2 of the observed end point, normalised "
+                     "over the grid box; elpd = sum over points",
+            "heldout_rows": {c: int(s.lpd.size) for c, s in
+                             self.heldout[self.specs[0].name].items()},
+            "models": models,
+            "heldout_compare": held,
+            "loo_compare": loo,
+            "winner": {
+                "model": winner["model"],
+                "over": runner_up["model"] if runner_up else None,
+                "elpd_diff": runner_up["elpd_diff"] if runner_up else None,
+                "dse": runner_up["dse"] if runner_up else None,
+            },
+            "notes": self.notes,
+            "seconds": self.seconds,
+        }
+
+
+def heldout_scores(rig: Rig, specs: Sequence[ModelSpec], arms: dict[str, kin.Arm] | None = None
+                   ) -> dict[str, dict[str, PointScores]]:
+    """Held-out scores {model: {setup: scores}} of every model, fitted on the train rows."""
+    arms = arms if arms is not None else {n: c.arm for n, c in calibrate(rig).items()}
+    out = {}
+    for spec in specs:
+        fitted = fit_noise_models(rig, arms, [spec])[spec.name]
+        out[spec.name] = {c: score_setup(rig, arms, fitted, c) for c in setups(rig)}
+    return out
+
+
+def compare_models(rig: Rig, models: Sequence[str] | None = None,
+                   models_dir: str | Path | None = None, progress: bool = False
+                   ) -> ModelComparison:
+    """Fit every model on the training rows and score it on held-out and LOO points."""
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    specs = discover_models(models_dir, models)
+    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    configs = setups(rig)
+    bar = tqdm(total=len(specs), disable=not progress, desc="compare", leave=False)
+    heldout: dict[str, dict[str, PointScores]] = {}
+    loo: dict[str, np.ndarray] = {}
+    in_sample: dict[str, np.ndarray] = {}
+    for spec in specs:
+        bar.set_postfix_str(spec.name)
+        fitted = fit_noise_models(rig, arms, [spec])[spec.name]
+        heldout[spec.name] = {c: score_setup(rig, arms, fitted, c) for c in configs}
+        loo[spec.name] = np.concatenate(
+            [loo_training_scores(rig, arms[a], fitted[a]) for a in arms])
+        in_sample[spec.name] = np.concatenate(
+            [_in_sample_scores(rig, arms[a], fitted[a]) for a in arms])
+        bar.update()
+    bar.close()
+    held = {s.name: _elpd_data(np.concatenate([x.lpd for x in heldout[s.name].values()]),
+                               float("nan")) for s in specs}
+    loos = {s.name: _elpd_data(loo[s.name], float(in_sample[s.name].sum() - loo[s.name].sum()))
+            for s in specs}
+    notes = [
+        "held out: validation rows of each arm + linked test rows; models fitted on train rows",
+        "loo_train: exact leave-one-out over each arm's train rows, bandwidths kept from the "
+        "full fit (flatters the LOO-ML variants slightly)",
+        "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
+    ]
+    return ModelComparison(rig, list(specs), heldout, loo, in_sample,
+                           az.compare(held, method="stacking"),
+                           az.compare(loos, method="stacking"), time.perf_counter() - t0,
+                           notes)
+
+
+def format_comparison(doc: dict) -> str:
+    """Terminal tables of a comparison document."""
+    parts = []
+    for key, title in (("heldout_compare", "held-out points"),
+                       ("loo_compare", "leave-one-out over training rows")):
+        rows = [[r["model"], str(r["rank"]), f"{r['elpd']:.1f}", f"{r['se']:.1f}",
+                 f"{r['elpd_diff']:.1f}", f"{r['dse']:.1f}", f"{r['weight']:.2f}"]
+                for r in doc[key]]
+        n = next(iter(doc["models"].values()))["heldout" if key.startswith("held")
+                                               else "loo_train"]["n"]
+        parts.append(f"{title} (n = {n}; elpd = sum of log density per mm^2)")
+        parts.append(format_table(["model", "rank", "elpd", "se", "elpd_diff", "dse", "weight"],
+                                  rows))
+        parts.append("")
+    rows = []
+    for name, m in doc["models"].items():
+        for config, s in m["heldout"]["by_setup"].items():
+            rows.append([name, config, str(s["n"]), f"{s['mean_lpd']:.2f}",
+                         f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
+                         f"{s['mean_hdr_level']:.2f}"])
+    parts.append("held-out points by setup (coverage of the 50% / 90% regions; a calibrated "
+                 "model has mean HDR level 0.5)")
+    parts.append(format_table(["model", "setup", "n", "mean lpd", "cov50", "cov90",
+                               "HDR level"], rows))
+    w = doc["winner"]
+    if w["over"] is not None:
+        parts.append(f"\nwinner on held-out points: {w['model']}, ahead of {w['over']} by "
+                     f"{w['elpd_diff']:.1f} elpd (dse {w['dse']:.1f})")
+    return "\n".join(parts)
+
+
+def comparison_figure(comparison: ModelComparison):
+    """arviz's compare plot for held-out and LOO scores, side by side (a matplotlib Figure)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.6 * len(comparison.specs) + 2.2))
+    for ax, df, title in ((axes[0], comparison.heldout_compare, "held-out points"),
+                          (axes[1], comparison.loo_compare, "LOO over training rows")):
+        az.plot_compare(df, ax=ax, title=False, legend=False)
+        ax.set_title(title)
+    fig.suptitle(f"{comparison.rig.name}: elpd (log density per mm^2, summed)")
+    fig.tight_layout()
+    return fig
+

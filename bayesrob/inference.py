@@ -1,0 +1,899 @@
+"""The joint-error models as numpyro programs, sampled by NUTS and emcee and checked on the grid.
+
+The grid (:mod:`bayesrob.prediction`) answers "where will the end point be" exactly, but only on
+a 2-D box. Here the same models are probabilistic programs, so standard Bayesian tools apply:
+
+- Every kernel joint-error model is a numpyro distribution whose density *is* the KDE: a
+  Gaussian KDE is ``MixtureSameFamily(Categorical(w), Independent(Normal(data, bw), 1))`` with
+  uniform ``w`` (IND: one such 1-D mixture per joint; CORR: one 2-D mixture; COND: the mixing
+  weights are the kernel-conditional weights at the command u). The paper's histogram COND has
+  no sampler, only a density, so it enters programs as a ``numpyro.factor``.
+- :func:`arm_model`, one arm: u -> theta = g(u) + theta_err, theta_err ~ model -> d = f(theta)
+  (+ optional measurement noise). Its prior predictive is the push-forward of the joint-error
+  density, which the grid reproduces exactly when the model applies the Jacobian.
+- :func:`linked_model`, any number of arms linked at their end point: the end point d is the
+  latent, with a flat improper prior on the plane (``ImproperUniform``), and each arm adds
+  ``numpyro.factor`` with the log of its density of theta_err(d) = f^-1(d) - g(u) (plus the
+  log-Jacobian in the improved variants): the product of likelihoods, written as a program.
+  The grid's implied prior is flat within its +-30 mm box; the two agree because the posterior
+  mass outside that box is negligible (``GridPosterior.edge_mass`` reports it).
+
+:func:`run_nuts` and :func:`run_emcee` sample the linked posterior and return arviz
+``InferenceData``; :func:`grid_posterior` computes the reference moments on a zoomed grid;
+:func:`cross_check` compares them; :func:`sample_linked` is the ``bayesrob sample`` command.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import arviz as az
+import emcee
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+import xarray as xr
+from jax.scipy.special import logsumexp
+from numpyro.distributions import constraints
+from numpyro.infer import Predictive
+from numpyro.infer.hmc import hmc
+from numpyro.infer.util import log_density
+
+from bayesrob import kinematics as kin
+from bayesrob.kde import kernel_conditional_weights
+from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.prediction import Grid, arm_log_likelihood
+
+__all__ = [
+    "SAMPLERS",
+    "CheckTolerances",
+    "GridPosterior",
+    "SamplerResult",
+    "kde_distribution",
+    "joint_error_distribution",
+    "joint_error_log_prob",
+    "arm_model",
+    "prior_predictive",
+    "arm_log_density",
+    "linked_model",
+    "linked_log_density",
+    "grid_posterior",
+    "run_nuts",
+    "run_emcee",
+    "cross_check",
+    "sample_linked",
+]
+
+SAMPLERS = ("nuts", "emcee", "grid")
+
+# The prediction's +-30 mm box at 0.3 mm cells: fine enough to find the mass for the zoom.
+COARSE_GRID = Grid(30.0, 200)
+
+
+# --------------------------------------------------------------------------------------------
+# Joint-error models as numpyro distributions
+# --------------------------------------------------------------------------------------------
+
+
+def kde_distribution(data: Any, bandwidth: Any, weights: Any | None = None
+                     ) -> dist.MixtureSameFamily:
+    """A diagonal Gaussian KDE as a numpyro distribution over d-vectors.
+
+    ``data`` (N, d), ``bandwidth`` (d,) in the data's units, ``weights`` (..., N) mixing
+    weights (default uniform, 1/N: the plain KDE). Leading dimensions of ``weights`` become the
+    batch shape, so one call gives the conditional densities at a batch of commands.
+    """
+    data = jnp.asarray(data, dtype=jnp.float64)
+    bw = jnp.asarray(bandwidth, dtype=jnp.float64)
+    n = data.shape[0]
+    if weights is None:
+        weights = jnp.full((n,), 1.0 / n)
+    weights = jnp.asarray(weights, dtype=jnp.float64)
+    batch = weights.shape[:-1]
+    # Components must carry the mixing batch in front of their own mixture axis.
+    loc = jnp.broadcast_to(data, batch + data.shape)
+    comp = dist.Normal(loc, jnp.broadcast_to(bw, loc.shape)).to_event(1)
+    return dist.MixtureSameFamily(dist.Categorical(probs=weights), comp)
+
+
+def _kind(model: FittedNoiseModel) -> str:
+    if model.conditional is None:
+        return model.spec.family
+    return "COND" if model.conditional.method == "kernel" else "HIST"
+
+
+def is_sampleable(model: FittedNoiseModel) -> bool:
+    """Whether the model can draw joint errors (everything but the histogram COND)."""
+    return _kind(model) != "HIST"
+
+
+def _arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
+    """The model's learned state as arrays: traced, not baked in, by the compiled samplers."""
+    kind = _kind(model)
+    if kind == "IND":
+        a, b = model.parts
+        if a.n != b.n:
+            raise ValueError("IND parts were fitted to different numbers of points")
+        x = np.column_stack([a.data[:, 0], b.data[:, 0]])
+        out = {"x": x, "bw_x": np.array([a.bandwidth[0], b.bandwidth[0]])}
+    elif kind == "CORR":
+        out = {"x": model.parts[0].data, "bw_x": model.parts[0].bandwidth}
+    elif kind == "COND":
+        c = model.conditional
+        out = {"x": c.x_data, "bw_x": c.bw_x, "z": c.z_data, "bw_z": c.bw_z}
+    else:
+        out = {}  # the histogram table is looked up through the fitted object
+    return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
+
+
+def _distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | None
+                  ) -> dist.Distribution:
+    x, bw = arrays["x"], arrays["bw_x"]
+    if kind == "IND":
+        # Two 1-D mixtures side by side (a batch of 2) made into one 2-vector event: the
+        # product density p1(e1) p2(e2) that IND is, and exactly sampleable.
+        n = x.shape[0]
+        loc = x.T  # (2, N)
+        scale = jnp.broadcast_to(bw[:, None], loc.shape)
+        mix = dist.Categorical(probs=jnp.full((2, n), 1.0 / n))
+        return dist.MixtureSameFamily(mix, dist.Normal(loc, scale)).to_event(1)
+    if kind == "CORR":
+        return kde_distribution(x, bw)
+    if u is None:
+        raise ValueError("COND needs the command u to condition on")
+    w = kernel_conditional_weights(jnp.asarray(u, dtype=jnp.float64), arrays["z"],
+                                   arrays["bw_z"])
+    return kde_distribution(x, bw, w)
+
+
+def joint_error_distribution(model: FittedNoiseModel, u: Any | None = None) -> dist.Distribution:
+    """The joint-error density of a fitted model as a numpyro distribution over (2,) errors.
+
+    IND and CORR ignore ``u``; the kernel COND needs the command(s) ``u`` ((2,) or (T, 2), the
+    latter giving batch shape (T,)). The histogram COND (the paper's) has a density but no
+    sampler: it raises ``NotImplementedError``; score it with :func:`joint_error_log_prob`.
+    """
+    kind = _kind(model)
+    if kind == "HIST":
+        raise NotImplementedError(
+            f"model {model.spec.name!r} (histogram COND) is a scored density only; "
+            "use joint_error_log_prob inside numpyro.factor")
+    return _distribution(kind, _arrays(model), u)
+
+
+@dataclass(frozen=True)
+class _ArmStatic:
+    """What a compiled program bakes in about one arm; everything else is traced arrays."""
+
+    name: str
+    kind: str
+    jacobian: bool
+    elbow: int
+    hist: FittedNoiseModel | None  # the histogram COND's table (hashed by identity)
+
+
+def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err: jax.Array,
+                    u: jax.Array) -> jax.Array:
+    u = jnp.broadcast_to(jnp.asarray(u, dtype=jnp.float64), theta_err.shape)
+    if static.kind != "HIST":
+        return _distribution(static.kind, arrays, u).log_prob(theta_err)
+    shape = theta_err.shape[:-1]
+    return static.hist.logpdf(theta_err.reshape(-1, 2), u.reshape(-1, 2)).reshape(shape)
+
+
+def _static(model: FittedNoiseModel, arm: kin.Arm) -> _ArmStatic:
+    kind = _kind(model)
+    return _ArmStatic(arm.name, kind, bool(model.spec.jacobian), int(arm.elbow),
+                      model if kind == "HIST" else None)
+
+
+def _structure(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
+               ) -> tuple[tuple[_ArmStatic, ...], tuple[tuple[kin.ArmParams, dict], ...]]:
+    """Split linked arms into the static part (compile key) and a pytree of arrays."""
+    if len(models) != len(arms) or not arms:
+        raise ValueError("need one fitted model per arm, and at least one arm")
+    statics = tuple(_static(m, a) for m, a in zip(models, arms, strict=True))
+    params = tuple((kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64) for x in a.params)),
+                    _arrays(m)) for m, a in zip(models, arms, strict=True))
+    return statics, params
+
+
+def joint_error_log_prob(model: FittedNoiseModel, theta_err: jax.Array, u: jax.Array
+                         ) -> jax.Array:
+    """log p(theta_err | u) for errors (..., 2) and commands (..., 2) broadcast together.
+
+    The mixture distribution's ``log_prob`` for the kernel models, the histogram table for the
+    paper's COND; traceable either way.
+    """
+    kind = _kind(model)
+    static = _ArmStatic("", kind, False, 1, model if kind == "HIST" else None)
+    return _error_log_prob(static, _arrays(model), jnp.asarray(theta_err), u)
+
+
+# --------------------------------------------------------------------------------------------
+# Programs
+# --------------------------------------------------------------------------------------------
+
+
+def arm_model(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array,
+              measurement_noise_mm: float = 0.0, observed: jax.Array | None = None) -> None:
+    """One arm as a generative program, for commands ``u`` (T, 2).
+
+    theta_err ~ the joint-error model (at u for COND), theta = g(u) + theta_err,
+    d_true = f(theta), d ~ Normal(d_true, measurement_noise_mm) per axis (d = d_true when the
+    noise is 0). The histogram COND enters as a flat latent times a ``numpyro.factor``: such a
+    program can be conditioned and run by MCMC, but not forward-sampled.
+    """
+    u = jnp.atleast_2d(jnp.asarray(u, dtype=jnp.float64))
+    t = u.shape[0]
+    with numpyro.plate("targets", t):
+        if is_sampleable(model):
+            theta_err = numpyro.sample("theta_err", joint_error_distribution(model, u))
+        else:
+            theta_err = numpyro.sample(
+                "theta_err", dist.ImproperUniform(constraints.real, (), event_shape=(2,)))
+            numpyro.factor("theta_err_density", joint_error_log_prob(model, theta_err, u))
+        d_true = kin.forward(arm.params, kin.servo(arm.params, u) + theta_err)
+        if measurement_noise_mm > 0:
+            numpyro.deterministic("d_true", d_true)
+            numpyro.sample("d", dist.Normal(d_true, measurement_noise_mm).to_event(1),
+                           obs=observed)
+        else:
+            if observed is not None:
+                raise ValueError("observing d needs measurement_noise_mm > 0")
+            numpyro.deterministic("d", d_true)
+
+
+def prior_predictive(model: FittedNoiseModel, arm: kin.Arm, u: Any, num_samples: int,
+                     seed: int = 0, measurement_noise_mm: float = 0.0) -> dict[str, np.ndarray]:
+    """Draws of :func:`arm_model` by ``numpyro.infer.Predictive``: ``d`` is (S, T, 2)."""
+    if not is_sampleable(model):
+        raise NotImplementedError(f"model {model.spec.name!r} cannot be forward-sampled")
+    pred = Predictive(arm_model, num_samples=num_samples)
+    out = pred(jax.random.PRNGKey(seed), model, arm, jnp.asarray(u, dtype=jnp.float64),
+               measurement_noise_mm)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _arm_log_density(static: _ArmStatic, arm_params: kin.ArmParams, arrays: dict,
+                     u: jax.Array, d: jax.Array) -> jax.Array:
+    theta, ok = kin.inverse(arm_params, d, static.elbow)
+    err = kin.wrap_angle(theta - kin.servo(arm_params, u))
+    lp = _error_log_prob(static, arrays, err, u)
+    if static.jacobian:
+        lp = lp + kin.log_abs_det_inverse_jacobian(arm_params, theta)
+    return jnp.where(ok, lp, -jnp.inf)
+
+
+def arm_log_density(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array, d: jax.Array
+                    ) -> jax.Array:
+    """log-likelihood of end points d (..., T, 2) for one arm commanded with u (T, 2).
+
+    log p(theta_err(d) | u) (+ log|det df^-1/dd| when the model applies the Jacobian);
+    -inf where the arm cannot reach d. The same quantity as the grid's
+    :func:`bayesrob.prediction.arm_log_likelihood`, computed through the distributions.
+    """
+    (static,), ((arm_params, arrays),) = _structure([model], [arm])
+    return _arm_log_density(static, arm_params, arrays, jnp.asarray(u, dtype=jnp.float64),
+                            jnp.asarray(d, dtype=jnp.float64))
+
+
+def _linked_program(commands: Sequence[jax.Array], params: tuple, *,
+                    statics: tuple[_ArmStatic, ...]) -> None:
+    t = commands[0].shape[0]
+    d = numpyro.sample("d", dist.ImproperUniform(constraints.real, (t,), event_shape=(2,)))
+    for static, (arm_params, arrays), u in zip(statics, params, commands, strict=True):
+        numpyro.factor(f"loglik_{static.name}",
+                       _arm_log_density(static, arm_params, arrays, u, d))
+
+
+def linked_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseModel],
+                 arms: Sequence[kin.Arm]) -> None:
+    """Arms linked at their end point, as a program over the shared end point d (T, 2).
+
+    ``commands[k]`` (T, 2) are the pulses sent to ``arms[k]``; T independent targets are
+    sampled at once. Prior: flat on the plane (``ImproperUniform``), which is the grid's prior
+    wherever the grid box holds the mass. Likelihood: one ``numpyro.factor`` per arm,
+    ``loglik_<arm>``. Any number of arms (one arm gives that arm's own prediction).
+    """
+    statics, params = _structure(models, arms)
+    _linked_program(tuple(jnp.asarray(u, dtype=jnp.float64) for u in commands), params,
+                    statics=statics)
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled_log_density(statics: tuple[_ArmStatic, ...]) -> Callable:
+    program = functools.partial(_linked_program, statics=statics)
+
+    def one(x, commands, params):
+        t = commands[0].shape[0]
+        lp, _ = log_density(program, (commands, params), {}, {"d": x.reshape(t, 2)})
+        # emcee treats NaN as an error; the clamp in f^-1 keeps it finite, this is a guard.
+        return jnp.where(jnp.isnan(lp), -jnp.inf, lp)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None, None)))
+
+
+def linked_log_density(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
+                       ) -> Callable[[jax.Array, tuple[jax.Array, ...]], jax.Array]:
+    """The linked program's log joint density, jitted and vectorised over walkers.
+
+    Returns ``fn(d, commands)`` with ``d`` (W, T * 2) flat (emcee's layout) and ``commands`` a
+    tuple of (T, 2) arrays: (W,) log densities. It is ``numpyro.infer.util.log_density`` of
+    :func:`linked_model`, so emcee and NUTS see literally the same density. The compiled code
+    is shared by every model of the same structure (family, Jacobian, branch per arm).
+    """
+    statics, params = _structure(models, arms)
+    fn = _compiled_log_density(statics)
+    # No conversions here: emcee calls this thousands of times and jit takes numpy arrays.
+    return lambda d, commands: fn(d, tuple(commands), params)
+
+
+# --------------------------------------------------------------------------------------------
+# The grid reference
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class GridPosterior:
+    """The grid's end-point density, resolved on a zoomed grid fine enough for moments.
+
+    A coarse grid (default +-30 mm, 200 x 200, the prediction's box) locates the mass; a
+    second ``n x n`` grid over the box that holds all but ``1e-9`` of it (plus a margin)
+    gives mean, covariance and normaliser by the midpoint rule. ``log_normaliser`` is
+    log of the integral of the unnormalised density over the box (per mm^2), so
+    ``loglik(d) - log_normaliser`` is the normalised log density at d.
+    """
+
+    targets: np.ndarray  # (T, 2)
+    lo: np.ndarray  # (T, 2) lower-left corner of each fine grid
+    cell_mm: np.ndarray  # (T, 2) fine cell size
+    n: int
+    prob: np.ndarray  # (T, n*n) mass per fine cell
+    mean: np.ndarray  # (T, 2)
+    cov: np.ndarray  # (T, 2, 2)
+    log_normaliser: np.ndarray  # (T,)
+    edge_mass: np.ndarray  # (T,) coarse-grid mass in its outermost ring of cells
+    coarse: Grid
+    seconds: float = 0.0
+
+    def points(self) -> np.ndarray:
+        """Fine cell centres (T, n*n, 2), x fastest."""
+        i = np.arange(self.n) + 0.5
+        gx, gy = np.meshgrid(i, i)
+        unit = np.column_stack([gx.ravel(), gy.ravel()])
+        return self.lo[:, None, :] + unit[None] * self.cell_mm[:, None, :]
+
+    def sample(self, seed: int, n: int) -> np.ndarray:
+        """n draws (n, T, 2): a cell by its mass, then uniform within the cell."""
+        rng = np.random.default_rng(seed)
+        pts = self.points()
+        out = np.empty((n, len(self.targets), 2))
+        for t in range(len(self.targets)):
+            # Systematic resampling: n draws spread over the CDF, so even 4 chains land in
+            # the modes in proportion to their mass instead of by luck.
+            cdf = np.cumsum(self.prob[t])
+            pos = (rng.permutation(n) + rng.uniform()) / n
+            idx = np.minimum(np.searchsorted(cdf, pos * cdf[-1]), cdf.size - 1)
+            jitter = rng.uniform(-0.5, 0.5, size=(n, 2)) * self.cell_mm[t]
+            out[:, t] = pts[t, idx] + jitter
+        return out
+
+    def hdr_level(self, log_density: np.ndarray) -> np.ndarray:
+        """Mass of the highest-density region whose boundary passes through each point.
+
+        ``log_density`` (T,): the normalised log density (per mm^2) of one point per target
+        (:func:`point_log_density`). The result is the predicted mass denser than the point:
+        a point lies in the ``m`` HDR when its level is <= m, and for a calibrated model the
+        levels of real outcomes are uniform on (0, 1) (a 2-D probability integral transform).
+        """
+        log_area = np.log(self.cell_mm[:, 0] * self.cell_mm[:, 1])
+        with np.errstate(divide="ignore"):
+            cell_ld = np.log(self.prob) - log_area[:, None]
+        return np.sum(np.where(cell_ld > np.asarray(log_density)[:, None], self.prob, 0.0),
+                      axis=1)
+
+
+def _loglik(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+            commands: Sequence[np.ndarray], points: jax.Array) -> jax.Array:
+    """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's own code path."""
+    return sum(arm_log_likelihood(m, a, jnp.asarray(u, float), points)
+               for m, a, u in zip(models, arms, commands, strict=True))
+
+
+def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                   commands: Sequence[np.ndarray], targets: np.ndarray,
+                   coarse: Grid = COARSE_GRID, n: int = 256,
+                   tail: float = 1e-9) -> GridPosterior:
+    """Mean, covariance and normaliser of the grid density of each target, on a zoomed grid.
+
+    The paper's 100 x 100 grid has 0.6 mm cells, as wide as the posterior itself (sd ~0.4 to
+    2 mm), so its moments carry discretisation error of the order of the 0.1 mm / 10%
+    tolerances of :func:`cross_check`. The zoom makes that error negligible: cells of
+    (box / 256), typically 0.01 to 0.05 mm.
+    """
+    t0 = time.perf_counter()
+    targets = np.atleast_2d(np.asarray(targets, float))
+    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+    offsets = coarse.offsets
+    pts = jnp.asarray(targets[:, None, :] + offsets[None])
+    ll = np.asarray(_loglik(models, arms, commands, pts))
+    if not np.all(np.isfinite(ll).any(axis=1)):
+        bad = np.flatnonzero(~np.isfinite(ll).any(axis=1)).tolist()
+        raise ValueError(f"targets {bad}: no arm configuration reaches any grid point")
+    p = np.asarray(jax.nn.softmax(jnp.asarray(ll), axis=-1))
+    step = 2 * coarse.half_width_mm / coarse.n
+    ring = np.any(np.abs(offsets) > coarse.half_width_mm - step, axis=1)
+    edge = p[:, ring].sum(axis=1)
+    lo = np.empty_like(targets)
+    hi = np.empty_like(targets)
+    for t in range(len(targets)):
+        order = np.argsort(p[t])[::-1]
+        k = int(np.searchsorted(np.cumsum(p[t, order]), 1.0 - tail)) + 1
+        keep = np.asarray(pts[t])[order[:k]]
+        # Margin of two coarse cells: the kept cells' centres understate the support by half
+        # a cell, and the density between neighbours of the last kept cell is not yet zero.
+        lo[t] = keep.min(axis=0) - 2 * step
+        hi[t] = keep.max(axis=0) + 2 * step
+    cell = (hi - lo) / n
+    post = GridPosterior(targets, lo, cell, n, np.empty(0), np.empty(0), np.empty(0),
+                         np.empty(0), edge, coarse)
+    fine = post.points()
+    llf = _loglik(models, arms, commands, jnp.asarray(fine))
+    log_area = np.log(cell[:, 0] * cell[:, 1])
+    post.log_normaliser = np.asarray(logsumexp(llf, axis=-1)) + log_area
+    prob = np.asarray(jax.nn.softmax(llf, axis=-1))
+    post.prob = prob
+    post.mean = np.einsum("tm,tmk->tk", prob, fine)
+    dev = fine - post.mean[:, None, :]
+    post.cov = np.einsum("tm,tmi,tmj->tij", prob, dev, dev)
+    post.seconds = time.perf_counter() - t0
+    return post
+
+
+def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
+                      arms: Sequence[kin.Arm], commands: Sequence[np.ndarray],
+                      points: np.ndarray) -> np.ndarray:
+    """Normalised log density (per mm^2) of one point per target under the grid prediction.
+
+    The unnormalised log-likelihood at the exact point, minus the grid's log normaliser: no
+    discretisation of the point itself, and the same normalisation as every grid prediction.
+    """
+    pts = jnp.asarray(np.asarray(points, float)[:, None, :])
+    ll = np.asarray(_loglik(models, arms, [np.atleast_2d(u) for u in commands], pts))[:, 0]
+    return ll - post.log_normaliser
+
+
+# --------------------------------------------------------------------------------------------
+# Samplers
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SamplerResult:
+    """One sampler's draws of the linked end point: InferenceData plus the figures we check."""
+
+    name: str
+    idata: az.InferenceData
+    seconds: float  # sampling wall time, compilation excluded
+    summary: Any = field(repr=False)  # az.summary DataFrame
+    compile_seconds: float = 0.0
+
+    @property
+    def draws(self) -> np.ndarray:
+        """Pooled draws (S, T, 2)."""
+        d = self.idata.posterior["d"].values  # (chain, draw, T, 2)
+        return d.reshape(-1, *d.shape[2:])
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.draws.mean(axis=0)
+
+    @property
+    def cov(self) -> np.ndarray:
+        x = self.draws
+        dev = x - x.mean(axis=0)
+        return np.einsum("sti,stj->tij", dev, dev) / (x.shape[0] - 1)
+
+    @property
+    def ess_bulk(self) -> float:
+        return float(self.summary["ess_bulk"].min())
+
+    @property
+    def ess_tail(self) -> float:
+        return float(self.summary["ess_tail"].min())
+
+    @property
+    def r_hat(self) -> float:
+        return float(self.summary["r_hat"].max())
+
+    @property
+    def ess_per_s(self) -> float:
+        return self.ess_bulk / self.seconds if self.seconds > 0 else float("nan")
+
+
+def _summary(idata: az.InferenceData) -> Any:
+    return az.summary(idata, var_names=["d"], kind="diagnostics", round_to="none")
+
+
+_DIMS = {"d": ["target", "xy"]}
+_COORDS = {"xy": ["x", "y"]}
+
+
+class NutsSampler:
+    """numpyro's NUTS kernel on :func:`linked_model`, compiled once, vectorised over targets.
+
+    The kernel is ``numpyro.infer.hmc.hmc(..., algo="NUTS")`` (the one ``numpyro.infer.NUTS``
+    wraps), with its own step-size and dense mass-matrix adaptation, driven by a jit-compiled
+    ``lax.scan`` that is ``vmap``-ed over (target, chain) lanes: each target keeps its own
+    adaptation, and the T targets are independent 2-D posteriors sampled side by side.
+
+    Why not ``numpyro.infer.MCMC``: its ``run`` re-compiles the sampling loop on every call
+    (seconds to tens of seconds on 2 cores). Here the fitted models and arm parameters are
+    traced arguments, not constants, so the compiled code is cached per structure (family,
+    Jacobian and branch of each arm) and shapes: a second :meth:`run` for another target set,
+    another rig or a refitted model of the same family pays no compilation. Compilation is
+    done ahead of time and timed separately (``SamplerResult.compile_seconds``).
+    """
+
+    def __init__(self, *, num_chains: int = 4, num_warmup: int = 500, num_samples: int = 2000,
+                 dense_mass: bool = True, target_accept_prob: float = 0.8,
+                 progress_bar: bool = False, chunks: int = 10) -> None:
+        self.num_chains, self.num_warmup, self.num_samples = num_chains, num_warmup, num_samples
+        self.dense_mass, self.target_accept_prob = dense_mass, target_accept_prob
+        self.progress_bar = progress_bar
+        total = num_warmup + num_samples
+        # Progress is reported between chunks of the scan; the chunk length must divide the
+        # run, so round the number of chunks down to a divisor.
+        self.chunks = max(c for c in range(1, max(1, chunks) + 1) if total % c == 0)
+        self._compiled: dict[Any, tuple[Any, Any, float]] = {}
+
+    def _functions(self, statics: tuple[_ArmStatic, ...], keys, z0, commands, params):
+        leaves, treedef = jax.tree.flatten(params)
+        key = (statics, z0.shape, tuple(c.shape for c in commands), treedef,
+               tuple(jnp.shape(x) for x in leaves))
+        if key in self._compiled:
+            return self._compiled[key]
+        program = functools.partial(_linked_program, statics=statics)
+
+        def potential_gen(commands, params):
+            return lambda z: -log_density(program, (commands, params), {}, {"d": z})[0]
+
+        init_kernel, sample_kernel = hmc(potential_fn_gen=potential_gen, algo="NUTS")
+        length = (self.num_warmup + self.num_samples) // self.chunks
+
+        def init_one(key, z0, commands, params):
+            return init_kernel(z0, self.num_warmup, dense_mass=self.dense_mass,
+                               target_accept_prob=self.target_accept_prob,
+                               model_args=(commands, params), rng_key=key)
+
+        def advance_one(state, commands, params):
+            def step(st, _):
+                st = sample_kernel(st, model_args=(commands, params))
+                return st, (st.z, st.diverging, st.num_steps, st.potential_energy)
+            return jax.lax.scan(step, state, None, length=length)
+
+        lanes = (0, 0, 0, None)  # keys, z0, commands per lane; model arrays shared
+        init_v = jax.jit(jax.vmap(init_one, in_axes=lanes))
+        advance_v = jax.jit(jax.vmap(advance_one, in_axes=(0, 0, None)))
+        t0 = time.perf_counter()
+        init_c = init_v.lower(keys, z0, commands, params).compile()
+        state = jax.eval_shape(init_v, keys, z0, commands, params)
+        advance_c = advance_v.lower(state, commands, params).compile()
+        self._compiled[key] = (init_c, advance_c, time.perf_counter() - t0)
+        return self._compiled[key]
+
+    def run(self, models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+            commands: Sequence[np.ndarray], init: np.ndarray, seed: int = 0) -> SamplerResult:
+        """Sample every target; ``init`` (num_chains, T, 2) are the chains' starting points."""
+        statics, params = _structure(models, arms)
+        cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+        init = np.asarray(init, float)
+        c, t = self.num_chains, cmds[0].shape[0]
+        if init.shape != (c, t, 2):
+            raise ValueError(f"init must have shape ({c}, {t}, 2), got {init.shape}")
+        # One lane per (target, chain), target-major; each lane is a 1-target program.
+        lane_cmds = tuple(jnp.asarray(np.repeat(u, c, axis=0)[:, None, :]) for u in cmds)
+        z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, 2))
+        keys = jax.random.split(jax.random.PRNGKey(seed), t * c)
+        init_fn, advance_fn, compile_s = self._functions(statics, keys, z0, lane_cmds, params)
+        t0 = time.perf_counter()
+        state = init_fn(keys, z0, lane_cmds, params)
+        pieces = []
+        bar = _progress(self.chunks, self.progress_bar, "nuts")
+        for _ in range(self.chunks):
+            state, out = advance_fn(state, lane_cmds, params)
+            pieces.append(out)
+            bar.update()
+        bar.close()
+        out = jax.block_until_ready(jax.tree.map(lambda *a: jnp.concatenate(a, axis=1), *pieces))
+        seconds = time.perf_counter() - t0
+        z, div, steps, pe = (np.asarray(a)[:, self.num_warmup:] for a in out)
+
+        def by_chain(a):  # (T*C, S, ...) -> (C, S, T, ...)
+            a = a.reshape((t, c) + a.shape[1:])
+            return np.moveaxis(a, 0, 2)
+
+        idata = az.from_dict(
+            posterior={"d": by_chain(z[:, :, 0, :])},
+            sample_stats={"diverging": by_chain(div), "n_steps": by_chain(steps),
+                          "lp": -by_chain(pe)},
+            dims={**_DIMS, "diverging": ["target"], "n_steps": ["target"], "lp": ["target"]},
+            coords=_COORDS,
+        )
+        return SamplerResult("nuts", idata, seconds, _summary(idata), compile_s)
+
+
+@functools.lru_cache(maxsize=8)
+def _shared_nuts(num_chains: int, num_warmup: int, num_samples: int, dense_mass: bool,
+                 target_accept_prob: float) -> NutsSampler:
+    return NutsSampler(num_chains=num_chains, num_warmup=num_warmup, num_samples=num_samples,
+                       dense_mass=dense_mass, target_accept_prob=target_accept_prob)
+
+
+def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+             commands: Sequence[np.ndarray], init: np.ndarray, *, seed: int = 0,
+             num_warmup: int = 500, num_samples: int = 2000, dense_mass: bool = True,
+             target_accept_prob: float = 0.8, progress_bar: bool = False) -> SamplerResult:
+    """Sample the linked posterior of every target with NUTS (see :class:`NutsSampler`).
+
+    ``init`` (num_chains, T, 2): starting end points, e.g. ``GridPosterior.sample``; its
+    first axis sets the number of chains. Starting the chains at draws from the grid
+    posterior spreads them over the modes in proportion to their mass, so r_hat can tell
+    whether NUTS moves between modes that backlash has split. Samplers with the same
+    settings are shared across calls, and so is their compiled code.
+    """
+    sampler = _shared_nuts(int(np.shape(init)[0]), num_warmup, num_samples, dense_mass,
+                           target_accept_prob)
+    sampler.progress_bar = progress_bar
+    return sampler.run(models, arms, commands, init, seed)
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, disable=not enabled, desc=desc, leave=False)
+
+
+def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+              commands: Sequence[np.ndarray], init: np.ndarray, *, n_steps: int = 2500,
+              burn: int = 500, seed: int = 0, progress: bool = False,
+              moves: Any = None) -> SamplerResult:
+    """Sample the linked posterior with emcee's EnsembleSampler, one 2-D ensemble per target.
+
+    ``init`` (W, T, 2): the walkers' start, e.g. ``GridPosterior.sample``. The log density is
+    :func:`linked_log_density` (jit-compiled once per model structure), evaluated for all
+    walkers in one call (``vectorize=True``). Default moves: 70% differential evolution, 30%
+    ``KDEMove`` (proposals from a KDE of the complementary walkers). With walkers spread over
+    the modes, both jump between modes of a posterior that backlash has split; on a bimodal
+    test case the default stretch move left the covariance 10-20% off where this mix is
+    within 2%. The first ``burn`` steps of each walker are dropped.
+    """
+    init = np.asarray(init, float)
+    w, t_count, _ = init.shape
+    cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+    lp = linked_log_density(models, arms)
+    if moves is None:
+        moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    # Compile outside the timed run, for both shapes emcee uses: the whole ensemble (first
+    # step) and each half of it (the red-blue moves).
+    first = tuple(jnp.asarray(u[:1]) for u in cmds)
+    for k in {w, w // 2, w - w // 2}:
+        jax.block_until_ready(lp(init[:k, 0, :], first))
+    compile_seconds = time.perf_counter() - t0
+    posteriors = []
+    t0 = time.perf_counter()
+    for t in range(t_count):
+        c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
+
+        def log_prob_fn(x, c=c):
+            return np.asarray(lp(x, c))
+
+        sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
+        sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+        sampler.run_mcmc(init[:, t, :], n_steps, progress=progress)
+        one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
+                            dims={"d": ["xy"]}, coords=_COORDS)
+        posteriors.append(one.posterior.isel(draw=slice(burn, None)))
+    seconds = time.perf_counter() - t0
+    post = xr.concat(posteriors, dim="target").transpose("chain", "draw", "target", "xy")
+    idata = az.InferenceData(posterior=post)
+    return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
+
+
+# --------------------------------------------------------------------------------------------
+# The cross-check
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CheckTolerances:
+    """What "agrees with the grid" means (per target): see :func:`cross_check`."""
+
+    mean_mm: float = 0.1
+    cov_rel: float = 0.10
+    r_hat: float = 1.01
+    ess_bulk: float = 400.0
+
+
+def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
+                tol: CheckTolerances = CheckTolerances()) -> dict[str, Any]:
+    """Compare each sampler with the grid; returns ``{"passed": bool, "failures": [str]}``.
+
+    Per target: the distance between the sampler's and the grid's mean <= ``tol.mean_mm``;
+    ||C_sampler - C_grid||_F / ||C_grid||_F <= ``tol.cov_rel``; and per sampler, over all
+    coordinates, max r_hat <= ``tol.r_hat`` and min bulk ESS >= ``tol.ess_bulk``. Every
+    failure is listed with its figures.
+    """
+    failures: list[str] = []
+    for res in results:
+        mean, cov = res.mean, res.cov
+        for t in range(len(grid.targets)):
+            tgt = f"target ({grid.targets[t, 0]:.1f}, {grid.targets[t, 1]:.1f})"
+            dm = float(np.linalg.norm(mean[t] - grid.mean[t]))
+            if not dm <= tol.mean_mm:
+                failures.append(f"{res.name}: mean {np.round(mean[t], 3).tolist()} is {dm:.3f} mm"
+                                f" from the grid's {np.round(grid.mean[t], 3).tolist()} "
+                                f"(> {tol.mean_mm} mm) at {tgt}")
+            dc = float(np.linalg.norm(cov[t] - grid.cov[t]) / np.linalg.norm(grid.cov[t]))
+            if not dc <= tol.cov_rel:
+                failures.append(f"{res.name}: covariance differs from the grid's by {dc:.1%} "
+                                f"(Frobenius, > {tol.cov_rel:.0%}) at {tgt}")
+        if not res.r_hat <= tol.r_hat:
+            failures.append(f"{res.name}: r_hat {res.r_hat:.4f} > {tol.r_hat}")
+        if not res.ess_bulk >= tol.ess_bulk:
+            failures.append(f"{res.name}: bulk ESS {res.ess_bulk:.0f} < {tol.ess_bulk:.0f}")
+    return {"passed": not failures, "failures": failures}
+
+
+def cov_rel_error(cov: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """||cov - ref||_F / ||ref||_F per target, for (T, 2, 2) stacks."""
+    return np.linalg.norm(cov - ref, axis=(-2, -1)) / np.linalg.norm(ref, axis=(-2, -1))
+
+
+# --------------------------------------------------------------------------------------------
+# The `bayesrob sample` command
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SampleReport:
+    """What :func:`sample_linked` computed: the JSON document plus the live objects."""
+
+    document: dict
+    grid: GridPosterior
+    results: dict[str, SamplerResult]
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.document["check"]["passed"])
+
+
+def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
+    return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
+
+
+def sample_linked(rig: Any, config: str, target: Sequence[float], model: str = "cond",
+                  sampler: str = "all", *, seed: int = 0, progress: bool = False,
+                  num_chains: int = 4, num_warmup: int = 500, num_samples: int = 2000,
+                  walkers: int = 32, steps: int = 2500, burn: int = 500,
+                  tol: CheckTolerances = CheckTolerances(), models_dir: Any = None
+                  ) -> SampleReport:
+    """Sample the end point of a setup aimed at ``target`` and check the samplers on the grid.
+
+    ``config``: one arm or arms joined by '+'. Each arm is commanded through its own
+    calibrated inverse model (``Arm.command(target)``). ``sampler``: "nuts", "emcee", "grid"
+    or "all". The grid posterior is always computed: it is the reference, and the chains and
+    walkers start at draws from it (systematic resampling, so the modes get starting points in
+    proportion to their mass). Whenever a sampler ran, :func:`cross_check` compares it with the
+    grid; the document's ``check`` says whether it passed and lists every failure.
+    """
+    from bayesrob.calibration import calibrate
+    from bayesrob.noise_models import discover_models, fit_noise_models
+
+    if sampler not in (*SAMPLERS, "all"):
+        raise ValueError(f"sampler must be one of {SAMPLERS} or 'all', got {sampler!r}")
+    members = config.split("+")
+    unknown = [a for a in members if a not in rig.arms]
+    if unknown:
+        raise ValueError(f"config {config!r}: no arm {unknown[0]!r} in the rig "
+                         f"(arms: {', '.join(rig.arms)})")
+    specs = discover_models(models_dir, [model])
+    cal = calibrate(rig)
+    arms = {a: cal[a].arm for a in members}
+    fitted = fit_noise_models(rig, arms, specs)[model]
+    target = np.asarray(target, float).reshape(1, 2)
+    models = [fitted[a] for a in members]
+    arm_list = [arms[a] for a in members]
+    commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
+    grid = grid_posterior(models, arm_list, commands, target)
+    doc: dict[str, Any] = {
+        "target": [float(x) for x in target[0]],
+        "config": config,
+        "model": model,
+        "commands": {a: [float(x) for x in u[0]] for a, u in zip(members, commands,
+                                                                 strict=True)},
+        "prior": "flat on the plane (numpyro ImproperUniform); the grid's box holds all but "
+                 "edge_mass of the posterior",
+        "init": "NUTS chains and emcee walkers start at draws from the grid posterior",
+        "samplers": {},
+    }
+    grid_doc = {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
+                "cell_mm": [float(x) for x in grid.cell_mm[0]], "n": grid.n,
+                "box_lo": [float(x) for x in grid.lo[0]],
+                "edge_mass": float(grid.edge_mass[0])}
+    doc["samplers"]["grid"] = grid_doc
+    results: dict[str, SamplerResult] = {}
+    if sampler in ("nuts", "all"):
+        results["nuts"] = run_nuts(models, arm_list, commands, grid.sample(seed, num_chains),
+                                   seed=seed, num_warmup=num_warmup, num_samples=num_samples,
+                                   progress_bar=progress)
+    if sampler in ("emcee", "all"):
+        results["emcee"] = run_emcee(models, arm_list, commands,
+                                     grid.sample(seed + 1, walkers), n_steps=steps,
+                                     burn=burn, seed=seed, progress=progress)
+    for name, res in results.items():
+        entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
+                 "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
+                 "compile_seconds": res.compile_seconds, "ess_per_s": res.ess_per_s,
+                 "chains": int(res.idata.posterior.sizes["chain"]),
+                 "draws": int(res.idata.posterior.sizes["draw"])}
+        if name == "nuts":
+            entry["divergences"] = int(res.idata.sample_stats["diverging"].values.sum())
+        else:
+            entry["burn"] = burn
+        doc["samplers"][name] = entry
+    check = cross_check(grid, list(results.values()), tol) if results else \
+        {"passed": True, "failures": []}
+    check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel,
+                           "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk}
+    check["compared"] = list(results)
+    doc["check"] = check
+    return SampleReport(doc, grid, results)
+
+
+def format_sample(report: SampleReport) -> str:
+    """Terminal summary: arviz diagnostics per sampler, moments side by side, the check."""
+    from bayesrob.report import format_table
+
+    doc = report.document
+    parts = [f"{doc['config']} aimed at ({doc['target'][0]:.2f}, {doc['target'][1]:.2f}) mm, "
+             f"model {doc['model']}"]
+    for name, res in report.results.items():
+        parts.append(f"\n{name}: az.summary ({res.seconds:.1f} s sampling, "
+                     f"{res.compile_seconds:.1f} s compiling)")
+        parts.append(res.summary.round(4).to_string())
+    rows = []
+    for name, s in doc["samplers"].items():
+        sd = np.sqrt(np.diag(np.asarray(s["cov"])))
+        corr = s["cov"][0][1] / (sd[0] * sd[1])
+        rows.append([name, f"{s['mean'][0]:.3f}", f"{s['mean'][1]:.3f}", f"{sd[0]:.3f}",
+                     f"{sd[1]:.3f}", f"{corr:+.3f}",
+                     f"{s['ess_bulk']:.0f}" if "ess_bulk" in s else "-",
+                     f"{s['r_hat']:.4f}" if "r_hat" in s else "-", f"{s['seconds']:.2f}"])
+    parts.append("")
+    parts.append(format_table(["sampler", "mean x", "mean y", "sd x", "sd y", "corr",
+                               "ess_bulk", "r_hat", "seconds"], rows))
+    g = doc["samplers"]["grid"]
+    parts.append(f"grid: zoomed {g['n']}x{g['n']} cells of {g['cell_mm'][0]:.4f} x "
+                 f"{g['cell_mm'][1]:.4f} mm; mass on the +-30 mm box edge {g['edge_mass']:.1e}")
+    check = doc["check"]
+    if not check["compared"]:
+        parts.append("check: no sampler ran, nothing to compare")
+    elif check["passed"]:
+        t = check["tolerances"]
+        parts.append(f"check PASSED: {', '.join(check['compared'])} agree with the grid "
+                     f"(mean within {t['mean_mm']} mm, covariance within {t['cov_rel']:.0%}, "
+                     f"r_hat <= {t['r_hat']}, bulk ESS >= {t['ess_bulk']:.0f})")
+    else:
+        parts.append("check FAILED:")
+        parts += [f"  {f}" for f in check["failures"]]
+    return "\n".join(parts)
