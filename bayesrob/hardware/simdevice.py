@@ -278,6 +278,7 @@ class SimDevice:
         self.servo_port = ""
         self.tracker_port = ""
         self.commands_handled = 0
+        self.corrupted_replies = 0  # controller replies dropped into or garbled by the faults
         self.disconnected = False
         self.poses: list[Pose] = []
         self._moved: list[str] = []
@@ -445,6 +446,8 @@ class SimDevice:
         if self.faults.reply_delay_s:
             time.sleep(self.faults.reply_delay_s)
         data = self._corrupt(reply, self._tx_rng, self.faults.drop_rate, self.faults.garble_rate)
+        if data != reply:
+            self.corrupted_replies += 1
         self._write(master, data)
 
     @staticmethod
