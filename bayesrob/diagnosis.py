@@ -24,7 +24,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -58,6 +58,8 @@ class DecisionRule:
     An arm gets the effect when the effect raises that arm's own elpd, or when both of its
     held-out errors fall by 10% or more; an arm that does not get it may get it in a later
     round. Among the candidates that pass, the one with the largest elpd gain is named first.
+    When no single candidate passes in the first round, pairs are tried: a pair is named
+    (as two steps) when it passes against the base model and against each member alone.
     """
 
     z: float = 2.0
@@ -729,6 +731,48 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     return s
 
 
+def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
+                 after: dict[str, ArmEval]) -> dict:
+    """One named step: the effect, its arms and the gap before and after."""
+    diff, dse = compare_models(before, after)
+    b, a = _pooled_errors(before), _pooled_errors(after)
+    return {"effect": name, "arms": list(arms), "heldout_error_before_mm": b["heldout"],
+            "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
+            "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
+            "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - before[x].val_lpd)
+                                           for x in before))}
+
+
+def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
+                 fitted: dict[str, dict[str, ArmEval]], add: Callable,
+                 rule: DecisionRule) -> list[dict]:
+    """Score every pair of candidates added together (the first as fitted alone).
+
+    A pair passes when it passes the rule against the current model *and* against each of
+    its members alone: both effects have to be needed, not one carrying the other.
+    """
+    out = []
+    for i, first in enumerate(candidates):
+        for second in candidates[i + 1:]:
+            if not fitted.get(first) or not fitted.get(second):
+                continue
+            mid = {**current, **fitted[first]}
+            both = add(mid, second)
+            full = {a: both.get(a, mid[a]) for a in current
+                    if a in both or a in fitted[first]}
+            s = _score_candidate(f"{first}+{second}", current, full, rule)
+            s["pair"] = [first, second]
+            if s["passes"]:
+                after = {a: (full[a] if a in s["arms"] else current[a]) for a in current}
+                for member in (first, second):
+                    alone = {**current, **fitted[member]}
+                    diff, dse = compare_models(alone, after)
+                    s[f"elpd_diff_over_{member}"] = [diff, dse]
+                    s["passes"] &= bool(diff > rule.z * dse and diff > rule.min_elpd_diff)
+            out.append(s)
+    return out
+
+
 def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRule | None = None,
              k_folds: int | None = None, seed: int = 0, progress: bool = False,
              max_steps: int | None = None) -> Diagnosis:
@@ -746,12 +790,16 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     # Rounds are not known in advance; the total is the usual case (one step per effect).
     bar = _bar(progress, len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2))
 
+    cache: dict[tuple[str, tuple[str, ...]], ArmEval] = {}
+
     def ev(a: str, names: tuple[str, ...], start: ArmEval | None) -> ArmEval:
-        out = evaluate_arm(data[a], names, start, k_folds=k_folds, seed=seed)
-        if bar.n + 1 > bar.total:
-            bar.total = bar.n + 1
-        bar.update()
-        return out
+        if (a, names) not in cache:
+            cache[(a, names)] = evaluate_arm(data[a], names, start, k_folds=k_folds,
+                                             seed=seed)
+            if bar.n + 1 > bar.total:
+                bar.total = bar.n + 1
+            bar.update()
+        return cache[(a, names)]
 
     current = {a: ev(a, (), None) for a in arms}
     baseline = dict(current)
@@ -760,29 +808,56 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     # An effect stays a candidate for the arms that do not have it yet: the arm that did
     # not take it in one round may need it once another effect has been added.
     pending = {a: list(candidates) for a in arms}
+
+    def add(model: dict[str, ArmEval], name: str, only: Sequence[str] | None = None
+            ) -> dict[str, ArmEval]:
+        """``name`` fitted into each arm's model where it is pending (and in ``only``)."""
+        return {a: ev(a, (*model[a].effects, name), model[a]) for a in arms
+                if name in pending[a] and (only is None or a in only)}
+
+    def take(name: str, arms_: list[str], new: dict[str, ArmEval], **extra) -> None:
+        if not arms_:
+            return
+        before = dict(current)
+        for a in arms_:
+            current[a] = new[a]
+            pending[a].remove(name)
+        step = _step_record(name, arms_, before, current)
+        step.update(extra)
+        step["magnitudes"] = {a: current[a].magnitudes(data[a])[name] for a in arms_}
+        steps.append(step)
+        history.append(dict(current))
+
     while any(pending.values()) and (max_steps is None or len(steps) < max_steps):
         scores, fitted = [], {}
         for name in candidates:
-            todo = [a for a in arms if name in pending[a]]
-            if not todo:
-                continue
-            fitted[name] = {a: ev(a, (*current[a].effects, name), current[a]) for a in todo}
-            scores.append(_score_candidate(name, current, fitted[name], rule))
-        rounds.append(scores)
+            fitted[name] = add(current, name)
+            if fitted[name]:
+                scores.append(_score_candidate(name, current, fitted[name], rule))
         passing = [s for s in scores if s["passes"]]
+        if not passing and not steps:
+            # Two hidden effects may only pay together (sag bends the map that backlash is
+            # judged against): before concluding that nothing is missing, try the pairs.
+            pairs = _pair_scores(candidates, current, fitted, add, rule)
+            scores += pairs
+            rounds.append(scores)
+            joint = [s for s in pairs if s["passes"]]
+            if not joint:
+                break
+            best = max(joint, key=lambda s: s["elpd_diff"])
+            first, second = best["pair"]
+            mid = fitted[first]
+            take(first, [a for a in best["arms"] if a in mid], mid, joint_with=second,
+                 joint_elpd_diff=best["elpd_diff"], joint_elpd_diff_se=best["elpd_diff_se"])
+            arms2 = [a for a in best["arms"] if second in pending[a]]
+            take(second, arms2, add(current, second, arms2), joint_with=first,
+                 joint_elpd_diff=best["elpd_diff"], joint_elpd_diff_se=best["elpd_diff_se"])
+            continue
+        rounds.append(scores)
         if not passing:
             break
         best = max(passing, key=lambda s: s["elpd_diff"])
-        name = best["effect"]
-        for a in best["arms"]:
-            current[a] = fitted[name][a]
-            pending[a].remove(name)
-        steps.append({k: best[k] for k in (
-            "effect", "arms", "heldout_error_before_mm", "heldout_error_after_mm", "elpd_diff",
-            "elpd_diff_se", "cv_error_before_mm", "cv_error_after_mm", "heldout_elpd_diff")})
-        steps[-1]["magnitudes"] = {a: current[a].magnitudes(data[a])[name]
-                                   for a in best["arms"]}
-        history.append(dict(current))
+        take(best["effect"], best["arms"], fitted[best["effect"]])
     bar.close()
     tests_after = {a: residual_tests(data[a], current[a], candidates, seed=seed) for a in arms}
     return Diagnosis(rig.name, arms, rule, candidates, baseline, current, history, steps,
@@ -825,9 +900,8 @@ def format_diagnosis(doc: dict) -> str:
         if jump:
             line += f"; largest jump between neighbours {jump['mm']:.2f} mm, {jump['where']}"
         out.append(line)
-    model = "base"
     for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: each candidate added to the current model ({model})"]
+        out += ["", f"round {r}: each candidate added to the model named so far"]
         rows = [[s["effect"], ",".join(s["arms"]) or "-",
                  f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
                  f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
@@ -835,9 +909,6 @@ def format_diagnosis(doc: dict) -> str:
                  "yes" if s["passes"] else "no"] for s in scores]
         out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
                                  "elpd diff", "passes"], rows))
-        if r <= len(doc["steps"]):
-            step = doc["steps"][r - 1]
-            model += f" + {step['effect']} ({','.join(step['arms'])})"
     out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
     gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
     gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"

@@ -133,22 +133,36 @@ def breakdown(results: list[dict]) -> str:
 
 
 def sensitivity_cases() -> list[Case]:
+    """Each effect alone, shrunk, at two noise levels on 4x4; the smallest also on 6x6."""
     cases = []
     for noise in (0.35, 0.7):
         for eff in TRUTHS[1:4]:
             for scale in (0.25, 0.5, 1.0):
                 cases.append(Case("simulator", "paper", eff, 4, 41, scale, noise))
-        cases.append(Case("simulator", "paper", (), 4, 41, 1.0, noise))
-        cases.append(Case("simulator", "paper", (), 4, 42, 1.0, noise))
+        for seed in (41, 42):
+            cases.append(Case("simulator", "paper", (), 4, seed, 1.0, noise))
+    for eff in TRUTHS[1:4]:
+        cases.append(Case("simulator", "paper", eff, 6, 43, 0.25, 0.35))
     return cases
 
 
+def physical_size(case: dict) -> str:
+    """The hidden effect's size in the simulator's own terms (see bayesrob.simulator)."""
+    s = case["scale"]
+    sizes = {"gravity_sag": f"servo stiffness {2500 / s:.0f}/{1800 / s:.0f} N mm/rad",
+             "backlash": f"play +-{0.458 * s:.2f} deg",
+             "servo_nonlinearity": f"ripple {0.573 * s:.2f}/{0.458 * s:.2f} deg"}
+    return "; ".join(sizes[e] for e in case["effects"]) or "-"
+
+
 def sensitivity_table(results: list[dict]) -> str:
-    lines = ["| noise (mm) | hidden | scale | named | held-out before -> after (mm) |",
-             "|---|---|---|---|---|"]
-    for r in results:
+    lines = ["| grid | noise (mm) | hidden | size | named | held-out before -> after (mm) |",
+             "|---|---|---|---|---|---|"]
+    for r in sorted(results, key=lambda r: (r["case"]["grid"], r["case"]["noise_mm"],
+                                            r["truth"], r["case"]["scale"])):
         c = r["case"]
-        lines.append(f"| {c['noise_mm']} | {r['truth']} | {c['scale']:g} | {r['named']} | "
+        lines.append(f"| {c['grid']}x{c['grid']} | {c['noise_mm']} | {r['truth']} | "
+                     f"{physical_size(c)} | {r['named']} | "
                      f"{r['baseline_heldout_error_mm']:.2f} -> {r['final_heldout_error_mm']:.2f} |")
     return "\n".join(lines)
 
