@@ -372,10 +372,16 @@ class Backlash(Effect):
         ja, jase = values["shoulder_jump_full_reach_mm"]
         jb, jbse = values["elbow_jump_full_reach_mm"]
         rho = float(self._rho())
-        return (f"play (half-width) shoulder {a:.2f} +- {ase:.2f} deg, elbow {b:.2f} +- "
-                f"{bse:.2f} deg; jump where the torque flips: shoulder {ja:.2f} +- {jase:.2f} "
-                f"mm, elbow {jb:.2f} +- {jbse:.2f} mm at full reach (mass position rho "
-                f"{rho:.2f})")
+
+        def play(v: float, se: float, jump: float, jse: float) -> str:
+            if not se < abs(v):
+                # The torque keeps its sign over the data: the play hides in the offset.
+                return f"not resolved ({v:.2f} +- {se:.2f} deg)"
+            return f"{v:.2f} +- {se:.2f} deg (jump {jump:.2f} +- {jse:.2f} mm at full reach)"
+
+        return (f"play (half-width) shoulder {play(a, ase, ja, jase)}, elbow "
+                f"{play(b, bse, jb, jbse)}; a joint jumps by twice its play where its gravity "
+                f"torque flips (mass position rho {rho:.2f})")
 
 
 @register
