@@ -924,8 +924,13 @@ def format_diagnosis(doc: dict) -> str:
     for s in doc["steps"]:
         for a, m in s["magnitudes"].items():
             out.append(f"  {s['effect']} in {a}: {m['text']}")
+    after = doc["residual_tests"]["after"]
+    lof = ", ".join(f"{a} {t['lack_of_fit']['p_value']:.3g}" for a, t in after.items()
+                    if "lack_of_fit" in t)
+    moran = ", ".join(f"{a} {t['morans_i']['p_value']:.3g}" for a, t in after.items())
+    out.append(f"final residuals: lack-of-fit p ({lof or '-'}); Moran's I p ({moran})")
     if not doc["steps"]:
-        out.append("residuals are consistent with measurement noise: no effect is missing")
+        out.append("no candidate effect improves the held-out fit: none is named")
     return "\n".join(out)
 
 
