@@ -241,7 +241,8 @@ def load_rig_toml(path: Path) -> dict:
 # ----------------------------------------------------------------------------- measurements
 
 
-def _number(text: str, where: str, column: str, allow_empty: bool = False) -> float:
+def parse_number(text: str, where: str, column: str, allow_empty: bool = False) -> float:
+    """A finite number from a CSV cell, or a RigError naming the place and column."""
     text = text.strip()
     if text == "":
         if allow_empty:
@@ -327,7 +328,7 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                 if row[idx[col]].strip() == "":
                     what = "a linked row" if len(members) > 1 else "the row"
                     raise RigError(f"{where}: {what} for {cfg!r} is missing arm {a!r}'s '{col}'")
-                u.append(_number(row[idx[col]], where, col))
+                u.append(parse_number(row[idx[col]], where, col))
             for j, (p, (lo, hi)) in enumerate(zip(u, spec.pulse_limits, strict=True)):
                 if not lo <= p <= hi:
                     raise RigError(
@@ -340,9 +341,9 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                 for j in (1, 2):
                     # Cells of arms outside the config are ignored, but must not be garbage
                     # that hides a mistyped config.
-                    _number(row[idx[f"{a}_u{j}"]], where, f"{a}_u{j}", allow_empty=True)
-        tx = _number(row[idx["target_x"]], where, "target_x", allow_empty=True)
-        ty = _number(row[idx["target_y"]], where, "target_y", allow_empty=True)
+                    parse_number(row[idx[f"{a}_u{j}"]], where, f"{a}_u{j}", allow_empty=True)
+        tx = parse_number(row[idx["target_x"]], where, "target_x", allow_empty=True)
+        ty = parse_number(row[idx["target_y"]], where, "target_y", allow_empty=True)
         if math.isnan(tx) != math.isnan(ty):
             raise RigError(f"{where}: target_x and target_y must both be given or both empty")
         if len(members) > 1 and math.isnan(tx):
@@ -356,7 +357,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
         target[r] = tx, ty
-        observed[r] = _number(row[idx["x"]], where, "x"), _number(row[idx["y"]], where, "y")
+        observed[r] = (parse_number(row[idx["x"]], where, "x"),
+                       parse_number(row[idx["y"]], where, "y"))
         config[r], sets[r], lines[r] = cfg, st, lineno
         for h in extra_cols:
             extra[h].append(row[idx[h]])

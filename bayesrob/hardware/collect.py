@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
 import sys
 import time
@@ -51,6 +50,7 @@ from bayesrob.rig import (
     format_row,
     load_rig_toml,
     measurement_header,
+    parse_number,
 )
 
 if TYPE_CHECKING:
@@ -265,16 +265,6 @@ def _csv_line(fields: Sequence[str]) -> str:
     return buf.getvalue()
 
 
-def _float(text: str, where: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise RigError(f"{where}: not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise RigError(f"{where}: not a finite number: {text!r}")
-    return v
-
-
 class MeasurementLog:
     """``measurements.csv`` opened for appending rows that survive any interruption."""
 
@@ -338,11 +328,13 @@ class MeasurementLog:
             for a in config.split("+"):
                 if a not in self.arm_names:
                     raise RigError(f"{where}: config {config!r} names unknown arm {a!r}")
-                commands[a] = (_float(row[idx[f"{a}_u1"]], where),
-                               _float(row[idx[f"{a}_u2"]], where))
+                commands[a] = (parse_number(row[idx[f"{a}_u1"]], where, f"{a}_u1"),
+                               parse_number(row[idx[f"{a}_u2"]], where, f"{a}_u2"))
             tx, ty = row[idx["target_x"]].strip(), row[idx["target_y"]].strip()
-            target = (_float(tx, where), _float(ty, where)) if tx or ty else None
-            observed = (_float(row[idx["x"]], where), _float(row[idx["y"]], where))
+            target = ((parse_number(tx, where, "target_x"), parse_number(ty, where, "target_y"))
+                      if tx or ty else None)
+            observed = (parse_number(row[idx["x"]], where, "x"),
+                        parse_number(row[idx["y"]], where, "y"))
             self.rows.append(RecordedRow(config, set_, target, commands, observed, lineno))
 
     def _write(self, data: bytes) -> None:
