@@ -310,3 +310,24 @@ def test_jacobian_of_every_model_is_finite(clean_rig_dir):
                              jnp.asarray(data.d), jnp.ones(len(data.u)))
         assert np.all(np.isfinite(J)) and J.shape == (r.size, fns.n_params)
     assert jax.config.jax_enable_x64
+
+
+def test_three_arm_rig_from_another_tool(handmade_rig_dir, tmp_path):
+    """Other arm names, three arms, no repeated commands: runs, and names nothing on data
+    that follow the nominal model."""
+    from bayesrob.diagnosis import write_report
+
+    diag = diagnose(load_rig(handmade_rig_dir))
+    assert diag.arms == ["left", "right", "middle"] and diag.effects == []
+    assert "lack_of_fit" not in diag.tests_before["left"]  # no repeats to test against
+    assert len(write_report(diag, tmp_path)) == 4
+
+
+def test_rig_without_validation_rows(rig_copy):
+    """Without held-out rows the rule falls back on cross-validation alone."""
+    path = rig_copy / "measurements.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(ln for ln in lines if ",validation," not in ln) + "\n")
+    doc = diagnose(load_rig(rig_copy), ["gravity_sag"]).to_json()
+    assert doc["baseline_heldout_error_mm"] is None and doc["effects"] == []
+    assert doc["baseline_cv_error_mm"] > 0
