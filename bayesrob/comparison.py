@@ -31,6 +31,7 @@ from typing import Any
 import arviz as az
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 import xarray as xr
 
 from bayesrob import kinematics as kin
@@ -67,10 +68,37 @@ class PointScores:
 
     lpd: np.ndarray  # (n,) log density per mm^2 at the observed end point
     hdr_level: np.ndarray  # (n,) predicted mass denser than the observation, in [0, 1]
+    grid: GridPosterior | None = field(default=None, repr=False)
+    observed: np.ndarray | None = field(default=None, repr=False)
 
     def coverage(self, mass: float) -> float:
         """Fraction of points inside the ``mass`` highest-density region."""
         return float(np.mean(self.hdr_level <= mass)) if self.lpd.size else float("nan")
+
+    def ppc(self, draws: int = 4000, seed: int = 0) -> dict:
+        """Posterior predictive check of the points, jointly over the targets.
+
+        Two statistics: the HDR levels (a 2-D PIT; uniform for a calibrated model, tested
+        with Kolmogorov-Smirnov), and the paper's accuracy measure, the mean Euclidean
+        distance of the end points from their targets: its predictive distribution from
+        ``draws`` replicated sets of end points (one per target, from the grid prediction)
+        against the observed value. ``ppp`` = P(replicated mean error >= observed): near 1
+        when the model predicts larger errors than seen (conservative), near 0 when smaller.
+        """
+        post = self.grid
+        rep = post.sample(seed, draws)  # (draws, T, 2)
+        pred = np.linalg.norm(rep - post.targets[None], axis=-1).mean(axis=1)
+        obs = float(np.linalg.norm(self.observed - post.targets, axis=-1).mean())
+        return {
+            "n": int(self.lpd.size),
+            "hdr_levels": [float(x) for x in self.hdr_level],
+            "ks_pvalue": float(scipy.stats.kstest(self.hdr_level, "uniform").pvalue),
+            "mean_error_obs_mm": obs,
+            "mean_error_pred_mm": {"q05": float(np.quantile(pred, 0.05)),
+                                   "median": float(np.median(pred)),
+                                   "q95": float(np.quantile(pred, 0.95))},
+            "ppp": float(np.mean(pred >= obs)),
+        }
 
 
 def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
@@ -82,8 +110,9 @@ def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     point; the prediction for row t is the grid's, centred at ``targets[t]``.
     """
     post = grid_posterior(models, arms, commands, targets, **grid_kw)
+    observed = np.asarray(observed, float)
     lpd = point_log_density(post, models, arms, commands, observed)
-    return PointScores(lpd, post.hdr_level(lpd)), post
+    return PointScores(lpd, post.hdr_level(lpd), post, observed), post
 
 
 def score_setup(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
@@ -192,6 +221,11 @@ class ModelComparison:
                     "coverage50": s.coverage(0.5), "coverage90": s.coverage(0.9),
                     "mean_hdr_level": float(s.hdr_level.mean()),
                 }
+            for config, s in self.heldout[name].items():
+                if "+" in config:
+                    ppc = s.ppc()
+                    by_setup[config]["ppc"] = {k: v for k, v in ppc.items()
+                                               if k != "hdr_levels"}
             pw = self.heldout_pointwise(name)
             loo = self.loo[name]
             models[name] = {

@@ -26,6 +26,7 @@ a 2-D box. Here the same models are probabilistic programs, so standard Bayesian
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -39,16 +40,17 @@ import numpy as np
 import numpyro
 import numpyro.distributions as dist
 import xarray as xr
-from jax.scipy.special import logsumexp
 from numpyro.distributions import constraints
 from numpyro.infer import Predictive
 from numpyro.infer.hmc import hmc
 from numpyro.infer.util import log_density
+from scipy.special import logsumexp, softmax
+from threadpoolctl import threadpool_limits
 
 from bayesrob import kinematics as kin
-from bayesrob.kde import kernel_conditional_weights
+from bayesrob.kde import _histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
-from bayesrob.prediction import Grid, arm_log_likelihood
+from bayesrob.prediction import Grid
 
 __all__ = [
     "SAMPLERS",
@@ -72,8 +74,9 @@ __all__ = [
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
-# The prediction's +-30 mm box at 0.3 mm cells: fine enough to find the mass for the zoom.
-COARSE_GRID = Grid(30.0, 200)
+# The prediction's +-30 mm box at 0.4 mm cells: only finds the mass for the zoomed grid. It has
+# as many cells as the zoomed grid, so one compiled likelihood serves both.
+COARSE_GRID = Grid(30.0, 150)
 
 
 # --------------------------------------------------------------------------------------------
@@ -128,7 +131,8 @@ def _arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
         c = model.conditional
         out = {"x": c.x_data, "bw_x": c.bw_x, "z": c.z_data, "bw_z": c.bw_z}
     else:
-        out = {}  # the histogram table is looked up through the fitted object
+        c = model.conditional
+        out = {"table": c.log_table, "lo": c.grid_lo, "widths": c.bin_widths}
     return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
 
@@ -175,7 +179,8 @@ class _ArmStatic:
     kind: str
     jacobian: bool
     elbow: int
-    hist: FittedNoiseModel | None  # the histogram COND's table (hashed by identity)
+    bins: tuple[int, ...] = ()  # histogram COND: bins per dimension (x dims, then z)
+    log_floor: float = 0.0  # histogram COND: log density outside the bins
 
 
 def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err: jax.Array,
@@ -183,14 +188,21 @@ def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err:
     u = jnp.broadcast_to(jnp.asarray(u, dtype=jnp.float64), theta_err.shape)
     if static.kind != "HIST":
         return _distribution(static.kind, arrays, u).log_prob(theta_err)
+    # The paper's COND: the fitted table, looked up by kde's own (jitted) lookup.
     shape = theta_err.shape[:-1]
-    return static.hist.logpdf(theta_err.reshape(-1, 2), u.reshape(-1, 2)).reshape(shape)
+    out = _histogram_lookup(theta_err.reshape(-1, 2), u.reshape(-1, 2), arrays["table"],
+                            arrays["lo"], arrays["widths"], static.bins, static.log_floor)
+    return out.reshape(shape)
 
 
-def _static(model: FittedNoiseModel, arm: kin.Arm) -> _ArmStatic:
+def _static(model: FittedNoiseModel, arm: kin.Arm | None) -> _ArmStatic:
     kind = _kind(model)
-    return _ArmStatic(arm.name, kind, bool(model.spec.jacobian), int(arm.elbow),
-                      model if kind == "HIST" else None)
+    hist = {}
+    if kind == "HIST":
+        c = model.conditional
+        hist = {"bins": tuple(int(b) for b in c.bins), "log_floor": math.log(c.floor)}
+    return _ArmStatic(arm.name if arm else "", kind, bool(model.spec.jacobian),
+                      int(arm.elbow) if arm else 1, **hist)
 
 
 def _structure(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
@@ -211,9 +223,12 @@ def joint_error_log_prob(model: FittedNoiseModel, theta_err: jax.Array, u: jax.A
     The mixture distribution's ``log_prob`` for the kernel models, the histogram table for the
     paper's COND; traceable either way.
     """
-    kind = _kind(model)
-    static = _ArmStatic("", kind, False, 1, model if kind == "HIST" else None)
-    return _error_log_prob(static, _arrays(model), jnp.asarray(theta_err), u)
+    return _error_log_prob_jit(_static(model, None), _arrays(model), jnp.asarray(theta_err),
+                               jnp.asarray(u, dtype=jnp.float64))
+
+
+# Compiled once per model structure and shapes, instead of op by op.
+_error_log_prob_jit = jax.jit(_error_log_prob, static_argnums=0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -261,6 +276,7 @@ def prior_predictive(model: FittedNoiseModel, arm: kin.Arm, u: Any, num_samples:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def _arm_log_density(static: _ArmStatic, arm_params: kin.ArmParams, arrays: dict,
                      u: jax.Array, d: jax.Array) -> jax.Array:
     theta, ok = kin.inverse(arm_params, d, static.elbow)
@@ -344,7 +360,7 @@ def linked_log_density(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Ar
 class GridPosterior:
     """The grid's end-point density, resolved on a zoomed grid fine enough for moments.
 
-    A coarse grid (default +-30 mm, 200 x 200, the prediction's box) locates the mass; a
+    A coarse grid (default +-30 mm, 150 x 150, the prediction's box) locates the mass; a
     second ``n x n`` grid over the box that holds all but ``1e-9`` of it (plus a margin)
     gives mean, covariance and normaliser by the midpoint rule. ``log_normaliser`` is
     log of the integral of the unnormalised density over the box (per mm^2), so
@@ -400,34 +416,55 @@ class GridPosterior:
                       axis=1)
 
 
+@functools.lru_cache(maxsize=64)
+def _compiled_loglik(statics: tuple[_ArmStatic, ...]) -> Callable:
+    def one_target(args, params):
+        points, commands = args  # (M, 2), tuple of (2,)
+        return sum(_arm_log_density(s, ap, arr, u[None], points[:, None, :])[:, 0]
+                   for s, (ap, arr), u in zip(statics, params, commands, strict=True))
+
+    # Targets one after the other (lax.map): an (M x N) kernel block per target stays small
+    # where all targets at once would hold T times as much.
+    return jax.jit(lambda points, commands, params: jax.lax.map(
+        lambda a: one_target(a, params), (points, commands)))
+
+
 def _loglik(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
-            commands: Sequence[np.ndarray], points: jax.Array) -> jax.Array:
-    """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's own code path."""
-    return sum(arm_log_likelihood(m, a, jnp.asarray(u, float), points)
-               for m, a, u in zip(models, arms, commands, strict=True))
+            commands: Sequence[np.ndarray], points: Any) -> np.ndarray:
+    """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's density.
+
+    Computed by the same per-arm densities as the programs (their equality with
+    :func:`bayesrob.prediction.arm_log_likelihood` is tested), compiled once per structure
+    and shapes, so repeated grids (targets, LOO refits, rigs) pay no compilation.
+    """
+    statics, params = _structure(models, arms)
+    cmds = tuple(jnp.asarray(np.atleast_2d(u), dtype=jnp.float64) for u in commands)
+    return np.asarray(_compiled_loglik(statics)(jnp.asarray(points, dtype=jnp.float64), cmds,
+                                                params))
 
 
 def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                    commands: Sequence[np.ndarray], targets: np.ndarray,
-                   coarse: Grid = COARSE_GRID, n: int = 256,
+                   coarse: Grid = COARSE_GRID, n: int = 150,
                    tail: float = 1e-9) -> GridPosterior:
     """Mean, covariance and normaliser of the grid density of each target, on a zoomed grid.
 
     The paper's 100 x 100 grid has 0.6 mm cells, as wide as the posterior itself (sd ~0.4 to
     2 mm), so its moments carry discretisation error of the order of the 0.1 mm / 10%
-    tolerances of :func:`cross_check`. The zoom makes that error negligible: cells of
-    (box / 256), typically 0.01 to 0.05 mm.
+    tolerances of :func:`cross_check`. The zoom makes that error negligible: the box spans
+    about +-6 posterior sd, so a cell is ~0.08 sd (typically 0.02 to 0.08 mm) and the
+    midpoint rule's relative error in the variance is ~(cell / sd)^2 / 12 < 0.1%.
     """
     t0 = time.perf_counter()
     targets = np.atleast_2d(np.asarray(targets, float))
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     offsets = coarse.offsets
-    pts = jnp.asarray(targets[:, None, :] + offsets[None])
-    ll = np.asarray(_loglik(models, arms, commands, pts))
+    pts = targets[:, None, :] + offsets[None]
+    ll = _loglik(models, arms, commands, pts)
     if not np.all(np.isfinite(ll).any(axis=1)):
         bad = np.flatnonzero(~np.isfinite(ll).any(axis=1)).tolist()
         raise ValueError(f"targets {bad}: no arm configuration reaches any grid point")
-    p = np.asarray(jax.nn.softmax(jnp.asarray(ll), axis=-1))
+    p = softmax(ll, axis=-1)
     step = 2 * coarse.half_width_mm / coarse.n
     ring = np.any(np.abs(offsets) > coarse.half_width_mm - step, axis=1)
     edge = p[:, ring].sum(axis=1)
@@ -436,7 +473,7 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     for t in range(len(targets)):
         order = np.argsort(p[t])[::-1]
         k = int(np.searchsorted(np.cumsum(p[t, order]), 1.0 - tail)) + 1
-        keep = np.asarray(pts[t])[order[:k]]
+        keep = pts[t][order[:k]]
         # Margin of two coarse cells: the kept cells' centres understate the support by half
         # a cell, and the density between neighbours of the last kept cell is not yet zero.
         lo[t] = keep.min(axis=0) - 2 * step
@@ -445,10 +482,10 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     post = GridPosterior(targets, lo, cell, n, np.empty(0), np.empty(0), np.empty(0),
                          np.empty(0), edge, coarse)
     fine = post.points()
-    llf = _loglik(models, arms, commands, jnp.asarray(fine))
+    llf = _loglik(models, arms, commands, fine)
     log_area = np.log(cell[:, 0] * cell[:, 1])
-    post.log_normaliser = np.asarray(logsumexp(llf, axis=-1)) + log_area
-    prob = np.asarray(jax.nn.softmax(llf, axis=-1))
+    post.log_normaliser = logsumexp(llf, axis=-1) + log_area
+    prob = softmax(llf, axis=-1)
     post.prob = prob
     post.mean = np.einsum("tm,tmk->tk", prob, fine)
     dev = fine - post.mean[:, None, :]
@@ -465,8 +502,8 @@ def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
     The unnormalised log-likelihood at the exact point, minus the grid's log normaliser: no
     discretisation of the point itself, and the same normalisation as every grid prediction.
     """
-    pts = jnp.asarray(np.asarray(points, float)[:, None, :])
-    ll = np.asarray(_loglik(models, arms, [np.atleast_2d(u) for u in commands], pts))[:, 0]
+    pts = np.asarray(points, float)[:, None, :]
+    ll = _loglik(models, arms, commands, pts)[:, 0]
     return ll - post.log_normaliser
 
 
@@ -691,18 +728,21 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     compile_seconds = time.perf_counter() - t0
     posteriors = []
     t0 = time.perf_counter()
-    for t in range(t_count):
-        c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
+    # KDEMove solves 2x2 triangular systems through scipy every step: multi-threaded BLAS
+    # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
+    with threadpool_limits(limits=1, user_api="blas"):
+        for t in range(t_count):
+            c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
 
-        def log_prob_fn(x, c=c):
-            return np.asarray(lp(x, c))
+            def log_prob_fn(x, c=c):
+                return np.asarray(lp(x, c))
 
-        sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
-        sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
-        sampler.run_mcmc(init[:, t, :], n_steps, progress=progress)
-        one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
-                            dims={"d": ["xy"]}, coords=_COORDS)
-        posteriors.append(one.posterior.isel(draw=slice(burn, None)))
+            sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
+            sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
+            sampler.run_mcmc(init[:, t, :], n_steps, progress=progress)
+            one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
+                                dims={"d": ["xy"]}, coords=_COORDS)
+            posteriors.append(one.posterior.isel(draw=slice(burn, None)))
     seconds = time.perf_counter() - t0
     post = xr.concat(posteriors, dim="target").transpose("chain", "draw", "target", "xy")
     idata = az.InferenceData(posterior=post)

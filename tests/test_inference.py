@@ -1,0 +1,339 @@
+"""The joint-error models as numpyro programs: densities, push-forwards, and samplers vs the grid.
+
+Every NUTS run here uses one target and four chains on a two-arm COND program with 16
+training points per arm, so they share one compiled sampler (the compilation dominates).
+"""
+
+from __future__ import annotations
+
+import json
+
+import arviz as az
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from numpyro.infer.util import log_density
+from scipy.ndimage import maximum_filter
+
+from bayesrob import inference as inf
+from bayesrob.calibration import calibrate
+from bayesrob.cli import main
+from bayesrob.kde import ConditionalKDE
+from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
+from bayesrob.prediction import Grid, arm_log_likelihood, predict
+from bayesrob.rig import default_rig_dir, load_rig
+
+# Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.
+FIXED = {
+    "IND": ModelSpec("ind_fixed", "IND", bandwidth=0.0035),  # one width serves both joints
+    "CORR": ModelSpec("corr_fixed", "CORR", bandwidth=(0.003, 0.004)),
+    "COND": ModelSpec("cond_fixed", "COND", bandwidth=(0.003, 0.004, 80.0, 120.0)),
+    "HIST": ModelSpec("hist", "COND", bandwidth="paper", conditioning="histogram",
+                      jacobian=False),
+}
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig(default_rig_dir())
+
+
+@pytest.fixture(scope="module")
+def arms(rig):
+    return {n: c.arm for n, c in calibrate(rig).items()}
+
+
+@pytest.fixture(scope="module")
+def errors(rig, arms):
+    out = {}
+    for name, arm in arms.items():
+        u, d = rig.arm_rows(name, "train")
+        out[name] = (joint_errors(arm, u, d), u)
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_models(errors):
+    """{kind: {arm: fitted}} for the four kinds at fixed bandwidths (fast to fit)."""
+    return {k: {a: spec.fit(*errors[a]) for a in errors} for k, spec in FIXED.items()}
+
+
+@pytest.fixture(scope="module")
+def cond(rig, arms):
+    """The shipped improved COND, fitted to the default rig (the `sample` default)."""
+    spec = discover_models(names=["cond"])[0]
+    return {a: spec.fit(*_train(rig, arms[a])) for a in arms}
+
+
+def _train(rig, arm):
+    u, d = rig.arm_rows(arm.name, "train")
+    return joint_errors(arm, u, d), u
+
+
+# ------------------------------------------------------------------------------ densities
+
+
+@pytest.mark.parametrize("kind", ["IND", "CORR", "COND", "HIST"])
+def test_joint_error_log_prob_is_the_kde_density(small_models, kind):
+    model = small_models[kind]["top"]
+    rng = np.random.default_rng(0)
+    err = model.theta_err[rng.integers(0, 16, 50)] + rng.normal(0, 0.004, (50, 2))
+    u = model.u[rng.integers(0, 16, 50)] + rng.normal(0, 30, (50, 2))
+    got = np.asarray(inf.joint_error_log_prob(model, jnp.asarray(err), jnp.asarray(u)))
+    want = np.asarray(model.logpdf(jnp.asarray(err), jnp.asarray(u)))
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["IND", "CORR", "COND"])
+def test_distribution_samples_have_the_kde_moments(small_models, kind):
+    model = small_models[kind]["bottom"]
+    u = model.u[3]
+    d = inf.joint_error_distribution(model, u)
+    x = np.asarray(d.sample(jax.random.PRNGKey(1), (40000,)))
+    if kind == "COND":
+        w = np.asarray(model.conditional.weights(u))
+        data, bw = model.conditional.x_data, model.conditional.bw_x
+    else:
+        w = np.full(16, 1 / 16)
+        data, bw = model.theta_err, model.bandwidth
+    mean = w @ data
+    cov = (data - mean).T @ np.diag(w) @ (data - mean) + np.diag(np.asarray(bw) ** 2)
+    if kind == "IND":  # a product of the two marginals: no correlation at all
+        cov = np.diag(np.diag(cov))
+    # 40000 draws: the mean's standard error is sd / 200, the covariance's about 1%.
+    sd = np.sqrt(np.diag(cov))
+    assert np.all(np.abs(x.mean(0) - mean) < 5 * sd / 200)
+    assert np.linalg.norm(np.cov(x.T) - cov) / np.linalg.norm(cov) < 0.05
+    if kind == "IND":  # while the data themselves are correlated
+        assert abs(np.corrcoef(x.T)[0, 1]) < 0.03 < abs(np.corrcoef(data.T)[0, 1])
+
+
+def test_histogram_cond_is_scored_only(small_models, arms):
+    model = small_models["HIST"]["top"]
+    assert not inf.is_sampleable(model)
+    with pytest.raises(NotImplementedError, match="scored density only"):
+        inf.joint_error_distribution(model, model.u[0])
+    with pytest.raises(NotImplementedError, match="cannot be forward-sampled"):
+        inf.prior_predictive(model, arms["top"], model.u[:2], 10)
+
+
+@pytest.mark.parametrize("kind", ["IND", "CORR", "COND", "HIST"])
+def test_arm_log_density_matches_the_grid_likelihood(small_models, arms, rig, kind):
+    u, _ = rig.arm_rows("bottom", "validation")
+    arm = arms["bottom"]
+    model = small_models[kind]["bottom"]
+    target = np.asarray(arm.forward_u(jnp.asarray(u[:4])))
+    pts = target[:, None, :] + np.random.default_rng(2).normal(0, 2.0, (4, 30, 2))
+    got = inf.arm_log_density(model, arm, jnp.asarray(u[:4]), jnp.asarray(pts.transpose(1, 0, 2)))
+    want = arm_log_likelihood(model, arm, jnp.asarray(u[:4]), jnp.asarray(pts))
+    np.testing.assert_allclose(np.asarray(got).T, np.asarray(want), rtol=1e-9, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ push-forward
+
+
+@pytest.mark.parametrize("kind", ["IND", "CORR", "COND"])
+def test_prior_predictive_draws_match_the_grid_density(small_models, arms, rig, kind):
+    """With the Jacobian, the grid density is exactly the push-forward of the joint errors.
+
+    20000 Predictive draws per command: the mean's MC error is < 0.01 mm and the
+    covariance's ~1%; tolerances 0.03 mm and 5% (Frobenius, relative).
+    """
+    model = small_models[kind]["top"]
+    assert model.spec.jacobian
+    arm = arms["top"]
+    u, _ = rig.arm_rows("top", "validation")
+    u = u[[0, 5, 10, 15]]
+    draws = inf.prior_predictive(model, arm, u, 20000, seed=3)["d"]  # (S, 4, 2)
+    target = np.asarray(arm.forward_u(jnp.asarray(u)))
+    post = inf.grid_posterior([model], [arm], [u], target)
+    dev = draws - draws.mean(0)
+    cov = np.einsum("sti,stj->tij", dev, dev) / (len(draws) - 1)
+    assert np.max(np.linalg.norm(draws.mean(0) - post.mean, axis=1)) < 0.03
+    assert np.max(inf.cov_rel_error(cov, post.cov)) < 0.05
+    # The Jacobian makes the density integrate to one over the plane by itself.
+    np.testing.assert_allclose(np.exp(post.log_normaliser), 1.0, atol=1e-6)
+
+
+def test_prior_predictive_with_measurement_noise_adds_its_variance(small_models, arms, rig):
+    model, arm = small_models["CORR"]["top"], arms["top"]
+    u = rig.arm_rows("top", "validation")[0][:1]
+    clean = inf.prior_predictive(model, arm, u, 20000, seed=4)["d"][:, 0]
+    noisy = inf.prior_predictive(model, arm, u, 20000, seed=4, measurement_noise_mm=1.0)
+    assert set(noisy) >= {"d", "d_true", "theta_err"}
+    extra = np.cov(noisy["d"][:, 0].T) - np.cov(clean.T)
+    np.testing.assert_allclose(np.diag(extra), [1.0, 1.0], atol=0.1)
+
+
+def test_the_grid_zoom_agrees_with_the_paper_grid(small_models, arms, rig):
+    """The zoomed moments equal those of the prediction on a fine plain grid."""
+    ms = [small_models["CORR"][a] for a in ("top", "bottom")]
+    am = [arms["top"], arms["bottom"]]
+    rows = rig.config_rows("top+bottom", "test")
+    cmds = [rows["commands"][a][:3] for a in ("top", "bottom")]
+    target = rows["target"][:3]
+    zoom = inf.grid_posterior(ms, am, cmds, target)
+    plain = predict("top+bottom", dict(zip(("top", "bottom"), ms, strict=True)),
+                    {a.name: a for a in am}, dict(zip(("top", "bottom"), cmds, strict=True)),
+                    target, Grid(15.0, 600))
+    np.testing.assert_allclose(zoom.mean, plain.expected_point, atol=2e-3)
+    assert np.all(zoom.edge_mass < 1e-12)
+    assert np.all(zoom.cell_mm < 0.1)
+
+
+# ------------------------------------------------------------------------------ linked program
+
+
+def test_linked_program_density_is_the_product_of_likelihoods(handmade_rig_dir):
+    """Three linked arms: log_density of the program = the grid's summed log-likelihoods."""
+    rig3 = load_rig(handmade_rig_dir)
+    arms3 = {n: c.arm for n, c in calibrate(rig3).items()}
+    names = ["left", "middle", "right"]
+    models = [FIXED["CORR"].fit(*_train(rig3, arms3[a])) for a in names]
+    rows = rig3.config_rows("left+middle+right", "test")
+    cmds = [jnp.asarray(rows["commands"][a]) for a in names]
+    d = jnp.asarray(rows["target"] + np.random.default_rng(5).normal(0, 1.0, (2, 2)))
+    lp, trace = log_density(inf.linked_model, (cmds,), {"models": models,
+                                                         "arms": [arms3[a] for a in names]},
+                            {"d": d})
+    assert {f"loglik_{a}" for a in names} <= set(trace)
+    want = sum(arm_log_likelihood(m, arms3[a], c, d[:, None, :])
+               for m, a, c in zip(models, names, cmds, strict=True))
+    np.testing.assert_allclose(float(lp), float(jnp.sum(want)), rtol=1e-10)
+    post = inf.grid_posterior(models, [arms3[a] for a in names], cmds, rows["target"])
+    assert np.all(np.isfinite(post.mean))
+
+
+def test_emcee_log_density_is_the_programs(small_models, arms, rig):
+    ms = [small_models["COND"][a] for a in ("top", "bottom")]
+    am = [arms["top"], arms["bottom"]]
+    rows = rig.config_rows("top+bottom", "test")
+    cmds = [jnp.asarray(rows["commands"][a][:1]) for a in ("top", "bottom")]
+    walkers = rows["target"][:1] + np.random.default_rng(6).normal(0, 0.5, (8, 2))
+    fn = inf.linked_log_density(ms, am)
+    got = np.asarray(fn(walkers, cmds))
+    want = [float(log_density(inf.linked_model, (cmds,), {"models": ms, "arms": am},
+                              {"d": jnp.asarray(w[None])})[0]) for w in walkers]
+    np.testing.assert_allclose(got, want, rtol=1e-10)
+
+
+# ------------------------------------------------------------------------------ samplers
+
+
+def _setup(rig, arms, models, index):
+    rows = rig.config_rows("top+bottom", "test")
+    target = rows["target"][index:index + 1]
+    am = [arms["top"], arms["bottom"]]
+    cmds = [np.asarray(a.command(jnp.asarray(target))) for a in am]
+    return [models[a] for a in ("top", "bottom")], am, cmds, target
+
+
+def _bimodal_models(rig):
+    """COND models whose top arm's shoulder error has two clusters 4 mrad apart (10 + 6
+    points); the bottom arm's errors are broad, so the linked posterior keeps both modes."""
+    spec = discover_models(names=["cond"])[0]
+    rng = np.random.default_rng(0)
+
+    def fit(arm, x, bw):
+        u, _ = rig.arm_rows(arm, "train")
+        c = ConditionalKDE.fit(x, u, "kernel", bandwidth=[*bw, 1e4, 1e4])
+        return FittedNoiseModel(spec, x, u, conditional=c)
+
+    two = np.concatenate([rng.normal(0, 3e-4, (10, 2)),
+                          rng.normal(0, 3e-4, (6, 2)) + [4e-3, 0.0]])
+    return {"top": fit("top", two, [1e-3, 1e-3]),
+            "bottom": fit("bottom", rng.normal(0, 6e-3, (16, 2)), [4e-3, 4e-3])}
+
+
+def _two_modes(grid: inf.GridPosterior) -> tuple[float, float]:
+    """(smaller peak / larger peak, lowest density between them / smaller peak)."""
+    p = grid.prob[0].reshape(grid.n, grid.n)
+    peaks = (p == maximum_filter(p, size=grid.n // 8)) & (p > 0.05 * p.max())
+    iy, ix = np.nonzero(peaks)
+    assert len(iy) == 2, f"expected two modes, found {len(iy)}"
+    (y0, y1), (x0, x1) = iy[np.argsort(-p[iy, ix])], ix[np.argsort(-p[iy, ix])]
+    s = np.linspace(0, 1, 400)
+    line = p[np.round(y0 + s * (y1 - y0)).astype(int), np.round(x0 + s * (x1 - x0)).astype(int)]
+    return p[y1, x1] / p[y0, x0], line.min() / p[y1, x1]
+
+
+def test_samplers_agree_with_the_grid_on_a_bimodal_posterior(rig, arms):
+    """Chains and walkers start at grid draws (systematic resampling: both modes get starts
+    in proportion to their mass); NUTS crosses the valley, emcee jumps with its KDE move."""
+    ms, am, cmds, target = _setup(rig, arms, _bimodal_models(rig), 0)
+    grid = inf.grid_posterior(ms, am, cmds, target)
+    ratio, valley = _two_modes(grid)
+    assert 0.2 < ratio < 0.9 and valley < 0.6, (ratio, valley)
+    nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
+    emc = inf.run_emcee(ms, am, cmds, grid.sample(1, 32), seed=0)
+    # Tolerances: CheckTolerances() = mean 0.1 mm, covariance 10%, r_hat 1.01, ESS 400.
+    check = inf.cross_check(grid, [nuts, emc])
+    assert check["passed"], check["failures"]
+    assert isinstance(nuts.idata, az.InferenceData)
+    assert nuts.idata.posterior["d"].shape == (4, 2000, 1, 2)
+    assert emc.idata.posterior["d"].shape == (32, 2000, 1, 2)
+    for res in (nuts, emc):  # the diagnostics come from az.summary
+        assert {"ess_bulk", "ess_tail", "r_hat"} <= set(res.summary.columns)
+
+
+def test_cross_check_reports_disagreement_with_figures(rig, arms, small_models):
+    ms, am, cmds, target = _setup(rig, arms, small_models["CORR"], 2)
+    grid = inf.grid_posterior(ms, am, cmds, target)
+    rng = np.random.default_rng(7)
+    draws = rng.multivariate_normal(grid.mean[0] + [0.3, 0.0], 1.5 * grid.cov[0], (4, 50))
+    idata = az.from_dict(posterior={"d": draws[:, :, None, :]}, dims={"d": ["target", "xy"]})
+    fake = inf.SamplerResult("fake", idata, 1.0, az.summary(idata, kind="diagnostics"))
+    check = inf.cross_check(grid, [fake])
+    assert not check["passed"]
+    text = "\n".join(check["failures"])
+    assert "fake: mean" in text and "(> 0.1 mm)" in text
+    assert "covariance differs from the grid's by" in text
+    assert "bulk ESS" in text  # 200 draws cannot reach 400
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+def test_sample_command_writes_the_documented_json(tmp_path, capsys):
+    out = tmp_path / "sample.json"
+    rc = main(["sample", "--config", "top+bottom", "--target", "140", "220", "--json",
+               str(out)])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    doc = json.loads(out.read_text())
+    assert doc["target"] == [140.0, 220.0] and doc["config"] == "top+bottom"
+    assert doc["model"] == "cond"
+    assert set(doc["samplers"]) == {"grid", "nuts", "emcee"}
+    for key in ("mean", "cov", "seconds"):
+        assert key in doc["samplers"]["grid"]
+    for name in ("nuts", "emcee"):
+        s = doc["samplers"][name]
+        for key in ("mean", "cov", "ess_bulk", "r_hat", "seconds", "ess_per_s"):
+            assert key in s, (name, key)
+        assert np.linalg.norm(np.subtract(s["mean"], doc["samplers"]["grid"]["mean"])) < 0.1
+    assert doc["check"]["passed"] is True and doc["check"]["failures"] == []
+    assert "check PASSED" in printed and "ess_bulk" in printed
+    assert doc["samplers"]["nuts"]["divergences"] == 0
+    # Per second of sampling (compilation excluded) NUTS is the more efficient sampler.
+    assert doc["samplers"]["nuts"]["ess_per_s"] > doc["samplers"]["emcee"]["ess_per_s"]
+
+
+def test_sample_command_exits_1_when_the_check_fails(monkeypatch, capsys):
+    def failing(*args, **kwargs):
+        doc = {"check": {"passed": False, "failures": ["nuts: r_hat 1.2000 > 1.01"]}}
+        return inf.SampleReport(doc, None, {})
+
+    monkeypatch.setattr(inf, "sample_linked", failing)
+    monkeypatch.setattr(inf, "format_sample", lambda r: "check FAILED")
+    assert main(["sample", "--target", "140", "220", "--json", "-"]) == 1
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--config", "top+elbow"], "no arm 'elbow'"),
+    (["--model", "nope"], "no model named 'nope'"),
+])
+def test_sample_command_usage_errors_exit_2(argv, message, capsys):
+    rc = main(["sample", "--target", "140", "220", "--sampler", "grid", *argv])
+    assert rc == 2
+    assert message in capsys.readouterr().err

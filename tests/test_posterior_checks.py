@@ -1,0 +1,198 @@
+"""Posterior checks: do the models' predictive regions hold the end points they should?
+
+Coverage: each model's 50% and 90% highest-density regions against held-out end points (each
+arm's validation rows, the linked test rows) of simulated rigs, whose truth is known. For the
+improved variants the requirement is nominal coverage within binomial error: a two-sided
+binomial test at level 0.01 per mass, on the points pooled over the rigs. Where the measured
+coverage falls short, the test is an expected failure (strict, so a fix shows up) whose
+reason gives the figures; the paper-faithful variants' coverage is measured and recorded,
+not asserted. The default run uses the embedded default rig (gravity sag and backlash, seed
+2009) and the session's clean rig (no effects, seed 0); ``-m slow`` adds six more seeds.
+
+Posterior predictive checks of the linked arms: the HDR levels of the observed linked end
+points (a 2-D PIT, uniform when calibrated; Kolmogorov-Smirnov at 0.01) and the paper's
+accuracy statistic, the mean distance from the targets, against its predictive distribution.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+
+from bayesrob import inference as inf
+from bayesrob.calibration import calibrate
+from bayesrob.comparison import PointScores, heldout_scores
+from bayesrob.noise_models import ModelSpec, discover_models, joint_errors
+from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.simulator import paper_truth, simulate_rig
+
+ALPHA = 0.01
+MASSES = (0.5, 0.9)
+IMPROVED = ("ind", "corr", "cond")
+
+
+def _levels(scores: list[dict[str, dict[str, PointScores]]], model: str, kind: str
+            ) -> np.ndarray:
+    """HDR levels pooled over rigs: kind "single" (validation rows) or "linked" (test rows)."""
+    return np.concatenate([s.hdr_level for by_setup in scores
+                           for config, s in by_setup[model].items()
+                           if ("+" in config) == (kind == "linked")])
+
+
+def _binom_p(levels: np.ndarray, mass: float) -> float:
+    k = int(np.sum(levels <= mass))
+    return float(scipy.stats.binomtest(k, levels.size, mass).pvalue)
+
+
+def _table(scores, record, title: str) -> dict:
+    """Coverage per model and kind of point, printed (pytest -s) and recorded (junit)."""
+    out = {}
+    for model in scores[0]:
+        out[model] = {}
+        for kind in ("single", "linked"):
+            lv = _levels(scores, model, kind)
+            out[model][kind] = {"n": int(lv.size), **{
+                f"coverage{int(m * 100)}": float(np.mean(lv <= m)) for m in MASSES}}
+    print(f"\n{title}\n" + "\n".join(f"{m:11s} {json.dumps(r)}" for m, r in out.items()))
+    record(title, json.dumps(out))
+    return out
+
+
+def _coverage_failures(scores, model: str, kind: str) -> list[str]:
+    levels = _levels(scores, model, kind)
+    out = []
+    for mass in MASSES:
+        p = _binom_p(levels, mass)
+        if not p > ALPHA:
+            out.append(f"{model} {kind}: {mass:.0%} region holds "
+                       f"{np.mean(levels <= mass):.0%} of {levels.size} (binomial p={p:.1g})")
+    return out
+
+
+@pytest.fixture(scope="module")
+def scores():
+    return [heldout_scores(load_rig(default_rig_dir()), discover_models())]
+
+
+# ------------------------------------------------------------------------------ machinery
+
+
+def test_hdr_levels_of_the_models_own_draws_are_uniform():
+    """The check's machinery: end points drawn from a model's own predictive distribution
+    must have uniform HDR levels (KS at 0.01) and nominal coverage (binomial at 0.01).
+    400 draws: 25 at each of 16 commands of the default rig's top arm."""
+    rig = load_rig(default_rig_dir())
+    arm = calibrate(rig)["top"].arm
+    u, d = rig.arm_rows("top", "train")
+    model = ModelSpec("corr_fixed", "CORR", bandwidth=(0.003, 0.004)).fit(
+        joint_errors(arm, u, d), u)
+    draws = inf.prior_predictive(model, arm, u, 25, seed=11)["d"]  # (25, 16, 2)
+    target = np.asarray(arm.forward_u(jnp.asarray(u)))
+    post = inf.grid_posterior([model], [arm], [u], target)
+    levels = np.concatenate([
+        post.hdr_level(inf.point_log_density(post, [model], [arm], [u], draws[k]))
+        for k in range(draws.shape[0])])
+    assert scipy.stats.kstest(levels, "uniform").pvalue > ALPHA
+    for mass in MASSES:
+        assert _binom_p(levels, mass) > ALPHA, (mass, np.mean(levels <= mass))
+
+
+# ------------------------------------------------------------------------------ coverage
+
+DEFAULT_SHORT = {
+    ("cond", "linked"): "measured on the default rig: the 50% / 90% regions hold 2 and 10 of "
+                        "the 16 linked end points (binomial p 0.004 / 0.002): the product of "
+                        "the arms' narrow kernel conditionals is over-confident",
+}
+
+
+def _cases(short: dict) -> list:
+    return [pytest.param(m, k, marks=pytest.mark.xfail(strict=True, reason=short[m, k]))
+            if (m, k) in short else pytest.param(m, k)
+            for m in IMPROVED for k in ("single", "linked")]
+
+
+@pytest.mark.parametrize("model, kind", _cases(DEFAULT_SHORT))
+def test_improved_models_cover_held_out_points_at_nominal_rates(scores, model, kind):
+    """Default rig: 32 validation end points (16 per arm) and 16 linked test end points."""
+    failures = _coverage_failures(scores, model, kind)
+    assert not failures, failures
+
+
+def test_coverage_of_every_model_is_recorded(scores, record_property):
+    """The paper-faithful variants' over-coverage is measured here, not asserted away."""
+    table = _table(scores, record_property, "coverage on the default rig")
+    assert set(table) == {s.name for s in discover_models()}
+    for rows in table.values():
+        assert rows["single"]["n"] == 32 and rows["linked"]["n"] == 16
+        for r in rows.values():
+            assert 0.0 <= r["coverage50"] <= r["coverage90"] <= 1.0
+
+
+# ------------------------------------------------------------------------------ linked PPC
+
+PPC_SHORT = {
+    "cond": "measured on the default rig: linked HDR levels far from uniform; the product of "
+            "the two arms' narrow kernel conditionals is over-confident about the linked point",
+}
+
+
+@pytest.mark.parametrize("model", [
+    pytest.param(m, marks=pytest.mark.xfail(strict=True, reason=PPC_SHORT[m]))
+    if m in PPC_SHORT else m for m in IMPROVED])
+def test_linked_end_points_are_plausible_under_the_linked_prediction(scores, model,
+                                                                     record_property):
+    """PIT of the 16 linked test rows: KS against uniform at 0.01; and the observed mean
+    distance from the targets inside the central 99% of its predictive distribution."""
+    linked = [s for by in scores for c, s in by[model].items() if "+" in c]
+    ppcs = [s.ppc(seed=1) for s in linked]
+    record_property(f"ppc_{model}", json.dumps([{k: v for k, v in p.items()
+                                                 if k != "hdr_levels"} for p in ppcs]))
+    for p in ppcs:
+        assert p["ks_pvalue"] > ALPHA, p
+        assert 0.005 < p["ppp"] < 0.995, p
+
+
+# ------------------------------------------------------------------------------ slow
+
+SLOW_SHORT = {
+    ("cond", "linked"): "measured on six rigs with sag and backlash: the 50% / 90% regions "
+                        "hold 22% / 58% of the 96 linked end points",
+}
+
+
+@pytest.fixture(scope="module")
+def effect_scores(tmp_path_factory):
+    """Six rigs with gravity sag and backlash (seeds 1-6): 192 validation and 96 linked
+    end points per model."""
+    specs = discover_models()
+    out = []
+    for seed in range(1, 7):
+        d = tmp_path_factory.mktemp(f"effects{seed}")
+        rig = load_rig(simulate_rig(d, paper_truth(("gravity_sag", "backlash"), seed=seed)))
+        out.append(heldout_scores(rig, specs))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, kind", _cases(SLOW_SHORT))
+def test_coverage_on_six_rigs_with_sag_and_backlash(effect_scores, model, kind):
+    failures = _coverage_failures(effect_scores, model, kind)
+    assert not failures, failures
+
+
+@pytest.mark.slow
+def test_paper_variants_over_cover_on_six_rigs(effect_scores, record_property):
+    """The paper found its models conservative; measured here: their 50% regions hold far
+    more than half of the held-out points (binomial p < 0.01, in that direction)."""
+    table = _table(effect_scores, record_property, "coverage on six rigs with sag and backlash")
+    for fam in ("ind", "corr", "cond"):
+        levels = np.concatenate([_levels(effect_scores, f"{fam}_paper", k)
+                                 for k in ("single", "linked")])
+        k = int(np.sum(levels <= 0.5))
+        p = scipy.stats.binomtest(k, levels.size, 0.5, alternative="greater").pvalue
+        assert p < ALPHA, (fam, table[f"{fam}_paper"])
