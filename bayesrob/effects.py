@@ -258,6 +258,13 @@ class GravitySag(Effect):
     def scales(self) -> np.ndarray:
         return np.full(3, 0.01)
 
+    def prior_sd(self) -> np.ndarray:
+        # Effectively flat. Over a workspace the shoulder's sag is nearly a linear function
+        # of its angle, so the servo gain takes most of it and the data pin c11 down only
+        # loosely; any real pull towards zero would shrink the reported sag (a tenth of a
+        # radian halved the default rig's shoulder sag).
+        return np.full(3, 1.0)
+
     def _deflection(self, extra, theta):
         s1, s12 = lever_signatures(theta, self.ctx.gravity)
         return jnp.stack([extra[0] * s1 + extra[1] * s12, extra[2] * s12], -1)
