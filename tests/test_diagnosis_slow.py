@@ -52,13 +52,13 @@ def test_paper_like_generator_rigs_name_exactly_the_hidden_effects(sweep):
 
 
 def test_most_rigs_name_exactly_the_hidden_effects(sweep):
-    """At least 80% of the 40 rigs (33/40 when this was written).
+    """At least 80% of the 40 rigs (34/40 when this was written).
 
     The misses are all on the tilted plane (see the README section): there the gravity
     torque on a joint changes sign at one grid point at most, so play shows at one point and
-    no single point can tell an effect from an outlier (named: none); and the soft, heavily
-    loaded arm sags by several degrees, beyond what a linear compliance takes, so a servo
-    nonlinearity is named as well. The sweep is seeded: the count is deterministic.
+    no single point can tell an effect from an outlier (named: none); with sag as well, the
+    smooth servo nonlinearity takes the combined misfit instead. The sweep is seeded: the
+    count is deterministic.
     """
     right = sum(e == sorted(c.effects) for c, e, _ in sweep)
     assert right >= 0.8 * len(sweep)
