@@ -581,9 +581,10 @@ class NutsSampler:
 
     def __init__(self, *, num_chains: int = 4, num_warmup: int = 500, num_samples: int = 2000,
                  dense_mass: bool = True, target_accept_prob: float = 0.8,
-                 progress_bar: bool = False, chunks: int = 10) -> None:
+                 max_tree_depth: int = 10, progress_bar: bool = False, chunks: int = 10) -> None:
         self.num_chains, self.num_warmup, self.num_samples = num_chains, num_warmup, num_samples
         self.dense_mass, self.target_accept_prob = dense_mass, target_accept_prob
+        self.max_tree_depth = max_tree_depth
         self.progress_bar = progress_bar
         total = num_warmup + num_samples
         # Progress is reported between chunks of the scan; the chunk length must divide the
@@ -608,6 +609,7 @@ class NutsSampler:
         def init_one(key, z0, commands, params):
             return init_kernel(z0, self.num_warmup, dense_mass=self.dense_mass,
                                target_accept_prob=self.target_accept_prob,
+                               max_tree_depth=self.max_tree_depth,
                                model_args=(commands, params), rng_key=key)
 
         def advance_one(state, commands, params):
