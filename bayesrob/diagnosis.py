@@ -921,9 +921,14 @@ def format_diagnosis(doc: dict) -> str:
     gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
             for s in doc["steps"]]
     out.append("held-out error per step: " + " -> ".join(gap))
-    for s in doc["steps"]:
-        for a, m in s["magnitudes"].items():
-            out.append(f"  {s['effect']} in {a}: {m['text']}")
+    if doc["steps"]:
+        # From the final model, where every named effect is fitted jointly (a step's own
+        # record keeps the values at the time it was named).
+        out.append("fitted magnitudes (final model):")
+        for name in doc["effects"]:
+            for a, arm in doc["arms"].items():
+                if name in arm["magnitudes"]:
+                    out.append(f"  {name} in {a}: {arm['magnitudes'][name]['text']}")
     after = doc["residual_tests"]["after"]
     lof = ", ".join(f"{a} {t['lack_of_fit']['p_value']:.3g}" for a, t in after.items()
                     if "lack_of_fit" in t)

@@ -331,3 +331,27 @@ def test_rig_without_validation_rows(rig_copy):
     doc = diagnose(load_rig(rig_copy), ["gravity_sag"]).to_json()
     assert doc["baseline_heldout_error_mm"] is None and doc["effects"] == []
     assert doc["baseline_cv_error_mm"] > 0
+
+
+def test_default_rig_magnitudes_match_the_simulators_truth(diagnoses):
+    """The fitted sizes, read against truth.toml (which the diagnosis never sees).
+
+    Tolerances: the candidates' forms are not the simulator's (a smooth step for a dead
+    band, three compliance terms for point masses on springs), so the play is asked to be
+    within a factor of two, and the level-arm elbow sag within three standard errors.
+    """
+    import math
+
+    from bayesrob.simulator import G_ACC, Truth
+
+    truth = Truth.from_toml(default_rig_dir() / "truth.toml")
+    doc = diagnoses["default_rig"].to_json()
+    for name, arm in truth.arms.items():
+        mags = doc["arms"][name]["magnitudes"]
+        play = abs(mags["backlash"]["values"]["shoulder_play_deg"]["value"])
+        assert 0.5 < play / math.degrees(arm.backlash_rad[0]) < 2.0, name
+        l2 = arm.links[1]
+        elbow_torque = G_ACC * (arm.link_mass_kg[1] * l2 / 2 + arm.end_mass_kg * l2)
+        expected = math.degrees(elbow_torque / arm.stiffness_nmm_per_rad[1])
+        fit = mags["gravity_sag"]["values"]["elbow_deflection_deg"]
+        assert abs(fit["value"] - expected) < 3 * fit["se"], (name, fit, expected)
