@@ -344,18 +344,39 @@ def format_comparison(doc: dict) -> str:
 
 
 def comparison_figure(comparison: ModelComparison):
-    """arviz's compare plot for held-out and LOO scores, side by side (a matplotlib Figure)."""
+    """elpd difference to the best model, with its standard error, held out and LOO.
+
+    The style of ``arviz.plot_compare`` (ranked models, best on top), drawn by hand on a
+    symmetric-log axis: the histogram COND can trail by thousands where the others differ
+    by a few units, and a linear axis would flatten them into one point.
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 0.6 * len(comparison.specs) + 2.2))
+    k = len(comparison.specs)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.45 * k + 2.0))
     for ax, df, title in ((axes[0], comparison.heldout_compare, "held-out points"),
                           (axes[1], comparison.loo_compare, "LOO over training rows")):
-        az.plot_compare(df, ax=ax, title=False, legend=False)
-        ax.set_title(title)
-    fig.suptitle(f"{comparison.rig.name}: elpd (log density per mm^2, summed)")
+        rows = _table(df)
+        y = np.arange(len(rows))[::-1]
+        diff = -np.array([r["elpd_diff"] for r in rows])
+        dse = np.array([r["dse"] for r in rows])
+        paper = [next(s for s in comparison.specs if s.name == r["model"]).paper for r in rows]
+        for yi, d, e, p in zip(y, diff, dse, paper, strict=True):
+            ax.errorbar(d, yi, xerr=e, fmt="s" if p else "o", color="C1" if p else "C0",
+                        capsize=3)
+        ax.axvline(0.0, color="0.5", lw=0.8, ls="--")
+        ax.set_xscale("symlog", linthresh=10.0)
+        ax.set_xlim(right=max(5.0, float(np.max(diff + dse))) * 1.5)
+        ax.set_yticks(y, [f"{r['model']}  ({r['elpd']:.0f} \u00b1 {r['se']:.0f})"
+                          for r in rows])
+        ax.set_xlabel("elpd difference to the best model (\u00b1 dse)")
+        n = int(comparison.heldout_pointwise(rows[0]["model"]).size) if title.startswith(
+            "held") else int(comparison.loo[rows[0]["model"]].size)
+        ax.set_title(f"{title}, n = {n}")
+    fig.suptitle(f"{comparison.rig.name}: log predictive density of the observed end points "
+                 "(per mm^2, summed); circles improved, squares paper-faithful")
     fig.tight_layout()
     return fig
-
