@@ -23,6 +23,7 @@ than the observation; uniform on (0, 1) for a calibrated model) and the 50% / 90
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -306,10 +307,12 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
         "full fit (flatters the LOO-ML variants slightly)",
         "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
     ]
-    return ModelComparison(rig, list(specs), heldout, loo, in_sample,
-                           az.compare(held, method="stacking"),
-                           az.compare(loos, method="stacking"), time.perf_counter() - t0,
-                           notes)
+    with warnings.catch_warnings():
+        # arviz 0.23 calls a pandas sort_values(inplace=True) that pandas deprecates.
+        warnings.filterwarnings("ignore", message="The inplace keyword")
+        tables = az.compare(held, method="stacking"), az.compare(loos, method="stacking")
+    return ModelComparison(rig, list(specs), heldout, loo, in_sample, *tables,
+                           time.perf_counter() - t0, notes)
 
 
 def format_comparison(doc: dict) -> str:
