@@ -133,7 +133,8 @@ def breakdown(results: list[dict]) -> str:
 
 
 def sensitivity_cases() -> list[Case]:
-    """Each effect alone, shrunk, at two noise levels on 4x4; the smallest also on 6x6."""
+    """Each effect alone, shrunk, at two noise levels on 4x4; small ones on 6x6; large ones
+    at the higher noise."""
     cases = []
     for noise in (0.35, 0.7):
         for eff in TRUTHS[1:4]:
@@ -142,7 +143,10 @@ def sensitivity_cases() -> list[Case]:
         for seed in (41, 42):
             cases.append(Case("simulator", "paper", (), 4, seed, 1.0, noise))
     for eff in TRUTHS[1:4]:
-        cases.append(Case("simulator", "paper", eff, 6, 43, 0.25, 0.35))
+        for scale in (0.25, 0.5):
+            cases.append(Case("simulator", "paper", eff, 6, 43, scale, 0.35))
+    for eff in (("gravity_sag",), ("servo_nonlinearity",)):
+        cases.append(Case("simulator", "paper", eff, 4, 41, 2.0, 0.7))
     return cases
 
 
