@@ -74,8 +74,9 @@ class ArmTruth:
     link_mass_kg: tuple[float, float] = (0.05, 0.04)
     elbow_mass_kg: float = 0.065  # the elbow servo
     end_mass_kg: float = 0.02
-    # Soft enough that sag is not all absorbed by calibration: a hobby servo's position loop
-    # gives a few degrees under its rated load.
+    # One spring stands in for every compliance between command and end point (the servo's
+    # position loop, horn, mounting, link bending), so it is softer than a servo alone: soft
+    # enough that calibration cannot absorb all of the sag into gains and offsets.
     stiffness_nmm_per_rad: tuple[float, float] = (2500.0, 1800.0)
     backlash_rad: tuple[float, float] = (0.008, 0.008)  # half-width of the dead band
     nonlinearity_rad: tuple[float, float] = (0.01, 0.008)  # amplitude of the ripple
