@@ -15,7 +15,7 @@ prediction (:func:`bayesrob.inference.grid_posterior`). Two sets of points:
 
 Both go through ``arviz.compare`` (as ``ELPDData`` built from the exact pointwise values), which
 gives the elpd differences, their standard errors ``dse = sqrt(n) sd(pointwise differences)``
-and stacking weights; ``arviz.plot_compare`` draws them. Alongside, the calibration of each
+and stacking weights; :func:`comparison_figure` plots them. Alongside, the calibration of each
 model's predictive regions: the HDR level of each held-out point (the predicted mass denser
 than the observation; uniform on (0, 1) for a calibrated model) and the 50% / 90% coverage.
 """
@@ -27,7 +27,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import arviz as az
 import jax.numpy as jnp
@@ -48,6 +48,9 @@ from bayesrob.noise_models import (
 from bayesrob.prediction import setup_rows, setups
 from bayesrob.report import format_table
 from bayesrob.rig import Rig
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = [
     "PointScores",
@@ -346,7 +349,7 @@ def format_comparison(doc: dict) -> str:
     return "\n".join(parts)
 
 
-def comparison_figure(comparison: ModelComparison):
+def comparison_figure(comparison: ModelComparison) -> Figure:
     """elpd difference to the best model, with its standard error, held out and LOO.
 
     The style of ``arviz.plot_compare`` (ranked models, best on top), drawn by hand on a

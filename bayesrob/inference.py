@@ -51,25 +51,33 @@ from bayesrob import kinematics as kin
 from bayesrob.kde import _histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.prediction import Grid
+from bayesrob.rig import Rig
 
 __all__ = [
     "SAMPLERS",
+    "COARSE_GRID",
     "CheckTolerances",
     "GridPosterior",
+    "NutsSampler",
     "SamplerResult",
+    "SampleReport",
     "kde_distribution",
     "joint_error_distribution",
     "joint_error_log_prob",
+    "is_sampleable",
     "arm_model",
     "prior_predictive",
     "arm_log_density",
     "linked_model",
     "linked_log_density",
     "grid_posterior",
+    "point_log_density",
     "run_nuts",
     "run_emcee",
     "cross_check",
+    "cov_rel_error",
     "sample_linked",
+    "format_sample",
 ]
 
 SAMPLERS = ("nuts", "emcee", "grid")
@@ -381,10 +389,7 @@ class GridPosterior:
 
     def points(self) -> np.ndarray:
         """Fine cell centres (T, n*n, 2), x fastest."""
-        i = np.arange(self.n) + 0.5
-        gx, gy = np.meshgrid(i, i)
-        unit = np.column_stack([gx.ravel(), gy.ravel()])
-        return self.lo[:, None, :] + unit[None] * self.cell_mm[:, None, :]
+        return _cell_centres(self.lo, self.cell_mm, self.n)
 
     def sample(self, seed: int, n: int) -> np.ndarray:
         """n draws (n, T, 2): a cell by its mass, then uniform within the cell."""
@@ -414,6 +419,13 @@ class GridPosterior:
             cell_ld = np.log(self.prob) - log_area[:, None]
         return np.sum(np.where(cell_ld > np.asarray(log_density)[:, None], self.prob, 0.0),
                       axis=1)
+
+
+def _cell_centres(lo: np.ndarray, cell: np.ndarray, n: int) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    gx, gy = np.meshgrid(i, i)
+    unit = np.column_stack([gx.ravel(), gy.ravel()])
+    return lo[:, None, :] + unit[None] * cell[:, None, :]
 
 
 @functools.lru_cache(maxsize=64)
@@ -479,19 +491,15 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
         lo[t] = keep.min(axis=0) - 2 * step
         hi[t] = keep.max(axis=0) + 2 * step
     cell = (hi - lo) / n
-    post = GridPosterior(targets, lo, cell, n, np.empty(0), np.empty(0), np.empty(0),
-                         np.empty(0), edge, coarse)
-    fine = post.points()
+    fine = _cell_centres(lo, cell, n)
     llf = _loglik(models, arms, commands, fine)
-    log_area = np.log(cell[:, 0] * cell[:, 1])
-    post.log_normaliser = logsumexp(llf, axis=-1) + log_area
+    log_normaliser = logsumexp(llf, axis=-1) + np.log(cell[:, 0] * cell[:, 1])
     prob = softmax(llf, axis=-1)
-    post.prob = prob
-    post.mean = np.einsum("tm,tmk->tk", prob, fine)
-    dev = fine - post.mean[:, None, :]
-    post.cov = np.einsum("tm,tmi,tmj->tij", prob, dev, dev)
-    post.seconds = time.perf_counter() - t0
-    return post
+    mean = np.einsum("tm,tmk->tk", prob, fine)
+    dev = fine - mean[:, None, :]
+    cov = np.einsum("tm,tmi,tmj->tij", prob, dev, dev)
+    return GridPosterior(targets, lo, cell, n, prob, mean, cov, log_normaliser, edge, coarse,
+                         time.perf_counter() - t0)
 
 
 def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
@@ -764,6 +772,7 @@ class CheckTolerances:
     cov_rel: float = 0.10
     r_hat: float = 1.01
     ess_bulk: float = 400.0
+    edge_mass: float = 1e-6  # grid mass on the box edge above which the box truncates
 
 
 def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
@@ -772,10 +781,17 @@ def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
 
     Per target: the distance between the sampler's and the grid's mean <= ``tol.mean_mm``;
     ||C_sampler - C_grid||_F / ||C_grid||_F <= ``tol.cov_rel``; and per sampler, over all
-    coordinates, max r_hat <= ``tol.r_hat`` and min bulk ESS >= ``tol.ess_bulk``. Every
-    failure is listed with its figures.
+    coordinates, max r_hat <= ``tol.r_hat`` and min bulk ESS >= ``tol.ess_bulk``. And the
+    grid itself: more than ``tol.edge_mass`` on the edge of its box means the box truncates
+    the posterior (its flat prior is then not the programs'). Every failure is listed with
+    its figures.
     """
     failures: list[str] = []
+    for t in np.flatnonzero(grid.edge_mass > tol.edge_mass):
+        failures.append(f"grid: {grid.edge_mass[t]:.1e} of the mass lies on the edge of the "
+                        f"+-{grid.coarse.half_width_mm:g} mm box at target "
+                        f"({grid.targets[t, 0]:.1f}, {grid.targets[t, 1]:.1f}): the box "
+                        "truncates the posterior, so its flat prior differs from the programs'")
     for res in results:
         mean, cov = res.mean, res.cov
         for t in range(len(grid.targets)):
@@ -823,7 +839,7 @@ def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
 
 
-def sample_linked(rig: Any, config: str, target: Sequence[float], model: str = "cond",
+def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "cond",
                   sampler: str = "all", *, seed: int = 0, progress: bool = False,
                   num_chains: int = 4, num_warmup: int = 500, num_samples: int = 2000,
                   walkers: int = 32, steps: int = 2500, burn: int = 500,
@@ -896,7 +912,8 @@ def sample_linked(rig: Any, config: str, target: Sequence[float], model: str = "
     check = cross_check(grid, list(results.values()), tol) if results else \
         {"passed": True, "failures": []}
     check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel,
-                           "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk}
+                           "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk,
+                           "edge_mass": tol.edge_mass}
     check["compared"] = list(results)
     doc["check"] = check
     doc["notes"] = []
