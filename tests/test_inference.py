@@ -6,6 +6,7 @@ training points per arm, so they share one compiled sampler (the compilation dom
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import arviz as az
@@ -290,6 +291,9 @@ def test_cross_check_reports_disagreement_with_figures(rig, arms, small_models):
     assert "fake: mean" in text and "(> 0.1 mm)" in text
     assert "covariance differs from the grid's by" in text
     assert "bulk ESS" in text  # 200 draws cannot reach 400
+    # A grid box that cuts the posterior off is a failure of the reference itself.
+    cut = dataclasses.replace(grid, edge_mass=np.array([1e-3]))
+    assert "truncates the posterior" in "\n".join(inf.cross_check(cut, [])["failures"])
 
 
 # ------------------------------------------------------------------------------ command line
