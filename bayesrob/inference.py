@@ -48,7 +48,7 @@ from scipy.special import logsumexp, softmax
 from threadpoolctl import threadpool_limits
 
 from bayesrob import kinematics as kin
-from bayesrob.kde import _histogram_lookup, kernel_conditional_weights
+from bayesrob.kde import histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.prediction import Grid
 from bayesrob.rig import Rig
@@ -198,7 +198,7 @@ def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err:
         return _distribution(static.kind, arrays, u).log_prob(theta_err)
     # The paper's COND: the fitted table, looked up by kde's own (jitted) lookup.
     shape = theta_err.shape[:-1]
-    out = _histogram_lookup(theta_err.reshape(-1, 2), u.reshape(-1, 2), arrays["table"],
+    out = histogram_lookup(theta_err.reshape(-1, 2), u.reshape(-1, 2), arrays["table"],
                             arrays["lo"], arrays["widths"], static.bins, static.log_floor)
     return out.reshape(shape)
 

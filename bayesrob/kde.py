@@ -966,7 +966,7 @@ class ConditionalKDE:
                 jnp.asarray(self.bw_z),
             )
         else:
-            out = _histogram_lookup(
+            out = histogram_lookup(
                 xp,
                 zp,
                 jnp.asarray(self.log_table),
@@ -1035,7 +1035,7 @@ def _histogram_table(
 
 
 @partial(jax.jit, static_argnames=("bins", "log_floor"))
-def _histogram_lookup(
+def histogram_lookup(
     x: jnp.ndarray,
     z: jnp.ndarray,
     table: jnp.ndarray,
@@ -1044,6 +1044,11 @@ def _histogram_lookup(
     bins: tuple[int, ...],
     log_floor: float,
 ) -> jnp.ndarray:
+    """log p(x | z) from a histogram table (the paper's COND), pure so it can be traced.
+
+    ``table`` holds the log conditional density per bin, ``lo`` the grid's lower corner and
+    ``widths`` the bin widths (x dimensions first, then z); points outside get ``log_floor``.
+    """
     dx = x.shape[1]
     p = jnp.concatenate([x, z], axis=1)
     nb = jnp.asarray(bins)
