@@ -64,6 +64,13 @@ def _residuals(v: jax.Array, u: jax.Array, d: jax.Array) -> jax.Array:
 _residual_jac = jax.jit(jax.jacfwd(_residuals))
 
 
+@jax.jit
+def _summed_errors(vs: jax.Array, u: jax.Array, d: jax.Array) -> jax.Array:
+    """The paper's cost sum_i ||f(g(u_i)) - d_i|| for each parameter vector in vs (K, 8)."""
+    pred = jax.vmap(lambda v: kin.forward_u(kin.ArmParams.from_vector(v), u))(vs)
+    return jnp.sum(jnp.linalg.norm(pred - d, axis=-1), axis=-1)
+
+
 def mean_error_mm(params: kin.ArmParams, u: np.ndarray, d: np.ndarray) -> float:
     """Mean Euclidean distance between f(g(u)) and the observed end points."""
     pred = np.asarray(kin.forward_u(params, jnp.asarray(u)))
@@ -112,12 +119,7 @@ def _hill_climb(v0: np.ndarray, u: np.ndarray, d: np.ndarray, u_val: np.ndarray 
     first wobble of measurement noise, long before the fit is any good.
     """
     uj, dj = jnp.asarray(u), jnp.asarray(d)
-
-    @jax.jit
-    def costs(vs: jax.Array, uu: jax.Array, dd: jax.Array) -> jax.Array:
-        pred = jax.vmap(lambda v: kin.forward_u(kin.ArmParams.from_vector(v), uu))(vs)
-        return jnp.sum(jnp.linalg.norm(pred - dd, axis=-1), axis=-1)
-
+    costs = _summed_errors
     has_val = u_val is not None and len(u_val) > 0
     v = v0.copy()
     scale = _scales(v0)
