@@ -103,19 +103,6 @@ def inverse(params: ArmParams, d: jax.Array, elbow: int | jax.Array) -> tuple[ja
     return jnp.stack([wrap_angle(t1), t2], -1), reachable
 
 
-def command(params: ArmParams, d: jax.Array, elbow: int | jax.Array,
-            reference: jax.Array | None = None) -> jax.Array:
-    """u = g^-1(f^-1(d)): pulse widths aiming the arm at d.
-
-    Angles are only defined modulo 2 pi; ``reference`` (joint angles, e.g. g of the mid
-    pulse) picks the turn nearest the servo's range so the pulse is physically sensible.
-    """
-    theta, _ = inverse(params, d, elbow)
-    if reference is not None:
-        theta = reference + wrap_angle(theta - reference)
-    return servo_inverse(params, theta)
-
-
 def jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
     """df/dtheta (..., 2, 2), analytic."""
     t1 = theta[..., 0]
@@ -185,8 +172,3 @@ class Arm:
     def command(self, d: jax.Array) -> jax.Array:
         """Pulse widths aiming at end points d (not rounded, not limit-checked)."""
         return servo_inverse(self.params, self.inverse(d))
-
-    def within_limits(self, u: np.ndarray) -> np.ndarray:
-        lim = np.asarray(self.pulse_limits)
-        u = np.asarray(u)
-        return np.all((u >= lim[:, 0]) & (u <= lim[:, 1]), axis=-1)

@@ -111,21 +111,6 @@ class Prediction:
         """Density (per mm^2) of target i on the grid, (n, n), rows along y."""
         return self.prob[i].reshape(self.grid.n, self.grid.n) / self.grid.cell_area_mm2
 
-    def hdr_threshold(self, i: int, mass: float) -> float:
-        """Density level (per mm^2) enclosing ``mass`` of target i's probability."""
-        p = np.sort(self.prob[i])[::-1]
-        k = int(np.searchsorted(np.cumsum(p), mass))
-        return float(p[min(k, p.size - 1)] / self.grid.cell_area_mm2)
-
-    def in_hdr(self, i: int, point: np.ndarray, mass: float) -> bool:
-        """Whether a point lies in target i's highest-density region of the given mass."""
-        off = np.asarray(point) - self.targets[i]
-        h, n = self.grid.half_width_mm, self.grid.n
-        if np.any(np.abs(off) >= h):
-            return False
-        ix, iy = ((off + h) / (2 * h) * n).astype(int)
-        return bool(self.density(i)[iy, ix] >= self.hdr_threshold(i, mass))
-
 
 def _hdr_area(prob: np.ndarray, mass: float, cell_area: float) -> np.ndarray:
     p = np.sort(prob, axis=-1)[:, ::-1]

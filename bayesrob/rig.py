@@ -57,8 +57,6 @@ class ArmSpec:
         r = math.dist(point, self.base)
         return lo * (1 - margin) - 1e-9 <= r <= hi * (1 + margin) + 1e-9
 
-    def pulses_within_limits(self, u: Iterable[float]) -> bool:
-        return all(lo <= p <= hi for p, (lo, hi) in zip(u, self.pulse_limits, strict=True))
 
 
 @dataclass
@@ -119,10 +117,6 @@ class Rig:
             "target": meas.target[m],
             "observed": meas.observed[m],
         }
-
-
-def split_config(config: str) -> list[str]:
-    return config.split("+")
 
 
 # ----------------------------------------------------------------------------- rig.toml

@@ -30,7 +30,6 @@ All randomness flows from one seed, so a rig is reproducible from its ``truth.to
 
 from __future__ import annotations
 
-import math
 import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -448,13 +447,3 @@ def _check_limits(name: str, u: np.ndarray, limits) -> None:
 def _progress(total: int, enabled: bool, desc: str):
     from tqdm.auto import tqdm
     return tqdm(total=total, disable=not enabled, desc=desc, unit="pt", leave=False)
-
-
-def describe_effect_size(truth: Truth) -> dict[str, float]:
-    """Rough magnitudes at full reach, for humans reading a truth file."""
-    out = {}
-    for name, a in truth.arms.items():
-        reach = sum(a.links)
-        out[f"{name}_backlash_jump_mm"] = 2 * a.backlash_rad[0] * reach
-        out[f"{name}_nonlinearity_mm"] = a.nonlinearity_rad[0] * reach
-    return {k: round(v, 2) for k, v in out.items() if math.isfinite(v)}
