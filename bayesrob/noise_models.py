@@ -16,7 +16,7 @@ new variant needs no code.
 from __future__ import annotations
 
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -218,11 +218,22 @@ def discover_models(directory: str | Path | None = None,
     return specs
 
 
-def fit_noise_models(rig: Rig, arms: dict[str, kin.Arm], specs: Sequence[ModelSpec]
+def fit_noise_models(rig: Rig, arms: dict[str, kin.Arm], specs: Sequence[ModelSpec],
+                     on_fit: Callable[[str, str], None] | None = None
                      ) -> dict[str, dict[str, FittedNoiseModel]]:
-    """Fit every model to every arm's training rows: {model name: {arm: fitted}}."""
+    """Fit every model to every arm's training rows: {model name: {arm: fitted}}.
+
+    ``on_fit(model, arm)`` is called after each fit, for progress reporting.
+    """
     data = {}
     for name, arm in arms.items():
         u, d = rig.arm_rows(name, "train")
         data[name] = (joint_errors(arm, u, d), u)
-    return {s.name: {a: s.fit(*data[a]) for a in arms} for s in specs}
+    out: dict[str, dict[str, FittedNoiseModel]] = {}
+    for s in specs:
+        out[s.name] = {}
+        for a in arms:
+            out[s.name][a] = s.fit(*data[a])
+            if on_fit is not None:
+                on_fit(s.name, a)
+    return out

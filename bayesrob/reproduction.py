@@ -16,7 +16,13 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import Method, calibrate
-from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
+from bayesrob.noise_models import (
+    FittedNoiseModel,
+    ModelSpec,
+    discover_models,
+    fit_noise_models,
+    joint_errors,
+)
 from bayesrob.prediction import Grid, Prediction, accuracy_document, predict, setup_rows, setups
 from bayesrob.report import format_table
 from bayesrob.rig import Rig, RigError
@@ -68,19 +74,15 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
     bar = tqdm(total=steps, disable=not progress, desc="reproduce", unit="step", leave=False)
     arms = {n: c.arm for n, c in calibrate(rig, calibration).items()}
     bar.update()
-    data = {}
-    for name, arm in arms.items():
-        u, d = rig.arm_rows(name, "train")
-        data[name] = (joint_errors(arm, u, d), u)
+
+    def fitted_one(model: str, arm: str) -> None:
+        bar.set_postfix_str(model)
+        bar.update()
+
+    fitted = fit_noise_models(rig, arms, specs, on_fit=fitted_one)
     rows = {c: setup_rows(rig, arms, c) for c in configs}
-    fitted: dict[str, dict[str, FittedNoiseModel]] = {}
     predictions: dict[str, dict[str, Prediction]] = {}
     for spec in specs:
-        bar.set_postfix_str(spec.name)
-        fitted[spec.name] = {}
-        for a in arms:
-            fitted[spec.name][a] = spec.fit(*data[a])
-            bar.update()
         predictions[spec.name] = {}
         for c in configs:
             r = rows[c]
