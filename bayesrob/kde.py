@@ -58,6 +58,9 @@ __all__ = [
     "kde_logpdf",
     "conditional_kde_logpdf",
     "kernel_conditional_weights",
+    "histogram_lookup",
+    "histogram_guide",
+    "guided_histogram_lookup",
     "j_loo",
     "loo_loglik",
     "SELECTORS",
@@ -1034,6 +1037,21 @@ def _histogram_table(
     return nb, widths, lo, table
 
 
+def _bin_index(p: jnp.ndarray, lo: jnp.ndarray, widths: jnp.ndarray, bins: tuple[int, ...]
+               ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Row-major flat bin index of points (M, q) and whether each lies inside the grid."""
+    nb = jnp.asarray(bins)
+    # The top edge is closed so that the data maximum (when the grid spans the data range)
+    # falls in the last bin rather than outside.
+    rel = (p - lo) / widths
+    inside = jnp.all((rel >= 0) & (rel <= nb), axis=1)
+    idx = jnp.clip(jnp.floor(rel).astype(jnp.int32), 0, nb - 1)
+    flat = jnp.zeros(p.shape[0], dtype=jnp.int32)
+    for k, s in enumerate(bins):
+        flat = flat * s + idx[:, k]
+    return flat, inside
+
+
 @partial(jax.jit, static_argnames=("bins", "log_floor"))
 def histogram_lookup(
     x: jnp.ndarray,
@@ -1050,20 +1068,76 @@ def histogram_lookup(
     ``widths`` the bin widths (x dimensions first, then z); points outside get ``log_floor``.
     """
     dx = x.shape[1]
-    p = jnp.concatenate([x, z], axis=1)
-    nb = jnp.asarray(bins)
-    # The top edge is closed so that the data maximum (when the grid spans the data range)
-    # falls in the last bin rather than outside.
-    rel = (p - lo) / widths
-    inside = jnp.all((rel >= 0) & (rel <= nb), axis=1)
-    idx = jnp.clip(jnp.floor(rel).astype(jnp.int32), 0, nb - 1)
+    ix, xin = _bin_index(x, lo[:dx], widths[:dx], bins[:dx])
+    iz, zin = _bin_index(z, lo[dx:], widths[dx:], bins[dx:])
+    return jnp.where(xin & zin, table[ix, iz], log_floor)
 
-    def flat(ix, sizes):
-        out = jnp.zeros(ix.shape[0], dtype=jnp.int32)
-        for k, s in enumerate(sizes):
-            out = out * s + ix[:, k]
-        return out
 
-    ix = flat(idx[:, :dx], bins[:dx])
-    iz = flat(idx[:, dx:], bins[dx:])
-    return jnp.where(inside, table[ix, iz], log_floor)
+def histogram_guide(
+    x: jnp.ndarray,
+    z: jnp.ndarray,
+    table: jnp.ndarray,
+    lo: jnp.ndarray,
+    widths: jnp.ndarray,
+    bins: tuple[int, ...],
+    wall: float,
+) -> jnp.ndarray:
+    """A smooth stand-in for :func:`histogram_lookup` in x, whose gradient steers NUTS.
+
+    Inside the grid: the log table of z's bin, interpolated multilinearly between x-bin
+    centres (it departs from the table by at most half the jump between neighbouring bins).
+    Outside: that value at the nearest edge minus ``0.5 * (distance / (wall * bin width))^2``,
+    a wall that turns trajectories back into the support. Zero where z is outside its grid
+    (the table then says nothing about x).
+    """
+    dx = x.shape[1]
+    bx = bins[:dx]
+    iz, zin = _bin_index(z, lo[dx:], widths[dx:], bins[dx:])
+    rows = table[:, iz].T  # (M, x-bins): the conditional table of each point's z-bin
+    nb = jnp.asarray(bx)
+    rel = (x - lo[:dx]) / widths[:dx]
+    centre = jnp.clip(rel - 0.5, 0.0, nb - 1.0)
+    i0 = jnp.clip(jnp.floor(centre).astype(jnp.int32), 0, jnp.maximum(nb - 2, 0))
+    frac = centre - i0
+    value = jnp.zeros(x.shape[0])
+    for corner in np.ndindex(*(2,) * dx):
+        weight = jnp.ones(x.shape[0])
+        flat = jnp.zeros(x.shape[0], dtype=jnp.int32)
+        for k, s in enumerate(bx):
+            weight = weight * (frac[:, k] if corner[k] else 1.0 - frac[:, k])
+            flat = flat * s + jnp.minimum(i0[:, k] + corner[k], s - 1)
+        value = value + weight * jnp.take_along_axis(rows, flat[:, None], axis=1)[:, 0]
+    beyond = rel - jnp.clip(rel, 0.0, nb)
+    value = value - 0.5 * jnp.sum(beyond**2, axis=1) / wall**2
+    return jnp.where(zin, value, 0.0)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7))
+def guided_histogram_lookup(
+    x: jnp.ndarray,
+    z: jnp.ndarray,
+    table: jnp.ndarray,
+    lo: jnp.ndarray,
+    widths: jnp.ndarray,
+    bins: tuple[int, ...],
+    log_floor: float,
+    wall: float,
+) -> jnp.ndarray:
+    """:func:`histogram_lookup`'s exact value, with :func:`histogram_guide`'s gradient in x.
+
+    The table is piecewise constant, so its true gradient is zero almost everywhere: HMC would
+    fly straight through the support and off its edge, where the density is the floor. NUTS
+    stays exact with any gradient field that is itself a gradient (leapfrog is then still
+    reversible and volume-preserving) because it weighs and accepts states by the exact
+    density; the guide only chooses where trajectories go. Derivatives with respect to z, the
+    table and the grid are not defined (they are data) and come out as zero.
+    """
+    return histogram_lookup(x, z, table, lo, widths, bins, log_floor)
+
+
+@guided_histogram_lookup.defjvp
+def _guided_histogram_lookup_jvp(bins, log_floor, wall, primals, tangents):
+    x, z, table, lo, widths = primals
+    value = histogram_lookup(x, z, table, lo, widths, bins, log_floor)
+    grad = jax.grad(lambda xx: histogram_guide(xx, z, table, lo, widths, bins, wall).sum())(x)
+    return value, jnp.sum(grad * tangents[0], axis=1)

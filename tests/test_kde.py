@@ -24,6 +24,9 @@ from bayesrob.kde import (
     ConditionalKDE,
     KDEError,
     conditional_kde_logpdf,
+    guided_histogram_lookup,
+    histogram_guide,
+    histogram_lookup,
     j_loo,
     kde_logpdf,
     kernel_conditional_weights,
@@ -435,6 +438,42 @@ def test_histogram_conditional_with_paper_bin_widths_centres_on_mean() -> None:
     assert total == pytest.approx(1.0, abs=2e-2)
     with pytest.raises(NotImplementedError):
         cond.sample(0, mean[2:], 3)
+
+
+def test_guided_histogram_lookup_has_the_tables_value_and_a_guiding_gradient() -> None:
+    """NUTS on the paper's COND relies on this: exact table values, a finite gradient that
+    follows the table inside the grid and points back into it outside."""
+    x, z = _cond_data(6, 80)
+    cond = ConditionalKDE.fit(x, z, "histogram", bandwidth="loo-ml")
+    bins, floor = tuple(int(b) for b in cond.bins), math.log(cond.floor)
+    args = (jnp.asarray(cond.log_table), jnp.asarray(cond.grid_lo),
+            jnp.asarray(cond.bin_widths))
+    lo, hi = cond.grid_lo[:2], cond.grid_lo[:2] + 10 * cond.bin_widths[:2]
+    rng = np.random.default_rng(1)
+    pts = jnp.asarray(rng.uniform(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo), (400, 2)))
+    zq = jnp.broadcast_to(jnp.asarray(np.median(z, axis=0)), pts.shape)
+
+    def guided(p):
+        return guided_histogram_lookup(p, zq, *args, bins, floor, 0.25)
+
+    np.testing.assert_array_equal(np.asarray(guided(pts)),
+                                  np.asarray(histogram_lookup(pts, zq, *args, bins, floor)))
+    grad = np.asarray(jax.grad(lambda p: guided(p).sum())(pts))
+    assert np.all(np.isfinite(grad))
+    guide_grad = jax.grad(lambda p: histogram_guide(p, zq, *args, bins, 0.25).sum())(pts)
+    np.testing.assert_array_equal(grad, np.asarray(guide_grad))
+    # Outside the grid the gradient points back towards it.
+    outside = np.any((np.asarray(pts) < lo) | (np.asarray(pts) > hi), axis=1)
+    towards = np.clip(np.asarray(pts), lo, hi) - np.asarray(pts)
+    assert outside.sum() > 100
+    assert np.all(np.sum(grad[outside] * towards[outside], axis=1) > 0)
+    # Inside, the guide interpolates the table: equal to it at every bin centre.
+    cx = [lo[k] + (np.arange(10) + 0.5) * cond.bin_widths[k] for k in range(2)]
+    centres = jnp.asarray(np.stack(np.meshgrid(*cx, indexing="ij"), -1).reshape(-1, 2))
+    zc = jnp.broadcast_to(zq[0], centres.shape)
+    np.testing.assert_allclose(np.asarray(histogram_guide(centres, zc, *args, bins, 0.25)),
+                               np.asarray(histogram_lookup(centres, zc, *args, bins, floor)),
+                               rtol=1e-12)
 
 
 def test_conditional_input_errors() -> None:
