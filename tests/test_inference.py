@@ -354,3 +354,26 @@ def test_sample_command_usage_errors_exit_2(argv, message, capsys):
     rc = main(["sample", "--target", "140", "220", "--sampler", "grid", *argv])
     assert rc == 2
     assert message in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ slow
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [s.name for s in discover_models()])
+def test_every_model_passes_the_check_at_every_default_target(rig, arms, name):
+    """What `bayesrob sample --sampler all` asserts, for all 16 linked targets at once, with
+    the default check tolerances (mean 0.1 mm, covariance 10%, r_hat 1.01, bulk ESS 400).
+    emcee runs 1000 steps (200 burned) instead of 2500: 32 x 800 draws still give bulk ESS
+    near 5000 per coordinate, far above 400, and keep this to about 20 s per model."""
+    (spec,) = discover_models(names=[name])
+    fitted = {a: spec.fit(*_train(rig, arms[a])) for a in ("top", "bottom")}
+    rows = rig.config_rows("top+bottom", "test")
+    targets = rows["target"]
+    ms, am = [fitted["top"], fitted["bottom"]], [arms["top"], arms["bottom"]]
+    cmds = [np.asarray(a.command(jnp.asarray(targets))) for a in am]
+    grid = inf.grid_posterior(ms, am, cmds, targets)
+    nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
+    emc = inf.run_emcee(ms, am, cmds, grid.sample(1, 32), seed=0, n_steps=1000, burn=200)
+    check = inf.cross_check(grid, [nuts, emc])
+    assert check["passed"], check["failures"]
