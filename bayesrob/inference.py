@@ -7,7 +7,9 @@ a 2-D box. Here the same models are probabilistic programs, so standard Bayesian
   Gaussian KDE is ``MixtureSameFamily(Categorical(w), Independent(Normal(data, bw), 1))`` with
   uniform ``w`` (IND: one such 1-D mixture per joint; CORR: one 2-D mixture; COND: the mixing
   weights are the kernel-conditional weights at the command u). The paper's histogram COND has
-  no sampler, only a density, so it enters programs as a ``numpyro.factor``.
+  no sampler, only a density, so it enters programs as a ``numpyro.factor``; its value is the
+  table's and its gradient a smooth guide's (:func:`bayesrob.kde.guided_histogram_lookup`),
+  which lets NUTS sample a density that is piecewise constant.
 - :func:`arm_model`, one arm: u -> theta = g(u) + theta_err, theta_err ~ model -> d = f(theta)
   (+ optional measurement noise). Its prior predictive is the push-forward of the joint-error
   density, which the grid reproduces exactly when the model applies the Jacobian.
