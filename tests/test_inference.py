@@ -223,8 +223,9 @@ def test_emcee_log_density_is_the_programs(small_models, arms, rig):
 
 
 def _setup(rig, arms, models, index):
+    """(models, arms, commands, targets) for linked test target ``index`` (an int or a slice)."""
     rows = rig.config_rows("top+bottom", "test")
-    target = rows["target"][index:index + 1]
+    target = rows["target"][slice(index, index + 1) if isinstance(index, int) else index]
     am = [arms["top"], arms["bottom"]]
     cmds = [np.asarray(a.command(jnp.asarray(target))) for a in am]
     return [models[a] for a in ("top", "bottom")], am, cmds, target
@@ -368,10 +369,8 @@ def test_every_model_passes_the_check_at_every_default_target(rig, arms, name):
     near 5000 per coordinate, far above 400, and keep this to about 20 s per model."""
     (spec,) = discover_models(names=[name])
     fitted = {a: spec.fit(*_train(rig, arms[a])) for a in ("top", "bottom")}
-    rows = rig.config_rows("top+bottom", "test")
-    targets = rows["target"]
-    ms, am = [fitted["top"], fitted["bottom"]], [arms["top"], arms["bottom"]]
-    cmds = [np.asarray(a.command(jnp.asarray(targets))) for a in am]
+    ms, am, cmds, targets = _setup(rig, arms, fitted, slice(None))
+    assert len(targets) == 16
     grid = inf.grid_posterior(ms, am, cmds, targets)
     nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
     emc = inf.run_emcee(ms, am, cmds, grid.sample(1, 32), seed=0, n_steps=1000, burn=200)
