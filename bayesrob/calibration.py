@@ -255,3 +255,201 @@ def calibration_report(rig: Rig, method: Method = "least-squares") -> dict:
 
         doc.update(report_extras(rig, cal))
     return doc
+
+
+# ----------------------------------------------------------------------------- any chain
+# Calibration of a rig of URDF/DH chains (or of planar arms through the same general model):
+# least squares over named parameter groups, after a rank analysis that fixes at nominal
+# whatever the training rows cannot tell apart.
+
+# Groups are tried in this order when the rank analysis decides which of two redundant
+# parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
+# general correction of a joint's origin.
+PRIORITY = ("frames", "offsets", "servo", "geometric")
+# A column is identifiable when the part of it no earlier column explains is at least this
+# fraction of its length (column-scaled to each parameter's typical size). Exact
+# redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would
+# be thousands of times the noise, which only fit noise.
+RANK_TOL = 1e-4
+
+
+@dataclass
+class Identifiability:
+    """Which parameters the rows can identify, and how the others depend on them."""
+
+    free: np.ndarray  # (P,) bool: fitted
+    not_observed: list[str]  # no measured point depends on these at all
+    unidentifiable: list[dict]  # {"name", "group", "explained_by": {name: coefficient}}
+
+
+def identifiability(jac: np.ndarray, layout: kin.ParamLayout, candidates: np.ndarray
+                    ) -> Identifiability:
+    """Rank analysis of the column-scaled Jacobian: a greedy, priority-ordered Gram-Schmidt
+    (a rank-revealing QR whose pivots follow :data:`PRIORITY` rather than column norms, so
+    the parameter kept of a redundant pair is the one with the plain name)."""
+    js = np.asarray(jac) * layout.scales[None, :]
+    norms = np.linalg.norm(js, axis=0)
+    top = norms[candidates].max() if candidates.any() else 1.0
+    order = [i for g in PRIORITY for i, p in enumerate(layout.params)
+             if p.group == g and candidates[i]]
+    basis = np.zeros((js.shape[0], 0))
+    free = np.zeros(len(layout.params), bool)
+    not_observed, dropped = [], []
+    for i in order:
+        c = js[:, i]
+        if norms[i] <= 1e-12 * top:
+            not_observed.append(layout.params[i].name)
+            continue
+        r = c - basis @ (basis.T @ c)
+        r = r - basis @ (basis.T @ r)  # twice: classical Gram-Schmidt loses orthogonality
+        if np.linalg.norm(r) > RANK_TOL * norms[i]:
+            basis = np.column_stack([basis, r / np.linalg.norm(r)])
+            free[i] = True
+        else:
+            dropped.append(i)
+    kept = np.flatnonzero(free)
+    unident = []
+    for i in dropped:
+        coef, *_ = np.linalg.lstsq(js[:, kept], js[:, i], rcond=None)
+        # back to parameter units: J_i ~ sum_k coef_k (s_k / s_i) J_k
+        coef = coef * layout.scales[kept] / layout.scales[i]
+        big = np.argsort(-np.abs(coef))[:3]
+        unident.append({
+            "name": layout.params[i].name, "group": layout.params[i].group,
+            "explained_by": {layout.params[kept[k]].name: float(coef[k]) for k in big
+                             if abs(coef[k]) > 1e-3 * np.abs(coef).max()}})
+    return Identifiability(free, not_observed, unident)
+
+
+def _error_stats(dist: np.ndarray) -> dict:
+    d = np.asarray(dist, float)
+    if d.size == 0:
+        return {"mean_mm": None, "sd_mm": None, "max_mm": None, "n": 0}
+    return {"mean_mm": float(d.mean()), "sd_mm": float(d.std(ddof=1)) if d.size > 1 else 0.0,
+            "max_mm": float(d.max()), "n": int(d.size)}
+
+
+@dataclass
+class ChainCalibration:
+    """A calibrated robot: the parameter vector, what was fitted and how well it fits."""
+
+    robot: kin.Robot
+    x: np.ndarray  # (P,) every parameter, fixed ones at nominal
+    groups: tuple[str, ...]
+    ident: Identifiability
+    se: np.ndarray  # (P,) standard errors, NaN where fixed
+    errors: dict  # set -> arm | "all" -> {mean_mm, sd_mm, max_mm, n}
+    nfev: int
+    seconds: float
+
+    def distances(self, rig: Rig, set: str) -> dict[str, np.ndarray]:
+        return chain_distances(rig, self.robot, self.x, set)
+
+    def to_json(self) -> dict:
+        layout = self.robot.layout
+        return {
+            "method": "least-squares",
+            "params": list(self.groups),
+            "n_free": int(self.ident.free.sum()),
+            "n_parameters": len(layout.params),
+            "parameters": {
+                p.name: {"group": p.group, "value": float(self.x[i]),
+                         "nominal": p.nominal, "free": bool(self.ident.free[i]),
+                         "se": None if not self.ident.free[i] else float(self.se[i])}
+                for i, p in enumerate(layout.params)},
+            "unidentifiable": self.ident.unidentifiable,
+            "not_observed": self.ident.not_observed,
+            "errors": self.errors,
+            "nfev": self.nfev,
+            "seconds": self.seconds,
+        }
+
+
+def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
+                    ) -> dict[str, np.ndarray]:
+    """Per measured arm, the distance (mm) between model and observed marker, row by row."""
+    out = {}
+    for arm in robot.measured_arms():
+        u, d = rig.chain_rows(arm, set)
+        if len(u):
+            p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u)))
+            out[arm] = np.linalg.norm(p - d, axis=1)
+    return out
+
+
+def _residual_function(rig: Rig, robot: kin.Robot, set: str):
+    data = [(arm, *rig.chain_rows(arm, set)) for arm in robot.measured_arms()]
+    data = [(a, jnp.asarray(u), jnp.asarray(d)) for a, u, d in data if len(u)]
+
+    def residuals(x):
+        return jnp.concatenate([(robot.marker_points(x, a, u) - d).ravel() for a, u, d in data])
+
+    def jacobian(x):
+        return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
+                                for a, u, _ in data])
+    return residuals, jacobian, sum(int(d.size) for _, _, d in data)
+
+
+def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None
+                    ) -> ChainCalibration:
+    """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
+    ``train`` rows, after the rank analysis; frames (instrument poses, markers) always."""
+    import time
+
+    t0 = time.perf_counter()
+    unknown = [g for g in groups if g not in kin.GROUPS]
+    if unknown:
+        raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
+                         f"{', '.join(kin.GROUPS)}")
+    groups = tuple(g for g in kin.GROUPS if g in set(groups) | {"frames"})
+    robot = rig.robot
+    layout = robot.layout
+    res_fn, jac_fn, n_res = _residual_function(rig, robot, "train")
+    full_res = jax.jit(res_fn)
+    full_jac = jax.jit(jac_fn)
+    x = layout.nominal.copy()
+    nfev = 0
+
+    def fit(mask: np.ndarray, x0: np.ndarray) -> tuple[np.ndarray, int]:
+        idx = np.flatnonzero(mask)
+
+        def put(v):
+            return jnp.asarray(x0).at[idx].set(jnp.asarray(v))
+        out = scipy.optimize.least_squares(
+            lambda v: np.asarray(full_res(put(v))),
+            x0[idx], jac=lambda v: np.asarray(full_jac(put(v)))[:, idx],
+            x_scale=layout.scales[idx], method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10,
+            max_nfev=300)
+        return np.asarray(put(out.x)), int(out.nfev)
+
+    # The frames first (a rough instrument pose is a large, nonlinear correction), then the
+    # rank analysis at that point and the fit of everything it keeps.
+    frames = layout.group_mask(("frames",))
+    frames_ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, frames)
+    x, n = fit(frames_ident.free, x)
+    nfev += n
+    if progress:
+        progress("frames fitted")
+    ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,
+                            layout.group_mask(groups))
+    if int(ident.free.sum()) >= n_res:
+        raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
+                         "measured coordinates in the train rows")
+    if groups != ("frames",):
+        x, n = fit(ident.free, x)
+        nfev += n
+    r = np.asarray(full_res(jnp.asarray(x)))
+    jac = np.asarray(full_jac(jnp.asarray(x)))[:, ident.free]
+    dof = r.size - int(ident.free.sum())
+    se = np.full(len(x), np.nan)
+    if dof > 0:
+        cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+        se[ident.free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    errors = {}
+    for s in SETS:
+        dist = chain_distances(rig, robot, x, s)
+        if dist:
+            errors[s] = {a: _error_stats(d) for a, d in dist.items()}
+            errors[s]["all"] = _error_stats(np.concatenate(list(dist.values())))
+    return ChainCalibration(robot, x, groups, ident, se, errors, nfev,
+                            time.perf_counter() - t0)

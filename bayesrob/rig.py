@@ -16,15 +16,22 @@ import math
 import re
 import tomllib
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from bayesrob.kinematics import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
+from bayesrob.kinematics import transforms as tf
+
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
 SETS = ("train", "validation", "test")
-ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits")
+ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "meta")
+# Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
+CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
+              "gain", "offset", "mount", "origin", "tool", "coupling", "meta")
+TOP_KEYS = ("name", "gravity", "workspace", "arms", "meta")
 N_ARM_PARAMS = 8
 # A target a little outside the nominal reach is still accepted: nominal lengths are a
 # person's measurements, and the calibrated arm may reach what the nominal one does not.
@@ -59,15 +66,31 @@ class ArmSpec:
 
 
 
+@dataclass(frozen=True)
+class ChainSpec:
+    """An arm described as a chain (a URDF or a DH table): its nominal chain in mm and rad, and
+    the rig.toml table it came from (written back, with calibrated values, by calibrate)."""
+
+    name: str
+    chain: Chain
+    table: dict
+
+    @property
+    def n_columns(self) -> int:
+        return self.chain.n_columns
+
+
 @dataclass
 class Measurements:
     """Column arrays of ``measurements.csv``; NaN where a cell is legitimately empty."""
 
     config: np.ndarray  # (N,) str
     set: np.ndarray  # (N,) str
-    target: np.ndarray  # (N, 2) mm, NaN where not given
-    commands: dict[str, np.ndarray]  # arm -> (N, 2) pulse widths (us), NaN where not in config
-    observed: np.ndarray  # (N, 2) mm
+    target: np.ndarray  # (N, dim) mm, NaN where not given
+    # arm -> (N, columns): pulse widths (us) of a planar arm, or a chain's command columns;
+    # NaN where the row does not use the arm
+    commands: dict[str, np.ndarray]
+    observed: np.ndarray  # (N, dim) mm
     line: np.ndarray  # (N,) line number in the file, for messages
     extra: dict[str, list[str]] = field(default_factory=dict)
 
@@ -88,11 +111,26 @@ class Rig:
     """A validated rig: nominal arms plus measurements."""
 
     name: str
-    arms: dict[str, ArmSpec]
+    arms: dict[str, ArmSpec | ChainSpec]
     measurements: Measurements
-    gravity: tuple[float, float] = (0.0, -1.0)
+    gravity: tuple[float, ...] = (0.0, -1.0)
     workspace: tuple[tuple[float, float], tuple[float, float]] | None = None
     path: Path | None = None
+    # The kinematic model of every arm: planar arms as 2-joint planar chains, or the rig's
+    # URDF/DH chains (a tree when arms are mounted on each other).
+    robot: Robot | None = None
+
+    @property
+    def is_chain(self) -> bool:
+        """True when the arms are URDF/DH chains rather than the paper's planar arms."""
+        return any(isinstance(a, ChainSpec) for a in self.arms.values())
+
+    def chain_rows(self, arm: str, set: str) -> tuple[np.ndarray, np.ndarray]:
+        """A measured arm's rows in a set: its path's columns (N, c) and observed points."""
+        meas = self.measurements
+        m = meas.mask(arm, set)
+        cols = [meas.commands[c.name][m] for c in self.robot.path(arm)]
+        return np.concatenate(cols, axis=1), meas.observed[m]
 
     @property
     def configs(self) -> list[str]:
@@ -151,17 +189,22 @@ def _pair(value: object, where: str, positive: bool = False) -> tuple[float, flo
     return out[0], out[1]
 
 
+def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> None:
+    """Refuse unknown keys: a typo (say 'gravty') would otherwise silently fall back to a
+    default. Other tools' data belongs in a ``meta`` table, which is never read."""
+    known = tuple(known)
+    for key in table:
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+            hint = f"; did you mean {near[0]!r}?" if near else \
+                f" (known keys: {', '.join(known)}; put other tools' data in a 'meta' table)"
+            raise RigError(f"{where}: {what} has unknown key {key!r}{hint}")
+
+
 def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
     if not isinstance(table, dict):
         raise RigError(f"{where}: [arms.{name}] must be a table")
-    for key in table:
-        if key not in ARM_KEYS:
-            # Keys other tools add are ignored, but a near miss of a known key (say
-            # 'pulse_limit') would silently fall back to a default: refuse it.
-            near = difflib.get_close_matches(key, ARM_KEYS, n=1, cutoff=0.75)
-            if near:
-                raise RigError(f"{where}: [arms.{name}] has unknown key {key!r}; did you mean "
-                               f"{near[0]!r}?")
+    _check_keys(table, ARM_KEYS, where, f"[arms.{name}]")
     for key in ("base", "links", "gain", "offset"):
         if key not in table:
             raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
@@ -191,6 +234,108 @@ def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
     return ArmSpec(name, base, links, gain, offset, int(elbow), limits)  # type: ignore[arg-type]
 
 
+def _numbers(value: object, n: int, where: str) -> np.ndarray:
+    """A list of n finite numbers (a single number stands for n equal ones when n > 1)."""
+    if isinstance(value, int | float) and not isinstance(value, bool) and n > 1:
+        value = [value] * n
+    if not isinstance(value, list | tuple) or len(value) != n:
+        raise RigError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise RigError(f"{where}: expected finite numbers, got {value!r}")
+    return np.asarray(value, float)
+
+
+def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> ChainSpec:
+    """An arm given by ``urdf`` (+ ``root``, ``tip``) or ``dh`` (+ ``convention``)."""
+    _check_keys(table, CHAIN_KEYS, where, f"[arms.{name}]")
+    key = f"{where}: arms.{name}"
+    if ("urdf" in table) == ("dh" in table):
+        raise RigError(f"{key}: give either 'urdf' (with 'root' and 'tip') or 'dh', not both")
+    for k in ("mount",):
+        if k in table and not isinstance(table[k], str):
+            raise RigError(f"{key}.{k}: expected an arm name, got {table[k]!r}")
+    marker = _numbers(table.get("marker", [0.0, 0.0, 0.0]), 3, f"{key}.marker")
+    if "instrument" in table and "mount" in table:
+        raise RigError(f"{key}: a mounted arm has no 'instrument' pose of its own (its root "
+                       "arm's is used)")
+    instrument = _numbers(table.get("instrument", [0.0] * 6), 6, f"{key}.instrument")
+    common = {"marker": marker, "mount": table.get("mount"), "instrument": instrument}
+    try:
+        if "urdf" in table:
+            for k in ("root", "tip"):
+                if not isinstance(table.get(k), str):
+                    raise RigError(f"{key}: a URDF arm needs '{k}' (a link name)")
+            if not isinstance(table["urdf"], str):
+                raise RigError(f"{key}.urdf: expected a file name, got {table['urdf']!r}")
+            chain = urdf_chain(directory / table["urdf"], table["root"], table["tip"], name,
+                               **common)
+        else:
+            rows = table["dh"]
+            if not isinstance(rows, list) or not rows:
+                raise RigError(f"{key}.dh: expected a list of [d, theta, a, alpha] rows")
+            for i, r in enumerate(rows):
+                if not isinstance(r, list) or len(r) != 4:
+                    raise RigError(f"{key}.dh[{i}]: a DH row is [d, theta, a, alpha] (4 "
+                                   f"numbers), got {r!r}")
+                _numbers(r, 4, f"{key}.dh[{i}]")
+            convention = table.get("convention", "modified")
+            if convention not in ("modified", "standard"):
+                raise RigError(f"{key}.convention: must be 'modified' or 'standard', got "
+                               f"{convention!r}")
+            kinds = table.get("joint_types", ["revolute"] * len(rows))
+            if not isinstance(kinds, list) or len(kinds) != len(rows) or any(
+                    k not in ("revolute", "prismatic") for k in kinds):
+                raise RigError(f"{key}.joint_types: expected {len(rows)} of 'revolute' or "
+                               f"'prismatic', got {kinds!r}")
+            chain = dh_chain(name, rows, convention, kinds, **common)
+    except KinematicsError as exc:
+        raise RigError(f"{key}: {exc}") from None
+    n = chain.n_joints
+    changes: dict = {}
+    if "coupling" in table:
+        c = table["coupling"]
+        if not isinstance(c, list) or len(c) != n or not all(isinstance(r, list) for r in c):
+            raise RigError(f"{key}.coupling: expected {n} rows (one per joint) of weights on "
+                           f"the arm's columns, got {c!r}")
+        m = len(c[0]) if c else 0
+        changes["coupling"] = np.array([_numbers(r, m, f"{key}.coupling[{i}]")
+                                        for i, r in enumerate(c)])
+    m = changes.get("coupling", chain.coupling).shape[1]
+    changes["gain"] = _numbers(table.get("gain", [1.0] * m), m, f"{key}.gain")
+    if np.any(changes["gain"] == 0):
+        raise RigError(f"{key}.gain: must be non-zero, got {changes['gain'].tolist()}")
+    changes["offset"] = _numbers(table.get("offset", [0.0] * m), m, f"{key}.offset")
+    origins = chain.origins.copy()
+    if "origin" in table:
+        t = tf.np_pose_matrix(_numbers(table["origin"], 6, f"{key}.origin"))
+        origins[0] = tf.matrix_to_pose(t @ tf.np_pose_matrix(origins[0]))
+    if "tool" in table:
+        t = tf.np_pose_matrix(_numbers(table["tool"], 6, f"{key}.tool"))
+        origins[-1] = tf.matrix_to_pose(tf.np_pose_matrix(origins[-1]) @ t)
+    changes["origins"] = origins
+    return ChainSpec(name, replace(chain, **changes), dict(table))
+
+
+def _ordered_chains(specs: dict[str, ChainSpec], where: str) -> dict[str, Chain]:
+    """Chains with every mount before the arms on it; unknown mounts and cycles refused."""
+    out: dict[str, Chain] = {}
+    pending = dict(specs)
+    while pending:
+        ready = [n for n, s in pending.items()
+                 if s.chain.mount is None or s.chain.mount in out]
+        if not ready:
+            for n, s in pending.items():
+                if s.chain.mount not in specs:
+                    raise RigError(f"{where}: arms.{n}.mount: {s.chain.mount!r} is not an arm "
+                                   f"of this rig ({', '.join(specs)})")
+            raise RigError(f"{where}: arms {', '.join(pending)} are mounted on each other in "
+                           "a loop")
+        for n in ready:
+            out[n] = pending.pop(n).chain
+    return out
+
+
 def load_rig_toml(path: Path) -> dict:
     """Parse and validate ``rig.toml``; returns the pieces of a :class:`Rig` but its rows."""
     text = _read_text(path)
@@ -203,6 +348,7 @@ def load_rig_toml(path: Path) -> dict:
             raise RigError(f"{path}: {dup[2]}: duplicate arm name {dup[1]!r} "
                            f"([arms.{dup[1]}] declared twice)") from None
         raise RigError(f"{path}: invalid TOML: {exc}") from None
+    _check_keys(doc, TOP_KEYS, str(path), "rig.toml")
     arms_raw = doc.get("arms")
     if "arms" not in doc:
         raise RigError(f"{path}: missing key 'arms' (at least one [arms.<name>] table)")
@@ -214,13 +360,35 @@ def load_rig_toml(path: Path) -> dict:
     for a in arms_raw:
         if lowered.count(a.lower()) > 1:
             raise RigError(f"{path}: duplicate arm name {a!r} (names differ only by case)")
-    arms = {name: _parse_arm(name, tbl, str(path)) for name, tbl in arms_raw.items()}
-    gravity = doc.get("gravity", [0.0, -1.0])
-    gravity = _pair(gravity, f"{path}: gravity")
+    chain_arms = [n for n, t in arms_raw.items()
+                  if isinstance(t, dict) and ("urdf" in t or "dh" in t)]
+    if chain_arms and len(chain_arms) != len(arms_raw):
+        planar = [n for n in arms_raw if n not in chain_arms]
+        raise RigError(f"{path}: arms {', '.join(chain_arms)} are chains (urdf/dh) but "
+                       f"{', '.join(planar)} planar (base/links): describe all arms one way "
+                       "(a planar arm is a 2-row DH table)")
+    if chain_arms:
+        for name in arms_raw:
+            if "+" in name or "," in name or not name.strip() or name != name.strip():
+                raise RigError(f"{path}: arm name {name!r} may not be empty, contain '+' or "
+                               "',', or start or end with a space")
+            if not isinstance(arms_raw[name], dict):
+                raise RigError(f"{path}: [arms.{name}] must be a table")
+        arms: dict = {name: _parse_chain_arm(name, tbl, str(path), path.parent)
+                      for name, tbl in arms_raw.items()}
+        chains = _ordered_chains(arms, str(path))
+        arms = {n: arms[n] for n in chains}
+    else:
+        arms = {name: _parse_arm(name, tbl, str(path)) for name, tbl in arms_raw.items()}
+        chains = {n: planar_chain(n, a) for n, a in arms.items()}
+    dim = 3 if chain_arms else 2
+    gravity = doc.get("gravity", [0.0, 0.0, -1.0] if chain_arms else [0.0, -1.0])
+    gravity = tuple(float(g) for g in _numbers(gravity, dim, f"{path}: gravity")) \
+        if chain_arms else _pair(gravity, f"{path}: gravity")
     norm = math.hypot(*gravity)
     if norm == 0:
         raise RigError(f"{path}: gravity must be a non-zero vector")
-    gravity = (gravity[0] / norm, gravity[1] / norm)
+    gravity = tuple(g / norm for g in gravity)
     workspace = doc.get("workspace")
     if workspace is not None:
         if not isinstance(workspace, list) or len(workspace) != 2:
@@ -229,7 +397,8 @@ def load_rig_toml(path: Path) -> dict:
     name = doc.get("name", path.parent.name)
     if not isinstance(name, str):
         raise RigError(f"{path}: name must be a string, got {name!r}")
-    return {"name": name, "arms": arms, "gravity": gravity, "workspace": workspace}
+    return {"name": name, "arms": arms, "gravity": gravity, "workspace": workspace,
+            "chains": chains}
 
 
 # ----------------------------------------------------------------------------- measurements
@@ -251,8 +420,8 @@ def parse_number(text: str, where: str, column: str, allow_empty: bool = False) 
     return value
 
 
-def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
-    """Parse and validate ``measurements.csv`` against the rig's arms."""
+def _read_csv(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    """Header (stripped, unique), rows, and the line each row starts on."""
     text = _read_text(path)
     reader = csv.reader(io.StringIO(text, newline=""))
     rows: list[list[str]] = []
@@ -272,6 +441,35 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     dup = {h for h in header if header.count(h) > 1}
     if dup:
         raise RigError(f"{path}: duplicate column {sorted(dup)[0]!r} in header")
+    return header, rows, starts
+
+
+def _config_members(row: list[str], idx: dict, arms: Iterable[str], where: str) -> list[str]:
+    members = [m.strip() for m in row[idx["config"]].split("+")]
+    cfg = "+".join(members)  # 'top + bottom' is 'top+bottom'
+    if not cfg or any(not m for m in members):
+        raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
+    for m in members:
+        if m not in arms:
+            raise RigError(
+                f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
+                f"{', '.join(arms)})"
+            )
+    if len(set(members)) != len(members):
+        raise RigError(f"{where}: config {cfg!r} names the same arm twice")
+    return members
+
+
+def _set_of(row: list[str], idx: dict, where: str) -> str:
+    st = row[idx["set"]].strip()
+    if st not in SETS:
+        raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
+    return st
+
+
+def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
+    """Parse and validate ``measurements.csv`` against the rig's arms."""
+    header, rows, starts = _read_csv(path)
     required = ["config", "set", "target_x", "target_y", "x", "y"]
     for a in arms:
         required += [f"{a}_u1", f"{a}_u2"]
@@ -299,21 +497,9 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
             continue
         if len(row) != len(header):
             raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
-        members = [m.strip() for m in row[idx["config"]].split("+")]
-        cfg = "+".join(members)  # 'top + bottom' is 'top+bottom'
-        if not cfg or any(not m for m in members):
-            raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
-        for m in members:
-            if m not in arms:
-                raise RigError(
-                    f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
-                    f"{', '.join(arms)})"
-                )
-        if len(set(members)) != len(members):
-            raise RigError(f"{where}: config {cfg!r} names the same arm twice")
-        st = row[idx["set"]].strip()
-        if st not in SETS:
-            raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
+        members = _config_members(row, idx, arms, where)
+        cfg = "+".join(members)
+        st = _set_of(row, idx, where)
         for a in members:
             spec = arms[a]
             u = []
@@ -370,18 +556,97 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     return meas
 
 
+def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
+    """``measurements.csv`` of a chain rig: ``x,y`` or ``x,y,z`` (mm) and each chain's
+    ``<arm>_u1..<arm>_uN``; a row's ``config`` names the arm whose marker was measured, and the
+    row carries that arm's columns and its mounts' (targets are optional)."""
+    header, rows, starts = _read_csv(path)
+    dim = 3 if "z" in header else 2
+    robot = Robot(chains, dim)
+    if dim == 2:
+        flat = [n for n, c in chains.items() if not c.is_planar()]
+        if flat:
+            raise RigError(f"{path}: 2-D data (no 'z' column) for 3-D arm {flat[0]!r}: a chain "
+                           "that leaves the plane needs x, y and z")
+    axes = "xyz"[:dim]
+    required = ["config", "set", *axes]
+    for c in chains.values():
+        required += [f"{c.name}_u{k + 1}" for k in range(c.n_columns)]
+    for col in required:
+        if col not in header:
+            raise RigError(f"{path}: missing column '{col}'")
+    idx = {h: i for i, h in enumerate(header)}
+    targets = [f"target_{a}" for a in axes]
+    has_target = all(t in idx for t in targets)
+    extra_cols = [h for h in header if h not in set(required) | set(targets)]
+    measured = robot.measured_arms()
+    n = len(rows)
+    config = np.empty(n, dtype=object)
+    sets = np.empty(n, dtype=object)
+    target = np.full((n, dim), np.nan)
+    observed = np.full((n, dim), np.nan)
+    commands = {c: np.full((n, chains[c].n_columns), np.nan) for c in chains}
+    lines = np.zeros(n, int)
+    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
+    keep = np.ones(n, bool)
+    for r, row in enumerate(rows):
+        lineno = starts[r]
+        where = f"{path}: line {lineno}"
+        if not row or all(not c.strip() for c in row):
+            keep[r] = False
+            continue
+        if len(row) != len(header):
+            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+        members = _config_members(row, idx, chains, where)
+        if len(members) > 1:
+            raise RigError(f"{where}: config {'+'.join(members)!r} links chain arms; this "
+                           "version calibrates chain arms on single-marker rows only")
+        arm = members[0]
+        if arm not in measured:
+            raise RigError(f"{where}: config {arm!r} names an arm other arms are mounted on; "
+                           f"a marker is measured on an arm's tip ({', '.join(measured)})")
+        st = _set_of(row, idx, where)
+        uses = {c.name for c in robot.path(arm)}
+        for c in chains.values():
+            for k in range(c.n_columns):
+                col = f"{c.name}_u{k + 1}"
+                v = parse_number(row[idx[col]], where, col, allow_empty=c.name not in uses)
+                commands[c.name][r, k] = v if c.name in uses else math.nan
+        observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
+        if has_target:
+            target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]
+        config[r], sets[r], lines[r] = arm, st, lineno
+        for h in extra_cols:
+            extra[h].append(row[idx[h]])
+    meas = Measurements(config=config[keep].astype(str), set=sets[keep].astype(str),
+                        target=target[keep], commands={c: v[keep] for c, v in commands.items()},
+                        observed=observed[keep], line=lines[keep], extra=extra)
+    if len(meas) == 0:
+        raise RigError(f"{path}: no measurement rows")
+    return meas, robot
+
+
 def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
     """Load and validate a rig directory.
 
-    ``min_train_rows``: each arm needs at least this many single-arm ``train`` rows (by default
-    as many as it has parameters); pass 0 for rigs still being collected.
+    ``min_train_rows``: each planar arm needs at least this many single-arm ``train`` rows (by
+    default as many as it has parameters); pass 0 for rigs still being collected. A chain rig's
+    measured arms need at least one (calibration checks rows against the parameters it frees).
     """
     directory = Path(directory)
     if not directory.is_dir():
         raise RigError(f"{directory}: rig directory not found")
     meta = load_rig_toml(directory / RIG_FILE)
+    chains = meta.pop("chains")
+    if any(isinstance(a, ChainSpec) for a in meta["arms"].values()):
+        meas, robot = load_chain_measurements(directory / MEASUREMENTS_FILE, chains)
+        rig = Rig(measurements=meas, path=directory, robot=robot, **meta)
+        for a in robot.measured_arms():
+            if min_train_rows and not meas.mask(a, "train").any():
+                raise RigError(f"{directory / MEASUREMENTS_FILE}: arm {a!r} has no train rows")
+        return rig
     meas = load_measurements(directory / MEASUREMENTS_FILE, meta["arms"])
-    rig = Rig(measurements=meas, path=directory, **meta)
+    rig = Rig(measurements=meas, path=directory, robot=Robot(chains, 2), **meta)
     for a in rig.arms:
         n_train = int(meas.mask(a, "train").sum())
         if n_train < min_train_rows:

@@ -853,8 +853,24 @@ def test_misspelled_arm_key_is_refused_not_defaulted(rig_copy):
         load_rig(rig_copy)
 
 
-def test_unrelated_extra_arm_key_from_another_tool_is_kept_quiet(rig_copy):
+def test_unknown_arm_key_is_refused_and_meta_is_the_place_for_other_tools(rig_copy):
     toml = rig_copy / "rig.toml"
-    text = toml.read_text().replace("[arms.top]\n", "[arms.top]\nservo_model = \"HSR-5995TG\"\n")
-    toml.write_text(text)
+    text = toml.read_text()
+    toml.write_text(text.replace("[arms.top]\n", "[arms.top]\nservo_model = \"HSR-5995TG\"\n"))
+    with pytest.raises(RigError, match=r"rig\.toml: \[arms\.top\] has unknown key "
+                                       r"'servo_model'.*'meta' table"):
+        load_rig(rig_copy)
+    toml.write_text(text.replace("[arms.top]\n",
+                                 "[arms.top]\nmeta = { servo_model = \"HSR-5995TG\" }\n"))
     assert load_rig(rig_copy).arms["top"].links
+
+
+@pytest.mark.parametrize("typo, meant", [("gravty", "gravity"), ("workspce", "workspace"),
+                                         ("nme", "name")])
+def test_top_level_typo_is_refused_with_a_suggestion(rig_copy, typo, meant):
+    toml = rig_copy / "rig.toml"
+    value = {"gravty": "[0.0, -1.0]", "workspce": "[[0, 1], [0, 1]]", "nme": '"x"'}[typo]
+    toml.write_text(f"{typo} = {value}\n" + toml.read_text())
+    with pytest.raises(RigError, match=rf"rig\.toml: rig\.toml has unknown key '{typo}'; did "
+                                       rf"you mean '{meant}'\?"):
+        load_rig(rig_copy)

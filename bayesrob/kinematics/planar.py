@@ -1,22 +1,29 @@
-"""Planar two-link arm kinematics and the servo map, as pure JAX functions.
+"""The planar two-link arm of the paper, as pure JAX functions (a specialisation of the chain).
 
 Notation follows the paper: ``f(theta)`` maps joint angles to the end point,
 ``g(u) = gain * u + offset`` maps pulse widths (microseconds) to joint angles (radians).
 Everything broadcasts over leading dimensions, so the same functions serve one point,
 a grid of test points or a batch of targets, and they are differentiable for the
 samplers and the least-squares fit.
+
+The same arm is also a 2-joint planar :class:`~bayesrob.kinematics.chain.Chain`
+(:func:`planar_chain`); the closed-form inverse here is kept for speed and tested equal to the
+general chain.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.rig import ArmSpec
+from bayesrob.kinematics.chain import Chain
+
+if TYPE_CHECKING:  # the rig loader builds kinematic models, so kinematics never imports it
+    from bayesrob.rig import ArmSpec
 
 PARAM_NAMES = ("bx", "by", "l1", "l2", "a1", "a2", "b1", "b2")
 
@@ -172,3 +179,21 @@ class Arm:
     def command(self, d: jax.Array) -> jax.Array:
         """Pulse widths aiming at end points d (not rounded, not limit-checked)."""
         return servo_inverse(self.params, self.inverse(d))
+
+
+def planar_chain(name: str, params: ArmParams) -> Chain:
+    """The planar arm as a 2-joint chain of the general model (mm, rad; z = 0).
+
+    The base is the first origin, the links the next origin and the tool, and the servo map is
+    the chain's command map, so ``Robot({name: chain}, dim=2).marker_points(nominal, name, u)``
+    equals :func:`forward_u`.
+    """
+    (bx, by), (l1, l2) = np.asarray(params.base, float), np.asarray(params.links, float)
+    origins = np.zeros((3, 6))
+    origins[0, :2] = bx, by
+    origins[1, 0] = l1
+    origins[2, 0] = l2
+    return Chain.build(name, ("shoulder", "elbow"), ("revolute", "revolute"),
+                       np.tile([0.0, 0.0, 1.0], (2, 1)), origins,
+                       gain=np.asarray(params.gain, float), offset=np.asarray(params.offset, float),
+                       source={"kind": "planar"})

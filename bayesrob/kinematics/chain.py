@@ -1,0 +1,412 @@
+"""One kinematic model for every robot: serial chains of revolute and prismatic joints in 3-D,
+mounted on each other to form trees, measured by an instrument.
+
+A :class:`Chain` is data: for each joint the fixed transform from the previous frame to the
+joint's frame (its *origin*, a URDF-style xyz/rpy pose), the joint's axis and kind, then a
+*tool* transform to the tip frame. Joint values come from the measured columns through the
+command map (``q_act = gain * u + offset``) and a linear coupling (``q = C @ q_act``, so a
+passive joint can equal a combination of others). A chain may be mounted on the tip frame of
+another (``mount``), which makes a tree whose shared links have one set of parameters.
+
+A :class:`Robot` holds the chains and the nominal pose of the robot base in the instrument's
+frame. Its calibration parameters are one flat vector with a name and a group for every entry
+(:class:`ParamLayout`): ``frames`` (instrument pose, marker positions), ``offsets`` (joint zero
+offsets), ``geometric`` (a six-number correction of every origin and tool transform) and
+``servo`` (command gains). Forward kinematics is a pure JAX function of that vector and the
+rows' columns, vectorised over rows, differentiable, in float64.
+
+Units: mm and rad (URDF metres are converted when read).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob.kinematics import transforms as tf
+
+JOINT_KINDS = ("revolute", "prismatic")
+GROUPS = ("frames", "offsets", "geometric", "servo")
+POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+class KinematicsError(ValueError):
+    """A robot description is inconsistent; the message says where and what."""
+
+
+@dataclass(frozen=True, eq=False)
+class Chain:
+    """A serial chain's structure and nominal values (mm, rad)."""
+
+    name: str
+    joint_names: tuple[str, ...]
+    kinds: tuple[str, ...]
+    axes: np.ndarray  # (n, 3) unit axes, each in its joint's frame
+    origins: np.ndarray  # (n + 1, 6) poses: joint i's frame in the previous one; last: the tool
+    coupling: np.ndarray  # (n, m): joint values = coupling @ (gain * u + offset)
+    gain: np.ndarray  # (m,)
+    offset: np.ndarray  # (m,)
+    marker: np.ndarray = field(default_factory=lambda: np.zeros(3))  # mm, in the tip frame
+    mount: str | None = None
+    # A root chain's base pose in the instrument frame [x, y, z, roll, pitch, yaw] (mm, rad):
+    # every robot standing on its own has one, and it is always calibrated.
+    instrument: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    source: dict = field(default_factory=dict)  # how it was described (for writing URDF)
+
+    def __post_init__(self) -> None:
+        n, m = self.n_joints, self.n_columns
+        if self.axes.shape != (n, 3) or self.origins.shape != (n + 1, 6):
+            raise KinematicsError(f"chain {self.name!r}: {n} joints need {n} axes and "
+                                  f"{n + 1} origins")
+        if self.coupling.shape != (n, m) or self.gain.shape != (m,) or self.offset.shape != (m,):
+            raise KinematicsError(f"chain {self.name!r}: coupling must be {n} x {m}")
+        for k in self.kinds:
+            if k not in JOINT_KINDS:
+                raise KinematicsError(f"chain {self.name!r}: unknown joint kind {k!r}")
+        norms = np.linalg.norm(self.axes, axis=1)
+        if np.any(norms < 1e-12):
+            raise KinematicsError(f"chain {self.name!r}: a joint axis is zero")
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_columns(self) -> int:
+        return self.coupling.shape[1]
+
+    @classmethod
+    def build(cls, name: str, joint_names: Sequence[str], kinds: Sequence[str],
+              axes: np.ndarray, origins: np.ndarray, coupling: np.ndarray | None = None,
+              gain: np.ndarray | None = None, offset: np.ndarray | None = None,
+              marker: Sequence[float] = (0.0, 0.0, 0.0), mount: str | None = None,
+              source: dict | None = None, instrument: Sequence[float] | None = None) -> Chain:
+        """A chain with identity coupling and command map unless given."""
+        n = len(joint_names)
+        axes = np.asarray(axes, float).reshape(n, 3)
+        axes = axes / np.maximum(np.linalg.norm(axes, axis=1, keepdims=True), 1e-300)
+        coupling = np.eye(n) if coupling is None else np.asarray(coupling, float)
+        m = coupling.shape[1] if coupling.ndim == 2 else 0
+        gain = np.ones(m) if gain is None else np.asarray(gain, float)
+        offset = np.zeros(m) if offset is None else np.asarray(offset, float)
+        return cls(name, tuple(joint_names), tuple(kinds), axes,
+                   np.asarray(origins, float).reshape(n + 1, 6), coupling, gain, offset,
+                   np.asarray(marker, float), mount,
+                   np.zeros(6) if instrument is None else np.asarray(instrument, float),
+                   dict(source or {}))
+
+    def is_planar(self) -> bool:
+        """Every joint turns about z and no origin leaves the xy plane: a planar chain."""
+        flat = np.allclose(self.origins[:, 2:5], 0.0, atol=1e-12)
+        about_z = all(k == "revolute" for k in self.kinds) and np.allclose(
+            np.abs(self.axes[:, 2]), 1.0, atol=1e-12)
+        return bool(flat and about_z and abs(self.marker[2]) < 1e-12)
+
+
+@dataclass(frozen=True)
+class Param:
+    """One calibration parameter: its name, group and nominal value."""
+
+    name: str
+    group: str
+    nominal: float
+    scale: float  # a typical size: 1 mm for lengths, 1 mrad for angles, 0.1% for gains
+
+
+@dataclass(frozen=True, eq=False)
+class ParamLayout:
+    """Names, groups and slices of the flat parameter vector of a robot."""
+
+    params: tuple[Param, ...]
+    slices: dict  # (chain or "instrument", part) -> slice
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    @property
+    def nominal(self) -> np.ndarray:
+        return np.array([p.nominal for p in self.params])
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.array([p.scale for p in self.params])
+
+    def group_mask(self, groups: Sequence[str]) -> np.ndarray:
+        return np.array([p.group in groups for p in self.params])
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+
+def _layout(chains: dict[str, Chain]) -> ParamLayout:
+    params: list[Param] = []
+    slices: dict = {}
+
+    def add(key, names, group, nominal, scale):
+        start = len(params)
+        params.extend(Param(n, group, float(v), float(s))
+                      for n, v, s in zip(names, nominal, scale, strict=True))
+        slices[key] = slice(start, len(params))
+
+    for c in chains.values():
+        if c.mount is None:
+            add((c.name, "instrument"), [f"{c.name}.instrument.{a}" for a in POSE_AXES],
+                "frames", np.zeros(6), [1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])
+    parents = {c.mount for c in chains.values()}
+    for c in chains.values():
+        if c.name in parents:
+            continue  # a chain other chains are mounted on carries no marker of its own
+        add((c.name, "marker"), [f"{c.name}.marker.{a}" for a in "xyz"], "frames", c.marker,
+            [1.0] * 3)
+    for c in chains.values():
+        add((c.name, "offset"), [f"{c.name}.{j}.offset" for j in c.joint_names], "offsets",
+            np.zeros(c.n_joints),
+            [1e-3 if k == "revolute" else 1.0 for k in c.kinds])
+    for c in chains.values():
+        names = [f"{c.name}.{j}.origin.{a}" for j in (*c.joint_names, "tool") for a in POSE_AXES]
+        add((c.name, "origins"), names, "geometric", np.zeros(6 * (c.n_joints + 1)),
+            [1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3] * (c.n_joints + 1))
+    for c in chains.values():
+        add((c.name, "gain"), [f"{c.name}.u{k + 1}.gain" for k in range(c.n_columns)], "servo",
+            c.gain, np.maximum(np.abs(c.gain) * 1e-3, 1e-12))
+    return ParamLayout(tuple(params), slices)
+
+
+def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
+    if kind == "revolute":
+        rot = tf.rot_axis(axis, q)
+        return tf.homogeneous(rot, jnp.zeros(q.shape + (3,)))
+    rot = jnp.broadcast_to(jnp.eye(3), q.shape + (3, 3))
+    return tf.homogeneous(rot, q[..., None] * jnp.asarray(axis))
+
+
+@dataclass(frozen=True, eq=False)
+class Robot:
+    """Chains (parents first) and the dimension of the measured points (2 or 3)."""
+
+    chains: dict[str, Chain]
+    dim: int = 3
+
+    def __post_init__(self) -> None:
+        seen: set[str] = set()
+        for c in self.chains.values():
+            if c.mount is not None and c.mount not in seen:
+                known = c.mount in self.chains
+                raise KinematicsError(
+                    f"chain {c.name!r} is mounted on {c.mount!r}, which "
+                    + ("must come before it" if known else "is not a chain of this robot"))
+            seen.add(c.name)
+        if self.dim not in (2, 3):
+            raise KinematicsError(f"measurements must be 2-D or 3-D, not {self.dim}-D")
+
+    @cached_property
+    def layout(self) -> ParamLayout:
+        return _layout(self.chains)
+
+    def path(self, arm: str) -> list[Chain]:
+        """The chains from the robot base to ``arm``'s tip, base first."""
+        out = []
+        name: str | None = arm
+        while name is not None:
+            out.append(self.chains[name])
+            name = self.chains[name].mount
+        return out[::-1]
+
+    def columns(self, arm: str) -> list[str]:
+        """The measurement columns a row of ``arm`` carries: its ancestors' and its own."""
+        return [f"{c.name}_u{k + 1}" for c in self.path(arm) for k in range(c.n_columns)]
+
+    def joint_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
+        """Joint values (N, n) of ``chain`` for its columns u (N, m) under parameters x."""
+        sl = self.layout.slices
+        gain = x[sl[(chain.name, "gain")]]
+        q_act = gain * u + jnp.asarray(chain.offset)
+        return q_act @ jnp.asarray(chain.coupling).T + x[sl[(chain.name, "offset")]]
+
+    def _elements(self, arm: str) -> dict[str, np.ndarray]:
+        """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
+        a tool is an element whose motion is nothing), for one ``lax.scan``: a loop the
+        compiler sees once, however many joints the robot has."""
+        cache = self.__dict__.setdefault("_element_cache", {})
+        if arm in cache:
+            return cache[arm]
+        sl = self.layout.slices
+        nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
+        n_q = 0
+        for chain in self.path(arm):
+            start = sl[(chain.name, "origins")].start
+            for i in range(chain.n_joints + 1):
+                nominal.append(tf.np_pose_matrix(chain.origins[i]))
+                delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
+                last = i == chain.n_joints
+                axes.append(np.zeros(3) if last else chain.axes[i])
+                prismatic.append(0.0 if last else float(chain.kinds[i] == "prismatic"))
+                q_idx.append(-1 if last else n_q + i)
+            n_q += chain.n_joints
+        q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
+        out = {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
+               "axes": np.stack(axes), "prismatic": np.array(prismatic),
+               "q_idx": np.array(q_idx)}
+        cache[arm] = out
+        return out
+
+    def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns)."""
+        x = jnp.asarray(x)
+        u = jnp.atleast_2d(jnp.asarray(u))
+        sl = self.layout.slices
+        path = self.path(arm)
+        qs, col = [], 0
+        for chain in path:
+            qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
+            col += chain.n_columns
+        q = jnp.concatenate([*qs, jnp.zeros((u.shape[0], 1))], axis=1)
+        el = self._elements(arm)
+        t0 = tf.np_pose_matrix(path[0].instrument) @ tf.perturbation(
+            x[sl[(path[0].name, "instrument")]])
+        t0 = jnp.broadcast_to(t0, (u.shape[0], 4, 4))
+
+        def step(t, e):
+            nominal, delta, axis, prismatic, qe = e
+            turn = tf.rot_axis(axis, qe * (1.0 - prismatic))
+            motion = tf.homogeneous(turn, (qe * prismatic)[:, None] * axis)
+            return t @ (nominal @ tf.perturbation(delta)) @ motion, None
+
+        xs = (jnp.asarray(el["nominal"]), x[el["delta_idx"]], jnp.asarray(el["axes"]),
+              jnp.asarray(el["prismatic"]), q[:, el["q_idx"]].T)
+        t, _ = jax.lax.scan(step, t0, xs)
+        return t
+
+    def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """d marker_points / d x, (N, dim, P), from prefix and suffix products.
+
+        Every parameter enters as one factor of the product of transforms, so each derivative
+        is (product before it) @ (derivative of the factor) @ (product after it, applied to
+        the marker): one pass forward and one back, instead of pushing every parameter's
+        tangent through the whole chain (what ``jax.jacfwd`` does, tested equal).
+        """
+        x = jnp.asarray(x)
+        u = jnp.atleast_2d(jnp.asarray(u))
+        n_rows = u.shape[0]
+        sl = self.layout.slices
+        path = self.path(arm)
+        el = self._elements(arm)
+        qs, col = [], 0
+        for chain in path:
+            qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
+            col += chain.n_columns
+        q = jnp.concatenate([*qs, jnp.zeros((n_rows, 1))], axis=1)[:, el["q_idx"]].T  # (E, N)
+        deltas = x[el["delta_idx"]]  # (E, 6)
+        axes = jnp.asarray(el["axes"])
+        prismatic = jnp.asarray(el["prismatic"])
+        factors = jnp.asarray(el["nominal"]) @ tf.perturbation(deltas)  # (E, 4, 4)
+        turn = tf.rot_axis_batch(axes, q * (1.0 - prismatic)[:, None])  # (E, N, 3, 3)
+        motions = tf.homogeneous(turn, (q * prismatic[:, None])[..., None] * axes[:, None, :])
+        inst_nominal = tf.np_pose_matrix(path[0].instrument)
+        inst_delta = x[sl[(path[0].name, "instrument")]]
+        t0 = jnp.broadcast_to(inst_nominal @ tf.perturbation(inst_delta), (n_rows, 4, 4))
+
+        def forward(t, fm):
+            f, m = fm
+            before = t @ f  # frame after the origin's correction, before the motion
+            return before @ m, (t, before @ m)
+
+        tip, (prefix, after) = jax.lax.scan(forward, t0, (factors, motions))
+        marker = x[sl[(arm, "marker")]]
+        point = jnp.concatenate([marker, jnp.ones(1)])
+
+        def backward(b, fm):
+            f, m = fm
+            inner = jnp.einsum("nij,nj->ni", m, b)  # the motion applied to what follows
+            return jnp.einsum("ij,nj->ni", f, inner), (b, inner)
+
+        _, (suffix, inner) = jax.lax.scan(backward, jnp.broadcast_to(point, (n_rows, 4)),
+                                          (factors, motions), reverse=True)
+        # suffix[k]: the marker in the frame after element k's motion; inner[k]: after its
+        # origin, before its motion.
+        d_deltas = jax.vmap(jax.jacfwd(tf.perturbation))(deltas)  # (E, 4, 4, 6)
+        nominal = jnp.asarray(el["nominal"])
+        j_delta = jnp.einsum("enij,ejk,eklp,enl->enip", prefix, nominal, d_deltas, inner)
+        skew = jnp.stack([jnp.cross(jnp.eye(3), a) for a in axes])  # row i: e_i x a, so K v = a x v
+        gen = jnp.zeros((axes.shape[0], 4, 4))
+        gen = gen.at[:, :3, :3].set(skew * (1.0 - prismatic)[:, None, None])
+        gen = gen.at[:, :3, 3].set(axes * prismatic[:, None])
+        j_q = jnp.einsum("enij,ejk,enk->eni", after, gen, suffix)  # (E, N, 4)
+        jac = jnp.zeros((n_rows, 3, len(self.layout.params)))
+        jac = jac.at[:, :, jnp.asarray(el["delta_idx"]).ravel()].add(
+            jnp.transpose(j_delta[:, :, :3, :], (1, 2, 0, 3)).reshape(n_rows, 3, -1))
+        d_inst = jax.jacfwd(tf.perturbation)(inst_delta)
+        first = jnp.einsum("ij,jkl,nk->nil", inst_nominal, d_inst,
+                           jnp.einsum("ij,nj->ni", factors[0], inner[0]))
+        jac = jac.at[:, :, sl[(path[0].name, "instrument")]].set(first[:, :3, :])
+        jac = jac.at[:, :, sl[(arm, "marker")]].set(tip[:, :3, :3])
+        # joint values -> zero offsets and gains, chain by chain (q = C (gain u + offset) + off)
+        start, col = 0, 0
+        for chain in path:
+            k = chain.n_joints
+            dq = jnp.transpose(j_q[start:start + k, :, :3], (1, 2, 0))  # (N, 3, k)
+            jac = jac.at[:, :, sl[(chain.name, "offset")]].set(dq)
+            uc = u[:, col:col + chain.n_columns]
+            d_gain = jnp.einsum("nik,kc,nc->nic", dq, jnp.asarray(chain.coupling), uc)
+            jac = jac.at[:, :, sl[(chain.name, "gain")]].set(d_gain)
+            start += k + 1
+            col += chain.n_columns
+        return jac[:, : self.dim, :]
+
+    def marker_points(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """Where the instrument sees ``arm``'s marker: (N, dim) in mm."""
+        t = self.tip_transforms(x, arm, u)
+        m = jnp.asarray(x)[self.layout.slices[(arm, "marker")]]
+        p = t[:, :3, :3] @ m + t[:, :3, 3]
+        return p[:, : self.dim]
+
+    def compiled_points(self, arm: str):
+        """A jitted ``(x, u) -> marker points`` for one arm, built once per robot and arm."""
+        cache = self.__dict__.setdefault("_compiled", {})
+        if arm not in cache:
+            cache[arm] = jax.jit(lambda x, u: self.marker_points(x, arm, u))
+        return cache[arm]
+
+    def with_values(self, x: np.ndarray) -> Robot:
+        """A robot whose nominal values are those of the parameter vector x (deltas folded in).
+
+        The result has zero corrections and reproduces ``marker_points(x, ...)`` at its own
+        nominal vector: what a calibrated URDF / rig file holds.
+        """
+        x = np.asarray(x, float)
+        sl = self.layout.slices
+        chains = {}
+        for c in self.chains.values():
+            instrument = c.instrument
+            if c.mount is None:
+                instrument = tf.matrix_to_pose(tf.np_pose_matrix(c.instrument) @ np.asarray(
+                    tf.perturbation(x[sl[(c.name, "instrument")]])))
+            deltas = x[sl[(c.name, "origins")]].reshape(c.n_joints + 1, 6)
+            offsets = x[sl[(c.name, "offset")]]
+            origins = []
+            for i in range(c.n_joints + 1):
+                t = tf.np_pose_matrix(c.origins[i]) @ np.asarray(tf.perturbation(deltas[i]))
+                origins.append(tf.matrix_to_pose(t))
+            # A joint's zero offset is folded into its origin: a turn (or shift) about its own
+            # axis commutes with the joint's motion, so Origin @ M(q + dq) = (Origin @ M(dq)) M(q).
+            for i in range(c.n_joints):
+                t = tf.np_pose_matrix(origins[i]) @ np.asarray(
+                    _joint_motion(c.kinds[i], c.axes[i], jnp.asarray(offsets[i])))
+                origins[i] = tf.matrix_to_pose(t)
+            chains[c.name] = Chain(
+                c.name, c.joint_names, c.kinds, c.axes, np.array(origins), c.coupling,
+                x[sl[(c.name, "gain")]].copy(), c.offset.copy(),
+                x[sl[(c.name, "marker")]].copy() if (c.name, "marker") in sl else c.marker,
+                c.mount, instrument, c.source)
+        return Robot(chains, self.dim)
+
+    def measured_arms(self) -> list[str]:
+        """Chains that carry a marker (the leaves of the tree)."""
+        parents = {c.mount for c in self.chains.values()}
+        return [c for c in self.chains if c not in parents]

@@ -1,0 +1,240 @@
+"""Chains from URDF files, and calibrated URDF files out.
+
+Only what kinematics needs is read, with the standard XML parser: each joint's ``type``,
+``origin`` (xyz in metres, rpy in rad), ``axis``, ``parent``/``child`` link and ``mimic``.
+Meshes, inertias and limits are left alone, and written back untouched. The chain between two
+named links becomes a :class:`~bayesrob.kinematics.chain.Chain` in mm: fixed joints are folded
+into the next joint's origin (or into the tool), ``continuous`` joints are revolute, and a
+``mimic`` joint is a coupled passive joint (its multiplier goes into the coupling matrix, its
+offset into its origin, where a turn about the joint's own axis is exact).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from bayesrob.kinematics import transforms as tf
+from bayesrob.kinematics.chain import Chain, KinematicsError, Robot
+
+M_TO_MM = 1000.0
+
+
+def _floats(text: str | None, n: int, default: list[float], where: str) -> np.ndarray:
+    if text is None:
+        return np.array(default, float)
+    try:
+        v = np.array([float(t) for t in text.split()])
+    except ValueError:
+        raise KinematicsError(f"{where}: expected {n} numbers, got {text!r}") from None
+    if v.size != n or not np.all(np.isfinite(v)):
+        raise KinematicsError(f"{where}: expected {n} finite numbers, got {text!r}")
+    return v
+
+
+def _parse(path: Path) -> ET.Element:
+    if not path.is_file():
+        raise KinematicsError(f"{path}: URDF file not found")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise KinematicsError(f"{path}: malformed URDF (XML): {exc}") from None
+    if root.tag != "robot":
+        raise KinematicsError(f"{path}: not a URDF (root element is <{root.tag}>, not <robot>)")
+    return root
+
+
+def _origin_matrix(joint: ET.Element, where: str) -> np.ndarray:
+    o = joint.find("origin")
+    xyz = _floats(o.get("xyz") if o is not None else None, 3, [0, 0, 0], f"{where} origin xyz")
+    rpy = _floats(o.get("rpy") if o is not None else None, 3, [0, 0, 0], f"{where} origin rpy")
+    return tf.np_pose_matrix(np.concatenate([xyz * M_TO_MM, rpy]))
+
+
+def _joint_path(root_el: ET.Element, root: str, tip: str, path: Path) -> list[ET.Element]:
+    links = {el.get("name") for el in root_el.findall("link")}
+    for name, what in ((root, "root"), (tip, "tip")):
+        if name not in links:
+            raise KinematicsError(f"{path}: {what} link {name!r} is not a link of this URDF")
+    by_child = {}
+    for j in root_el.findall("joint"):
+        child = j.find("child")
+        if child is not None:
+            by_child[child.get("link")] = j
+    chain = []
+    link = tip
+    while link != root:
+        j = by_child.get(link)
+        if j is None:
+            raise KinematicsError(f"{path}: links {root!r} and {tip!r} are not connected "
+                                  f"(no joint leads from {root!r} down to {tip!r})")
+        chain.append(j)
+        parent = j.find("parent")
+        link = parent.get("link") if parent is not None else None
+        if link is None:
+            raise KinematicsError(f"{path}: joint {j.get('name')!r} has no parent link")
+    return chain[::-1]
+
+
+def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs) -> Chain:
+    """The chain of ``path`` from link ``root`` to link ``tip`` (mm, rad)."""
+    path = Path(path)
+    root_el = _parse(path)
+    joints = _joint_path(root_el, root, tip, path)
+    fixed = np.eye(4)
+    prefix: list[str] = []  # fixed joints folded into the next movable joint's origin
+    movable, origins, axes, kinds, mimics, prefixes = [], [], [], [], [], []
+    for j in joints:
+        jname = j.get("name") or "?"
+        where = f"{path}: joint {jname!r}"
+        jtype = j.get("type")
+        t = _origin_matrix(j, where)
+        if jtype == "fixed":
+            fixed = fixed @ t
+            prefix.append(jname)
+            continue
+        if jtype not in ("revolute", "continuous", "prismatic"):
+            raise KinematicsError(f"{where}: joint type {jtype!r} is not supported "
+                                  "(revolute, continuous, prismatic, fixed)")
+        ax = j.find("axis")
+        axis = _floats(ax.get("xyz") if ax is not None else None, 3, [1, 0, 0], f"{where} axis")
+        if np.linalg.norm(axis) < 1e-12:
+            raise KinematicsError(f"{where}: axis is zero")
+        kind = "prismatic" if jtype == "prismatic" else "revolute"
+        mim = j.find("mimic")
+        if mim is not None:
+            mult = float(mim.get("multiplier", "1"))
+            off = float(mim.get("offset", "0")) * (M_TO_MM if kind == "prismatic" else 1.0)
+            axis_u = axis / np.linalg.norm(axis)
+            if kind == "revolute":
+                motion = np.eye(4)
+                motion[:3, :3] = np.asarray(tf.rot_axis(axis_u, np.float64(off)))
+            else:
+                motion = np.eye(4)
+                motion[:3, 3] = axis_u * off
+            t = t @ motion
+            mimics.append((mim.get("joint"), mult))
+        else:
+            mimics.append(None)
+        origins.append(tf.matrix_to_pose(fixed @ t))
+        prefixes.append(prefix)
+        fixed, prefix = np.eye(4), []
+        movable.append(jname)
+        axes.append(axis)
+        kinds.append(kind)
+    if not movable:
+        raise KinematicsError(f"{path}: no movable joint between {root!r} and {tip!r}")
+    origins.append(tf.matrix_to_pose(fixed))
+    actuated = [m for m, mim in zip(movable, mimics, strict=True) if mim is None]
+    coupling = np.zeros((len(movable), len(actuated)))
+    for i, (m, mim) in enumerate(zip(movable, mimics, strict=True)):
+        if mim is None:
+            coupling[i, actuated.index(m)] = 1.0
+        else:
+            if mim[0] not in actuated:
+                raise KinematicsError(f"{path}: joint {m!r} mimics {mim[0]!r}, which is not an "
+                                      f"actuated joint between {root!r} and {tip!r}")
+            coupling[i, actuated.index(mim[0])] = mim[1]
+    source = {"kind": "urdf", "path": str(path), "root": root, "tip": tip,
+              "joints": movable, "prefixes": prefixes, "tail": prefix}
+    return Chain.build(name, movable, kinds, np.array(axes), np.array(origins),
+                       coupling=coupling, source=source, **chain_kwargs)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _set_origin(joint: ET.Element, t: np.ndarray) -> None:
+    pose = tf.matrix_to_pose(t)
+    o = joint.find("origin")
+    if o is None:
+        o = ET.SubElement(joint, "origin")
+    o.set("xyz", " ".join(f"{v / M_TO_MM:.12g}" for v in pose[:3]))
+    o.set("rpy", " ".join(f"{v:.12g}" for v in pose[3:]))
+
+
+def _patched(robot: Robot, calibrated: Robot) -> ET.ElementTree:
+    """The robot's own URDF with every chain joint's origin replaced by its calibrated one."""
+    files = {c.source["path"] for c in robot.chains.values()}
+    tree = ET.parse(next(iter(files)))
+    by_name = {j.get("name"): j for j in tree.getroot().findall("joint")}
+    for c in calibrated.chains.values():
+        src = c.source
+        for i, jname in enumerate(src["joints"]):
+            prefix = np.eye(4)
+            for f in src["prefixes"][i]:
+                prefix = prefix @ _origin_matrix(by_name[f], f)
+            _set_origin(by_name[jname], np.linalg.inv(prefix) @ tf.np_pose_matrix(c.origins[i]))
+        tool = tf.np_pose_matrix(c.origins[-1])
+        if src["tail"]:
+            head = np.eye(4)
+            for f in src["tail"][:-1]:
+                head = head @ _origin_matrix(by_name[f], f)
+            _set_origin(by_name[src["tail"][-1]], np.linalg.inv(head) @ tool)
+        elif not np.allclose(tool, np.eye(4), atol=1e-9):
+            raise KinematicsError(
+                f"chain {c.name!r}: its tool transform changed but tip link "
+                f"{src['tip']!r} has no fixed joint to hold it; calibrate the marker instead")
+    return tree
+
+
+def _generated(calibrated: Robot, name: str) -> ET.ElementTree:
+    """A kinematics-only URDF of a robot described by DH tables or planar arms.
+
+    Couplings are not written as ``<mimic>`` (which follows one joint only, not a combination
+    such as -(q2 + q3)): the rig file beside the URDF carries them.
+    """
+    robot_el = ET.Element("robot", name=name)
+    ET.SubElement(robot_el, "link", name="base_link")
+    for c in calibrated.chains.values():
+        parent = f"{c.mount}_tip" if c.mount else "base_link"
+        for i, jname in enumerate(c.joint_names):
+            link = f"{c.name}_link{i + 1}"
+            ET.SubElement(robot_el, "link", name=link)
+            j = ET.SubElement(robot_el, "joint", name=f"{c.name}_{jname}",
+                              type="prismatic" if c.kinds[i] == "prismatic" else "continuous")
+            ET.SubElement(j, "parent", link=parent)
+            ET.SubElement(j, "child", link=link)
+            _set_origin(j, tf.np_pose_matrix(c.origins[i]))
+            ET.SubElement(j, "axis", xyz=" ".join(f"{v:.12g}" for v in c.axes[i]))
+            parent = link
+        ET.SubElement(robot_el, "link", name=f"{c.name}_tip")
+        j = ET.SubElement(robot_el, "joint", name=f"{c.name}_tool", type="fixed")
+        ET.SubElement(j, "parent", link=parent)
+        ET.SubElement(j, "child", link=f"{c.name}_tip")
+        _set_origin(j, tf.np_pose_matrix(c.origins[-1]))
+    ET.indent(robot_el)
+    return ET.ElementTree(robot_el)
+
+
+def write_urdf(robot: Robot, x: np.ndarray, out: str | Path, name: str = "robot") -> Robot:
+    """Write the calibrated robot (parameters x) as URDF; returns the calibrated robot.
+
+    A robot read from one URDF file gets that file back with its joints' origins replaced (so
+    meshes, inertias and limits survive); any other robot gets a kinematics-only URDF with
+    links ``<arm>_link<i>`` and tip links ``<arm>_tip``. The instrument pose and the markers
+    are not part of a URDF: they go into the rig file beside it.
+    """
+    calibrated = robot.with_values(x)
+    kinds = {c.source.get("kind") for c in robot.chains.values()}
+    files = {c.source.get("path") for c in robot.chains.values()}
+    tree = _patched(robot, calibrated) if kinds == {"urdf"} and len(files) == 1 else \
+        _generated(calibrated, name)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tree.write(out, encoding="unicode", xml_declaration=True)
+    return calibrated
+
+
+def generated_arm_keys(robot: Robot) -> dict[str, dict]:
+    """root/tip of each chain in a URDF written by :func:`write_urdf` from non-URDF chains."""
+    out = {}
+    for c in robot.chains.values():
+        if c.source.get("kind") == "urdf":
+            out[c.name] = {"root": c.source["root"], "tip": c.source["tip"]}
+        else:
+            out[c.name] = {"root": f"{c.mount}_tip" if c.mount else "base_link",
+                           "tip": f"{c.name}_tip"}
+    return out
