@@ -319,7 +319,8 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
     for name, what in (("drop-rate", "bytes sent that are lost"),
                        ("garble-rate", "bytes sent that arrive changed"),
                        ("rx-garble-rate", "servo bytes received that are corrupted"),
-                       ("bad-checksum-rate", "tracker lines sent with a wrong checksum")):
+                       ("bad-checksum-rate", "tracker lines sent with a wrong checksum"),
+                       ("outlier-rate", "tracker lines with a wild reading 5-50 mm off")):
         p.add_argument(f"--{name}", type=_hw_number(float, 0.0, 1.0), default=0.0,
                        metavar="P", help=f"fault: fraction of {what} (0)")
     p.add_argument("--reply-delay", type=_hw_number(float, 0.0), default=0.0, metavar="SECONDS",
@@ -352,7 +353,7 @@ def _sim_device(args: argparse.Namespace) -> int:
 
     faults = Faults(args.drop_rate, args.garble_rate, args.rx_garble_rate,
                     args.bad_checksum_rate, args.reply_delay, args.disconnect_after,
-                    args.error_after)
+                    args.error_after, args.outlier_rate)
     try:
         channels = parse_channels(args.channels) if args.channels else None
         channel_range = (parse_channel_range(args.channel_range)

@@ -20,7 +20,8 @@ Linking (``linked``):
 
 Faults, for testing what the host survives: bytes the device sends dropped (``drop_rate``) or
 replaced (``garble_rate``), bytes it receives on the servo port corrupted (``rx_garble_rate``),
-tracker lines with a wrong checksum (``bad_checksum_rate``), servo replies delayed
+tracker lines with a wrong checksum (``bad_checksum_rate``) or a wild reading 5 to 50 mm off
+with a good checksum, as a reflection gives (``outlier_rate``), servo replies delayed
 (``reply_delay_s``), the servo port closed after ``disconnect_after`` commands, as when a
 USB cable is pulled, and a serial error flagged after ``error_after`` commands (once), as line
 noise would. Every byte received on the servo port is kept (``received``) and, with
@@ -82,9 +83,11 @@ class Faults:
     reply_delay_s: float = 0.0
     disconnect_after: int | None = None
     error_after: int | None = None
+    outlier_rate: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("drop_rate", "garble_rate", "rx_garble_rate", "bad_checksum_rate"):
+        for name in ("drop_rate", "garble_rate", "rx_garble_rate", "bad_checksum_rate",
+                     "outlier_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be between 0 and 1, got {v}")
@@ -323,6 +326,8 @@ class SimDevice:
         self.on_error = on_error
         self.baud_detected = serial_mode == "usb" or protocol != "maestro"
         self.errors_raised = 0  # errors flagged by the device (each applied on_error)
+        self.false_idle_answers = 0  # Get Moving State answered 0 while outputs moved (bug)
+        self.outliers_sent = 0
         self._maestro = MaestroDecoder(device_number)
         self._ssc32 = SSC32Decoder()
         self._tx_rng = np.random.default_rng([seed, 1])
@@ -598,7 +603,11 @@ class SimDevice:
             q = int(round(out.position(time.monotonic()) * 4)) if out else 0
             return bytes([q & 0xFF, (q >> 8) & 0xFF])
         elif command == mae.GET_MOVING_STATE:
-            return b"\x01" if self._moving() and not self.moving_state_bug else b"\x00"
+            moving = self._moving()
+            if moving and self.moving_state_bug:
+                self.false_idle_answers += 1
+                return b"\x00"
+            return b"\x01" if moving else b"\x00"
         elif command == mae.GET_ERRORS:
             bits, self._maestro.errors = self._maestro.errors, 0
             return bytes([bits & 0xFF, (bits >> 8) & 0xFF])
@@ -655,6 +664,11 @@ class SimDevice:
             if d is None:
                 continue
             x, y = d + self._tracker_rng.normal(0.0, self.tracker_noise_mm, 2)
+            if self.faults.outlier_rate and self._tracker_rng.random() < self.faults.outlier_rate:
+                angle = self._tracker_rng.uniform(0.0, 2 * np.pi)
+                off = self._tracker_rng.uniform(5.0, 50.0)
+                x, y = x + off * np.cos(angle), y + off * np.sin(angle)
+                self.outliers_sent += 1
             if self.tracker_format == "plain":
                 line = format_plain(x, y)
             else:
