@@ -274,11 +274,18 @@ def test_existing_rows_are_never_touched_without_resume_or_with_another_plan(
 # ------------------------------------------------------------------------------ faults
 
 
-def _check_integrity(watch: Watching, rig_dir: Path) -> None:
-    """Every recorded row was measured at the pose of its own commands, and reads true."""
+def _check_integrity(watch: Watching, rig_dir: Path, max_redone: int = 3) -> None:
+    """Every recorded row was measured at the pose of its own commands, and reads true.
+
+    A row measured again (the read-back after the measurement did not confirm the targets,
+    as damaged replies on a loaded machine can make it) counts by its last measurement.
+    """
     rig = load_rig(rig_dir, min_train_rows=0)
-    assert len(watch.seen) == len(rig.measurements)
-    for i, (commands, true_d, measured) in enumerate(watch.seen):
+    last = [s for i, s in enumerate(watch.seen)
+            if i + 1 == len(watch.seen) or watch.seen[i + 1][0] != s[0]]
+    assert len(watch.seen) - len(last) <= max_redone
+    assert len(last) == len(rig.measurements)
+    for i, (commands, true_d, measured) in enumerate(last):
         for arm, u in commands.items():
             assert np.allclose(rig.measurements.commands[arm][i], u)
         assert np.allclose(measured, true_d, atol=2e-3)
@@ -859,3 +866,41 @@ def test_sim_device_command_line_quirk_options(sim_rig, capsys) -> None:
 
     assert parse_channel_range("factory") == (992.0, 2000.0)
     assert parse_channel_range("500,2500") == (500.0, 2500.0)
+
+
+def test_sim_device_command_serves_the_maestro_quirks(sim_rig) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "bayesrob", "sim-device", str(sim_rig),
+                             "--protocol", "maestro", "--serial-mode", "uart-detect",
+                             "--channel-range", "factory", "--moving-state-bug",
+                             "--on-error", "off", "--error-after", "9"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        servo_path = proc.stdout.readline().split(": ", 1)[1].strip()
+        proc.stdout.readline()
+        with serial.Serial(servo_path, timeout=2) as s:
+            s.timeout = 0.3
+            s.write(b"\x90\x00")  # before the baud rate byte: not understood, no answer
+            assert s.read(2) == b""
+            s.timeout = 2
+            s.write(b"\xaa" + bytes([0xA1]))  # 1: baud byte, then Get Errors
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0x87, 0, 4, 0]))  # 2: Set Speed channel 0: 4 = 100 us/s
+            s.write(bytes([0x84, 0, 0x10, 0x4E]))  # 3: Set Target 2500 us (10000 qus)
+            s.write(bytes([0x93]))  # 4: Get Moving State: the bug answers 0 ...
+            assert s.read(1) == b"\x00"
+            s.write(bytes([0x90, 0]))  # 5: ... though the output is far from its target
+            q = int.from_bytes(s.read(2), "little")
+            assert 1500 * 4 <= q < 1600 * 4
+            s.write(bytes([0x84, 1, 0x10, 0x4E]))  # 6: channel 1 (no speed limit) to 2500 us
+            s.write(bytes([0x90, 1]))  # 7: clamped to the factory Max
+            assert int.from_bytes(s.read(2), "little") == 2000 * 4
+            s.write(bytes([0xA1]))  # 8
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0xA1]))  # 9: the injected error comes after this command
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0xA1, 0x90, 1]))  # serial signal error; outputs switched off
+            assert s.read(4) == b"\x01\x00\x00\x00"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
