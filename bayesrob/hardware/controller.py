@@ -385,8 +385,8 @@ class ServoController(ABC):
 
         Error flags with every output still on target are re-read after a few servo periods:
         a controller sent to a home position with a speed limit leaves the target gradually.
-        A mismatch is read again before it counts, as a reply damaged on the wire can look
-        like one; a dropped target stays dropped. The targets of dropped outputs are
+        A mismatch is read twice more before it counts, as a reply damaged or delayed on the
+        wire can look like one; a dropped target stays dropped. The targets of dropped outputs are
         forgotten, so the next settle allows a full move.
         """
         checked = {a: (float(u[0]), float(u[1])) for a, u in commands.items()}
@@ -395,7 +395,9 @@ class ServoController(ABC):
         if errs and self._matches(pos, checked):
             self._sleep(0.05)
             pos = self.read_positions(checked)
-        if not self._matches(pos, checked):
+        for _ in range(2):
+            if self._matches(pos, checked):
+                break
             pos = self.read_positions(checked)
         if self._matches(pos, checked):
             self.flagged_errors.extend(errs)
