@@ -480,6 +480,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         log("one arm only: no linked test rows to collect")
 
     result = CollectResult(rig_dir / MEASUREMENTS_FILE, total=len(singles) + n_test)
+    redone: list[str] = []  # labels of measurements discarded for dropped targets
     with MeasurementLog(result.path, names, resume) as mlog:
         result.truncated_bytes = mlog.truncated_bytes
         if mlog.truncated_bytes:
@@ -494,7 +495,6 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         if result.skipped:
             log(f"resuming: {result.skipped} of {result.total} rows already recorded")
 
-        redone: list[str] = []
         bar = tqdm(total=result.total, initial=result.skipped, disable=not progress,
                    desc="collect", unit="row", file=sys.stderr, leave=False)
 
