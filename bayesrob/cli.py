@@ -235,6 +235,15 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
                    help="Maestro command protocol (compact)")
     p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
                    help="Maestro device number for the Pololu protocol (12)")
+    p.add_argument("--maestro-model", choices=["micro", "mini12", "mini18", "mini24", "mini"],
+                   default=None,
+                   help="Maestro model, so channel numbers are checked before anything is "
+                        "sent: micro (6 channels), mini12, mini18, mini24, or mini (any Mini "
+                        "Maestro, up to 24); default: any Maestro")
+    p.add_argument("--auto-baud", action="store_true",
+                   help="send the Maestro's baud rate indication byte 0xAA first, for the "
+                        "serial mode 'UART, detect baud rate' with the compact protocol (the "
+                        "Pololu protocol's first command already starts with it)")
     p.add_argument("--timeout", type=_hw_number(float, 0.0, low_open=True), default=0.5,
                    metavar="SECONDS", help="reply timeout on every read (0.5)")
     p.add_argument("--retries", type=_hw_number(int, 1), default=5,
@@ -244,7 +253,8 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tracker-baud", type=_hw_number(int, 1), default=115200,
                    help="tracker port baud rate (115200)")
     p.add_argument("--samples", type=_hw_number(int, 1), default=5,
-                   help="tracker readings per point; their median is recorded (5)")
+                   help="tracker readings per point; those far from their median are rejected "
+                        "and the mean of the rest is recorded (5)")
 
 
 @command("collect", "run the paper's data collection on a servo rig, appending to "
@@ -268,6 +278,7 @@ def _collect(args: argparse.Namespace) -> int:
             tracker_baud=args.tracker_baud, samples=args.samples, baud=args.baud,
             maestro_protocol=args.maestro_protocol, device_number=args.device_number,
             speed_us_per_s=args.speed, timeout_s=args.timeout, retries=args.retries,
+            maestro_model=args.maestro_model, auto_baud=args.auto_baud,
             confirm=None if args.yes else terminal_confirm,
             progress=sys.stderr.isatty() and not args.manual)
     except ArgumentError as exc:
@@ -308,13 +319,28 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
     for name, what in (("drop-rate", "bytes sent that are lost"),
                        ("garble-rate", "bytes sent that arrive changed"),
                        ("rx-garble-rate", "servo bytes received that are corrupted"),
-                       ("bad-checksum-rate", "tracker lines sent with a wrong checksum")):
+                       ("bad-checksum-rate", "tracker lines sent with a wrong checksum"),
+                       ("outlier-rate", "tracker lines with a wild reading 5-50 mm off")):
         p.add_argument(f"--{name}", type=_hw_number(float, 0.0, 1.0), default=0.0,
                        metavar="P", help=f"fault: fraction of {what} (0)")
     p.add_argument("--reply-delay", type=_hw_number(float, 0.0), default=0.0, metavar="SECONDS",
                    help="fault: delay every servo reply (0)")
     p.add_argument("--disconnect-after", type=_hw_number(int, 1), default=None, metavar="K",
                    help="fault: close the servo port after K commands")
+    p.add_argument("--error-after", type=_hw_number(int, 1), default=None, metavar="K",
+                   help="fault: flag a serial error after K commands (once); see --on-error")
+    p.add_argument("--on-error", choices=["ignore", "off", "home"], default="ignore",
+                   help="Maestro: what outputs do on an error: keep their targets (default), "
+                        "off (the factory setting: arms go limp) or home (mid-range)")
+    p.add_argument("--moving-state-bug", action="store_true",
+                   help="Maestro: Get Moving State answers 0 while outputs still move, as on "
+                        "a Micro Maestro 6")
+    p.add_argument("--channel-range", default=None, metavar="MIN,MAX",
+                   help="Maestro: clamp every target to MIN..MAX us like a channel's Min and "
+                        "Max; 'factory' for 992,2000 (default: no clamping)")
+    p.add_argument("--serial-mode", choices=["usb", "uart-detect"], default="usb",
+                   help="Maestro: uart-detect ignores everything before a 0xAA baud rate "
+                        "indication byte (default usb)")
     p.add_argument("--byte-log", metavar="FILE",
                    help="append every byte received on the servo port to FILE")
 
@@ -323,17 +349,22 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
                        "tracker (prints the ports; runs until killed)")(_sim_device_args)
 def _sim_device(args: argparse.Namespace) -> int:
     from bayesrob.hardware.collect import ArgumentError, parse_channels
-    from bayesrob.hardware.simdevice import Faults, run_sim_device
+    from bayesrob.hardware.simdevice import Faults, parse_channel_range, run_sim_device
 
     faults = Faults(args.drop_rate, args.garble_rate, args.rx_garble_rate,
-                    args.bad_checksum_rate, args.reply_delay, args.disconnect_after)
+                    args.bad_checksum_rate, args.reply_delay, args.disconnect_after,
+                    args.error_after, args.outlier_rate)
     try:
         channels = parse_channels(args.channels) if args.channels else None
+        channel_range = (parse_channel_range(args.channel_range)
+                         if args.channel_range is not None else None)
         run_sim_device(args.rig, args.protocol, effects=args.effects, seed=args.seed,
                        channels=channels, device_number=args.device_number, linked=args.linked,
                        tracker_format=args.tracker_format, tracker_rate_hz=args.tracker_rate,
                        tracker_noise_mm=args.tracker_noise_mm, faults=faults,
-                       byte_log=args.byte_log)
+                       byte_log=args.byte_log, moving_state_bug=args.moving_state_bug,
+                       channel_range=channel_range, on_error=args.on_error,
+                       serial_mode=args.serial_mode)
     except ArgumentError as exc:
         raise UsageError(str(exc)) from None
     return 0

@@ -274,11 +274,18 @@ def test_existing_rows_are_never_touched_without_resume_or_with_another_plan(
 # ------------------------------------------------------------------------------ faults
 
 
-def _check_integrity(watch: Watching, rig_dir: Path) -> None:
-    """Every recorded row was measured at the pose of its own commands, and reads true."""
+def _check_integrity(watch: Watching, rig_dir: Path, max_redone: int = 3) -> None:
+    """Every recorded row was measured at the pose of its own commands, and reads true.
+
+    A row measured again (the read-back after the measurement did not confirm the targets,
+    as damaged replies on a loaded machine can make it) counts by its last measurement.
+    """
     rig = load_rig(rig_dir, min_train_rows=0)
-    assert len(watch.seen) == len(rig.measurements)
-    for i, (commands, true_d, measured) in enumerate(watch.seen):
+    last = [s for i, s in enumerate(watch.seen)
+            if i + 1 == len(watch.seen) or watch.seen[i + 1][0] != s[0]]
+    assert len(watch.seen) - len(last) <= max_redone
+    assert len(last) == len(rig.measurements)
+    for i, (commands, true_d, measured) in enumerate(last):
         for arm, u in commands.items():
             assert np.allclose(rig.measurements.commands[arm][i], u)
         assert np.allclose(measured, true_d, atol=2e-3)
@@ -328,17 +335,19 @@ def test_replies_slower_than_the_timeout_stop_the_run_cleanly(plant, rig_dir) ->
 
     with device(plant) as dev:
         ctl, tracker = open_pair(dev, timeout_s=0.1, retries=2)
-        # The 4th row is measured as the replies slow down; the 5th move fails.
-        with pytest.raises(HardwareError, match=r"reply bytes within 0.1 s.*4 rows are safe"):
+        # The replies slow down as the 4th row is measured: the check that the controller
+        # still holds the row's targets gets no answer, so that row is not recorded.
+        with pytest.raises(HardwareError, match=r"Get Errors got 0 of 2 reply bytes within "
+                                                r"0.1 s.*3 rows are safe"):
             collect(rig_dir, ctl, Watching(tracker, dev, slow_down), grid=2, settle_s=0,
                     log=lambda s: None)
         ctl.close()
         tracker.link.close()
-        assert keys(rig_dir) == planned(rig_dir, 2)[:4]
+        assert keys(rig_dir) == planned(rig_dir, 2)[:3]
         dev.faults = Faults()
         time.sleep(1.0)  # let the device work off the requests it was sleeping on
         res = run(dev, rig_dir, grid=2, resume=True)
-    assert (res.skipped, res.recorded) == (4, 16)
+    assert (res.skipped, res.recorded) == (3, 17)
     assert keys(rig_dir) == planned(rig_dir, 2)
 
 
@@ -608,3 +617,291 @@ def test_killed_collect_resumes_to_the_rows_of_an_uninterrupted_run(plant, rig_d
         assert main([*argv, "--resume"]) == 0
     assert keys(rig_dir) == keys(ref)
     assert main(["calibrate", str(rig_dir)]) == 0
+
+
+# ------------------------------------------------------------------------------ Maestro quirks
+
+
+def _on_target(dev: SimDevice, commands: dict) -> bool:
+    """Whether the device outputs exactly ``commands`` right now (not mid-ramp)."""
+    now = time.monotonic()
+    return all(dev._outputs[ch].position(now) == u for arm, pair in commands.items()
+               for ch, u in zip(dev.channels[arm], pair, strict=True))
+
+
+class Arrival(Watching):
+    """Also notes, at each measurement, whether the outputs had reached the row's targets."""
+
+    def __init__(self, tracker, dev: SimDevice, after=None):
+        super().__init__(tracker, dev, after)
+        self.arrived: list[bool] = []
+
+    def measure(self, label: str = "") -> np.ndarray:
+        self.arrived.append(_on_target(self.dev, self.dev.poses[-1].commands))
+        return super().measure(label)
+
+
+def test_micro_maestro_moving_state_bug_does_not_stop_or_fool_collect(plant, rig_dir) -> None:
+    # 2000 us/s: the plan's moves (up to ~900 us) ramp for up to ~0.45 s, many polls long.
+    with device(plant, seed=4, moving_state_bug=True) as dev:
+        ctl, tracker = open_pair(dev)
+        ctl.speed_us_per_s = 2000.0
+        ctl.connect()  # sends the new speed limit
+        watch = Arrival(tracker, dev)
+        try:
+            res = collect(rig_dir, ctl, watch, grid=2, plan=("train",), settle_s=0,
+                          log=lambda s: None)
+        finally:
+            ctl.close()
+            tracker.link.close()
+        assert dev.false_idle_answers > 0  # the bug answered 0 during ramps
+    assert res.complete and res.recorded == 8
+    assert keys(rig_dir) == planned(rig_dir, 2, sets=("train",))
+    assert all(watch.arrived)  # every row measured only after its outputs arrived
+    _check_integrity(watch, rig_dir)
+
+
+def test_trusting_the_micro_moving_state_fails_as_the_issue_describes(plant) -> None:
+    """The contrast: a host that believes Get Moving State gives up on a healthy controller."""
+    with device(plant, moving_state_bug=True) as dev:
+        ctl, tracker = open_pair(dev)
+        ctl.speed_us_per_s = 300.0
+        ctl.connect()
+        try:
+            ctl.move_and_settle({"top": (1500.0, 1500.0)})
+            ctl.moving_state_reliable = True  # the old behaviour
+            # 2 s ramps: the 5 tries (two polls each) end long before, even on a loaded machine.
+            with pytest.raises(HardwareError, match=r"instead of the commanded .* after 5 tries"):
+                ctl.move_and_settle({"top": (2100.0, 900.0)})
+            ctl.moving_state_reliable = False
+            assert ctl.move_and_settle({"top": (2100.0, 900.0)}) == {"top": (2100.0, 900.0)}
+        finally:
+            ctl.close()
+            tracker.link.close()
+
+
+def test_a_clamping_channel_range_is_one_clear_error_and_keeps_the_rows(plant, rig_dir,
+                                                                       capsys) -> None:
+    # Factory Min/Max 992-2000 us; the 4th planned row commands 950.5 us on top's elbow.
+    with device(plant, channel_range=(992.0, 2000.0)) as dev:
+        code = main([*_collect_argv(rig_dir, dev.servo_port, dev.tracker_port, "--grid", "2",
+                                    "--timeout", "1"), "--channels", *CHANNEL_ARGS])
+        poses = list(dev.poses)
+    err = capsys.readouterr().err
+    assert code == 2
+    line = [ln for ln in err.splitlines() if "error" in ln]
+    assert len(line) == 1, err
+    assert ("channel 1 (arm 'top' joint 2) was commanded 950.5 us but stays at 992 us"
+            in line[0])
+    assert "Maestro Control Center" in line[0] and "3 rows are safe" in line[0]
+    assert keys(rig_dir) == planned(rig_dir, 2)[:3]
+    assert all(u >= 992.0 for p in poses for pair in p.commands.values() for u in pair)
+
+
+@pytest.mark.parametrize("on_error", ["home", "off"])
+def test_a_row_measured_while_the_servos_went_home_is_measured_again(plant, rig_dir,
+                                                                    on_error) -> None:
+    hit = []
+
+    def error_during_third_row(n: int) -> None:
+        if n == 2:
+            dev.inject_error()  # line noise: the Maestro sends its outputs home (or off)
+            hit.append(dev.end_point)
+
+    logs: list[str] = []
+    with device(plant, seed=9, on_error=on_error) as dev:
+        ctl, tracker = open_pair(dev)
+        watch = Watching(tracker, dev, error_during_third_row)
+        try:
+            res = collect(rig_dir, ctl, watch, grid=2, plan=("train",), settle_s=0,
+                          log=logs.append)
+        finally:
+            ctl.close()
+            tracker.link.close()
+    assert res.complete and res.recorded == 8
+    assert keys(rig_dir) == planned(rig_dir, 2, sets=("train",))
+    assert any("no longer outputs the row's pulses after reporting serial signal error" in s
+               and "measuring the row again" in s for s in logs), logs
+    assert any("1 measurements were discarded" in n for n in res.notes)
+    # The third measurement was of the arm at home or limp; the row holds the fourth, taken
+    # after the targets were sent again, and it reads the true end point of its commands.
+    assert len(watch.seen) == 9
+    rows = load_rig(rig_dir, min_train_rows=0).measurements
+    commands, true_d, measured = watch.seen[3]
+    assert np.allclose(rows.commands["top"][2], commands["top"])
+    assert np.allclose(rows.observed[2], true_d, atol=2e-3)
+    if on_error == "home":
+        assert watch.seen[2][0]["top"] == (1500.0, 1500.0)  # it read the arm at home
+        assert not np.allclose(watch.seen[2][2], rows.observed[2], atol=1.0)
+
+
+def test_a_controller_that_keeps_dropping_its_targets_records_nothing_wrong(plant,
+                                                                            rig_dir) -> None:
+    def always(n: int) -> None:
+        if n >= 2:
+            dev.inject_error()
+
+    with device(plant, on_error="off") as dev:
+        ctl, tracker = open_pair(dev)
+        try:
+            with pytest.raises(HardwareError, match=r"\[3/20\].*no longer outputs.*3 times in "
+                                                    r"a row; the row was not recorded.*2 rows "
+                                                    r"are safe"):
+                collect(rig_dir, ctl, Watching(tracker, dev, always), grid=2, settle_s=0,
+                        log=lambda s: None)
+        finally:
+            ctl.close()
+            tracker.link.close()
+    assert keys(rig_dir) == planned(rig_dir, 2)[:2]
+
+
+def test_an_error_at_any_moment_leaves_only_true_rows(plant, rig_dir) -> None:
+    """The fault from sim-device's --error-after: wherever it lands (a settle, a measurement,
+    a check), the run completes and every row reads its own commands' end point."""
+    with device(plant, seed=2, on_error="off", faults=Faults(error_after=60)) as dev:
+        ctl, tracker = open_pair(dev)
+        watch = Watching(tracker, dev)
+        try:
+            res = collect(rig_dir, ctl, watch, grid=2, plan=("train",), settle_s=0,
+                          log=lambda s: None)
+        finally:
+            ctl.close()
+            tracker.link.close()
+        assert dev.errors_raised == 1
+    assert res.complete and keys(rig_dir) == planned(rig_dir, 2, sets=("train",))
+    rows = load_rig(rig_dir, min_train_rows=0).measurements
+    true = {(a, tuple(u)): d for c, d, _ in watch.seen for a, u in c.items()}
+    for i, (arm, d) in enumerate(zip(rows.config, rows.observed, strict=True)):
+        assert np.allclose(d, true[(arm, tuple(rows.commands[arm][i]))], atol=2e-3)
+
+
+def test_tracker_outliers_are_rejected_and_reported(plant, rig_dir) -> None:
+    with device(plant, seed=6, faults=Faults(outlier_rate=0.15)) as dev:
+        ctl, tracker = open_pair(dev)
+        tracker.samples = 9
+        try:
+            res = collect(rig_dir, ctl, tracker, grid=2, plan=("train",), settle_s=0,
+                          log=lambda s: None)
+        finally:
+            ctl.close()
+            tracker.link.close()
+        poses = list(dev.poses)
+        assert dev.outliers_sent > 0
+    # 72 readings at 15 %: outliers are certain (P(none) = 0.85**72 < 1e-5); every one is
+    # 5-50 mm off, far beyond 3.5 robust sd (floor 0.05 mm), so all that were read go.
+    assert tracker.readings == 72 and tracker.outliers > 0
+    assert any(f"tracker: {tracker.outliers} of 72 readings were rejected" in n
+               for n in res.notes), res.notes
+    # Tracker noise 0: once the outliers are gone every row reads its pose's true end point.
+    obs = load_rig(rig_dir, min_train_rows=0).measurements.observed
+    assert np.allclose(obs, [p.end_point for p in poses], atol=1e-3)
+
+
+# ------------------------------------------------------------------------------ models, baud
+
+
+@pytest.mark.parametrize(("model", "channels", "message"), [
+    ("micro", ["top=0,1", "bottom=5,6"], "channel 6 of arm 'bottom' does not exist (a Micro "
+                                         "Maestro 6 has channels 0..5)"),
+    ("mini12", ["top=0,1", "bottom=11,12"], "channel 12 of arm 'bottom' does not exist (a Mini "
+                                            "Maestro 12 has channels 0..11)"),
+    ("mini18", ["top=17,18", "bottom=2,3"], "channel 18 of arm 'top'"),
+])
+def test_channels_beyond_the_maestro_model_are_refused_before_a_byte(plant, rig_dir, capsys,
+                                                                     model, channels,
+                                                                     message) -> None:
+    with device(plant) as dev:
+        code = main([*_collect_argv(rig_dir, dev.servo_port, dev.tracker_port),
+                     "--maestro-model", model, "--channels", *channels])
+        time.sleep(0.05)
+        assert dev.received == b""
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert not (rig_dir / "measurements.csv").exists()
+
+
+def test_maestro_model_accepts_its_channels(plant, rig_dir, capsys) -> None:
+    with device(plant, channels={"top": (4, 5), "bottom": (2, 3)}) as dev:
+        code = main([*_collect_argv(rig_dir, dev.servo_port, dev.tracker_port, "--grid", "2",
+                                    "--plan", "train"),
+                     "--maestro-model", "micro", "--channels", "top=4,5", "bottom=2,3"])
+    assert code == 0
+    assert "connected: Micro Maestro 6 on" in capsys.readouterr().err
+    assert keys(rig_dir) == planned(rig_dir, 2, sets=("train",))
+
+
+@pytest.mark.parametrize(("wire", "auto_baud", "works"), [
+    ("compact", False, False), ("compact", True, True), ("pololu", False, True)])
+def test_uart_detect_baud_rate_mode(plant, rig_dir, wire, auto_baud, works) -> None:
+    with device(plant, serial_mode="uart-detect") as dev:
+        if works:
+            res = run(dev, rig_dir, grid=2, plan=("train",), maestro_protocol=wire,
+                      auto_baud=auto_baud, timeout_s=0.3)
+            assert res.recorded == 8
+            # The baud rate indication byte comes first: alone, or as a Pololu command's start.
+            first = {"compact": b"\xaa\xa1", "pololu": b"\xaa\x0c\x21"}[wire]
+            assert dev.received.startswith(first)
+            assert not any("protocol error" in s for s in res.logs + res.notes)
+        else:
+            with pytest.raises(HardwareError, match="UART, detect baud rate.*--auto-baud"):
+                run(dev, rig_dir, grid=2, plan=("train",), maestro_protocol=wire,
+                    timeout_s=0.2, retries=2)
+            assert not (rig_dir / "measurements.csv").exists()
+
+
+def test_auto_baud_on_a_maestro_not_detecting_is_harmless(plant, rig_dir) -> None:
+    """USB Dual Port: the lone 0xAA is a Pololu command cut short, a protocol error of ours."""
+    with device(plant) as dev:
+        res = run(dev, rig_dir, grid=2, plan=("train",), auto_baud=True)
+        assert dev.received.startswith(b"\xaa\xa1")
+    assert res.recorded == 8
+    assert not any("protocol error" in s for s in res.logs + res.notes), (res.logs, res.notes)
+
+
+def test_sim_device_command_line_quirk_options(sim_rig, capsys) -> None:
+    assert main(["sim-device", str(sim_rig), "--protocol", "maestro", "--channel-range",
+                 "2000,1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--channel-range: need 0 < MIN < MAX" in err
+    from bayesrob.hardware.simdevice import parse_channel_range
+
+    assert parse_channel_range("factory") == (992.0, 2000.0)
+    assert parse_channel_range("500,2500") == (500.0, 2500.0)
+
+
+def test_sim_device_command_serves_the_maestro_quirks(sim_rig) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "bayesrob", "sim-device", str(sim_rig),
+                             "--protocol", "maestro", "--serial-mode", "uart-detect",
+                             "--channel-range", "factory", "--moving-state-bug",
+                             "--on-error", "off", "--error-after", "9"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        servo_path = proc.stdout.readline().split(": ", 1)[1].strip()
+        proc.stdout.readline()
+        with serial.Serial(servo_path, timeout=2) as s:
+            s.timeout = 0.3
+            s.write(b"\x90\x00")  # before the baud rate byte: not understood, no answer
+            assert s.read(2) == b""
+            s.timeout = 2
+            s.write(b"\xaa" + bytes([0xA1]))  # 1: baud byte, then Get Errors
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0x87, 0, 4, 0]))  # 2: Set Speed channel 0: 4 = 100 us/s
+            s.write(bytes([0x84, 0, 0x10, 0x4E]))  # 3: Set Target 2500 us (10000 qus)
+            s.write(bytes([0x93]))  # 4: Get Moving State: the bug answers 0 ...
+            assert s.read(1) == b"\x00"
+            s.write(bytes([0x90, 0]))  # 5: ... though the output is far from its target
+            q = int.from_bytes(s.read(2), "little")
+            assert 1500 * 4 <= q < 1600 * 4
+            s.write(bytes([0x84, 1, 0x10, 0x4E]))  # 6: channel 1 (no speed limit) to 2500 us
+            s.write(bytes([0x90, 1]))  # 7: clamped to the factory Max
+            assert int.from_bytes(s.read(2), "little") == 2000 * 4
+            s.write(bytes([0xA1]))  # 8
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0xA1]))  # 9: the injected error comes after this command
+            assert s.read(2) == b"\x00\x00"
+            s.write(bytes([0xA1, 0x90, 1]))  # serial signal error; outputs switched off
+            assert s.read(4) == b"\x01\x00\x00\x00"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err

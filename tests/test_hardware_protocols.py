@@ -33,6 +33,7 @@ from bayesrob.hardware.tracker import (
     format_pxyt,
     parse_line,
     parse_manual,
+    reject_outliers,
 )
 
 H = bytes.fromhex
@@ -97,6 +98,31 @@ def test_maestro_decoder_reads_both_protocols_byte_by_byte() -> None:
     assert got == [(0x84, H("02 70 2E")), (0x84, H("03 09 27")), (0x87, H("01 0C 01")),
                    (0x93, b""), (0xA1, b""), (0xA2, b"")]
     assert dec.errors == 0
+
+
+def test_maestro_decoder_baud_rate_indication_byte() -> None:
+    # Alone before a compact command it is consumed silently ...
+    dec = MaestroDecoder()
+    dec.baud_byte = True
+    assert dec.feed(H("AA") + mae.get_errors()) == [(0xA1, b"")]
+    assert dec.errors == 0
+    # ... and as a Pololu command's first byte it is that command's start too.
+    dec = MaestroDecoder()
+    dec.baud_byte = True
+    assert dec.feed(mae.get_errors("pololu")) == [(0xA1, b"")]
+    assert dec.errors == 0
+    # A Maestro not detecting a baud rate takes a lone 0xAA for a command cut short.
+    dec = MaestroDecoder()
+    assert dec.feed(H("AA") + mae.get_errors()) == [(0xA1, b"")]
+    assert dec.errors & PROTOCOL_ERROR_BIT
+
+
+def test_maestro_models() -> None:
+    assert [mae.n_channels(m) for m in ("micro", "mini12", "mini18", "mini24", "mini")] == \
+        [6, 12, 18, 24, 24]
+    assert mae.n_channels(None) == 24
+    with pytest.raises(ValueError, match="unknown Maestro model 'nano'"):
+        mae.n_channels("nano")
 
 
 def test_maestro_decoder_resynchronises_after_garbage() -> None:
@@ -169,6 +195,52 @@ def test_maestro_move_writes_set_targets_for_the_arm_channels(raw_pty) -> None:
     ctl = mae.Maestro(link, {"a": (2, 3)}, LIMITS, protocol="pololu", device=12)
     ctl.move({"a": (1500, 1250.25)})
     assert _read_all(master) == H("AA 0C 04 02 70 2E AA 0C 04 03 09 27")
+
+
+def test_maestro_auto_baud_sends_0xaa_alone_first_with_the_compact_protocol(raw_pty) -> None:
+    master, link = raw_pty
+
+    def answer_get_errors() -> None:
+        # Protocol error flagged: what a Maestro not detecting a baud rate makes of the lone AA.
+        time.sleep(0.05)
+        os.write(master, H("10 00"))
+
+    for protocol, first in (("compact", H("AA A1")), ("pololu", H("AA 0C 21"))):
+        ctl = mae.Maestro(link, {"a": (0, 1)}, LIMITS, protocol=protocol, auto_baud=True,
+                          speed_us_per_s=None)
+        t = threading.Thread(target=answer_get_errors)
+        t.start()
+        description = ctl.connect()
+        t.join()
+        # The Pololu protocol needs no extra byte: its first command starts with 0xAA.
+        assert _read_all(master) == first
+        if protocol == "compact":
+            assert "protocol error" not in description  # ours, from the lone 0xAA
+        else:
+            assert "cleared earlier errors: serial protocol error" in description
+
+
+def test_maestro_refuses_channels_its_model_lacks(raw_pty) -> None:
+    master, link = raw_pty
+    with pytest.raises(ValueError, match=r"channel 6 of arm 'a' does not exist \(a Micro "
+                                         r"Maestro 6 has channels 0..5\)"):
+        mae.Maestro(link, {"a": (5, 6)}, LIMITS, model="micro")
+    mae.Maestro(link, {"a": (5, 6)}, LIMITS, model="mini12")
+    assert _read_all(master) == b""
+
+
+def test_settle_timeout_follows_the_distance_and_the_speed(raw_pty) -> None:
+    _, link = raw_pty
+    ctl = mae.Maestro(link, {"a": (0, 1)}, LIMITS, speed_us_per_s=500.0, retries=1)
+    first = ctl.settle_timeout_s({"a": (1500.0, 1500.0)})  # no target known: a full span
+    ctl._targets.update({0: 1500.0, 1: 1500.0})
+    near = ctl.settle_timeout_s({"a": (1550.0, 1500.0)})
+    far = ctl.settle_timeout_s({"a": (1500.0, 2100.0)})
+    slack = near - 2 * 50 / 500
+    assert far - slack == pytest.approx(2 * 600 / 500)
+    assert first - slack == pytest.approx(2 * 1200 / 500)  # limits 900..2100
+    ctl.speed_us_per_s = 1000.0
+    assert ctl.settle_timeout_s({"a": (1500.0, 2100.0)}) - slack == pytest.approx(1.2)
 
 
 def test_ssc32_move_is_one_group_command(raw_pty) -> None:
@@ -297,6 +369,51 @@ def test_stream_tracker_drops_the_partial_line_and_rejects_bad_checksums(raw_pty
     assert samples.tolist() == [[10, 20], [11, 21], [12, 19], [100, 20.5], [9, 20]]
     assert (tracker.bad_checksum, tracker.malformed) == (1, 1)
     assert np.median(samples, axis=0).tolist() == [11.0, 20.0]  # the wild 100 does not count
+
+
+def test_reject_outliers_uses_a_robust_scale_with_a_floor() -> None:
+    rng = np.random.default_rng(0)
+    truth = np.array([120.0, 250.0])
+    good = truth + rng.normal(0.0, 0.02, (9, 2))
+    wild = np.vstack([good, truth + [6.0, -3.0]])
+    kept, n = reject_outliers(wild)
+    assert n == 1 and kept.tolist() == good.tolist()
+    # With the outlier gone the mean is as close as 9 readings of sd 0.02 allow (4 sd of the
+    # mean: 0.027 mm); the outlier alone would pull it 0.67 mm away.
+    assert np.linalg.norm(kept.mean(axis=0) - truth) < 4 * 0.02 / 3
+    assert np.linalg.norm(wild.mean(axis=0) - truth) > 0.6
+    # Readings that agree to the last digit reject nothing, nor does one a hair away: the
+    # floor (0.05 mm sd) stands in for a median distance of zero.
+    same = np.tile(truth, (5, 1))
+    assert reject_outliers(same)[1] == 0
+    assert reject_outliers(np.vstack([same, truth + [0.001, 0.0]]))[1] == 0
+    assert reject_outliers(np.vstack([same, truth + [0.2, 0.0]]))[1] == 1  # 4 floors away
+    assert reject_outliers(np.vstack([same, truth + [0.2, 0.0]]), floor_mm=0.1)[1] == 0
+    # At least half the readings always stay, however wild the rest.
+    for seed in range(20):
+        r = np.random.default_rng(seed).standard_cauchy((7, 2))
+        assert len(reject_outliers(r)[0]) >= 4
+    with pytest.raises(ValueError, match="shape"):
+        reject_outliers(np.zeros((3, 3)))
+
+
+def test_stream_tracker_measure_rejects_counts_and_averages(raw_pty) -> None:
+    master, link = raw_pty
+    tracker = StreamTracker(link, "pxyt", samples=5, timeout_s=2.0)
+    script = (b"\r\n" + format_pxyt(10.0, 20.0) + format_pxyt(10.02, 20.0)
+              + format_pxyt(60.0, 20.0)  # a reflection, with a good checksum
+              + format_pxyt(9.98, 20.04) + format_pxyt(10.0, 19.96))
+
+    def stream() -> None:
+        time.sleep(0.1)
+        os.write(master, script)
+
+    t = threading.Thread(target=stream)
+    t.start()
+    d = tracker.measure()
+    t.join()
+    assert tracker.outliers == 1 and tracker.readings == 5
+    assert d.tolist() == pytest.approx([10.0, 20.0])  # the mean of the four good readings
 
 
 def test_stream_tracker_times_out_clearly(raw_pty) -> None:

@@ -57,6 +57,8 @@ if TYPE_CHECKING:
     from bayesrob.kinematics import Arm
 
 PROTOCOLS = ("maestro", "ssc32")
+# Measurements of one row before giving up on a controller that keeps dropping its targets.
+ROW_TRIES = 3
 Workspace = tuple[tuple[float, float], tuple[float, float]]  # ((x0, x1), (y0, y1)) in mm
 Quantize = Callable[[Iterable[float]], tuple[float, ...]]
 TARGET_DECIMALS = 2  # targets are rounded so the recorded text is exactly the point aimed at
@@ -85,7 +87,7 @@ def parse_channels(tokens: Sequence[str]) -> dict[str, tuple[int, int]]:
 
 
 def check_channels(channels: dict[str, tuple[int, int]], arm_names: Iterable[str],
-                   n_channels: int) -> None:
+                   n_channels: int, controller: str = "this controller") -> None:
     """Every rig arm has two distinct channels the controller has; nothing else is named."""
     arm_names = list(arm_names)
     for name in channels:
@@ -100,7 +102,7 @@ def check_channels(channels: dict[str, tuple[int, int]], arm_names: Iterable[str
         for ch in chs:
             if not 0 <= ch < n_channels:
                 raise ArgumentError(f"--channels: channel {ch} of arm {name!r} does not exist "
-                                 f"(this controller has channels 0..{n_channels - 1})")
+                                 f"({controller} has channels 0..{n_channels - 1})")
             if ch in seen:
                 raise ArgumentError(f"--channels: channel {ch} is given to both {seen[ch]!r} "
                                  f"and {name!r}")
@@ -478,6 +480,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         log("one arm only: no linked test rows to collect")
 
     result = CollectResult(rig_dir / MEASUREMENTS_FILE, total=len(singles) + n_test)
+    redone: list[str] = []  # labels of measurements discarded for dropped targets
     with MeasurementLog(result.path, names, resume) as mlog:
         result.truncated_bytes = mlog.truncated_bytes
         if mlog.truncated_bytes:
@@ -496,10 +499,23 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                    desc="collect", unit="row", file=sys.stderr, leave=False)
 
         def run(step: Step, index: int) -> None:
-            controller.move_and_settle(step.commands)
-            if settle_s > 0:
-                time.sleep(settle_s)
-            observed = tracker.measure(f"[{index + 1}/{result.total}] {step.describe()}")
+            label = f"[{index + 1}/{result.total}] {step.describe()}"
+            for attempt in range(1, ROW_TRIES + 1):
+                controller.move_and_settle(step.commands)
+                if settle_s > 0:
+                    time.sleep(settle_s)
+                observed = tracker.measure(label)
+                # A controller that dropped its targets (an error sent the servos home or
+                # limp) may have done so while the end point was read: measure the row again.
+                dropped = controller.dropped_targets(step.commands)
+                if dropped is None:
+                    break
+                if attempt == ROW_TRIES:
+                    raise HardwareError(f"{label}: {dropped}, {ROW_TRIES} times in a row; the "
+                                        "row was not recorded (check the servo power supply "
+                                        "and the controller's serial line)")
+                redone.append(label)
+                log(f"{label}: {dropped}; measuring the row again")
             fields = format_row(names, step.config, step.set, step.target, step.commands,
                                 observed)
             parsed = RecordedRow(step.config, step.set, step.target, step.commands,
@@ -555,6 +571,15 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     else:
         if errs:
             result.notes.append(f"controller reported: {', '.join(errs)}")
+    if redone:
+        result.notes.append(f"controller: dropped its targets while measuring; {len(redone)} "
+                            "measurements were discarded and their rows measured again")
+    if controller.flagged_errors:
+        result.notes.append("controller flagged errors while its outputs held their targets: "
+                            f"{', '.join(sorted(set(controller.flagged_errors)))}")
+    if isinstance(tracker, StreamTracker) and tracker.outliers:
+        result.notes.append(f"tracker: {tracker.outliers} of {tracker.readings} readings were "
+                            "rejected as far from their median before averaging")
     if isinstance(tracker, StreamTracker) and (tracker.bad_checksum or tracker.malformed):
         result.notes.append(f"tracker: {tracker.bad_checksum} lines with bad checksums and "
                             f"{tracker.malformed} malformed lines were ignored")
@@ -580,11 +605,17 @@ def controller_class(protocol: str) -> type[ServoController]:
     return SSC32 if protocol == "ssc32" else Maestro
 
 
-def n_channels(protocol: str) -> int:
+def n_channels(protocol: str, maestro_model: str | None = None) -> int:
     from bayesrob.hardware import maestro, ssc32
 
     return ssc32.MAX_CHANNELS if controller_class(protocol) is ssc32.SSC32 else \
-        maestro.MAX_CHANNELS
+        maestro.n_channels(maestro_model)
+
+
+def controller_name(protocol: str, maestro_model: str | None = None) -> str:
+    from bayesrob.hardware import maestro
+
+    return "an SSC-32" if protocol == "ssc32" else maestro.describe_model(maestro_model)
 
 
 def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int]],
@@ -592,7 +623,8 @@ def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int
                     device_number: int = 12,
                     speed_us_per_s: float | None = DEFAULT_SPEED_US_PER_S,
                     timeout_s: float = DEFAULT_TIMEOUT_S,
-                    retries: int = DEFAULT_RETRIES) -> ServoController:
+                    retries: int = DEFAULT_RETRIES, maestro_model: str | None = None,
+                    auto_baud: bool = False) -> ServoController:
     """Open the servo port exclusively and check that the controller answers."""
     from bayesrob.hardware.maestro import Maestro
 
@@ -603,7 +635,7 @@ def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int
         if cls is Maestro:
             ctl = Maestro(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries,
                           protocol=maestro_protocol,  # type: ignore[arg-type]
-                          device=device_number)
+                          device=device_number, model=maestro_model, auto_baud=auto_baud)
         else:
             ctl = cls(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries)
         ctl.description = ctl.connect()
@@ -622,6 +654,7 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
                      device_number: int = 12,
                      speed_us_per_s: float | None = DEFAULT_SPEED_US_PER_S,
                      timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
+                     maestro_model: str | None = None, auto_baud: bool = False,
                      confirm: Callable[[str], bool] | None = terminal_confirm,
                      progress: bool = False,
                      log: Callable[[str], None] | None = None) -> CollectResult:
@@ -634,7 +667,8 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
         raise ArgumentError("give either a tracker port or manual entry")
     rig_dir = Path(rig_dir)
     meta = load_rig_toml(rig_dir / RIG_FILE)
-    check_channels(channels, meta["arms"], n_channels(protocol))
+    check_channels(channels, meta["arms"], n_channels(protocol, maestro_model),
+                   controller_name(protocol, maestro_model))
     if meta["workspace"] is None:
         raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
                        "to lay out the grid")
@@ -655,7 +689,8 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
     controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
                                  maestro_protocol=maestro_protocol, device_number=device_number,
                                  speed_us_per_s=speed_us_per_s, timeout_s=timeout_s,
-                                 retries=retries)
+                                 retries=retries, maestro_model=maestro_model,
+                                 auto_baud=auto_baud)
     (log or _stderr)(f"connected: {controller.description}")
     tlink = None
     try:

@@ -3,7 +3,16 @@
 A controller moves named arms (each two channels) to pulse widths, waits until it reports them
 settled, and reads back what it actually commands. The read-back is the guard against a
 command lost or corrupted on the wire: a row is only measured once the controller confirms the
-pulses the row will record.
+pulses the row will record, and (:meth:`ServoController.dropped_targets`) only recorded if the
+controller still outputs them after the measurement.
+
+Settling. A controller whose "still moving?" query can be trusted (the SSC-32's ``Q``) is
+polled until it says done, then read back. One whose query can wrongly say "done" (the Micro
+Maestro's Get Moving State) is only asked as a hint: a "moving" answer saves the position
+queries, a "done" answer is checked by reading back every channel until each equals its target.
+A controller that stops short and stays there is sent the move again; stopping at the very same
+wrong pulses once more means the controller itself limits the pulse (a channel range), which
+re-sending cannot fix, so that is an error naming the channel.
 
 Safety lives here, not in the protocols: every pulse width is checked against the rig's
 ``pulse_limits`` before the first byte of a move is written, so an out-of-limit request raises
@@ -35,6 +44,9 @@ Commands = Mapping[str, Sequence[float]]
 DEFAULT_TIMEOUT_S = 0.5
 DEFAULT_RETRIES = 5
 DEFAULT_SPEED_US_PER_S = 500.0
+# How long read-back positions must stay unchanged, short of the target, to count as stopped.
+# A Maestro steps its outputs once per 20 ms servo period, so this spans many steps.
+STALL_S = 0.3
 
 
 class ArgumentError(ValueError):
@@ -170,6 +182,7 @@ class ServoController(ABC):
     protocol: str = ""
     resolution_us: float = 1.0  # smallest step the controller can command
     readback_tolerance_us: float = 0.0  # how far a read-back may differ from the command
+    moving_state_reliable: bool = True  # False: is_moving() may say "done" while still moving
 
     def __init__(self, link: SerialLink, channels: Mapping[str, tuple[int, int]],
                  limits: Mapping[str, Limits], speed_us_per_s: float | None = None,
@@ -184,6 +197,8 @@ class ServoController(ABC):
         self._sleep = sleep
         self.resent_moves = 0
         self.failed_queries = 0
+        self.stall_s = STALL_S
+        self.flagged_errors: list[str] = []  # error flags seen while the targets still held
         self.description = f"{self.protocol} on {link.name}"
         self._targets: dict[int, float] = {}
 
@@ -270,43 +285,130 @@ class ServoController(ABC):
                    for p, c in zip(pos[a], commands[a], strict=True))
 
     def settle_timeout_s(self, commands: Mapping[str, tuple[float, float]]) -> float:
-        """Generous time for a full-range move at the configured speed, plus slack."""
-        span = max((hi - lo for a in commands for lo, hi in self.limits[a]), default=0.0)
-        ramp = span / self.speed_us_per_s if self.speed_us_per_s else 0.0
-        return 2.0 * ramp + 5.0 + 4 * self.retries * self.link.timeout_s
+        """Time for this move at the configured speed (twice the ramp), plus slack.
 
-    def move_and_settle(self, commands: Commands,
-                        timeout_s: float | None = None) -> dict[str, tuple[float, float]]:
-        """Move, wait until the controller reports the commanded pulses, return the read-back.
-
-        A controller that stops somewhere else (a command lost or garbled on the wire) gets the
-        move again; after ``retries`` moves the mismatch is an error, never a recorded row.
+        The distance is from the targets last sent; a channel never commanded by us (or whose
+        target the controller may have dropped) counts as a full pulse_limits span.
         """
-        checked = self.check(commands)
-        timeout_s = self.settle_timeout_s(checked) if timeout_s is None else timeout_s
+        dist = 0.0
+        for arm, pair in commands.items():
+            for ch, u, (lo, hi) in zip(self.channels[arm], pair, self.limits[arm], strict=True):
+                last = self._targets.get(ch)
+                dist = max(dist, hi - lo if last is None else abs(u - last))
+        ramp = dist / self.speed_us_per_s if self.speed_us_per_s else 0.0
+        return 2.0 * ramp + 2.0 + self.stall_s + 4 * self.retries * self.link.timeout_s
+
+    def _wait(self, checked: Mapping[str, tuple[float, float]], timeout_s: float
+              ) -> tuple[bool, dict[str, tuple[float, float]]]:
+        """Poll until the read-back equals the commands (True) or the outputs stopped short.
+
+        Returns (arrived, last read-back); raises HardwareError when the deadline passes with
+        the outputs still changing.
+        """
+        deadline = time.monotonic() + timeout_s
         pos: dict[str, tuple[float, float]] = {}
-        for _ in range(self.retries):
-            self.move(checked)
-            deadline = time.monotonic() + timeout_s
-            stopped_elsewhere = 0
-            while True:
-                if not self.is_moving():
-                    pos = self.read_positions(checked)
-                    if self._matches(pos, checked):
-                        return pos
+        stopped_elsewhere = 0
+        still_since: float | None = None
+        while True:
+            if not self.is_moving():
+                prev, pos = pos, self.read_positions(checked)
+                if self._matches(pos, checked):
+                    return True, pos
+                now = time.monotonic()
+                if self.moving_state_reliable:
                     # A read-back taken at the instant the ramp ends may lag; only a mismatch
                     # seen twice while stopped means the target itself is wrong.
                     stopped_elsewhere += 1
                     if stopped_elsewhere >= 2:
-                        break
-                if time.monotonic() > deadline:
-                    raise HardwareError(f"{self.protocol}: arms did not settle within "
-                                        f"{timeout_s:.1f} s (last read-back {pos or 'none'})")
-                self._sleep(self.poll_s)
+                        return False, pos
+                elif pos != prev or still_since is None:
+                    still_since = now
+                elif now - still_since >= self.stall_s:
+                    return False, pos
+            if time.monotonic() > deadline:
+                raise HardwareError(f"{self.protocol}: arms did not settle within "
+                                    f"{timeout_s:.1f} s (last read-back {pos or 'none'}, "
+                                    f"commanded {dict(checked)})")
+            self._sleep(self.poll_s)
+
+    def _short(self, pos: Mapping[str, tuple[float, float]],
+               commands: Mapping[str, tuple[float, float]]) -> list[tuple[str, int, int, float,
+                                                                           float]]:
+        """(arm, joint 1|2, channel, commanded, read back) of every output off its target."""
+        tol = self.readback_tolerance_us + 1e-9
+        return [(a, j + 1, self.channels[a][j], c, p) for a in commands
+                for j, (p, c) in enumerate(zip(pos[a], commands[a], strict=True))
+                if abs(p - c) > tol]
+
+    def stuck_error(self, pos: Mapping[str, tuple[float, float]],
+                    commands: Mapping[str, tuple[float, float]]) -> HardwareError:
+        """The error for outputs that stop at the same wrong pulses after a re-sent move."""
+        where = "; ".join(f"channel {ch} (arm {a!r} joint {j}) commanded {c:g} us, stays at "
+                          f"{p:g} us" for a, j, ch, c, p in self._short(pos, commands))
+        return HardwareError(f"{self.protocol}: {where}; check the controller's channel range "
+                             "settings and the wiring")
+
+    def move_and_settle(self, commands: Commands,
+                        timeout_s: float | None = None) -> dict[str, tuple[float, float]]:
+        """Move, wait until the controller outputs the commanded pulses, return the read-back.
+
+        A controller that stops somewhere else (a command lost or garbled on the wire) gets the
+        move again; outputs that leave their earlier targets and stop at the same wrong pulses
+        twice are :meth:`stuck_error`, and after ``retries`` moves any mismatch is an error,
+        never a recorded row.
+        """
+        checked = self.check(commands)
+        timeout_s = self.settle_timeout_s(checked) if timeout_s is None else timeout_s
+        before = dict(self._targets)
+        pos: dict[str, tuple[float, float]] = {}
+        stops: list[dict[str, tuple[float, float]]] = []
+        for _ in range(self.retries):
+            self.move(checked)
+            arrived, pos = self._wait(checked, timeout_s)
+            if arrived:
+                return pos
+            stops.append(pos)
+            # A lost command leaves an output at its earlier target; outputs that left it and
+            # stopped short at the very same pulses twice are held there by the controller.
+            if len(stops) >= 2 and stops[-1] == stops[-2] and all(
+                    p != before.get(ch) for _, _, ch, _, p in self._short(pos, checked)):
+                raise self.stuck_error(pos, checked)
             self.resent_moves += 1
+        if len(stops) >= 2 and stops[-1] == stops[-2]:
+            raise self.stuck_error(pos, checked)
         raise HardwareError(f"{self.protocol}: controller outputs {pos} instead of the commanded "
                             f"{dict(checked)} after {self.retries} tries; check its channel "
                             "range settings and the wiring")
+
+    def dropped_targets(self, commands: Commands) -> str | None:
+        """After a measurement: why the arms may not have held ``commands``, or None if they did.
+
+        Error flags with every output still on target are re-read after a few servo periods:
+        a controller sent to a home position with a speed limit leaves the target gradually.
+        A mismatch is read twice more before it counts, as a reply damaged or delayed on the
+        wire can look like one; a dropped target stays dropped. The targets of dropped outputs are
+        forgotten, so the next settle allows a full move.
+        """
+        checked = {a: (float(u[0]), float(u[1])) for a, u in commands.items()}
+        errs = self.errors()
+        pos = self.read_positions(checked)
+        if errs and self._matches(pos, checked):
+            self._sleep(0.05)
+            pos = self.read_positions(checked)
+        for _ in range(2):
+            if self._matches(pos, checked):
+                break
+            pos = self.read_positions(checked)
+        if self._matches(pos, checked):
+            self.flagged_errors.extend(errs)
+            return None
+        for a in checked:
+            for ch in self.channels[a]:
+                self._targets.pop(ch, None)
+        off = ", ".join(f"channel {ch} at {p:g} us instead of {c:g}"
+                        for _, _, ch, c, p in self._short(pos, checked))
+        flags = f" after reporting {', '.join(errs)}" if errs else ""
+        return f"the controller no longer outputs the row's pulses{flags} ({off})"
 
     def close(self) -> None:
         self.link.close()

@@ -20,10 +20,23 @@ Linking (``linked``):
 
 Faults, for testing what the host survives: bytes the device sends dropped (``drop_rate``) or
 replaced (``garble_rate``), bytes it receives on the servo port corrupted (``rx_garble_rate``),
-tracker lines with a wrong checksum (``bad_checksum_rate``), servo replies delayed
-(``reply_delay_s``), and the servo port closed after ``disconnect_after`` commands, as when a
-USB cable is pulled. Every byte received on the servo port is kept (``received``) and, with
+tracker lines with a wrong checksum (``bad_checksum_rate``) or a wild reading 5 to 50 mm off
+with a good checksum, as a reflection gives (``outlier_rate``), servo replies delayed
+(``reply_delay_s``), the servo port closed after ``disconnect_after`` commands, as when a
+USB cable is pulled, and a serial error flagged after ``error_after`` commands (once), as line
+noise would. Every byte received on the servo port is kept (``received``) and, with
 ``byte_log``, appended to a file.
+
+A real Maestro's quirks, each off unless asked for (see :mod:`bayesrob.hardware.maestro`):
+
+- ``moving_state_bug``: Get Moving State answers 0 even while outputs ramp (Micro Maestro 6).
+- ``channel_range=(lo, hi)``: every target is clamped to it, as each channel's Min and Max do
+  (:data:`~bayesrob.hardware.maestro.FACTORY_RANGE_US` as shipped).
+- ``on_error``: what every output does when an error is flagged (a protocol error from a
+  garbled byte, the ``error_after`` fault, :meth:`SimDevice.inject_error`): ``ignore`` (keep
+  its target), ``off`` (no pulses, the factory setting: the arm goes limp) or ``home`` (its
+  home pulse, the arm's mid-range).
+- ``serial_mode="uart-detect"``: nothing is decoded until a 0xAA baud rate indication byte.
 """
 
 from __future__ import annotations
@@ -50,6 +63,9 @@ from bayesrob.hardware.tracker import FORMATS, format_plain, format_pxyt
 LINK_MODES = ("auto", "always", "never")
 SSC32_VERSION = b"SSC32-V2.50USB\r"
 PROTOCOL_ERROR_BIT = 1 << 4  # "serial protocol error" in the Maestro's Get Errors reply
+SIGNAL_ERROR_BIT = 1 << 0  # "serial signal error": what noise on the line flags
+ON_ERROR = ("ignore", "off", "home")
+SERIAL_MODES = ("usb", "uart-detect")
 _MAESTRO_DATA = {mae.SET_TARGET: 3, mae.SET_SPEED: 3, mae.SET_ACCELERATION: 3,
                  mae.GET_POSITION: 1, mae.GET_MOVING_STATE: 0, mae.GET_ERRORS: 0,
                  mae.GO_HOME: 0}
@@ -66,9 +82,12 @@ class Faults:
     bad_checksum_rate: float = 0.0
     reply_delay_s: float = 0.0
     disconnect_after: int | None = None
+    error_after: int | None = None
+    outlier_rate: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("drop_rate", "garble_rate", "rx_garble_rate", "bad_checksum_rate"):
+        for name in ("drop_rate", "garble_rate", "rx_garble_rate", "bad_checksum_rate",
+                     "outlier_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be between 0 and 1, got {v}")
@@ -76,6 +95,8 @@ class Faults:
             raise ValueError(f"reply_delay_s must be >= 0, got {self.reply_delay_s}")
         if self.disconnect_after is not None and self.disconnect_after < 1:
             raise ValueError(f"disconnect_after must be >= 1, got {self.disconnect_after}")
+        if self.error_after is not None and self.error_after < 1:
+            raise ValueError(f"error_after must be >= 1, got {self.error_after}")
 
 
 # ------------------------------------------------------------------------------ decoders
@@ -93,6 +114,9 @@ class MaestroDecoder:
         self.device = device
         self.buf = bytearray()
         self.errors = 0
+        # The next 0xAA is a baud rate indication: followed by a command byte it is consumed
+        # silently; followed by a data byte it also starts a Pololu-protocol command.
+        self.baud_byte = False
 
     def _error(self, n_drop: int) -> None:
         self.errors |= PROTOCOL_ERROR_BIT
@@ -109,6 +133,13 @@ class MaestroDecoder:
                 self._error(1)
                 continue
             device = None
+            if self.baud_byte and first == mae.BAUD_INDICATION:
+                if len(buf) < 2:
+                    break
+                self.baud_byte = False
+                if buf[1] >= 0x80:
+                    del buf[:1]
+                    continue
             if first == mae.POLOLU_START:
                 if len(buf) < 3:
                     if len(buf) == 2 and buf[1] >= 0x80:
@@ -189,6 +220,21 @@ def parse_ssc32(line: str) -> tuple | None:
     return ("move", moves, int(m[2]) if m[2] else None)
 
 
+def parse_channel_range(text: str) -> tuple[float, float]:
+    """``--channel-range``: ``MIN,MAX`` in us, or ``factory`` for a Maestro as shipped."""
+    if text.strip().lower() == "factory":
+        return mae.FACTORY_RANGE_US
+    parts = text.split(",")
+    try:
+        lo, hi = (float(p) for p in parts)
+    except ValueError:
+        raise ArgumentError(f"--channel-range: expected MIN,MAX in us or 'factory', got "
+                            f"{text!r}") from None
+    if not 0 < lo < hi:
+        raise ArgumentError(f"--channel-range: need 0 < MIN < MAX, got {text!r}")
+    return lo, hi
+
+
 # ------------------------------------------------------------------------------ the device
 
 
@@ -238,9 +284,19 @@ class SimDevice:
                  device_number: int = mae.DEFAULT_DEVICE, linked: str = "auto",
                  tracker_format: str = "pxyt", tracker_rate_hz: float = 100.0,
                  tracker_noise_mm: float = 0.02, faults: Faults | None = None, seed: int = 0,
-                 byte_log: str | Path | None = None):
+                 byte_log: str | Path | None = None, moving_state_bug: bool = False,
+                 channel_range: tuple[float, float] | None = None, on_error: str = "ignore",
+                 serial_mode: str = "usb"):
         if protocol not in ("maestro", "ssc32"):
             raise ValueError(f"unknown protocol {protocol!r} (maestro or ssc32)")
+        if on_error not in ON_ERROR:
+            raise ValueError(f"on_error must be one of {', '.join(ON_ERROR)}, got {on_error!r}")
+        if serial_mode not in SERIAL_MODES:
+            raise ValueError(f"serial_mode must be one of {', '.join(SERIAL_MODES)}, got "
+                             f"{serial_mode!r}")
+        if channel_range is not None and not 0 < channel_range[0] < channel_range[1]:
+            raise ArgumentError(f"channel range must be MIN,MAX with 0 < MIN < MAX, got "
+                                f"{channel_range}")
         if linked not in LINK_MODES:
             raise ValueError(f"linked must be one of {', '.join(LINK_MODES)}, got {linked!r}")
         if tracker_format not in FORMATS:
@@ -264,6 +320,14 @@ class SimDevice:
         self.tracker_noise_mm = tracker_noise_mm
         self.faults = faults or Faults()
         self.byte_log = Path(byte_log) if byte_log else None
+        self.moving_state_bug = moving_state_bug
+        self.channel_range = None if channel_range is None else (float(channel_range[0]),
+                                                                 float(channel_range[1]))
+        self.on_error = on_error
+        self.baud_detected = serial_mode == "usb" or protocol != "maestro"
+        self.errors_raised = 0  # errors flagged by the device (each applied on_error)
+        self.false_idle_answers = 0  # Get Moving State answered 0 while outputs moved (bug)
+        self.outliers_sent = 0
         self._maestro = MaestroDecoder(device_number)
         self._ssc32 = SSC32Decoder()
         self._tx_rng = np.random.default_rng([seed, 1])
@@ -378,13 +442,16 @@ class SimDevice:
         now = time.monotonic()
         return any(now < o.t1 for o in self._outputs.values())
 
-    def _settle(self) -> None:
-        """The arms moved since the last settle come to rest; the tracker now sees them."""
+    def _settle(self, only: Sequence[str] | None = None) -> None:
+        """The arms moved since the last settle (or ``only`` these) come to rest; the tracker
+        now sees them."""
         if not self._moved:
             return
         moved = [a for a in self.arm_names if a in self._moved]
         self._moved = []
-        if self.linked == "always":
+        if only is not None:
+            arms = list(only)
+        elif self.linked == "always":
             arms = [a for a in self.arm_names if a in self.channels]
         elif self.linked == "never":
             arms = moved[:1]
@@ -397,6 +464,40 @@ class SimDevice:
         with self._lock:
             self._end_point = d
             self.poses.append(Pose(tuple(arms), commands, d))
+
+    def inject_error(self, bits: int = SIGNAL_ERROR_BIT) -> None:
+        """Flag an error as the controller would on line noise, and apply ``on_error``."""
+        self._maestro.errors |= bits
+        self._apply_on_error()
+
+    def _apply_on_error(self) -> None:
+        self.errors_raised += 1
+        if self.on_error == "ignore" or self.protocol != "maestro":
+            return
+        now = time.monotonic()
+        for ch, out in self._outputs.items():
+            if self.on_error == "off":
+                self._set_target(ch, 0.0, 0.0)
+            else:
+                # With a speed limit the output ramps to its home, as the user's guide says.
+                home = self.home_us.get(ch, out.target_us)
+                pos = out.position(now)
+                dur = abs(home - pos) / (25.0 * out.speed) if out.speed and pos > 0 else 0.0
+                self._set_target(ch, home, dur)
+        # The tracker keeps watching the arms it watched; they now hang limp or at home.
+        watched = self.poses[-1].arms if self.poses else None
+        self._settle(watched)
+
+    def _detect_baud(self, data: bytes) -> bytes:
+        """In 'UART, detect baud rate' mode, drop everything before the first 0xAA."""
+        if self.baud_detected:
+            return data
+        i = data.find(bytes([mae.BAUD_INDICATION]))
+        if i < 0:
+            return b""
+        self.baud_detected = True
+        self._maestro.baud_byte = True
+        return data[i:]
 
     # -- servo port --------------------------------------------------------------------------
     def _serve_servo(self) -> None:
@@ -421,7 +522,10 @@ class SimDevice:
                 self._log_fh.flush()
             data = self._corrupt(data, self._rx_rng, 0.0, self.faults.rx_garble_rate)
             if self.protocol == "maestro":
-                commands = [("m", c) for c in self._maestro.feed(data)]
+                before = self._maestro.errors
+                commands = [("m", c) for c in self._maestro.feed(self._detect_baud(data))]
+                if self._maestro.errors & ~before:
+                    self._apply_on_error()
             else:
                 commands = [("s", c) for c in self._ssc32.feed(data)]
             for kind, cmd in commands:
@@ -431,11 +535,13 @@ class SimDevice:
                 except (IndexError, ValueError, KeyError):
                     # A command the decoder let through but cannot be carried out: a real
                     # controller flags it and keeps serving, and so do we.
-                    self._maestro.errors |= PROTOCOL_ERROR_BIT
+                    self.inject_error(PROTOCOL_ERROR_BIT)
                     reply = b""
                 if reply:
                     self._reply(master, reply)
                 self.commands_handled += 1
+                if self.commands_handled == self.faults.error_after:
+                    self.inject_error()
                 k = self.faults.disconnect_after
                 if k is not None and self.commands_handled >= k:
                     self.disconnected = True
@@ -474,11 +580,15 @@ class SimDevice:
             self._settle()
         if command == mae.SET_TARGET:
             ch, target_q = data[0], data[1] | (data[2] << 7)
+            us = target_q / 4
+            if self.channel_range is not None and us > 0:
+                us = min(max(us, self.channel_range[0]), self.channel_range[1])
             out = self._outputs.get(ch)
             speed = out.speed if out else 0
-            start = out.position(time.monotonic()) if out else target_q / 4
-            dur = abs(target_q / 4 - start) / (25.0 * speed) if speed else 0.0
-            self._set_target(ch, target_q / 4, dur)
+            start = out.position(time.monotonic()) if out else us
+            # From "off" there is no position to ramp from: the output starts at its target.
+            dur = abs(us - start) / (25.0 * speed) if speed and start > 0 else 0.0
+            self._set_target(ch, us, dur)
         elif command == mae.SET_MULTIPLE_TARGETS:
             n, first = data[0], data[1]
             for i in range(n):
@@ -493,7 +603,11 @@ class SimDevice:
             q = int(round(out.position(time.monotonic()) * 4)) if out else 0
             return bytes([q & 0xFF, (q >> 8) & 0xFF])
         elif command == mae.GET_MOVING_STATE:
-            return b"\x01" if self._moving() else b"\x00"
+            moving = self._moving()
+            if moving and self.moving_state_bug:
+                self.false_idle_answers += 1
+                return b"\x00"
+            return b"\x01" if moving else b"\x00"
         elif command == mae.GET_ERRORS:
             bits, self._maestro.errors = self._maestro.errors, 0
             return bytes([bits & 0xFF, (bits >> 8) & 0xFF])
@@ -550,6 +664,11 @@ class SimDevice:
             if d is None:
                 continue
             x, y = d + self._tracker_rng.normal(0.0, self.tracker_noise_mm, 2)
+            if self.faults.outlier_rate and self._tracker_rng.random() < self.faults.outlier_rate:
+                angle = self._tracker_rng.uniform(0.0, 2 * np.pi)
+                off = self._tracker_rng.uniform(5.0, 50.0)
+                x, y = x + off * np.cos(angle), y + off * np.sin(angle)
+                self.outliers_sent += 1
             if self.tracker_format == "plain":
                 line = format_plain(x, y)
             else:

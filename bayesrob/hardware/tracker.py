@@ -5,11 +5,13 @@ The streaming tracker sends lines continuously. Two formats:
 - ``pxyt`` (default): ``$PXYT,<x_mm>,<y_mm>*HH\\r\\n``, HH the hexadecimal XOR of every
   character between ``$`` and ``*`` (the NMEA 0183 checksum), so a corrupted line is caught.
 - ``plain``: ``<x_mm>,<y_mm>\\r\\n``, for trackers without a checksum (a corrupted digit there
-  goes unnoticed; the median of several readings is the only defence).
+  goes unnoticed; rejecting readings far from the median of several is the only defence).
 
 A reading is taken after the arm has settled: the input buffer (readings from while the arm
-moved) is discarded, the first, probably partial, line is dropped, and the median of
-``samples`` good lines is the measurement.
+moved) is discarded, the first, probably partial, line is dropped, and ``samples`` good lines
+are read. Readings far from their median (:func:`reject_outliers`: a robust scale from the
+median distance, with a floor) are rejected and counted; the mean of the rest is the
+measurement.
 
 Manual entry is for measuring as the paper did, with a ruler-like device: the operator types
 ``x y`` for each point, and anything else is asked again, never recorded.
@@ -100,11 +102,38 @@ def parse_line(line: bytes, fmt: TrackerFormat = "pxyt") -> tuple[float, float]:
     return _xy(fields[1:], line)
 
 
+# Rejection threshold in robust standard deviations: a 2-D Gaussian reading lies beyond 3.5 sd
+# of its centre with probability exp(-3.5**2 / 2) = 0.2 %, so few good readings are lost.
+OUTLIER_SD = 3.5
+# Floor of the robust sd (mm), so that readings agreeing to the last digit (a median distance
+# of zero) do not make every reading a hair away an outlier.
+OUTLIER_FLOOR_MM = 0.05
+# Median distance of a 2-D Gaussian reading from its centre, in sd: sqrt(2 ln 2) (Rayleigh).
+_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+
+
+def reject_outliers(readings: np.ndarray, n_sd: float = OUTLIER_SD,
+                    floor_mm: float = OUTLIER_FLOOR_MM) -> tuple[np.ndarray, int]:
+    """The readings (n, 2) within ``n_sd`` robust sd of their median, and how many were not.
+
+    The sd is estimated from the median distance to the coordinate-wise median (a Rayleigh
+    median for 2-D Gaussian noise), never below ``floor_mm``. At least half the readings are
+    always kept: those no farther than the median distance.
+    """
+    r = np.asarray(readings, float)
+    if r.ndim != 2 or r.shape[1] != 2 or len(r) == 0:
+        raise ValueError(f"expected readings of shape (n, 2), got {r.shape}")
+    dist = np.linalg.norm(r - np.median(r, axis=0), axis=1)
+    sd = max(float(np.median(dist)) / _RAYLEIGH_MEDIAN, floor_mm)
+    keep = dist <= n_sd * sd
+    return r[keep], int((~keep).sum())
+
+
 class StreamTracker:
     """A tracker that streams readings continuously over a serial port."""
 
     def __init__(self, link: SerialLink, fmt: TrackerFormat = "pxyt", samples: int = 5,
-                 timeout_s: float = 3.0):
+                 timeout_s: float = 3.0, outlier_floor_mm: float = OUTLIER_FLOOR_MM):
         if fmt not in FORMATS:
             raise ValueError(f"unknown tracker format {fmt!r} (choose from {', '.join(FORMATS)})")
         if samples < 1:
@@ -116,6 +145,8 @@ class StreamTracker:
         self.bad_checksum = 0
         self.malformed = 0
         self.readings = 0
+        self.outliers = 0  # good lines rejected as far from their median
+        self.outlier_floor_mm = outlier_floor_mm
 
     def read_samples(self) -> np.ndarray:
         """``samples`` good readings (samples, 2) taken from now on."""
@@ -145,8 +176,11 @@ class StreamTracker:
         return np.asarray(good)
 
     def measure(self, label: str = "") -> np.ndarray:
-        # The median ignores the odd wild reading that a checksum cannot catch.
-        return np.median(self.read_samples(), axis=0)
+        # A checksum cannot catch a wild reading (a reflection, a marker seen twice); rejecting
+        # those first lets the mean use every good reading instead of the median's one or two.
+        kept, rejected = reject_outliers(self.read_samples(), floor_mm=self.outlier_floor_mm)
+        self.outliers += rejected
+        return kept.mean(axis=0)
 
 
 def parse_manual(text: str) -> tuple[float, float]:
