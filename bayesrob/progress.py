@@ -21,6 +21,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from typing import IO, Any
 
@@ -39,11 +40,12 @@ class Progress:
     def __init__(self, total: int | None, desc: str, unit: str = "step", *,
                  enabled: bool = True, stream: IO[str] | None = None,
                  interval: float = INTERVAL_S, tty: bool | None = None, initial: int = 0,
-                 clock: Callable[[], float] = time.monotonic, heartbeat: bool = True) -> None:
+                 clock: Callable[[], float] = time.monotonic, heartbeat: bool = True,
+                 postfix: str = "") -> None:
         self._total, self.desc, self.unit = total, desc, unit
         self.n = initial
         self.enabled = enabled
-        self.postfix = ""
+        self.postfix = postfix
         self._stream = stream if stream is not None else sys.stderr
         self._interval = interval
         self._clock = clock
@@ -63,12 +65,14 @@ class Progress:
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=total, initial=initial, desc=desc, unit=unit,
-                             file=self._stream, leave=False)
+                             file=self._stream, leave=False, postfix=postfix or None)
         else:
             self._emit()
         if heartbeat:
-            self._thread = threading.Thread(target=self._beat, name=f"progress-{desc}",
-                                            daemon=True)
+            # The thread holds the report weakly: a report that an exception left unclosed
+            # is collected with its frame and stops beating.
+            self._thread = threading.Thread(target=_beat, args=(weakref.ref(self),),
+                                            name=f"progress-{desc}", daemon=True)
             self._thread.start()
 
     # -------------------------------------------------------------- what callers use
@@ -154,16 +158,29 @@ class Progress:
         except (OSError, ValueError):  # the stream went away (closed pipe, closed file)
             self._closed = True
 
-    def _beat(self) -> None:
-        period = BAR_REFRESH_S if self._bar is not None else min(self._interval, BAR_REFRESH_S)
-        while not self._stop.wait(period):
-            with self._lock:
-                if self._closed:
-                    return
-                if self._bar is not None:
-                    self._bar.refresh()
-                elif self._clock() - self._last >= self._interval:
-                    self._emit()
+    def _tick(self) -> bool:
+        """One heartbeat; False once the report is closed."""
+        with self._lock:
+            if self._closed:
+                return False
+            if self._bar is not None:
+                self._bar.refresh()
+            elif self._clock() - self._last >= self._interval:
+                self._emit()
+            return True
+
+
+def _beat(ref: weakref.ref[Progress]) -> None:
+    p = ref()
+    if p is None:
+        return
+    stop, period = p._stop, min(p._interval, BAR_REFRESH_S)
+    del p
+    while not stop.wait(period):
+        p = ref()
+        if p is None or not p._tick():
+            return
+        del p
 
 
 def progress(total: int | None, desc: str, unit: str = "step", enabled: bool = True,

@@ -129,3 +129,18 @@ def test_closed_stream_does_not_raise():
     out.close()
     p.update()  # printing to a closed stream: the report stops, the work goes on
     p.close()
+
+
+def test_an_unclosed_report_stops_when_it_is_dropped():
+    """A report an exception left open must not print into the rest of the run."""
+    import gc
+
+    out = NotATerminal()
+    p = progress(3, "reproduce", stream=out, interval=0.05)
+    time.sleep(0.12)
+    del p
+    gc.collect()
+    time.sleep(0.1)  # a beat already past its check may print once more
+    n = len(_lines(out))
+    time.sleep(0.3)
+    assert n >= 2 and len(_lines(out)) == n
