@@ -112,8 +112,8 @@ class Progress:
                 self._bar.total = total
                 self._bar.refresh()
 
-    def close(self) -> None:
-        """Stop reporting; off a terminal, print the final count with "done"."""
+    def close(self, done: bool = True) -> None:
+        """Stop reporting; off a terminal, print the final count with "done" (if ``done``)."""
         if self._closed:
             return
         self._stop.set()
@@ -123,14 +123,15 @@ class Progress:
             self._closed = True
             if self._bar is not None:
                 self._bar.close()
-            else:
+            elif done:
                 self._emit(done=True)
 
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        # A failed step is not "done": the error message that follows says what happened.
+        self.close(done=exc_type is None)
 
     # -------------------------------------------------------------- lines
 

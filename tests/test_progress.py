@@ -144,3 +144,13 @@ def test_an_unclosed_report_stops_when_it_is_dropped():
     n = len(_lines(out))
     time.sleep(0.3)
     assert n >= 2 and len(_lines(out)) == n
+
+
+def test_a_failed_step_is_not_reported_done():
+    out, clock = NotATerminal(), Clock()
+    try:
+        with progress(None, "calibrate", stream=out, clock=clock, heartbeat=False):
+            raise RuntimeError("rig error")
+    except RuntimeError:
+        pass
+    assert _lines(out) == ["calibrate: 0.0 s"]
