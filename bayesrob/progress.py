@@ -18,6 +18,7 @@ nothing at all (library calls default to it; the command line turns it off with
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -59,8 +60,7 @@ class Progress:
         if not enabled:
             return
         if tty is None:
-            isatty = getattr(self._stream, "isatty", None)
-            tty = bool(isatty and isatty())
+            tty = _is_terminal(self._stream)
         if tty:
             from tqdm.auto import tqdm
 
@@ -182,6 +182,17 @@ def _beat(ref: weakref.ref[Progress]) -> None:
         if p is None or not p._tick():
             return
         del p
+
+
+def _is_terminal(stream: IO[str]) -> bool:
+    """A terminal a bar can be drawn on (a pseudo-terminal of width 0 shows no bar)."""
+    isatty = getattr(stream, "isatty", None)
+    if not (isatty and isatty()):
+        return False
+    try:
+        return os.get_terminal_size(stream.fileno()).columns > 0
+    except (AttributeError, OSError, ValueError):
+        return True
 
 
 def progress(total: int | None, desc: str, unit: str = "step", enabled: bool = True,
