@@ -159,7 +159,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig)
     # NUTS per arm compiles and samples for tens of seconds; the other methods take about one.
     with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
-                  postfix=f"NUTS posterior of {len(rig.arms)} arms (compiling first)"):
+                  postfix=f"NUTS posterior of {len(rig.arms)} arms"):
         doc = calibration_report(rig, args.method)
     if args.json != "-":
         print(format_calibration(doc))
