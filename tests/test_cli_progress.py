@@ -133,3 +133,17 @@ def test_reproduce_groups_its_notes_and_reports_progress(clean_rig_dir, tmp_path
     assert {line.split(":")[0] for line in notes[1:]} == {"  ind_paper / top",
                                                           "  ind_paper / bottom"}
     assert f"wrote 7 files to {out}/" in captured.out
+
+
+def test_sample_notes_are_under_the_notes_heading():
+    from bayesrob.inference import SampleReport, format_sample
+
+    grid = {"mean": [140.0, 220.0], "cov": [[0.2, 0.0], [0.0, 0.3]], "seconds": 0.5,
+            "n": 150, "cell_mm": [0.05, 0.05], "edge_mass": 0.0}
+    doc = {"config": "top+bottom", "target": [140.0, 220.0], "model": "cond_paper",
+           "samplers": {"grid": grid}, "check": {"passed": True, "failures": [], "compared": []},
+           "notes": ["NUTS divergences are trajectories that left the table's support"]}
+    lines = format_sample(SampleReport(doc, None, {})).splitlines()
+    i = lines.index(NOTES_HEADING)
+    assert lines[i + 1] == "  NUTS divergences are trajectories that left the table's support"
+    assert lines[i - 1] == "check: no sampler ran, nothing to compare"
