@@ -42,6 +42,21 @@ def _write_json(doc: dict, out: str | None) -> None:
     else:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(text + "\n")
+        print(f"wrote {out}")
+
+
+def _wrote(path: str | Path, json_out: str | None) -> None:
+    """Say that a file was written: on stdout, or stderr when stdout carries the JSON."""
+    print(f"wrote {path}", file=sys.stderr if json_out == "-" else sys.stdout)
+
+
+# Commands that report progress on stderr (a bar on a terminal, lines otherwise).
+PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
+                     "compare")
+
+
+def _progress(args: argparse.Namespace) -> bool:
+    return not getattr(args, "no_progress", False)
 
 
 def _effects_list(text: str) -> tuple[str, ...]:
@@ -86,6 +101,9 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="joint repeatability noise, sd in rad (0.0008)")
     p.add_argument("--measurement-noise-mm", type=float, default=None,
                    help="measurement noise, sd in mm per axis (0.35)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the rig files (measurements.csv, rig.toml, truth.toml) the "
+                        "directory already holds")
 
 
 @command("simulate", "write a simulated rig (paper's two-arm setup) with chosen physical effects")(
@@ -93,16 +111,29 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 def _simulate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from bayesrob.simulator import paper_truth, simulate_rig
+    from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE
+    from bayesrob.simulator import TRUTH_FILE, paper_truth, simulate_rig
 
+    out_dir = Path(args.out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"{out_dir} is a file, not a directory")
+    names = (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE)
+    existing = [out_dir / n for n in names if (out_dir / n).exists()]
+    if existing and not args.force:
+        # measurements.csv first: it may be real data that cannot be made again.
+        raise UsageError(f"{existing[0]} already exists; simulate would replace it (pass "
+                         "--force to overwrite, or choose another directory)")
     truth = paper_truth(args.effects, seed=args.seed, grid=args.grid)
     if args.joint_noise_rad is not None:
         truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
     if args.measurement_noise_mm is not None:
         truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
-    out = simulate_rig(args.out_dir, truth, progress=sys.stderr.isatty())
+    out = simulate_rig(args.out_dir, truth, progress=_progress(args))
     effects = ",".join(truth.effects) or "none"
-    print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed})")
+    if existing:
+        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}): "
+          f"{', '.join(names)}")
     return 0
 
 
@@ -122,9 +153,14 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     _calibrate_args)
 def _calibrate(args: argparse.Namespace) -> int:
     from bayesrob.calibration import calibration_report
+    from bayesrob.progress import progress
     from bayesrob.report import format_calibration
+
     rig = _load_rig_arg(args.rig)
-    doc = calibration_report(rig, args.method)
+    # NUTS per arm compiles and samples for tens of seconds; the other methods take about one.
+    with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
+                  postfix=f"NUTS posterior of {len(rig.arms)} arms"):
+        doc = calibration_report(rig, args.method)
     if args.json != "-":
         print(format_calibration(doc))
     _write_json(doc, args.json)
@@ -158,6 +194,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         bound_notes,
         format_accuracy,
         grid_warnings,
+        grouped_notes,
         run_reproduction,
         write_reproduction,
     )
@@ -166,14 +203,14 @@ def _reproduce(args: argparse.Namespace) -> int:
     try:
         rep = run_reproduction(rig, args.models, args.models_dir,
                                Grid(args.grid_half_width, args.grid_n), args.calibration,
-                               progress=sys.stderr.isatty())
+                               progress=_progress(args))
     except ModelFileError as exc:
         raise UsageError(str(exc)) from None
     written = write_reproduction(rep, args.out)
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
-    for line in bound_notes(rep) + grid_warnings(rep):
+    for line in grouped_notes(grid_warnings(rep), bound_notes(rep)):
         print(line, file=sys.stderr)
     print(f"wrote {len(written)} files to {args.out}/")
     return 0
@@ -280,7 +317,7 @@ def _collect(args: argparse.Namespace) -> int:
             speed_us_per_s=args.speed, timeout_s=args.timeout, retries=args.retries,
             maestro_model=args.maestro_model, auto_baud=args.auto_baud,
             confirm=None if args.yes else terminal_confirm,
-            progress=sys.stderr.isatty() and not args.manual)
+            progress=_progress(args) and not args.manual)
     except ArgumentError as exc:
         raise UsageError(str(exc)) from None
     except HardwareError as exc:
@@ -402,14 +439,13 @@ def _diagnose(args: argparse.Namespace) -> int:
     from bayesrob.diagnosis import diagnose, format_diagnosis, write_report
 
     rig = _load_rig_arg(args.rig)
-    diag = diagnose(rig, args.effects, seed=args.seed, progress=sys.stderr.isatty())
+    diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
         print(format_diagnosis(doc))
     if args.report:
         for path in write_report(diag, args.report):
-            if args.json != "-":
-                print(f"wrote {path}")
+            _wrote(path, args.json)
     _write_json(doc, args.json)
     return 0
 
@@ -457,7 +493,7 @@ def _sample(args: argparse.Namespace) -> int:
         config = rig.linked_configs[0]
     try:
         report = sample_linked(rig, config, args.target, args.model, args.sampler,
-                               seed=args.seed, progress=sys.stderr.isatty(),
+                               seed=args.seed, progress=_progress(args),
                                models_dir=args.models_dir)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
@@ -489,7 +525,7 @@ def _compare(args: argparse.Namespace) -> int:
 
     rig = _load_rig_arg(args.rig)
     try:
-        comp = compare_models(rig, args.models, args.models_dir, progress=sys.stderr.isatty())
+        comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args))
     except ModelFileError as exc:
         raise UsageError(str(exc)) from None
     doc = comp.document()
@@ -502,8 +538,8 @@ def _compare(args: argparse.Namespace) -> int:
         doc["plot"] = plot
     if args.json != "-":
         print(format_comparison(doc))
-        if plot is not None:
-            print(f"wrote {plot}")
+    if plot is not None:
+        _wrote(plot, args.json)
     _write_json(doc, args.json)
     return 0
 
@@ -541,6 +577,10 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (help_text, add_arguments, _) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         add_arguments(p)
+        if name in PROGRESS_COMMANDS:
+            p.add_argument("--no-progress", action="store_true",
+                           help="print no progress on stderr (default: a bar on a terminal, "
+                                "a line every 5 s otherwise)")
     return parser
 
 

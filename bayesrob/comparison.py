@@ -280,13 +280,14 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
                    models_dir: str | Path | None = None, progress: bool = False
                    ) -> ModelComparison:
     """Fit every model on the training rows and score it on held-out and LOO points."""
-    from tqdm.auto import tqdm
+    from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
     specs = discover_models(models_dir, models)
+    bar = progress_report(len(specs), "compare", "models", enabled=progress,
+                          postfix="calibrating")
     arms = {n: c.arm for n, c in calibrate(rig).items()}
     configs = setups(rig)
-    bar = tqdm(total=len(specs), disable=not progress, desc="compare", leave=False)
     heldout: dict[str, dict[str, PointScores]] = {}
     loo: dict[str, np.ndarray] = {}
     in_sample: dict[str, np.ndarray] = {}

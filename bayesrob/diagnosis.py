@@ -872,9 +872,9 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
 
 
 def _bar(enabled: bool, total: int):
-    from tqdm.auto import tqdm
+    from bayesrob.progress import progress
 
-    return tqdm(total=total, disable=not enabled, desc="diagnose", unit="fit", leave=False)
+    return progress(total, "diagnose", "fits", enabled=enabled)
 
 
 # ------------------------------------------------------------------------------ output

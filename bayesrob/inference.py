@@ -671,11 +671,13 @@ class NutsSampler:
         lane_cmds = tuple(jnp.asarray(np.repeat(u, c, axis=0)[:, None, :]) for u in cmds)
         z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, 2))
         keys = jax.random.split(jax.random.PRNGKey(seed), t * c)
+        # A structure's first run compiles for seconds: the report starts before that.
+        bar = _progress(self.chunks, self.progress_bar, "nuts", "chunks", "compiling")
         init_fn, advance_fn, compile_s = self._functions(statics, keys, z0, lane_cmds, params)
+        bar.set_postfix("sampling")
         t0 = time.perf_counter()
         state = init_fn(keys, z0, lane_cmds, params)
         pieces = []
-        bar = _progress(self.chunks, self.progress_bar, "nuts")
         for _ in range(self.chunks):
             state, out = advance_fn(state, lane_cmds, params)
             pieces.append(out)
@@ -725,10 +727,11 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     return sampler.run(models, arms, commands, init, seed)
 
 
-def _progress(total: int, enabled: bool, desc: str):
-    from tqdm.auto import tqdm
+def _progress(total: int | None, enabled: bool, desc: str, unit: str = "step",
+              postfix: str = ""):
+    from bayesrob.progress import progress
 
-    return tqdm(total=total, disable=not enabled, desc=desc, leave=False)
+    return progress(total, desc, unit, enabled=enabled, postfix=postfix)
 
 
 def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
@@ -752,6 +755,7 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     if moves is None:
         moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
     rng = np.random.default_rng(seed)
+    bar = _progress(t_count * n_steps, progress, "emcee", "steps", "compiling")
     t0 = time.perf_counter()
     # Compile outside the timed run, for both shapes emcee uses: the whole ensemble (first
     # step) and each half of it (the red-blue moves).
@@ -759,6 +763,7 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     for k in {w, w // 2, w - w // 2}:
         jax.block_until_ready(lp(init[:k, 0, :], first))
     compile_seconds = time.perf_counter() - t0
+    bar.set_postfix("sampling")
     posteriors = []
     t0 = time.perf_counter()
     # KDEMove solves 2x2 triangular systems through scipy every step: multi-threaded BLAS
@@ -772,11 +777,13 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
 
             sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
             sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
-            sampler.run_mcmc(init[:, t, :], n_steps, progress=progress)
+            for _ in sampler.sample(init[:, t, :], iterations=n_steps):
+                bar.update()
             one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
                                 dims={"d": ["xy"]}, coords=_COORDS)
             posteriors.append(one.posterior.isel(draw=slice(burn, None)))
     seconds = time.perf_counter() - t0
+    bar.close()
     post = xr.concat(posteriors, dim="target").transpose("chain", "draw", "target", "xy")
     idata = az.InferenceData(posterior=post)
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
@@ -889,14 +896,22 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         raise ValueError(f"config {config!r}: no arm {unknown[0]!r} in the rig "
                          f"(arms: {', '.join(rig.arms)})")
     specs = discover_models(models_dir, [model])
+    # The steps before the samplers, which report on their own bars.
+    bar = _progress(3, progress, "sample", "steps", "calibrating")
     cal = calibrate(rig)
     arms = {a: cal[a].arm for a in members}
+    bar.update()
+    bar.set_postfix(f"fitting {model}")
     fitted = fit_noise_models(rig, arms, specs)[model]
+    bar.update()
+    bar.set_postfix("grid posterior")
     target = np.asarray(target, float).reshape(1, 2)
     models = [fitted[a] for a in members]
     arm_list = [arms[a] for a in members]
     commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
     grid = grid_posterior(models, arm_list, commands, target)
+    bar.update()
+    bar.close()
     doc: dict[str, Any] = {
         "target": [float(x) for x in target[0]],
         "config": config,
@@ -987,5 +1002,7 @@ def format_sample(report: SampleReport) -> str:
     else:
         parts.append("check FAILED:")
         parts += [f"  {f}" for f in check["failures"]]
-    parts += [f"note: {n}" for n in doc.get("notes", [])]
+    from bayesrob.reproduction import grouped_notes
+
+    parts += grouped_notes([], doc.get("notes", []))
     return "\n".join(parts)

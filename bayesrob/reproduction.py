@@ -61,7 +61,7 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
                      calibration: Method = "least-squares", progress: bool = False
                      ) -> Reproduction:
     """Calibrate, fit every model, predict every setup; no files written."""
-    from tqdm.auto import tqdm
+    from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
     grid = grid if grid is not None else Grid()
@@ -71,12 +71,13 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
     specs = discover_models(models_dir, models)
     configs = setups(rig)
     steps = 1 + len(specs) * (len(rig.arms) + len(configs))
-    bar = tqdm(total=steps, disable=not progress, desc="reproduce", unit="step", leave=False)
+    bar = progress_report(steps, "reproduce", "steps", enabled=progress,
+                          postfix=f"calibrating ({calibration})")
     arms = {n: c.arm for n, c in calibrate(rig, calibration).items()}
     bar.update()
 
     def fitted_one(model: str, arm: str) -> None:
-        bar.set_postfix_str(model)
+        bar.set_postfix(f"fitting {model}")
         bar.update()
 
     fitted = fit_noise_models(rig, arms, specs, on_fit=fitted_one)
@@ -86,6 +87,7 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
         predictions[spec.name] = {}
         for c in configs:
             r = rows[c]
+            bar.set_postfix(f"predicting {spec.name}")
             predictions[spec.name][c] = predict(c, fitted[spec.name], arms, r["commands"],
                                                 r["targets"], grid, spec.name)
             bar.update()
@@ -134,6 +136,22 @@ def bound_notes(rep: Reproduction) -> list[str]:
                        "that dimension)")
                 out.append(f"note: {spec.name} / {arm}: bandwidth on the bound of its search "
                            f"range [{lo:g}, {hi:g}] (in data standard deviations){why}")
+    return out
+
+
+WARNINGS_HEADING = "warnings (results may be wrong; see each line for what to change):"
+NOTES_HEADING = ("notes (expected for these estimators on this data; nothing to fix, the "
+                 "results stand):")
+
+
+def grouped_notes(warnings: Sequence[str], notes: Sequence[str]) -> list[str]:
+    """Warnings and notes under headings that say whether they matter, warnings first."""
+    out = []
+    for heading, lines, prefix in ((WARNINGS_HEADING, warnings, "warning: "),
+                                   (NOTES_HEADING, notes, "note: ")):
+        if lines:
+            out.append(heading)
+            out += [f"  {line.removeprefix(prefix)}" for line in lines]
     return out
 
 

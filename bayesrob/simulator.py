@@ -445,5 +445,5 @@ def _check_limits(name: str, u: np.ndarray, limits) -> None:
 
 
 def _progress(total: int, enabled: bool, desc: str):
-    from tqdm.auto import tqdm
-    return tqdm(total=total, disable=not enabled, desc=desc, unit="pt", leave=False)
+    from bayesrob.progress import progress
+    return progress(total, desc, "pt", enabled=enabled)

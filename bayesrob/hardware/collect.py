@@ -455,7 +455,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     everything. Returns what was done; raises HardwareError/RigError with every completed row
     already safe on disk.
     """
-    from tqdm.auto import tqdm
+    from bayesrob.progress import progress as progress_report
 
     log = log or _stderr
     rig_dir = Path(rig_dir)
@@ -495,8 +495,9 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         if result.skipped:
             log(f"resuming: {result.skipped} of {result.total} rows already recorded")
 
-        bar = tqdm(total=result.total, initial=result.skipped, disable=not progress,
-                   desc="collect", unit="row", file=sys.stderr, leave=False)
+        # No heartbeat: it would redraw over the operator's prompts between the sets.
+        bar = progress_report(result.total, "collect", "rows", enabled=progress,
+                              initial=result.skipped, heartbeat=False)
 
         def run(step: Step, index: int) -> None:
             label = f"[{index + 1}/{result.total}] {step.describe()}"
