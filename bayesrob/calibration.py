@@ -453,3 +453,27 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
             errors[s]["all"] = _error_stats(np.concatenate(list(dist.values())))
     return ChainCalibration(robot, x, groups, ident, se, errors, nfev,
                             time.perf_counter() - t0)
+
+
+def calibrated_rig_document(rig: Rig, cal: ChainCalibration, urdf_name: str) -> dict:
+    """rig.toml of the calibrated robot, its arms read from the URDF ``urdf_name`` that
+    :func:`bayesrob.kinematics.write_urdf` wrote: origins and offsets are in the URDF, marker
+    positions and instrument poses (not part of a URDF) here."""
+    calibrated = cal.robot.with_values(cal.x)
+    keys = kin.urdf.generated_arm_keys(calibrated)
+    arms = {}
+    for name, c in calibrated.chains.items():
+        table: dict = {"urdf": urdf_name, **keys[name]}
+        if c.mount is not None:
+            table["mount"] = c.mount
+        else:
+            table["instrument"] = [float(v) for v in c.instrument]
+        if name in calibrated.measured_arms():
+            table["marker"] = [float(v) for v in c.marker]
+        if c.coupling.shape[0] != c.coupling.shape[1] or not np.allclose(
+                c.coupling, np.eye(c.coupling.shape[0])):
+            table["coupling"] = [[float(v) for v in row] for row in c.coupling]
+        table["gain"] = [float(v) for v in c.gain]
+        table["offset"] = [float(v) for v in c.offset]
+        arms[name] = table
+    return {"name": f"{rig.name}-calibrated", "gravity": list(rig.gravity), "arms": arms}

@@ -80,11 +80,20 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def _load_rig_arg(path: str | None):
-    """Load the rig a command was given, or the embedded default rig."""
+def _load_rig_arg(path: str | None, chains: bool = False):
+    """Load the rig a command was given, or the embedded default rig.
+
+    Commands other than calibrate work on the paper's planar arms so far: a URDF/DH rig is
+    refused with one line rather than failing deep inside.
+    """
     from bayesrob.rig import default_rig_dir, load_rig
 
-    return load_rig(path if path is not None else default_rig_dir())
+    rig = load_rig(path if path is not None else default_rig_dir())
+    if rig.is_chain and not chains:
+        raise UsageError(f"{rig.path}: arms described by URDF or DH tables can be calibrated "
+                         "('bayesrob calibrate') but not yet predicted, sampled, compared or "
+                         "diagnosed by this version")
+    return rig
 
 
 # ------------------------------------------------------------------------------ simulate
@@ -147,16 +156,73 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    help="least-squares (default, scipy), hill-climb (the paper's baseline) or "
                         "bayes (NUTS posterior; params = posterior mean, std err = posterior sd)")
     p.add_argument("--json", metavar="OUT", help="write the report as JSON ('-' for stdout)")
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="parameter groups to fit, comma-separated: frames (instrument pose and "
+                        "markers; always fitted), offsets (joint zero offsets), geometric (every "
+                        "joint origin), servo (command gains). Default for URDF/DH rigs: all; a "
+                        "planar rig without --params fits its eight parameters per arm")
+    p.add_argument("--urdf-out", metavar="FILE",
+                   help="write the calibrated robot as URDF to FILE, and FILE with suffix "
+                        ".rig.toml: a rig.toml (instrument poses, markers) that loads it back")
 
 
-@command("calibrate", "fit each arm's eight parameters and report observed accuracy")(
+def _param_groups(text: str) -> tuple[str, ...]:
+    from bayesrob.kinematics import GROUPS
+
+    items = tuple(g.strip() for g in text.split(",") if g.strip())
+    if not items:
+        raise argparse.ArgumentTypeError("name at least one group")
+    for g in items:
+        if g not in GROUPS:
+            raise argparse.ArgumentTypeError(
+                f"unknown parameter group {g!r} (choose from {', '.join(GROUPS)})")
+    return items
+
+
+def _calibrate_chain(args: argparse.Namespace, rig) -> int:
+    from bayesrob.calibration import calibrate_chain, calibrated_rig_document
+    from bayesrob.kinematics import GROUPS, write_urdf
+    from bayesrob.progress import progress
+    from bayesrob.report import format_chain_calibration
+    from bayesrob.rig import dump_toml
+
+    if args.method != "least-squares":
+        raise UsageError(f"--method {args.method} calibrates planar arms only; URDF/DH rigs "
+                         "(and --params) use least-squares")
+    groups = args.params or GROUPS
+    with progress(None, "calibrate", enabled=_progress(args),
+                  postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
+        try:
+            cal = calibrate_chain(rig, groups, progress=bar.set_postfix)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    doc = {"rig": rig.name, **cal.to_json()}
+    if args.urdf_out:
+        out = Path(args.urdf_out)
+        write_urdf(rig.robot, cal.x, out, name=rig.name)
+        toml_path = out.with_suffix(".rig.toml")
+        toml_path.write_text(dump_toml(calibrated_rig_document(rig, cal, out.name)))
+        doc["urdf_out"] = str(out)
+        doc["rig_toml_out"] = str(toml_path)
+    if args.json != "-":
+        print(format_chain_calibration(doc))
+    for key in ("urdf_out", "rig_toml_out"):
+        if key in doc:
+            print(f"wrote {doc[key]}", file=sys.stderr if args.json == "-" else sys.stdout)
+    _write_json(doc, args.json)
+    return 0
+
+
+@command("calibrate", "fit each arm's parameters (planar, URDF or DH arms) and report accuracy")(
     _calibrate_args)
 def _calibrate(args: argparse.Namespace) -> int:
     from bayesrob.calibration import calibration_report
     from bayesrob.progress import progress
     from bayesrob.report import format_calibration
 
-    rig = _load_rig_arg(args.rig)
+    rig = _load_rig_arg(args.rig, chains=True)
+    if rig.is_chain or args.params is not None or args.urdf_out:
+        return _calibrate_chain(args, rig)
     # NUTS per arm compiles and samples for tens of seconds; the other methods take about one.
     with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
                   postfix=f"NUTS posterior of {len(rig.arms)} arms"):

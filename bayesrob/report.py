@@ -40,3 +40,28 @@ def format_calibration(doc: dict) -> str:
     parts.append("\nobserved accuracy (mean Euclidean error, mm)")
     parts.append(format_table(["config", "set", "mean", "95% CI", "n"], rows))
     return "\n".join(parts)
+
+
+def format_chain_calibration(doc: dict) -> str:
+    """Groups fitted, what the rank analysis fixed, and the error per set and arm."""
+    parts = [f"calibration: {doc['method']} of {doc['rig']}, groups {', '.join(doc['params'])}: "
+             f"{doc['n_free']} of {doc['n_parameters']} parameters fitted "
+             f"({doc['seconds']:.1f} s, {doc['nfev']} evaluations)"]
+    if doc["unidentifiable"]:
+        parts.append(f"\nnot identifiable from the train rows, fixed at nominal "
+                     f"({len(doc['unidentifiable'])}):")
+        for u in doc["unidentifiable"][:12]:
+            combo = " + ".join(f"{c:+.3g} {n}" for n, c in u["explained_by"].items())
+            parts.append(f"  {u['name']}  ~  {combo}")
+        if len(doc["unidentifiable"]) > 12:
+            parts.append(f"  ... and {len(doc['unidentifiable']) - 12} more (all in --json)")
+    if doc["not_observed"]:
+        parts.append(f"no measured point depends on: {', '.join(doc['not_observed'])}")
+    rows = []
+    for s, arms in doc["errors"].items():
+        for arm, e in arms.items():
+            rows.append([s, arm, _fmt(e["mean_mm"]), _fmt(e["sd_mm"]), _fmt(e["max_mm"]),
+                         str(e["n"])])
+    parts.append("\nmarker error (mm)")
+    parts.append(format_table(["set", "arm", "mean", "sd", "max", "n"], rows))
+    return "\n".join(parts)

@@ -26,7 +26,7 @@ from bayesrob.kinematics import transforms as tf
 
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
-SETS = ("train", "validation", "test")
+SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "meta")
 # Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",

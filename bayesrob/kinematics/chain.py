@@ -256,8 +256,11 @@ class Robot:
         cache[arm] = out
         return out
 
-    def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
-        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns)."""
+    def element_frames(self, x: jax.Array, arm: str, u: jax.Array
+                       ) -> tuple[jax.Array, jax.Array]:
+        """Frames along the path to ``arm`` (instrument frame), each (E, N, 4, 4): ``joints``,
+        where each element's motion happens (its axis passes through the origin), and
+        ``links``, the frame after the motion (the child link's)."""
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
         sl = self.layout.slices
@@ -276,12 +279,17 @@ class Robot:
             nominal, delta, axis, prismatic, qe = e
             turn = tf.rot_axis(axis, qe * (1.0 - prismatic))
             motion = tf.homogeneous(turn, (qe * prismatic)[:, None] * axis)
-            return t @ (nominal @ tf.perturbation(delta)) @ motion, None
+            joint = t @ (nominal @ tf.perturbation(delta))
+            return joint @ motion, (joint, joint @ motion)
 
         xs = (jnp.asarray(el["nominal"]), x[el["delta_idx"]], jnp.asarray(el["axes"]),
               jnp.asarray(el["prismatic"]), q[:, el["q_idx"]].T)
-        t, _ = jax.lax.scan(step, t0, xs)
-        return t
+        _, (joints, links) = jax.lax.scan(step, t0, xs)
+        return joints, links
+
+    def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns)."""
+        return self.element_frames(x, arm, u)[1][-1]
 
     def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """d marker_points / d x, (N, dim, P), from prefix and suffix products.
