@@ -175,3 +175,15 @@ def test_comparison_figure_has_units_and_labels():
                 assert np.all((xs >= x0) & (xs <= x1)), (ax.get_title(), xs, (x0, x1))
     finally:
         plt.close(fig)
+
+
+def test_fig8_panels_hold_every_models_density(built, rep):
+    # The paper-faithful bottom-arm density spreads widest; a fixed +-5 mm panel held 89% of it.
+    cell = rep.predictions["ind_paper"]["top"].grid.cell_area_mm2
+    panels = [a for a in built["fig8"].axes if a.images]
+    assert len(panels) == len(MODELS) * len(rep.rows)
+    for ax in panels:
+        shown = float(np.sum(ax.images[0].get_array()) * cell)
+        assert shown >= 0.99, f"{ax.get_title()}: only {shown:.3f} of the density in the panel"
+        x0, x1 = ax.get_xlim()
+        assert ax.images[0].get_extent()[:2] == pytest.approx([x0, x1], abs=0.31)

@@ -272,10 +272,29 @@ def cond_grid(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
     return fig
 
 
-def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
-    """Figure 8: observed errors (top row) and each model's error density summed over targets."""
+def _error_mass_half_width(pred, mass: float = 0.99) -> float:
+    """Smallest half-width (mm, a grid cell edge) whose box holds ``mass`` of Figure 8's density."""
+    n = pred.grid.n
+    e = pred.error_density
+    step = 2 * pred.grid.half_width_mm / n
+    for k in range(1, n // 2 + 1):
+        if e[n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum() >= mass:
+            return k * step
+    return pred.grid.half_width_mm
+
+
+def error_densities(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
+    """Figure 8: observed errors (top row) and each model's error density summed over targets.
+
+    All panels share one width, chosen (unless ``zoom_mm`` is given) to hold 99% of every
+    model's density: the paper-faithful models spread wider than the errors they predict.
+    """
     configs = _setups(rep)
     models = [s.name for s in rep.specs]
+    if zoom_mm is None:
+        widest = max((_error_mass_half_width(rep.predictions[m][c])
+                      for m in models for c in configs), default=5.0)
+        zoom_mm = float(np.ceil(max(widest, 3.0)))
     nrow = 1 + len(models)
     fig, axes = plt.subplots(nrow, len(configs), figsize=(3.3 * len(configs), 3.0 * nrow),
                              squeeze=False, sharex=True, sharey=True,
@@ -293,7 +312,8 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
             keep = np.abs(g) <= zoom_mm
             dens = pred.error_density[np.ix_(keep, keep)] / pred.grid.cell_area_mm2
             ax = axes[i, j]
-            ext = [g[keep][0], g[keep][-1], g[keep][0], g[keep][-1]]
+            step = g[1] - g[0]
+            ext = [g[keep][0] - step / 2, g[keep][-1] + step / 2] * 2  # cell edges, not centres
             ax.imshow(dens, origin="lower", extent=ext, cmap="Blues", interpolation="bilinear")
             ax.plot(err[:, 0], err[:, 1], ".", color="tab:red", ms=2, alpha=0.6)
             ax.set_title(f"{name}: expected {pred.mean_expected_error_mm:.2f} mm", fontsize=9)
@@ -308,5 +328,5 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
     for ax in axes[:, 0]:
         ax.set_ylabel("y error (mm)")
     fig.suptitle("Figure 8. End-point error densities summed over the targets\n"
-                 "(top: observed; red dots repeat them)", y=0.93)
+                 "(top: observed errors; red dots repeat them; darker blue: denser)", y=0.93)
     return fig
