@@ -96,3 +96,38 @@ def test_gitignore_holds_the_output_directories_the_docs_create():
     assert {"reproduction", "diagnosis-default", "compare-default"} <= wanted
     for d in sorted(wanted):
         assert f"/{d}/" in ignored, f"{d}/ is created by a documented command but not ignored"
+
+
+def _documented_command_lines() -> list[tuple[str, str]]:
+    """(file, command line) of every concrete ``bayesrob ...`` line in a bash block.
+
+    Synopsis lines with placeholders (``RIG``, ``[--json OUT]``, ``a|b``) are left out: they
+    describe a command rather than run one.
+    """
+    out = []
+    for path in DOCS:
+        for lang, _, code in _blocks(path):
+            if lang != "bash":
+                continue
+            for line in code.replace("\\\n", " ").splitlines():
+                line = line.split("#")[0].strip().removeprefix(".venv/bin/").rstrip("&").strip()
+                if not line.startswith("bayesrob ") or re.search(r"[\[|]|\.\.\.|\b[A-Z_]{2,}\b",
+                                                                  line):
+                    continue
+                out.append((path.name, line))
+    return out
+
+
+def test_documented_command_lines_parse():
+    import shlex
+
+    from bayesrob.cli import build_parser
+
+    lines = _documented_command_lines()
+    assert len(lines) >= 6  # the README's first session, diagnose, collect, sim-device ...
+    parser = build_parser()
+    for name, line in lines:
+        try:
+            parser.parse_args(shlex.split(line)[1:])
+        except SystemExit as exc:  # argparse's way of rejecting a command line
+            pytest.fail(f"{name}: `{line}` does not parse (exit {exc.code})")
