@@ -376,14 +376,17 @@ def comparison_figure(comparison: ModelComparison) -> Figure:
                         capsize=3)
         ax.axvline(0.0, color="0.5", lw=0.8, ls="--")
         ax.set_xscale("symlog", linthresh=10.0)
-        ax.set_xlim(right=max(5.0, float(np.max(diff + dse))) * 1.5)
+        ax.set_xlim(min(-5.0, float(np.min(diff - dse))) * 1.5,
+                    max(5.0, float(np.max(diff + dse))) * 1.5)
         ax.set_yticks(y, [f"{r['model']}  ({r['elpd']:.0f} \u00b1 {r['se']:.0f})"
                           for r in rows])
-        ax.set_xlabel("elpd difference to the best model (\u00b1 dse)")
+        ax.set_xlabel("elpd difference to the best model (nats, \u00b1 dse)")
+        ax.set_ylabel("model (elpd \u00b1 se, nats)")
         n = int(comparison.heldout_pointwise(rows[0]["model"]).size) if title.startswith(
             "held") else int(comparison.loo[rows[0]["model"]].size)
         ax.set_title(f"{title}, n = {n}")
-    fig.suptitle(f"{comparison.rig.name}: log predictive density of the observed end points "
-                 "(per mm^2, summed); circles improved, squares paper-faithful")
+    fig.suptitle(f"{comparison.rig.name}: elpd, the summed log predictive density of the "
+                 "observed end points (nats; density per mm$^2$)\ncircles improved, squares "
+                 "paper-faithful; higher is better")
     fig.tight_layout()
     return fig

@@ -130,7 +130,7 @@ def bound_notes(rep: Reproduction) -> list[str]:
         for arm, fitted in rep.fitted[spec.name].items():
             if fitted.on_bound:
                 lo, hi = fitted.search_range or (float("nan"), float("nan"))
-                why = (" (J_LOO decreases monotonically in h, see NOTES.md)"
+                why = (" (J_LOO decreases monotonically in h, see docs/paper-notes.md)"
                        if spec.bandwidth == "paper" else
                        " (a width at the upper bound means the data show no structure along "
                        "that dimension)")

@@ -33,39 +33,72 @@ def _cond_model(rep: Reproduction) -> str | None:
     return names[0] if names else (rep.specs[0].name if rep.specs else None)
 
 
-def workspace_errors(rep: Reproduction, scale: float = 10.0,
-                     expected_scale: float = 40.0) -> Figure:
-    """Figure 3: observed error vectors (top) and COND's expected errors (bottom) per setup."""
+def workspace_errors(rep: Reproduction, scale: float = 10.0) -> Figure:
+    """Figure 3: observed error vectors (top) and COND's expected error (bottom) per setup.
+
+    Both rows share one scale, so an observed arrow can be held against the expected error's
+    circle: the model's expected end point lies within a few hundredths of a mm of the target
+    (its densities are centred), so what it predicts is the size of the error, E||d - d_targ||.
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+
     configs = _setups(rep)
     model = _cond_model(rep)
-    fig, axes = plt.subplots(2, len(configs), figsize=(4.2 * len(configs), 8.2), squeeze=False,
+    fig, axes = plt.subplots(2, len(configs), figsize=(4.4 * len(configs), 9.0), squeeze=False,
                              sharex=True, sharey=True)
+    # One set of limits for every panel, wide enough for the longest arrow and largest circle.
+    reach = []
+    for c in configs:
+        r = rep.rows[c]
+        reach.append(np.linalg.norm(r["observed"] - r["targets"], axis=1).max())
+        if model:
+            reach.append(rep.predictions[model][c].expected_error_mm.max())
+    pts = np.concatenate([rep.rows[c]["targets"] for c in configs])
+    pad = scale * max(reach) + 8.0
+    xlim = (pts[:, 0].min() - pad, pts[:, 0].max() + pad)
+    ylim = (pts[:, 1].min() - pad, pts[:, 1].max() + pad)
     for j, c in enumerate(configs):
         r = rep.rows[c]
         start = r["targets"]
-        # Expected errors are a fraction of observed ones (noise averages out), so they get
-        # their own, larger arrow scale.
-        for i, (end, label, colour, k) in enumerate((
-            (r["observed"], "observed", "tab:blue", scale),
-            (rep.predictions[model][c].expected_point if model else start,
-             f"expected ({model})", "tab:red", expected_scale),
-        )):
+        vec = r["observed"] - start
+        for i in range(2):
             ax = axes[i, j]
-            vec = end - start
-            ax.quiver(start[:, 0], start[:, 1], vec[:, 0] * k, vec[:, 1] * k,
-                      angles="xy", scale_units="xy", scale=1, color=colour, width=0.006)
-            ax.plot(start[:, 0], start[:, 1], "k.", ms=3)
-            mean = np.mean(np.linalg.norm(vec, axis=1))
-            ax.set_title(f"{c}: {label}\nmean {mean:.2f} mm (arrows x{k:g})", fontsize=9)
+            faint = i == 1
+            ax.quiver(start[:, 0], start[:, 1], vec[:, 0] * scale, vec[:, 1] * scale,
+                      angles="xy", scale_units="xy", scale=1, width=0.005,
+                      color="0.75" if faint else "tab:blue", zorder=2)
+            ax.plot(start[:, 0], start[:, 1], "k.", ms=4, zorder=3)
             ax.set_aspect("equal")
+            ax.set_xlim(*xlim)
+            ax.set_ylim(*ylim)
             ax.grid(alpha=0.3)
-            if i == 1:
-                ax.set_xlabel("x (mm)")
-            if j == 0:
-                ax.set_ylabel("y (mm)")
-    fig.suptitle("Figure 3. Errors over the workspace: arrow from the model's point to the "
-                 "observed (top) or expected (bottom) end point")
-    fig.tight_layout()
+        mean_obs = np.mean(np.linalg.norm(vec, axis=1))
+        axes[0, j].set_title(f"{c}: observed error\nmean {mean_obs:.2f} mm", fontsize=9)
+        ax = axes[1, j]
+        if model:
+            pred = rep.predictions[model][c]
+            for (x, y), e in zip(start, pred.expected_error_mm, strict=True):
+                ax.add_patch(Circle((x, y), e * scale, fill=False, color="tab:red", lw=1.2,
+                                    zorder=4))
+            off = np.linalg.norm(pred.expected_point - start, axis=1).max()
+            ax.set_title(f"{c}: expected error ({model})\nmean {pred.mean_expected_error_mm:.2f}"
+                         f" mm; expected point within {off:.2f} mm of target", fontsize=9)
+    for ax in axes[-1]:
+        ax.set_xlabel("x (mm)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("y (mm)")
+    key = [Line2D([], [], ls="none", marker=".", color="k", ms=6,
+                  label="commanded point f(g(u)) (the target, for linked arms)"),
+           Line2D([], [], color="tab:blue", marker=r"$\rightarrow$", ms=10,
+                  label=f"observed error, drawn x{scale:g}"),
+           Line2D([], [], color="0.75", marker=r"$\rightarrow$", ms=10,
+                  label="observed error as above, for comparison"),
+           Line2D([], [], ls="none", marker="o", mfc="none", mec="tab:red", ms=9,
+                  label=f"radius: expected error E||d - target|| of {model}, drawn x{scale:g}")]
+    fig.suptitle("Figure 3. Errors over the workspace: observed (top) and predicted (bottom)")
+    fig.tight_layout(rect=(0, 0.07, 1, 1), h_pad=3.0)
+    fig.legend(handles=key, loc="lower center", ncol=2, fontsize=9, frameon=False)
     return fig
 
 
@@ -91,6 +124,7 @@ def accuracy(rep: Reproduction) -> Figure:
             ax.bar(x0 + (m + 1) * width, p["expected_error_mm"], width, color=colours[m],
                    hatch=hatch, edgecolor="white", label=name if k == 0 else None)
     ax.set_xticks(range(len(configs)), configs)
+    ax.set_xlabel("setup (arms linked with +)")
     ax.set_ylabel("mean Euclidean error (mm)")
     ax.set_title("Figure 4. Accuracy: observed (95% CI) and predicted by each model\n"
                  "(hatched: paper-faithful estimators)", fontsize=10)
@@ -121,6 +155,9 @@ def ind_densities(rep: Reproduction) -> Figure:
         for k, colour in ((0, "tab:blue"), (1, "tab:orange")):
             ax.plot(err[:, k] * 1e3, np.full(len(err), -0.02 * (k + 1)), "|", color=colour,
                     ms=10)
+        ax.axhline(0.0, color="0.5", lw=0.6)
+        # The rug sits below zero; a density has no negative values to tick there.
+        ax.set_yticks([v for v in ax.get_yticks() if 0.0 <= v <= ax.get_ylim()[1]])
         ax.set_xlabel("joint-angle error (mrad)")
         ax.set_ylabel("density (per mrad)")
         ax.set_title(f"{a} arm")
@@ -162,46 +199,102 @@ def corr_densities(rep: Reproduction) -> Figure:
     return fig
 
 
-def cond_grid(rep: Reproduction, zoom_mm: float = 4.0) -> Figure:
-    """Figure 7: COND's p(d | u) around every target, per setup (blue: target, red: expected)."""
+def _covering_half_width(pred, mass: float = 0.995) -> float:
+    """Smallest half-width (mm, a grid cell edge) whose box holds ``mass`` at every target."""
+    n = pred.grid.n
+    p = pred.prob.reshape(-1, n, n)
+    step = 2 * pred.grid.half_width_mm / n
+    for k in range(1, n // 2 + 1):
+        inner = p[:, n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum(axis=(1, 2))
+        if np.all(inner >= mass):
+            return k * step
+    return pred.grid.half_width_mm
+
+
+def cond_grid(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
+    """Figure 7: COND's p(d | u) around every target, per setup.
+
+    Each setup's panels share one width, chosen (unless ``zoom_mm`` is given) to hold 99.5%
+    of the predicted mass at every target, and one colour scale, shown by its colour bar.
+    """
+    from matplotlib.lines import Line2D
+
     model = _cond_model(rep)
     configs = _setups(rep)
-    fig = plt.figure(figsize=(5.2 * len(configs), 5.6))
-    subfigs = fig.subfigures(1, len(configs), wspace=0.02)
-    subfigs = np.atleast_1d(subfigs)
+    fig = plt.figure(figsize=(6.2 * len(configs), 7.0), layout="constrained")
+    subfigs = np.atleast_1d(fig.subfigures(1, len(configs), wspace=0.03))
     for sf, c in zip(subfigs, configs, strict=True):
         pred = rep.predictions[model][c]
         t = len(pred.targets)
         side = int(np.ceil(np.sqrt(t)))
+        half = zoom_mm if zoom_mm is not None else float(np.ceil(_covering_half_width(pred)))
         # Lay panels out as the targets lie in the workspace: rows by y (top first), then x.
         order = np.lexsort((pred.targets[:, 0], -pred.targets[:, 1]))
-        axes = sf.subplots(side, side, sharex=True, sharey=True)
-        axes = np.atleast_2d(axes)
-        ax_grid = pred.grid.axis
-        keep = np.abs(ax_grid) <= zoom_mm
+        axes = np.atleast_2d(sf.subplots(side, side, sharex=True, sharey=True))
+        g = pred.grid.axis
+        step = g[1] - g[0]
+        keep = np.abs(g) <= half
+        ext = [g[keep][0] - step / 2, g[keep][-1] + step / 2] * 2
+        vmax = max(float(pred.density(i).max()) for i in range(t))
+        im = None
         for k, ax in enumerate(axes.ravel()):
-            ax.set_xticks([])
-            ax.set_yticks([])
             if k >= t:
                 ax.axis("off")
                 continue
             i = order[k]
-            dens = pred.density(i)[np.ix_(keep, keep)]
-            ext = [ax_grid[keep][0], ax_grid[keep][-1], ax_grid[keep][0], ax_grid[keep][-1]]
-            ax.imshow(dens, origin="lower", extent=ext, cmap="magma", aspect="equal")
+            im = ax.imshow(pred.density(i)[np.ix_(keep, keep)], origin="lower", extent=ext,
+                           cmap="Greys", vmin=0.0, vmax=vmax, aspect="equal")
             e = pred.expected_point[i] - pred.targets[i]
-            ax.plot(0, 0, "s", mfc="none", mec="tab:blue", ms=3)
-            ax.plot(e[0], e[1], "s", mfc="none", mec="red", ms=3)
-        sf.suptitle(f"{c} ({model}); panels +-{zoom_mm:g} mm", fontsize=10)
-    fig.suptitle("Figure 7. COND: p(d | u) at each target (blue: target, red: expected point)",
-                 y=1.06)
+            # The expected point lies within a fraction of a mm of the target: a wide cross
+            # for the target and a small dot for the expected point keep both visible.
+            ax.plot(0, 0, "+", color="tab:blue", ms=14, mew=1.2)
+            ax.plot(e[0], e[1], "o", color="tab:red", ms=3.5)
+            ax.set_xlim(-half, half)
+            ax.set_ylim(-half, half)
+            ax.set_xticks([-half, 0, half])
+            ax.set_yticks([-half, 0, half])
+            ax.tick_params(labelsize=7)
+        for ax in axes[-1]:
+            ax.set_xlabel("x - target (mm)", fontsize=8)
+        for ax in axes[:, 0]:
+            ax.set_ylabel("y - target (mm)", fontsize=8)
+        if im is not None:
+            sf.colorbar(im, ax=axes, shrink=0.8, label="density (per mm$^2$)")
+        sf.suptitle(f"{c}: {t} targets, panels +-{half:g} mm", fontsize=10)
+    key = [Line2D([], [], ls="none", marker="+", color="tab:blue", ms=14, mew=1.2,
+                  label="target"),
+           Line2D([], [], ls="none", marker="o", color="tab:red", ms=3.5,
+                  label="expected end point")]
+    fig.legend(handles=key, loc="outside lower center", ncol=2, fontsize=9, frameon=False)
+    spec = next(s for s in rep.specs if s.name == model)
+    fig.suptitle(f"Figure 7. COND: p(d | u) at each target, model {model} "
+                 f"({'paper-faithful' if spec.paper else 'improved'})")
     return fig
 
 
-def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
-    """Figure 8: observed errors (top row) and each model's error density summed over targets."""
+def _error_mass_half_width(pred, mass: float = 0.99) -> float:
+    """Smallest half-width (mm, a grid cell edge) whose box holds ``mass`` of Figure 8's density."""
+    n = pred.grid.n
+    e = pred.error_density
+    step = 2 * pred.grid.half_width_mm / n
+    for k in range(1, n // 2 + 1):
+        if e[n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum() >= mass:
+            return k * step
+    return pred.grid.half_width_mm
+
+
+def error_densities(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
+    """Figure 8: observed errors (top row) and each model's error density summed over targets.
+
+    All panels share one width, chosen (unless ``zoom_mm`` is given) to hold 99% of every
+    model's density: the paper-faithful models spread wider than the errors they predict.
+    """
     configs = _setups(rep)
     models = [s.name for s in rep.specs]
+    if zoom_mm is None:
+        widest = max((_error_mass_half_width(rep.predictions[m][c])
+                      for m in models for c in configs), default=5.0)
+        zoom_mm = float(np.ceil(max(widest, 3.0)))
     nrow = 1 + len(models)
     fig, axes = plt.subplots(nrow, len(configs), figsize=(3.3 * len(configs), 3.0 * nrow),
                              squeeze=False, sharex=True, sharey=True,
@@ -219,7 +312,8 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
             keep = np.abs(g) <= zoom_mm
             dens = pred.error_density[np.ix_(keep, keep)] / pred.grid.cell_area_mm2
             ax = axes[i, j]
-            ext = [g[keep][0], g[keep][-1], g[keep][0], g[keep][-1]]
+            step = g[1] - g[0]
+            ext = [g[keep][0] - step / 2, g[keep][-1] + step / 2] * 2  # cell edges, not centres
             ax.imshow(dens, origin="lower", extent=ext, cmap="Blues", interpolation="bilinear")
             ax.plot(err[:, 0], err[:, 1], ".", color="tab:red", ms=2, alpha=0.6)
             ax.set_title(f"{name}: expected {pred.mean_expected_error_mm:.2f} mm", fontsize=9)
@@ -234,5 +328,5 @@ def error_densities(rep: Reproduction, zoom_mm: float = 5.0) -> Figure:
     for ax in axes[:, 0]:
         ax.set_ylabel("y error (mm)")
     fig.suptitle("Figure 8. End-point error densities summed over the targets\n"
-                 "(top: observed; red dots repeat them)", y=0.93)
+                 "(top: observed errors; red dots repeat them; darker blue: denser)", y=0.93)
     return fig
