@@ -113,9 +113,43 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the rig files (measurements.csv, rig.toml, truth.toml) the "
                         "directory already holds")
+    p.add_argument("--robot", choices=["paper", "arm6"], default="paper",
+                   help="paper: the two planar arms (default); arm6: a 6-joint 3-D URDF arm "
+                        "with perturbed joint origins, offsets, marker and instrument pose")
+    p.add_argument("--compliance", action="store_true",
+                   help="arm6: joints give way under gravity (point masses, joint stiffness)")
+    p.add_argument("--poses", type=_positive_int, nargs=3, default=None,
+                   metavar=("TRAIN", "VALIDATION", "HOLDOUT"),
+                   help="arm6: random poses per set (80 40 40), each set at its own poses")
 
 
-@command("simulate", "write a simulated rig (paper's two-arm setup) with chosen physical effects")(
+def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
+    from dataclasses import replace
+
+    from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
+
+    if args.effects or args.grid != 4:
+        raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
+                         "--compliance and --poses")
+    truth = ChainTruth(seed=args.seed, compliance=args.compliance)
+    if args.poses:
+        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
+                        n_holdout=args.poses[2])
+    if args.joint_noise_rad is not None:
+        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
+    if args.measurement_noise_mm is not None:
+        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    out = simulate_chain_rig(out_dir, truth)
+    if existing:
+        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
+          f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
+          f"seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml")
+    return 0
+
+
+@command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
+                     "arm) with chosen physical effects")(
     _simulate_args)
 def _simulate(args: argparse.Namespace) -> int:
     from dataclasses import replace
@@ -132,6 +166,10 @@ def _simulate(args: argparse.Namespace) -> int:
         # measurements.csv first: it may be real data that cannot be made again.
         raise UsageError(f"{existing[0]} already exists; simulate would replace it (pass "
                          "--force to overwrite, or choose another directory)")
+    if args.robot == "arm6":
+        return _simulate_chain(args, out_dir, existing)
+    if args.compliance or args.poses:
+        raise UsageError("--compliance and --poses are for --robot arm6")
     truth = paper_truth(args.effects, seed=args.seed, grid=args.grid)
     if args.joint_noise_rad is not None:
         truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
