@@ -1,0 +1,228 @@
+"""The general kinematic model: URDF and DH chains, trees, couplings, the planar arm as a chain,
+the analytic marker Jacobian, and the calibrated URDF written back."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bayesrob import kinematics as kin
+from bayesrob.chain_simulator import ChainTruth, arm6_urdf_path, simulate_chain_rig
+from bayesrob.rig import default_rig_dir, dump_toml, load_rig, load_rig_toml
+
+JUSTIN_TOML = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / "rig.toml"
+
+
+def _rot(axis: str, a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    m = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+         "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
+    t = np.eye(4)
+    t[:3, :3] = m
+    return t
+
+
+def _trans(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, 3] = x, y, z
+    return t
+
+
+def test_planar_arm_is_a_two_joint_chain_of_the_general_model():
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        p = kin.ArmParams(jnp.asarray(rng.normal(0, 100, 2)), jnp.asarray(rng.uniform(50, 300, 2)),
+                          jnp.asarray(rng.uniform(5e-4, 2e-3, 2)), jnp.asarray(rng.normal(0, 1, 2)))
+        robot = kin.Robot({"a": kin.planar_chain("a", p)}, dim=2)
+        u = rng.uniform(500, 2500, (50, 2))
+        chain = np.asarray(robot.marker_points(robot.layout.nominal, "a", u))
+        planar = np.asarray(kin.forward_u(p, jnp.asarray(u)))
+        np.testing.assert_allclose(chain, planar, atol=1e-9)
+
+
+def test_modified_and_standard_dh_follow_their_textbook_products():
+    rng = np.random.default_rng(2)
+    rows = rng.normal(0, 1, (5, 4)) * [100, 1, 100, 1]
+    q = rng.normal(0, 1, (7, 5))
+    for convention in ("modified", "standard"):
+        chain = kin.dh_chain("a", rows, convention)
+        robot = kin.Robot({"a": chain})
+        got = np.asarray(robot.tip_transforms(robot.layout.nominal, "a", q))
+        for n in range(len(q)):
+            t = np.eye(4)
+            for (d, theta, a, alpha), qi in zip(rows, q[n], strict=True):
+                if convention == "modified":
+                    t = t @ _rot("x", alpha) @ _trans(x=a) @ _rot("z", theta + qi) @ _trans(z=d)
+                else:
+                    t = t @ _rot("z", theta + qi) @ _trans(z=d) @ _trans(x=a) @ _rot("x", alpha)
+            np.testing.assert_allclose(got[n], t, atol=1e-9)
+
+
+def test_urdf_chain_follows_the_joint_origins_axes_and_folds_fixed_joints(tmp_path):
+    chain = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
+    assert chain.joint_names == ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2",
+                                 "wrist_3")
+    robot = kin.Robot({"arm": chain})
+    q = np.random.default_rng(3).normal(0, 1.5, (4, 6))
+    got = np.asarray(robot.tip_transforms(robot.layout.nominal, "arm", q))
+    # The same product written out from the file's numbers (metres -> mm).
+    origins = [((0, 0, 89), (0, 0, 0)), ((0, 136, 0), (0, np.pi / 2, 0)),
+               ((0, -120, 425), (0, 0, 0)), ((0, 0, 392), (0, np.pi / 2, 0)),
+               ((0, 93, 0), (0, 0, 0)), ((0, 0, 95), (0, 0, 0))]
+    axes = ["z", "y", "y", "y", "z", "y"]
+    for n in range(len(q)):
+        t = np.eye(4)
+        for ((x, y, z), (r, p, w)), ax, qi in zip(origins, axes, q[n], strict=True):
+            t = t @ _trans(x, y, z) @ _rot("z", w) @ _rot("y", p) @ _rot("x", r) @ _rot(ax, qi)
+        t = t @ _trans(0, 82, 0) @ _rot("x", -np.pi / 2)
+        np.testing.assert_allclose(got[n], t, atol=1e-9)
+
+
+def test_mimic_joint_is_a_coupling(tmp_path):
+    text = arm6_urdf_path().read_text().replace(
+        '<joint name="wrist_3" type="revolute">',
+        '<joint name="wrist_3" type="revolute"><mimic joint="wrist_2" multiplier="-2" '
+        'offset="0.1"/>')
+    path = tmp_path / "m.urdf"
+    path.write_text(text)
+    chain = kin.urdf_chain(path, "base_link", "tool0", "arm")
+    assert chain.n_columns == 5 and chain.coupling[5].tolist() == [0, 0, 0, 0, -2]
+    free = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
+    q5 = np.random.default_rng(4).normal(0, 1, (3, 5))
+    q6 = np.column_stack([q5, -2 * q5[:, 4] + 0.1])
+    a = kin.Robot({"arm": chain})
+    b = kin.Robot({"arm": free})
+    np.testing.assert_allclose(a.marker_points(a.layout.nominal, "arm", q5),
+                               b.marker_points(b.layout.nominal, "arm", q6), atol=1e-9)
+
+
+@pytest.mark.parametrize("which", ["justin-tree", "arm6"])
+def test_analytic_marker_jacobian_equals_autodiff(which):
+    if which == "arm6":
+        robot = kin.Robot({"arm": kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")})
+        arms, cols = ["arm"], 6
+    else:
+        robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"])
+        arms, cols = ["right", "left"], 10
+    rng = np.random.default_rng(5)
+    x = robot.layout.nominal + rng.normal(0, 3, len(robot.layout.params)) * robot.layout.scales
+    u = rng.normal(0, 1, (9, cols))
+    for arm in arms:
+        auto = jax.jacfwd(lambda v, a=arm: robot.marker_points(v, a, u))(jnp.asarray(x))
+        mine = robot.marker_jacobian(jnp.asarray(x), arm, u)
+        np.testing.assert_allclose(mine, auto, atol=1e-8 * float(jnp.abs(auto).max()))
+
+
+def test_justin_tree_shares_the_torso_and_couples_its_fourth_joint():
+    robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"])
+    assert [c.name for c in robot.path("left")] == ["torso", "left"]
+    assert robot.columns("right")[:3] == ["torso_u1", "torso_u2", "torso_u3"]
+    q = jnp.asarray([[0.3, -0.4, 0.9]])
+    torso = robot.chains["torso"]
+    values = np.asarray(robot.joint_values(robot.layout.nominal, torso, q))
+    np.testing.assert_allclose(values, [[0.3, -0.4, 0.9, -0.5]])
+    # a torso parameter moves both hands, an arm's parameter only its own
+    names = robot.layout.names
+    for arm, other in (("right", "left"), ("left", "right")):
+        jac = np.asarray(robot.marker_jacobian(robot.layout.nominal, arm,
+                                               np.zeros((1, 10))))[0]
+        assert np.abs(jac[:, names.index("torso.j2.offset")]).max() > 1
+        assert np.abs(jac[:, names.index(f"{other}.j2.offset")]).max() == 0
+
+
+@pytest.fixture(scope="module")
+def arm6_rig(tmp_path_factory):
+    return simulate_chain_rig(tmp_path_factory.mktemp("arm6"), ChainTruth(seed=11))
+
+
+def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.chain_simulator import load_true_params
+
+    rig = load_rig(arm6_rig)
+    truth = load_true_params(arm6_rig)
+    x_true = np.array([truth[n] for n in rig.robot.layout.names])
+    cal = calibrate_chain(rig, ("frames", "geometric"))
+    for s in ("validation", "holdout"):
+        u, obs = rig.chain_rows("arm", s)
+        floor = np.linalg.norm(np.asarray(rig.robot.marker_points(x_true, "arm", u)) - obs,
+                               axis=1).mean()
+        # the floor is what noise alone leaves with the true geometry; 60 fitted numbers from
+        # 240 coordinates inflate held-out errors by about sqrt(1 + 60/240) at most
+        assert cal.errors[s]["all"]["mean_mm"] <= 1.3 * floor, (s, floor)
+    frames_only = calibrate_chain(rig, ("frames",))
+    assert frames_only.errors["validation"]["all"]["mean_mm"] > 5 * floor
+
+
+def test_rank_analysis_names_what_the_rows_cannot_tell_apart(arm6_rig):
+    from bayesrob.calibration import calibrate_chain
+
+    cal = calibrate_chain(load_rig(arm6_rig), ("frames", "offsets", "geometric"))
+    fixed = {u["name"]: u["explained_by"] for u in cal.ident.unidentifiable}
+    # a turn of the base about z is the instrument's own turn about its z
+    assert fixed["arm.shoulder_pan.origin.rz"] == pytest.approx(
+        {"arm.instrument.rz": 1.0}, abs=1e-6)
+    # the pan joint's zero offset is not: a frames-first analysis keeps the instrument's
+    assert "arm.shoulder_pan.offset" in fixed
+    # the tool flange's shift is the marker's
+    assert fixed["arm.tool.origin.x"]["arm.marker.x"] == pytest.approx(1.0, abs=1e-6)
+    assert not np.isnan(cal.se[cal.ident.free]).any()
+
+
+def test_calibrated_urdf_loads_back_as_the_same_robot(arm6_rig, tmp_path):
+    from bayesrob.calibration import calibrate_chain, calibrated_rig_document
+
+    rig = load_rig(arm6_rig)
+    cal = calibrate_chain(rig, ("frames", "offsets", "geometric", "servo"))
+    out = tmp_path / "back"
+    out.mkdir()
+    kin.write_urdf(rig.robot, cal.x, out / "cal.urdf")
+    (out / "rig.toml").write_text(dump_toml(calibrated_rig_document(rig, cal, "cal.urdf")))
+    shutil.copy(arm6_rig / "measurements.csv", out)
+    back = load_rig(out)
+    u, _ = rig.chain_rows("arm", "validation")
+    np.testing.assert_allclose(back.robot.marker_points(back.robot.layout.nominal, "arm", u),
+                               rig.robot.marker_points(cal.x, "arm", u), atol=1e-6)
+    # the URDF kept what calibration does not touch
+    assert "<limit" in (out / "cal.urdf").read_text()
+
+
+def test_dh_tree_writes_a_urdf_that_loads_back(tmp_path):
+    chains = load_rig_toml(JUSTIN_TOML)["chains"]
+    robot = kin.Robot(chains)
+    rng = np.random.default_rng(6)
+    x = robot.layout.nominal + rng.normal(0, 2, len(robot.layout.params)) * robot.layout.scales
+    calibrated = kin.write_urdf(robot, x, tmp_path / "j.urdf")
+    keys = kin.urdf.generated_arm_keys(calibrated)
+    rebuilt = {}
+    for name, c in calibrated.chains.items():
+        chain = kin.urdf_chain(tmp_path / "j.urdf", keys[name]["root"], keys[name]["tip"], name,
+                               marker=c.marker, mount=c.mount, instrument=c.instrument)
+        from dataclasses import replace
+        rebuilt[name] = replace(chain, coupling=c.coupling, gain=c.gain, offset=c.offset)
+    back = kin.Robot(rebuilt)
+    u = rng.normal(0, 1, (6, 10))
+    for arm in ("right", "left"):
+        np.testing.assert_allclose(back.marker_points(back.layout.nominal, arm, u),
+                                   robot.marker_points(x, arm, u), atol=1e-6)
+
+
+def test_chain_path_calibrates_the_planar_default_rig_like_the_planar_fit():
+    """The planar arm as an instance of the general model: fitting every group of its chain
+    (the rank analysis leaves exactly the planar arm's eight freedoms) predicts what the
+    eight-parameter fit predicts."""
+    from bayesrob.calibration import calibrate, calibrate_chain
+
+    rig = load_rig(default_rig_dir())
+    planar = calibrate(rig)
+    cal = calibrate_chain(rig)
+    assert cal.ident.free.sum() == 8 * len(rig.arms)
+    for arm in rig.arms:
+        u, _ = rig.arm_rows(arm, "validation")
+        np.testing.assert_allclose(rig.robot.marker_points(cal.x, arm, u),
+                                   planar[arm].arm.forward_u(u), atol=1e-6)
