@@ -378,16 +378,23 @@ def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
 
 
 def _residual_function(rig: Rig, robot: kin.Robot, set: str):
-    data = [(arm, *rig.chain_rows(arm, set)) for arm in robot.measured_arms()]
-    data = [(a, jnp.asarray(u), jnp.asarray(d)) for a, u, d in data if len(u)]
+    """Residuals and their Jacobian as functions of the parameters alone, compiled once per
+    robot (the rows are arguments, so a second calibration of the same rig is warm)."""
+    arms = tuple(a for a in robot.measured_arms() if len(rig.chain_rows(a, set)[0]))
+    data = tuple((jnp.asarray(u), jnp.asarray(d))
+                 for u, d in (rig.chain_rows(a, set) for a in arms))
+    cache = robot.__dict__.setdefault("_compiled_fits", {})
+    if arms not in cache:
+        def residuals(x, data):
+            return jnp.concatenate([(robot.marker_points(x, a, u) - d).ravel()
+                                    for a, (u, d) in zip(arms, data, strict=True)])
 
-    def residuals(x):
-        return jnp.concatenate([(robot.marker_points(x, a, u) - d).ravel() for a, u, d in data])
-
-    def jacobian(x):
-        return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
-                                for a, u, _ in data])
-    return residuals, jacobian, sum(int(d.size) for _, _, d in data)
+        def jacobian(x, data):
+            return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
+                                    for a, (u, _) in zip(arms, data, strict=True)])
+        cache[arms] = (jax.jit(residuals), jax.jit(jacobian))
+    res, jac = cache[arms]
+    return (lambda x: res(x, data)), (lambda x: jac(x, data)), sum(int(d.size) for _, d in data)
 
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None
@@ -404,9 +411,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     groups = tuple(g for g in kin.GROUPS if g in set(groups) | {"frames"})
     robot = rig.robot
     layout = robot.layout
-    res_fn, jac_fn, n_res = _residual_function(rig, robot, "train")
-    full_res = jax.jit(res_fn)
-    full_jac = jax.jit(jac_fn)
+    full_res, full_jac, n_res = _residual_function(rig, robot, "train")
     x = layout.nominal.copy()
     nfev = 0
 

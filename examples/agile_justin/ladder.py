@@ -1,0 +1,75 @@
+"""DLR's Agile Justin: the geometric calibration ladder on the authors' split, beside theirs.
+
+    python examples/agile_justin/ladder.py ../shared/data/agile-justin/measurements.csv
+
+Converts the authors' file into a rig directory (``--out``, default ``justin-rig/``), then
+calibrates with ``--params frames``, ``frames,offsets``, ``frames,geometric`` and every group,
+each on the 300 train poses, and prints the marker error on the 200 validation poses (400
+marker positions) as a markdown table next to the published figures. Equivalent commands:
+``bayesrob calibrate justin-rig --params frames,geometric``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from convert import convert  # noqa: E402
+
+PUBLISHED = {  # mean / sd / max, mm (the authors' table)
+    "frames": (21.33, 9.71, 63.41),
+    "frames,offsets": (18.18, 7.8, 45.9),
+    "frames,geometric": (10.5, 5.74, 36.37),
+}
+STEPS = ["frames", "frames,offsets", "frames,geometric", "frames,offsets,geometric,servo"]
+
+
+def ladder(rig_dir: Path) -> list[dict]:
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.rig import load_rig
+
+    rig = load_rig(rig_dir)
+    out = []
+    for step in STEPS:
+        cal = calibrate_chain(rig, tuple(step.split(",")))
+        out.append({"params": step, "n_free": int(cal.ident.free.sum()),
+                    "train": cal.errors["train"]["all"],
+                    "validation": cal.errors["validation"]["all"], "seconds": cal.seconds})
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| `--params` | fitted | train mean | validation mean / sd / max (ours) | "
+             "published mean / sd / max |", "|---|---|---|---|---|"]
+    for r in rows:
+        v = r["validation"]
+        pub = PUBLISHED.get(r["params"])
+        pub_text = " / ".join(f"{p:g}" for p in pub) if pub else "-"
+        lines.append(f"| {r['params']} | {r['n_free']} | {r['train']['mean_mm']:.2f} | "
+                     f"{v['mean_mm']:.2f} / {v['sd_mm']:.2f} / {v['max_mm']:.2f} | {pub_text} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("src", type=Path, help="the authors' measurements.csv")
+    p.add_argument("--out", type=Path, default=Path("justin-rig"), help="rig directory")
+    p.add_argument("--json", type=Path, help="also write the ladder as JSON here")
+    args = p.parse_args(argv)
+    if not args.src.is_file():
+        print(f"{args.src}: file not found", file=sys.stderr)
+        return 2
+    convert(args.src, args.out)
+    rows = ladder(args.out)
+    print(table(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

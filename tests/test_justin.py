@@ -1,0 +1,37 @@
+"""DLR's Agile Justin (real data, read from ../shared/data/, never shipped): the geometric
+ladder reproduces the published figures. Runs where the data is (CI has it)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not DATA.is_file(), reason=f"{DATA} not present")]
+
+
+def test_justin_ladder_matches_the_published_one(tmp_path):
+    sys.path.insert(0, str(ROOT / "examples" / "agile_justin"))
+    from ladder import convert, ladder
+
+    convert(DATA, tmp_path / "rig")
+    rows = {r["params"]: r for r in ladder(tmp_path / "rig")}
+    val = {k: r["validation"] for k, r in rows.items()}
+    assert all(v["n"] == 400 for v in val.values())  # 200 validation poses x 2 markers
+    # The issue's targets (published 21.33 / 18.18 / 10.5) and the figures the README states
+    # (20.14 / 17.87 / 10.97 / 10.20): least squares from fixed starts is deterministic to far
+    # below 0.05 mm, so a change that moves them is seen.
+    assert 19.5 <= val["frames"]["mean_mm"] <= 21.5
+    assert val["frames"]["mean_mm"] == pytest.approx(20.14, abs=0.05)
+    assert 17.0 <= val["frames,offsets"]["mean_mm"] <= 19.0
+    assert val["frames,offsets"]["mean_mm"] == pytest.approx(17.87, abs=0.05)
+    assert val["frames,geometric"]["mean_mm"] == pytest.approx(10.97, abs=0.05)
+    assert val["frames,offsets,geometric,servo"]["mean_mm"] == pytest.approx(10.20, abs=0.05)
+    assert val["frames,offsets,geometric,servo"]["mean_mm"] <= 10.5
+    # a torso shared by both hands: one calibration fits both markers
+    assert rows["frames"]["n_free"] == 12  # base pose (6) + two markers (3 + 3)
