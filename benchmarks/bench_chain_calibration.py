@@ -2,7 +2,7 @@
 about 100 fitted parameters, 300 poses x 2 markers) when its data is at hand, else a simulated
 6-joint arm (and it says so).
 
-    python benchmarks/bench_chain_calibration.py [--data ../shared/data/agile-justin/measurements.csv]
+    python benchmarks/bench_chain_calibration.py [--data PATH/agile-justin/measurements.csv]
 
 Prints one JSON line per case. Targets (2 cores): warm (a second calibration of the same rig in
 the same process, compiled programs reused) under 10 s; fresh process under 30 s, timed from
