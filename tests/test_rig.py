@@ -840,7 +840,7 @@ def test_every_set_name_is_accepted(rig_copy):
     header, rows = read_csv(rig_copy / MEASUREMENTS_FILE)
     for k, r in enumerate(rows):
         if r[0] == "top+bottom":
-            r[1] = SETS[k % 3]
+            r[1] = SETS[k % len(SETS)]
     write_csv(rig_copy / MEASUREMENTS_FILE, header, rows)
     sets = set(load_rig(rig_copy).measurements.set.tolist())
     assert sets == set(SETS)
