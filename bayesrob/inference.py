@@ -1058,8 +1058,8 @@ def _check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
                          f"{lo:.1f} to {hi:.1f} mm")
     for j, (p, (a, b)) in enumerate(zip(u, arm.pulse_limits, strict=True)):
         if not a <= p <= b:
-            raise ValueError(f"{where} is outside arm {arm.name!r}'s workspace: aiming at it "
-                             f"needs pulse {j + 1} = {p:.1f} us, outside its pulse_limits "
+            raise ValueError(f"{where} is outside the workspace of arm {arm.name!r}: aiming "
+                             f"at it needs pulse {j + 1} = {p:.1f} us, outside its pulse_limits "
                              f"[{a:g}, {b:g}] (reach {lo:.1f} to {hi:.1f} mm from its base)")
 
 

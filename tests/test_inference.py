@@ -438,6 +438,15 @@ def test_sample_refuses_an_unreachable_target_before_fitting_anything(
         assert "which reaches" in err and " to " in err
 
 
+def test_sample_refuses_a_target_beyond_the_pulse_limits(capsys):
+    """In reach (405 mm of the bottom arm's 407.5) but only with its elbow past its limit."""
+    assert main(["sample", "--target", "368", "200", "--sampler", "grid"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert ("target (368, 200) is outside the workspace of arm 'bottom': aiming at it needs "
+            "pulse 2 = ") in err and "outside its pulse_limits [600, 2400]" in err
+
+
 def test_sample_fails_when_the_grid_box_truncates_the_posterior(tmp_path, capsys):
     """A model so wide that the +-30 mm box holds only part of the posterior: the reference is
     wrong, so every sampler choice exits 1, --sampler grid included, and no sampler runs."""
