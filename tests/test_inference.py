@@ -287,8 +287,8 @@ def test_starting_points_come_from_the_prior_spread_not_the_grid(rig, arms, cond
     init = inf.initial_points(ms, am, cmds, target, 400, seed=3)
     assert init.shape == (400, 1, 2)
     spread = inf.prior_spread(ms, am, target)[0]
-    # 400 draws: the mean is within 4 standard errors of the target (a Gaussian's mean, the
-    # density cut trims only the far tail), and the starts are wider than the posterior.
+    # 400 draws: the mean is within 4 standard errors of the target, plus 0.5 mm because the
+    # density cut may trim one side's far tail; and the starts are wider than the posterior.
     sd = np.sqrt(np.diag(spread)) * inf.INIT_OVERDISPERSION
     assert np.all(np.abs(init[:, 0].mean(0) - target[0]) < 4 * sd / np.sqrt(400) + 0.5)
     grid = inf.grid_posterior(ms, am, cmds, target)
