@@ -14,7 +14,9 @@ says which effect is missing, how big it is and how much the model gains from it
    ``validation`` rows and leave-one-out refits over ``train`` (exact LOO up to 40 points,
    10-fold beyond). The pointwise log predictive densities of a Gaussian measurement model
    with a fitted scale (widened by the parameters' uncertainty) are compared with
-   ``arviz.compare``: elpd difference and its standard error.
+   ``arviz.compare``: elpd difference and its standard error. Where the rig has
+   ``holdout`` rows (new poses, not the repeated training commands ``validation`` holds),
+   the models are scored on them too, and reported beside validation; they decide nothing.
 4. Name the best candidate that passes :class:`DecisionRule`, add it, repeat until none
    passes (see the rule for pairs of effects that only pay together).
 
@@ -107,13 +109,18 @@ class ArmData:
     u_val: np.ndarray  # (m, 2)
     d_val: np.ndarray  # (m, 2)
     ctx: fx.EffectContext
+    # ``holdout`` rows: new poses, reported beside validation and never used to decide (the
+    # validation rows repeat the training commands, so they only see repeatability).
+    u_hold: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    d_hold: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @classmethod
     def from_rig(cls, rig: Rig, name: str) -> ArmData:
         u, d = rig.arm_rows(name, "train")
         uv, dv = rig.arm_rows(name, "validation")
+        uh, dh = rig.arm_rows(name, "holdout")
         return cls(name, rig.arms[name], u, d, uv, dv,
-                   fx.EffectContext.from_commands(u, rig.gravity))
+                   fx.EffectContext.from_commands(u, rig.gravity), uh, dh)
 
     @property
     def ctx_array(self) -> jax.Array:
@@ -292,6 +299,8 @@ class ArmEval:
     resid_train: np.ndarray  # (n, 2) observed - predicted
     resid_val: np.ndarray  # (m, 2)
     _magnitudes: dict | None = None
+    hold_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (h,) mm, reported only
+    hold_lpd: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (h,)
 
     def magnitudes(self, data: ArmData) -> dict:
         """Each effect's fitted size in physical terms, with standard errors (computed once,
@@ -396,6 +405,10 @@ def evaluate_arm(data: ArmData, names: tuple[str, ...], start: ArmEval | None = 
                                                           data.d_val, dof)
     else:
         val_err, val_lpd, resid_val = np.zeros(0), np.zeros(0), np.zeros((0, 2))
+    hold_err, hold_lpd = np.zeros(0), np.zeros(0)
+    if len(data.u_hold):
+        _, hold_err, hold_lpd = _mixture_predictive(fns, fit, ctx, data.u_hold, data.d_hold,
+                                                    dof)
 
     # Folds profile only the settings that fit all the data best: a setting far worse on
     # all points will not win because one of them is left out.
@@ -405,7 +418,7 @@ def evaluate_arm(data: ArmData, names: tuple[str, ...], start: ArmEval | None = 
         arm=data.name, effects=names, v=fit.v, settings=fit.settings, cov=cov,
         sigma_mm=math.sqrt(s2), dof=dof, train_errors=train_err, train_lpd=train_lpd,
         val_errors=val_err, val_lpd=val_lpd, cv_errors=cv_err, cv_lpd=cv_lpd,
-        resid_train=resid, resid_val=resid_val)
+        resid_train=resid, resid_val=resid_val, hold_errors=hold_err, hold_lpd=hold_lpd)
     return ev
 
 
@@ -656,6 +669,9 @@ class Diagnosis:
             "final_heldout_error_mm": fin["heldout"],
             "baseline_cv_error_mm": base["cv"],
             "final_cv_error_mm": fin["cv"],
+            # New poses (holdout rows); None when the rig has none. Reported, not decided on.
+            "baseline_holdout_error_mm": base["holdout"],
+            "final_holdout_error_mm": fin["holdout"],
             "rig": self.rig,
             "rule": self.rule.text(),
             "candidates": self.candidates,
@@ -674,14 +690,17 @@ def _mean(x: list[np.ndarray]) -> float | None:
 def _pooled_errors(model: dict[str, ArmEval]) -> dict:
     return {"heldout": _mean([e.val_errors for e in model.values()]),
             "cv": _mean([e.cv_errors for e in model.values()]),
-            "train": _mean([e.train_errors for e in model.values()])}
+            "train": _mean([e.train_errors for e in model.values()]),
+            "holdout": _mean([e.hold_errors for e in model.values()])}
 
 
 def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
     def errs(e: ArmEval) -> dict:
         return {"train_error_mm": float(np.mean(e.train_errors)),
                 "heldout_error_mm": float(np.mean(e.val_errors)) if len(e.val_errors) else None,
-                "cv_error_mm": float(np.mean(e.cv_errors)), "sigma_mm": e.sigma_mm}
+                "cv_error_mm": float(np.mean(e.cv_errors)), "sigma_mm": e.sigma_mm,
+                "holdout_error_mm": (float(np.mean(e.hold_errors)) if len(e.hold_errors)
+                                     else None)}
 
     return {"effects": list(after.effects), "before": errs(before), "after": errs(after),
             "magnitudes": after.magnitudes(data),
@@ -733,7 +752,8 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
          "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
          "elpd_gain_per_arm": gains,
          "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - current[x].val_lpd)
-                                        for x in current))}
+                                        for x in current)),
+         "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
     s["passes"] = rule.passes(s)
     return s
 
@@ -747,7 +767,8 @@ def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
             "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
             "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
             "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - before[x].val_lpd)
-                                           for x in before))}
+                                           for x in before)),
+            "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
 
 
 def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
@@ -921,6 +942,11 @@ def format_diagnosis(doc: dict) -> str:
     gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
             for s in doc["steps"]]
     out.append("held-out error per step: " + " -> ".join(gap))
+    if doc.get("baseline_holdout_error_mm") is not None:
+        hold = [f"base {f(doc['baseline_holdout_error_mm'])} mm"]
+        hold += [f"+{s['effect']} {f(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
+        out.append("  (held-out above: validation rows, which repeat the training commands; "
+                   "at new poses, the holdout rows: " + " -> ".join(hold) + ")")
     if doc["steps"]:
         # From the final model, where every named effect is fitted jointly (a step's own
         # record keeps the values at the time it was named).

@@ -53,6 +53,7 @@ from bayesrob import kinematics as kin
 from bayesrob.kde import guided_histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.prediction import Grid
+from bayesrob.report import grouped_notes
 from bayesrob.rig import Rig
 
 __all__ = [
@@ -74,6 +75,8 @@ __all__ = [
     "linked_log_density",
     "grid_posterior",
     "point_log_density",
+    "prior_spread",
+    "initial_points",
     "run_nuts",
     "run_emcee",
     "cross_check",
@@ -495,8 +498,9 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     pts = targets[:, None, :] + offsets[None]
     ll = _loglik(models, arms, commands, pts)
     if not np.all(np.isfinite(ll).any(axis=1)):
-        bad = np.flatnonzero(~np.isfinite(ll).any(axis=1)).tolist()
-        raise ValueError(f"targets {bad}: no arm configuration reaches any grid point")
+        t = int(np.flatnonzero(~np.isfinite(ll).any(axis=1))[0])
+        raise ValueError(f"target {t} ({targets[t, 0]:g}, {targets[t, 1]:g}): no point of the "
+                         f"+-{coarse.half_width_mm:g} mm box around it is reached by every arm")
     p = softmax(ll, axis=-1)
     step = 2 * coarse.half_width_mm / coarse.n
     ring = np.any(np.abs(offsets) > coarse.half_width_mm - step, axis=1)
@@ -534,6 +538,80 @@ def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
     pts = np.asarray(points, float)[:, None, :]
     ll = _loglik(models, arms, commands, pts)[:, 0]
     return ll - post.log_normaliser
+
+
+# --------------------------------------------------------------------------------------------
+# Where the samplers start
+# --------------------------------------------------------------------------------------------
+
+# Starting spread in units of the widest arm's own end-point sd: over-dispersed, as r_hat
+# needs, yet a few posterior widths only, so warm-up and burn-in absorb it.
+INIT_OVERDISPERSION = 2.0
+# Starts lie where the log density is within this of the densest candidate: 9.21 is the
+# 99.99% contour of a 2-D Gaussian, so a start is never where the posterior has no mass.
+INIT_LOG_DENSITY_DROP = 9.21
+
+
+def prior_spread(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                 targets: np.ndarray) -> np.ndarray:
+    """Covariance (T, 2, 2) of the widest arm's end point around each target, by its model.
+
+    Each arm's joint errors (the covariance of the errors its model was fitted to) pushed
+    through its Jacobian at the target: the spread of that arm's own prediction. Linked arms
+    pull the end point to where their predictions overlap, so the linked posterior is
+    narrower than the widest arm's, and a start drawn from this spread over-disperses it.
+    """
+    targets = np.atleast_2d(np.asarray(targets, float))
+    out = np.zeros((len(targets), 2, 2))
+    for model, arm in zip(models, arms, strict=True):
+        err = np.asarray(model.theta_err, float)
+        sigma = np.cov(err.T) if len(err) > 1 else np.zeros((2, 2))
+        sigma = sigma + np.diag(np.full(2, 1e-8))  # one point or collinear errors: not singular
+        theta = kin.inverse(arm.params, jnp.asarray(targets), arm.elbow)[0]
+        jac = np.asarray(kin.jacobian(arm.params, theta))  # (T, 2, 2)
+        cov = np.einsum("tij,jk,tlk->til", jac, sigma, jac)
+        wider = np.trace(cov, axis1=1, axis2=2) > np.trace(out, axis1=1, axis2=2)
+        out[wider] = cov[wider]
+    return out
+
+
+def initial_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                   commands: Sequence[np.ndarray], targets: np.ndarray, n: int, seed: int = 0,
+                   overdispersion: float = INIT_OVERDISPERSION, max_rounds: int = 20
+                   ) -> np.ndarray:
+    """n starting end points (n, T, 2) per target, found without the grid.
+
+    Candidates are draws of N(target, overdispersion^2 * :func:`prior_spread`): the
+    calibrated target plus the spread the arms' own models give. A start is drawn among the
+    candidates whose density is within ``INIT_LOG_DENSITY_DROP`` of the densest one seen, so
+    no chain starts where the density is nil (beyond an arm's reach, or off the paper COND's
+    table, whose floor is flat and gives NUTS no gradient to follow). The grid that checks
+    the samplers has no hand in where they start: they must find the modes themselves.
+    """
+    targets = np.atleast_2d(np.asarray(targets, float))
+    t_count = len(targets)
+    chol = np.linalg.cholesky(overdispersion ** 2 * prior_spread(models, arms, targets))
+    rng = np.random.default_rng(seed)
+    m = max(20 * n, 200)
+    pool = np.zeros((t_count, 0, 2))
+    pool_lp = np.zeros((t_count, 0))
+    for _ in range(max_rounds):
+        z = rng.standard_normal((t_count, m, 2))
+        cand = targets[:, None, :] + np.einsum("tij,tmj->tmi", chol, z)
+        lp = _loglik(models, arms, commands, cand)
+        pool = np.concatenate([pool, cand], axis=1)
+        pool_lp = np.concatenate([pool_lp, np.where(np.isnan(lp), -np.inf, lp)], axis=1)
+        ok = pool_lp >= pool_lp.max(axis=1, keepdims=True) - INIT_LOG_DENSITY_DROP
+        ok &= np.isfinite(pool_lp)
+        if np.all(ok.sum(axis=1) >= n):
+            out = np.empty((n, t_count, 2))
+            for t in range(t_count):
+                out[:, t] = pool[t, rng.choice(np.flatnonzero(ok[t]), n, replace=False)]
+            return out
+    bad = int(np.flatnonzero(ok.sum(axis=1) < n)[0])
+    raise ValueError(f"target ({targets[bad, 0]:g}, {targets[bad, 1]:g}): fewer than {n} "
+                     f"starting points with non-negligible density in {max_rounds * m} draws "
+                     "around it")
 
 
 # --------------------------------------------------------------------------------------------
@@ -715,11 +793,12 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
              progress_bar: bool = False) -> SamplerResult:
     """Sample the linked posterior of every target with NUTS (see :class:`NutsSampler`).
 
-    ``init`` (num_chains, T, 2): starting end points, e.g. ``GridPosterior.sample``; its
-    first axis sets the number of chains. Starting the chains at draws from the grid
-    posterior spreads them over the modes in proportion to their mass, so r_hat can tell
-    whether NUTS moves between modes that backlash has split. Samplers with the same
-    settings are shared across calls, and so is their compiled code.
+    ``init`` (num_chains, T, 2): starting end points, normally :func:`initial_points` (the
+    target plus the arms' prior spread, over-dispersed); its first axis sets the number of
+    chains. Chains that start apart and must find the modes themselves let r_hat and the
+    grid check see a sampler that misses a mode backlash has split off; starting them at
+    draws from the grid would hand them the modes. Samplers with the same settings are
+    shared across calls, and so is their compiled code.
     """
     sampler = _shared_nuts(int(np.shape(init)[0]), num_warmup, num_samples, dense_mass,
                            target_accept_prob)
@@ -740,13 +819,14 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
               moves: Any = None) -> SamplerResult:
     """Sample the linked posterior with emcee's EnsembleSampler, one 2-D ensemble per target.
 
-    ``init`` (W, T, 2): the walkers' start, e.g. ``GridPosterior.sample``. The log density is
+    ``init`` (W, T, 2): the walkers' start, normally :func:`initial_points`. The log density is
     :func:`linked_log_density` (jit-compiled once per model structure), evaluated for all
     walkers in one call (``vectorize=True``). Default moves: 70% differential evolution, 30%
     ``KDEMove`` (proposals from a KDE of the complementary walkers). With walkers spread over
     the modes, both jump between modes of a posterior that backlash has split; on a bimodal
     test case the default stretch move left the covariance 10-20% off where this mix is
-    within 2%. The first ``burn`` steps of each walker are dropped.
+    within 2%. The first ``burn`` steps of each walker are dropped: they include the walkers'
+    contraction from their over-dispersed start.
     """
     init = np.asarray(init, float)
     w, t_count, _ = init.shape
@@ -879,11 +959,15 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     """Sample the end point of a setup aimed at ``target`` and check the samplers on the grid.
 
     ``config``: one arm or arms joined by '+'. Each arm is commanded through its own
-    calibrated inverse model (``Arm.command(target)``). ``sampler``: "nuts", "emcee", "grid"
-    or "all". The grid posterior is always computed: it is the reference, and the chains and
-    walkers start at draws from it (systematic resampling, so the modes get starting points in
-    proportion to their mass). Whenever a sampler ran, :func:`cross_check` compares it with the
-    grid; the document's ``check`` says whether it passed and lists every failure.
+    calibrated inverse model (``Arm.command(target)``); a target outside an arm's reach, or
+    one that needs pulses outside its limits, is refused (ValueError naming the target, the
+    arm and its reach) before any model is fitted or sampler compiled. ``sampler``: "nuts",
+    "emcee", "grid" or "all". The grid posterior is always computed: it is the reference. The
+    chains and walkers start from :func:`initial_points` (the target plus the arms' prior
+    spread), never from the grid, so they must find the modes themselves. :func:`cross_check`
+    judges the grid itself (a box whose edge holds mass truncates the posterior: then no
+    sampler is run, there being nothing valid to compare with) and every sampler that ran;
+    the document's ``check`` says whether it passed and lists every failure.
     """
     from bayesrob.calibration import calibrate
     from bayesrob.noise_models import discover_models, fit_noise_models
@@ -900,18 +984,25 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     bar = _progress(3, progress, "sample", "steps", "calibrating")
     cal = calibrate(rig)
     arms = {a: cal[a].arm for a in members}
+    target = np.asarray(target, float).reshape(1, 2)
+    commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
+    try:
+        for a, u in zip(members, commands, strict=True):
+            _check_reach(arms[a], target[0], u[0])
+    except ValueError:
+        bar.close(done=False)
+        raise
     bar.update()
     bar.set_postfix(f"fitting {model}")
     fitted = fit_noise_models(rig, arms, specs)[model]
-    bar.update()
-    bar.set_postfix("grid posterior")
-    target = np.asarray(target, float).reshape(1, 2)
     models = [fitted[a] for a in members]
     arm_list = [arms[a] for a in members]
-    commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
+    bar.update()
+    bar.set_postfix("grid posterior")
     grid = grid_posterior(models, arm_list, commands, target)
     bar.update()
     bar.close()
+    truncated = bool(np.any(grid.edge_mass > tol.edge_mass))
     doc: dict[str, Any] = {
         "target": [float(x) for x in target[0]],
         "config": config,
@@ -920,7 +1011,9 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                                                                  strict=True)},
         "prior": "flat on the plane (numpyro ImproperUniform); the grid's box holds all but "
                  "edge_mass of the posterior",
-        "init": "NUTS chains and emcee walkers start at draws from the grid posterior",
+        "init": f"NUTS chains and emcee walkers start at the target plus draws of "
+                f"{INIT_OVERDISPERSION:g} x the widest arm's prior spread (its joint errors "
+                "through its Jacobian), not at the grid",
         "samplers": {},
     }
     grid_doc = {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
@@ -929,14 +1022,17 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                 "edge_mass": float(grid.edge_mass[0])}
     doc["samplers"]["grid"] = grid_doc
     results: dict[str, SamplerResult] = {}
-    if sampler in ("nuts", "all"):
-        results["nuts"] = run_nuts(models, arm_list, commands, grid.sample(seed, num_chains),
+    if sampler in ("nuts", "all") and not truncated:
+        results["nuts"] = run_nuts(models, arm_list, commands,
+                                   initial_points(models, arm_list, commands, target,
+                                                  num_chains, seed),
                                    seed=seed, num_warmup=num_warmup, num_samples=num_samples,
                                    progress_bar=progress)
-    if sampler in ("emcee", "all"):
+    if sampler in ("emcee", "all") and not truncated:
         results["emcee"] = run_emcee(models, arm_list, commands,
-                                     grid.sample(seed + 1, walkers), n_steps=steps,
-                                     burn=burn, seed=seed, progress=progress)
+                                     initial_points(models, arm_list, commands, target,
+                                                    walkers, seed + 1),
+                                     n_steps=steps, burn=burn, seed=seed, progress=progress)
     for name, res in results.items():
         entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
                  "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
@@ -948,14 +1044,18 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         else:
             entry["burn"] = burn
         doc["samplers"][name] = entry
-    check = cross_check(grid, list(results.values()), tol) if results else \
-        {"passed": True, "failures": []}
+    # Always judged, --sampler grid included: a grid whose box truncates the posterior is a
+    # wrong answer whoever asked for it.
+    check = cross_check(grid, list(results.values()), tol)
     check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel,
                            "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk,
                            "edge_mass": tol.edge_mass}
     check["compared"] = list(results)
     doc["check"] = check
     doc["notes"] = []
+    if truncated and sampler != "grid":
+        doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
+                            "so there is nothing valid to check a sampler against")
     if "nuts" in results and any(not is_sampleable(m) for m in models):
         doc["notes"].append(
             "the histogram COND is piecewise constant in the joint errors and zero outside its "
@@ -963,6 +1063,24 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
             "weighs states by the exact table, so its divergences are trajectories that left "
             "the table's support, where there is no mass to miss")
     return SampleReport(doc, grid, results)
+
+
+def _check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
+    """Refuse a target the arm cannot be aimed at: one line naming target, arm and reach."""
+    l1, l2 = (float(x) for x in np.asarray(arm.params.links))
+    base = np.asarray(arm.params.base, float)
+    r = float(np.linalg.norm(target - base))
+    lo, hi = abs(l1 - l2), l1 + l2
+    where = f"target ({target[0]:g}, {target[1]:g})"
+    if not lo <= r <= hi:
+        raise ValueError(f"{where} is out of reach of arm {arm.name!r}: it is {r:.1f} mm from "
+                         f"the arm's base ({base[0]:.1f}, {base[1]:.1f}), which reaches "
+                         f"{lo:.1f} to {hi:.1f} mm")
+    for j, (p, (a, b)) in enumerate(zip(u, arm.pulse_limits, strict=True)):
+        if not a <= p <= b:
+            raise ValueError(f"{where} is outside the workspace of arm {arm.name!r}: aiming "
+                             f"at it needs pulse {j + 1} = {p:.1f} us, outside its pulse_limits "
+                             f"[{a:g}, {b:g}] (reach {lo:.1f} to {hi:.1f} mm from its base)")
 
 
 def format_sample(report: SampleReport) -> str:
@@ -991,18 +1109,17 @@ def format_sample(report: SampleReport) -> str:
     parts.append(f"grid: zoomed {g['n']}x{g['n']} cells of {g['cell_mm'][0]:.4f} x "
                  f"{g['cell_mm'][1]:.4f} mm; mass on the +-30 mm box edge {g['edge_mass']:.1e}")
     check = doc["check"]
-    if not check["compared"]:
-        parts.append("check: no sampler ran, nothing to compare")
-    elif check["passed"]:
+    if not check["passed"]:
+        parts.append("check FAILED:")
+        parts += [f"  {f}" for f in check["failures"]]
+    elif not check["compared"]:
+        parts.append(f"check: no sampler ran; the grid's box holds the posterior (edge mass "
+                     f"<= {check['tolerances']['edge_mass']:g})")
+    else:
         t = check["tolerances"]
         verb = "agrees" if len(check["compared"]) == 1 else "agree"
         parts.append(f"check PASSED: {', '.join(check['compared'])} {verb} with the grid "
                      f"(mean within {t['mean_mm']} mm, covariance within {t['cov_rel']:.0%}, "
                      f"r_hat <= {t['r_hat']}, bulk ESS >= {t['ess_bulk']:.0f})")
-    else:
-        parts.append("check FAILED:")
-        parts += [f"  {f}" for f in check["failures"]]
-    from bayesrob.reproduction import grouped_notes
-
     parts += grouped_notes([], doc.get("notes", []))
     return "\n".join(parts)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from bayesrob.kinematics import PARAM_NAMES
 
 
@@ -65,3 +67,19 @@ def format_chain_calibration(doc: dict) -> str:
     parts.append("\nmarker error (mm)")
     parts.append(format_table(["set", "arm", "mean", "sd", "max", "n"], rows))
     return "\n".join(parts)
+
+
+WARNINGS_HEADING = "warnings (results may be wrong; see each line for what to change):"
+NOTES_HEADING = ("notes (expected for these estimators on this data; nothing to fix, the "
+                 "results stand):")
+
+
+def grouped_notes(warnings: Sequence[str], notes: Sequence[str]) -> list[str]:
+    """Warnings and notes under headings that say whether they matter, warnings first."""
+    out = []
+    for heading, lines, prefix in ((WARNINGS_HEADING, warnings, "warning: "),
+                                   (NOTES_HEADING, notes, "note: ")):
+        if lines:
+            out.append(heading)
+            out += [f"  {line.removeprefix(prefix)}" for line in lines]
+    return out

@@ -139,22 +139,6 @@ def bound_notes(rep: Reproduction) -> list[str]:
     return out
 
 
-WARNINGS_HEADING = "warnings (results may be wrong; see each line for what to change):"
-NOTES_HEADING = ("notes (expected for these estimators on this data; nothing to fix, the "
-                 "results stand):")
-
-
-def grouped_notes(warnings: Sequence[str], notes: Sequence[str]) -> list[str]:
-    """Warnings and notes under headings that say whether they matter, warnings first."""
-    out = []
-    for heading, lines, prefix in ((WARNINGS_HEADING, warnings, "warning: "),
-                                   (NOTES_HEADING, notes, "note: ")):
-        if lines:
-            out.append(heading)
-            out += [f"  {line.removeprefix(prefix)}" for line in lines]
-    return out
-
-
 def format_accuracy(doc: dict) -> str:
     """The accuracy table: observed error per setup and each model's predicted error."""
     rows = []

@@ -57,6 +57,7 @@ EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
 TRUTH_FILE = "truth.toml"
 G_ACC = 9.81  # m/s^2: with masses in kg and lengths in mm, energies come out in N mm
 STIFF_FACTOR = 1000.0
+HOLDOUT_STREAM = 1  # spawn key of the holdout rows' noise (see holdout_seed)
 
 
 @dataclass(frozen=True)
@@ -354,6 +355,22 @@ def grid_points(workspace, n: int) -> np.ndarray:
     return np.array([(x, y) for y in ys for x in xs])
 
 
+def holdout_points(workspace, n: int) -> np.ndarray:
+    """The centres of the n x n grid's (n - 1) x (n - 1) cells, row by row from the top left.
+
+    The training grid shifted by half a cell, keeping the points inside the workspace: each
+    is as far from the training poses as the grid allows, so errors there measure accuracy at
+    new poses, where the paper's ``validation`` repeats only measure repeatability.
+    """
+    if n < 2:
+        return np.zeros((0, 2))
+    g = grid_points(workspace, n)
+    half = np.array([(workspace[0][1] - workspace[0][0]) / (n - 1),
+                     -(workspace[1][1] - workspace[1][0]) / (n - 1)]) / 2
+    corners = g.reshape(n, n, 2)[:-1, :-1].reshape(-1, 2)  # drop the last row and column
+    return corners + half
+
+
 def nominal_specs(truth: Truth, rng: np.random.Generator) -> dict[str, ArmSpec]:
     """Nominal values as a person would measure them: the truth plus measuring error."""
     err = truth.nominal_error
@@ -376,12 +393,17 @@ def round_pulse(u: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(u, float) * 4) / 4
 
 
-def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False) -> Path:
+def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
+                 holdout: bool = True) -> Path:
     """Write a rig directory (rig.toml, measurements.csv, truth.toml) from the truth.
 
     Training commands aim at the grid through each arm's *nominal* inverse model (a person
     aiming approximately); validation repeats them; the linked ``test`` rows aim both arms at
-    each grid point through their own inverse models calibrated on the train rows.
+    each grid point through their own inverse models calibrated on the train rows. Then the
+    ``holdout`` rows, at new poses (:func:`holdout_points`, between the grid points): each
+    arm alone aimed through its nominal model, then the arms linked and aimed through their
+    calibrated models. Their noise comes from a stream of its own, so the rows before them
+    are those a run without holdout rows (``holdout=False``) writes, byte for byte.
     """
     from bayesrob.calibration import calibrate_arm  # calibration needs rig types only
 
@@ -393,11 +415,13 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False) -> P
     names = list(truth.arms)
     grid = grid_points(truth.workspace, truth.grid)
     rows = []
-    steps = len(names) * 2 * len(grid) + len(grid)
+    hold = holdout_points(truth.workspace, truth.grid) if holdout else np.zeros((0, 2))
+    steps = (2 * len(names) + 1) * len(grid) + (len(names) + (len(names) > 1)) * len(hold)
     bar = _progress(steps, progress, "simulate")
     train: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    nominals = {name: kin.Arm.nominal(specs[name]) for name in names}
     for name in names:
-        nominal = kin.Arm.nominal(specs[name])
+        nominal = nominals[name]
         u_all = round_pulse(np.asarray(nominal.command(jnp.asarray(grid))))
         _check_limits(name, u_all, truth.arms[name].pulse_limits)
         for set_name in ("train", "validation"):
@@ -414,15 +438,34 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False) -> P
         u, d = train[name]
         calibrated[name] = calibrate_arm(specs[name], u, d).arm
     linked = "+".join(names)
-    for target in grid:
+
+    def aim(target: np.ndarray) -> dict[str, np.ndarray]:
         cmds = {}
         for name in names:
             u = round_pulse(np.asarray(calibrated[name].command(jnp.asarray(target))))
             _check_limits(name, u[None], truth.arms[name].pulse_limits)
             cmds[name] = u
+        return cmds
+
+    for target in grid:
+        cmds = aim(target)
         d = plant.end_point(cmds)
         rows.append(format_row(names, linked, "test", target, cmds, d))
         bar.update()
+    plant.rng = np.random.default_rng(holdout_seed(truth.seed))
+    for name in names if len(hold) else ():
+        u_all = round_pulse(np.asarray(nominals[name].command(jnp.asarray(hold))))
+        _check_limits(name, u_all, truth.arms[name].pulse_limits)
+        for u in u_all:
+            rows.append(format_row(names, name, "holdout", None, {name: u},
+                                   plant.end_point({name: u})))
+            bar.update()
+    if len(names) > 1:  # a single arm's test rows are its only ones: nothing is linked
+        for target in hold:
+            cmds = aim(target)
+            rows.append(format_row(names, linked, "holdout", target, cmds,
+                                   plant.end_point(cmds)))
+            bar.update()
     bar.close()
 
     (out / RIG_FILE).write_text(dump_toml(rig_toml_dict(
@@ -434,6 +477,11 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False) -> P
         w.writerows(rows)
     (out / TRUTH_FILE).write_text(truth.to_toml())
     return out
+
+
+def holdout_seed(seed: int) -> np.random.SeedSequence:
+    """The holdout rows' noise stream: derived from the rig's seed, apart from the main one."""
+    return np.random.SeedSequence([seed, HOLDOUT_STREAM])
 
 
 def _check_limits(name: str, u: np.ndarray, limits) -> None:

@@ -9,7 +9,7 @@ import re
 import pytest
 
 from bayesrob.cli import main
-from bayesrob.reproduction import NOTES_HEADING, WARNINGS_HEADING, grouped_notes
+from bayesrob.report import NOTES_HEADING, WARNINGS_HEADING, grouped_notes
 from bayesrob.rig import load_rig
 
 # A status line of bayesrob.progress: "desc: n/total unit (pct%), seconds s[, ...]".

@@ -261,14 +261,15 @@ def _two_modes(grid: inf.GridPosterior) -> tuple[float, float]:
 
 
 def test_samplers_agree_with_the_grid_on_a_bimodal_posterior(rig, arms):
-    """Chains and walkers start at grid draws (systematic resampling: both modes get starts
-    in proportion to their mass); NUTS crosses the valley, emcee jumps with its KDE move."""
+    """Chains and walkers start around the target (the arms' prior spread, not the grid) and
+    find both modes themselves: NUTS crosses the valley, emcee jumps with its KDE move."""
     ms, am, cmds, target = _setup(rig, arms, _bimodal_models(rig), 0)
     grid = inf.grid_posterior(ms, am, cmds, target)
     ratio, valley = _two_modes(grid)
     assert 0.2 < ratio < 0.9 and valley < 0.6, (ratio, valley)
-    nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
-    emc = inf.run_emcee(ms, am, cmds, grid.sample(1, 32), seed=0, n_steps=1500, burn=300)
+    nuts = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 4, 0), seed=0)
+    emc = inf.run_emcee(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 32, 1), seed=0,
+                        n_steps=1500, burn=300)
     # Tolerances: CheckTolerances() = mean 0.1 mm, covariance 10%, r_hat 1.01, ESS 400.
     check = inf.cross_check(grid, [nuts, emc])
     assert check["passed"], check["failures"]
@@ -279,13 +280,80 @@ def test_samplers_agree_with_the_grid_on_a_bimodal_posterior(rig, arms):
         assert {"ess_bulk", "ess_tail", "r_hat"} <= set(res.summary.columns)
 
 
+def test_starting_points_come_from_the_prior_spread_not_the_grid(rig, arms, cond):
+    """Starts are centred on the target with the widest arm's own spread (over-dispersed
+    twice), land only where the density is not nil, and need no grid to compute."""
+    ms, am, cmds, target = _setup(rig, arms, cond, 5)
+    init = inf.initial_points(ms, am, cmds, target, 400, seed=3)
+    assert init.shape == (400, 1, 2)
+    spread = inf.prior_spread(ms, am, target)[0]
+    # 400 draws: the mean is within 4 standard errors of the target, plus 0.5 mm because the
+    # density cut may trim one side's far tail; and the starts are wider than the posterior.
+    sd = np.sqrt(np.diag(spread)) * inf.INIT_OVERDISPERSION
+    assert np.all(np.abs(init[:, 0].mean(0) - target[0]) < 4 * sd / np.sqrt(400) + 0.5)
+    grid = inf.grid_posterior(ms, am, cmds, target)
+    assert np.all(np.diag(np.cov(init[:, 0].T)) > np.diag(grid.cov[0]))
+    lp = np.asarray(inf.linked_log_density(ms, am)(init[:, 0], [jnp.asarray(c) for c in cmds]))
+    assert np.all(lp >= lp.max() - inf.INIT_LOG_DENSITY_DROP)
+
+
+def _far_bimodal_models(rig):
+    """Like :func:`_bimodal_models` with the top arm's clusters 8 mrad apart and tighter: two
+    modes (the smaller about a quarter of the larger) with a valley no NUTS trajectory or
+    emcee move crosses (density 1e-8 of the smaller peak)."""
+    spec = discover_models(names=["cond"])[0]
+    rng = np.random.default_rng(1)
+
+    def fit(arm, x, bw):
+        u, _ = rig.arm_rows(arm, "train")
+        c = ConditionalKDE.fit(x, u, "kernel", bandwidth=[*bw, 1e4, 1e4])
+        return FittedNoiseModel(spec, x, u, conditional=c)
+
+    two = np.concatenate([rng.normal(0, 2e-4, (10, 2)),
+                          rng.normal(0, 2e-4, (6, 2)) + [8e-3, 0.0]])
+    return {"top": fit("top", two, [6e-4, 6e-4]),
+            "bottom": fit("bottom", rng.normal(0, 1.2e-2, (16, 2)), [8e-3, 8e-3])}
+
+
+def test_cross_check_fails_when_the_samplers_miss_a_mode(rig, arms):
+    """Samplers that never reach the second mode agree with each other (r_hat passes) but not
+    with the grid: the check fails on their mean and covariance. Started from grid draws, as
+    they were, the chains were handed both modes and such a miss could not show."""
+    ms, am, cmds, target = _setup(rig, arms, _far_bimodal_models(rig), 0)
+    grid = inf.grid_posterior(ms, am, cmds, target)
+    ratio, valley = _two_modes(grid)
+    assert ratio > 0.2 and valley < 1e-6, (ratio, valley)
+    peak = grid.points()[0, np.argmax(grid.prob[0])]
+    rng = np.random.default_rng(2)
+    one_mode = peak + rng.normal(0, 0.05, (32, 1, 2))  # every start in the denser mode
+    nuts = inf.run_nuts(ms, am, cmds, one_mode[:4], seed=0)
+    emc = inf.run_emcee(ms, am, cmds, one_mode, seed=0, n_steps=1000, burn=200)
+    for res in (nuts, emc):  # the miss is invisible to the convergence diagnostics
+        assert res.r_hat <= 1.01 and res.ess_bulk >= 400, (res.name, res.r_hat, res.ess_bulk)
+    check = inf.cross_check(grid, [nuts, emc])
+    assert not check["passed"]
+    text = "\n".join(check["failures"])
+    for name in ("nuts", "emcee"):
+        assert f"{name}: mean" in text and f"{name}: covariance differs" in text, text
+    # Started as `sample` starts them (around the target), NUTS's chains split between the
+    # modes in no particular proportion: the moments fail as well as r_hat. Started at grid
+    # draws, the chains were dealt the modes by their mass, so the pooled moments matched the
+    # grid and only r_hat was left to notice.
+    own = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 4, 0), seed=0)
+    text = "\n".join(inf.cross_check(grid, [own])["failures"])
+    assert "nuts: mean" in text and "nuts: r_hat" in text, text
+    dealt = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
+    text = "\n".join(inf.cross_check(grid, [dealt])["failures"])
+    assert "nuts: r_hat" in text and "nuts: mean" not in text, text
+
+
 def test_nuts_on_the_paper_histogram_cond_passes_the_check(rig, arms, small_models):
     """The table is piecewise constant and zero outside its bins: NUTS moves by the guide's
     gradient and weighs by the exact table, so it must agree with the grid (same tolerances:
     mean 0.1 mm, covariance 10%, r_hat 1.01, ESS 400)."""
     ms, am, cmds, target = _setup(rig, arms, small_models["HIST"], 3)
     grid = inf.grid_posterior(ms, am, cmds, target)
-    nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
+    nuts = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 4, 0), seed=0)
     check = inf.cross_check(grid, [nuts])
     assert check["passed"], check["failures"]
     # It really does meet the support's edge: divergences there are expected.
@@ -357,6 +425,59 @@ def test_sample_command_usage_errors_exit_2(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("target, arm, distance", [
+    (("400", "220"), "bottom", "442.6"),
+    (("1000", "1000"), "top", "1128.8"),
+])
+def test_sample_refuses_an_unreachable_target_before_fitting_anything(
+        target, arm, distance, capsys, monkeypatch):
+    """One line naming the target, the arm and its reach; exit 2; no model fitted (so
+    nothing compiled or sampled)."""
+    import bayesrob.noise_models
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a model was fitted for an unreachable target")
+
+    monkeypatch.setattr(bayesrob.noise_models, "fit_noise_models", no_fit)
+    for sampler in ("grid", "all"):
+        assert main(["sample", "--target", *target, "--sampler", sampler]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert (f"target ({target[0]}, {target[1]}) is out of reach of arm {arm!r}: it is "
+                f"{distance} mm from the arm's base") in err
+        assert "which reaches" in err and " to " in err
+
+
+def test_sample_refuses_a_target_beyond_the_pulse_limits(capsys):
+    """In reach (405 mm of the bottom arm's 407.5) but only with its elbow past its limit."""
+    assert main(["sample", "--target", "368", "200", "--sampler", "grid"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert ("target (368, 200) is outside the workspace of arm 'bottom': aiming at it needs "
+            "pulse 2 = ") in err and "outside its pulse_limits [600, 2400]" in err
+
+
+def test_sample_fails_when_the_grid_box_truncates_the_posterior(tmp_path, capsys):
+    """A model so wide that the +-30 mm box holds only part of the posterior: the reference is
+    wrong, so every sampler choice exits 1, --sampler grid included, and no sampler runs."""
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "wide.toml").write_text('name = "wide"\nfamily = "IND"\nbandwidth = 0.2\n'
+                                      "jacobian = true\n")
+    for sampler in ("grid", "nuts", "all"):
+        out = tmp_path / f"{sampler}.json"
+        rc = main(["sample", "--target", "140", "220", "--model", "wide", "--models-dir",
+                   str(models), "--sampler", sampler, "--json", str(out)])
+        printed = capsys.readouterr().out
+        assert rc == 1, (sampler, printed)
+        doc = json.loads(out.read_text())
+        assert doc["check"]["passed"] is False and doc["check"]["compared"] == []
+        assert set(doc["samplers"]) == {"grid"}
+        assert doc["samplers"]["grid"]["edge_mass"] > 1e-6
+        assert "truncates the posterior" in doc["check"]["failures"][0]
+        assert "check FAILED" in printed
+
+
 # ------------------------------------------------------------------------------ slow
 
 
@@ -372,7 +493,8 @@ def test_every_model_passes_the_check_at_every_default_target(rig, arms, name):
     ms, am, cmds, targets = _setup(rig, arms, fitted, slice(None))
     assert len(targets) == 16
     grid = inf.grid_posterior(ms, am, cmds, targets)
-    nuts = inf.run_nuts(ms, am, cmds, grid.sample(0, 4), seed=0)
-    emc = inf.run_emcee(ms, am, cmds, grid.sample(1, 32), seed=0, n_steps=1000, burn=200)
+    nuts = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, targets, 4, 0), seed=0)
+    emc = inf.run_emcee(ms, am, cmds, inf.initial_points(ms, am, cmds, targets, 32, 1), seed=0,
+                        n_steps=1000, burn=200)
     check = inf.cross_check(grid, [nuts, emc])
     assert check["passed"], check["failures"]

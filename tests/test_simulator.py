@@ -121,3 +121,52 @@ def test_noise_levels_match_their_settings():
     draws = np.array([plant.end_point({"top": u}) - exact for _ in range(400)])
     # sd estimate from 400 draws: relative standard error ~ 1/sqrt(800) = 3.5%; allow 12%
     np.testing.assert_allclose(draws.std(axis=0), truth.measurement_noise_mm, rtol=0.12)
+
+
+def test_holdout_points_lie_between_the_grid_points_inside_the_workspace():
+    ws = ((80.0, 260.0), (100.0, 280.0))
+    grid, hold = sim.grid_points(ws, 4), sim.holdout_points(ws, 4)
+    assert hold.shape == (9, 2)
+    assert np.all((hold[:, 0] > 80.0) & (hold[:, 0] < 260.0))
+    assert np.all((hold[:, 1] > 100.0) & (hold[:, 1] < 280.0))
+    # Every holdout point is half a cell (30 mm) from the grid in x and in y: a new pose.
+    gap = np.abs(hold[:, None, :] - grid[None, :, :]).min(axis=1)
+    np.testing.assert_allclose(gap, 30.0)
+    assert sim.holdout_points(ws, 1).shape == (0, 2)
+
+
+def test_holdout_rows_are_appended_without_changing_the_other_rows(tmp_path):
+    from bayesrob.rig import load_rig
+
+    truth = sim.paper_truth(("gravity_sag", "backlash"), seed=5, grid=3)
+    with_h = sim.simulate_rig(tmp_path / "with", truth)
+    without = sim.simulate_rig(tmp_path / "without", truth, holdout=False)
+    a = (with_h / "measurements.csv").read_text()
+    b = (without / "measurements.csv").read_text()
+    assert a.startswith(b) and len(a) > len(b)
+    for f in ("rig.toml", "truth.toml"):
+        assert (with_h / f).read_bytes() == (without / f).read_bytes()
+    meas = load_rig(with_h).measurements
+    assert meas.mask("top", "holdout").sum() == meas.mask("bottom", "holdout").sum() == 4
+    assert meas.mask("top+bottom", "holdout").sum() == 4
+    for arm in ("top", "bottom"):
+        train = meas.commands[arm][meas.mask(arm, "train")]
+        hold = meas.commands[arm][meas.mask(arm, "holdout")]
+        # New poses: no holdout command is within 50 us of a training command on both joints.
+        near = np.all(np.abs(hold[:, None, :] - train[None]) < 50.0, axis=-1)
+        assert not near.any()
+    linked = meas.mask("top+bottom", "holdout")
+    np.testing.assert_allclose(meas.target[linked], sim.holdout_points(truth.workspace, 3))
+    # The linked holdout rows land near their targets, as the test rows do (a few mm).
+    assert np.linalg.norm(meas.observed[linked] - meas.target[linked], axis=1).max() < 10.0
+
+
+@pytest.mark.slow
+def test_the_default_rig_regenerates_byte_for_byte(tmp_path):
+    """Its README's command (about 20 s): the files shipped are the simulator's output."""
+    from bayesrob.rig import default_rig_dir
+
+    truth = sim.paper_truth(("gravity_sag", "backlash"), seed=2009)
+    out = sim.simulate_rig(tmp_path / "rig", truth)
+    for f in ("rig.toml", "measurements.csv", "truth.toml"):
+        assert (out / f).read_bytes() == (default_rig_dir() / f).read_bytes(), f

@@ -4,7 +4,9 @@ For each arm: commands aimed at an N x N grid over the workspace through the arm
 model (``train``), then the very same commands again (``validation``). Then, once the operator
 has linked the arms' end points, every arm aims at each grid point through its own inverse
 model (calibrated on the train rows already recorded, if there are enough; else nominal): the
-linked ``test`` rows.
+linked ``test`` rows. With ``holdout`` in the plan, rows at new poses too (the grid shifted by
+half a cell, ``bayesrob.simulator.holdout_points``): each arm's after its validation rows, and
+linked ones after the test rows, aimed like them. The default plan is the paper's.
 
 Every row goes to ``measurements.csv`` as soon as it is measured, in one ``write`` of the whole
 line followed by ``fsync``, so a run cut short by Ctrl-C, a kill or a lost port leaves a valid
@@ -62,6 +64,10 @@ ROW_TRIES = 3
 Workspace = tuple[tuple[float, float], tuple[float, float]]  # ((x0, x1), (y0, y1)) in mm
 Quantize = Callable[[Iterable[float]], tuple[float, ...]]
 TARGET_DECIMALS = 2  # targets are rounded so the recorded text is exactly the point aimed at
+# The paper's procedure. Holdout rows are asked for by name: a run begun without them resumes
+# to the same plan.
+DEFAULT_PLAN = ("train", "validation", "test")
+LINKED_SETS = ("test", "holdout")
 _MATCH_TOL = 1e-6
 
 
@@ -110,7 +116,7 @@ def check_channels(channels: dict[str, tuple[int, int]], arm_names: Iterable[str
 
 
 def parse_plan(text: str) -> tuple[str, ...]:
-    """``train,validation,test`` (any non-empty subset); always run in that order."""
+    """``train,validation,test,holdout`` (any non-empty subset); always run in that order."""
     items = [s.strip() for s in text.split(",") if s.strip()]
     for s in items:
         if s not in SETS:
@@ -153,11 +159,13 @@ def _close(a: Sequence[float], b: Sequence[float]) -> bool:
     return all(abs(x - y) <= _MATCH_TOL * max(1.0, abs(y)) for x, y in zip(a, b, strict=True))
 
 
-def grid_targets(workspace: Workspace, n: int) -> np.ndarray:
-    """The N x N grid of ``bayesrob.simulator.grid_points``, rounded to TARGET_DECIMALS."""
-    from bayesrob.simulator import grid_points
+def grid_targets(workspace: Workspace, n: int, set: str = "train") -> np.ndarray:
+    """The N x N grid of ``bayesrob.simulator.grid_points`` (for ``holdout``, its cell centres,
+    ``holdout_points``), rounded to TARGET_DECIMALS."""
+    from bayesrob.simulator import grid_points, holdout_points
 
-    return np.round(grid_points(workspace, n), TARGET_DECIMALS)
+    points = holdout_points if set == "holdout" else grid_points
+    return np.round(points(workspace, n), TARGET_DECIMALS)
 
 
 def _aim(arm: Arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[float, ...]],
@@ -176,28 +184,34 @@ def _aim(arm: Arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tup
 def single_arm_steps(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
                      quantize: Callable[[Iterable[float]], tuple[float, ...]],
                      sets: Sequence[str] = SETS) -> list[Step]:
-    """Train then validation rows of each arm, in rig order, aimed through the nominal model."""
+    """Train, validation then holdout rows of each arm, in rig order, aimed through the
+    nominal model (holdout rows at the grid's cell centres)."""
     from bayesrob.kinematics import Arm
 
-    points = grid_targets(workspace, grid)
     steps = []
     for name, spec in specs.items():
-        cmds = _aim(Arm.nominal(spec), points, quantize, "nominal")
-        for s in ("train", "validation"):
+        for s in ("train", "validation", "holdout"):
             if s in sets:
+                cmds = _aim(Arm.nominal(spec), grid_targets(workspace, grid, s), quantize,
+                            "nominal")
                 steps += [Step(name, s, {name: u}) for u in cmds]
     return steps
 
 
 def linked_steps(specs: dict[str, ArmSpec], arms: dict[str, Arm], workspace: Workspace,
                  grid: int,
-                 quantize: Callable[[Iterable[float]], tuple[float, ...]]) -> list[Step]:
-    """Test rows: every arm aims at each grid point through its own model (``arms``)."""
-    points = grid_targets(workspace, grid)
+                 quantize: Callable[[Iterable[float]], tuple[float, ...]],
+                 sets: Sequence[str] = ("test",)) -> list[Step]:
+    """Linked rows: every arm aims at each grid point (``test``), then at each of the grid's
+    cell centres (``holdout``), through its own model (``arms``)."""
     config = "+".join(specs)
-    per_arm = {name: _aim(arms[name], points, quantize, "aiming") for name in specs}
-    return [Step(config, "test", {n: per_arm[n][i] for n in specs},
-                 (float(p[0]), float(p[1]))) for i, p in enumerate(points)]
+    steps = []
+    for s in (x for x in LINKED_SETS if x in sets):
+        points = grid_targets(workspace, grid, s)
+        per_arm = {name: _aim(arms[name], points, quantize, "aiming") for name in specs}
+        steps += [Step(config, s, {n: per_arm[n][i] for n in specs},
+                       (float(p[0]), float(p[1]))) for i, p in enumerate(points)]
+    return steps
 
 
 def check_plan(steps: Sequence[Step], specs: dict[str, ArmSpec]) -> None:
@@ -219,13 +233,13 @@ def arm_models(specs: dict[str, ArmSpec], rows: Sequence[RecordedRow],
                ) -> tuple[dict[str, Arm], dict[str, str]]:
     """Each arm's model for the test rows: calibrated on its train rows if there are enough.
 
-    Only train rows recorded before the first test row count, so a resumed run plans the test
-    rows exactly as the interrupted one did.
+    Only train rows recorded before the first linked row count, so a resumed run plans the
+    linked rows exactly as the interrupted one did.
     """
     from bayesrob.calibration import calibrate_arm
     from bayesrob.kinematics import Arm
 
-    first_test = next((i for i, r in enumerate(rows) if r.set == "test"), len(rows))
+    first_test = next((i for i, r in enumerate(rows) if "+" in r.config), len(rows))
     models, kinds = {}, {}
     for name, spec in specs.items():
         train = [r for r in rows[:first_test] if r.config == name and r.set == "train"]
@@ -423,21 +437,23 @@ def _unplanned(rows: Sequence[RecordedRow], path: Path) -> RigError:
 def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
                    quantize: Callable[[Iterable[float]], tuple[float, ...]],
                    singles: Sequence[Step], do_test: bool, rows: Sequence[RecordedRow],
-                   path: Path, log: Callable[[str], None] = lambda s: None
+                   path: Path, log: Callable[[str], None] = lambda s: None,
+                   linked_sets: Sequence[str] = ("test",)
                    ) -> tuple[list[bool], list[Step] | None, list[bool], dict[str, str]]:
     """Which planned steps ``rows`` already hold; raises RigError for a row the plan lacks.
 
-    Test steps are only planned here when test rows were recorded (re-planned from the same
-    train rows, so they match); otherwise they are planned when the run gets to them.
+    Linked steps (of ``linked_sets``) are only planned here when linked rows were recorded
+    (re-planned from the same train rows, so they match); otherwise they are planned when
+    the run gets to them.
     """
     pending = list(rows)
     single_done = _match(singles, pending)
     tests: list[Step] | None = None
     test_done: list[bool] = []
     kinds: dict[str, str] = {}
-    if do_test and any(r.set == "test" for r in rows):
+    if do_test and any("+" in r.config for r in rows):
         models, kinds = arm_models(specs, rows, log)
-        tests = linked_steps(specs, models, workspace, grid, quantize)
+        tests = linked_steps(specs, models, workspace, grid, quantize, linked_sets)
         test_done = _match(tests, pending)
     if pending:
         raise _unplanned(pending, path)
@@ -445,7 +461,7 @@ def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
 
 
 def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, *,
-            grid: int = 4, plan: Sequence[str] = SETS, settle_s: float = 1.0,
+            grid: int = 4, plan: Sequence[str] = DEFAULT_PLAN, settle_s: float = 1.0,
             resume: bool = False, confirm: Callable[[str], bool] | None = None,
             progress: bool = False, log: Callable[[str], None] | None = None) -> CollectResult:
     """Run the paper's procedure on a connected controller and tracker; see the module doc.
@@ -474,8 +490,9 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         controller.limits[name] = specs[name].pulse_limits
     singles = single_arm_steps(specs, workspace, grid, controller.quantize, plan)
     check_plan(singles, specs)
-    do_test = "test" in plan and len(names) > 1
-    n_test = grid * grid if do_test else 0
+    linked_sets = [s for s in LINKED_SETS if s in plan] if len(names) > 1 else []
+    do_test = bool(linked_sets)
+    n_test = sum(len(grid_targets(workspace, grid, s)) for s in linked_sets)
     if "test" in plan and len(names) < 2:
         log("one arm only: no linked test rows to collect")
 
@@ -488,7 +505,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                 f"{mlog.truncated_text!r}")
         single_done, tests, test_done, models = match_recorded(
             specs, workspace, grid, controller.quantize, singles, do_test, mlog.rows,
-            result.path, log)
+            result.path, log, linked_sets)
         if models:
             result.models = models
         result.skipped = sum(single_done) + sum(test_done)
@@ -543,7 +560,8 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
             if do_test:
                 if tests is None:
                     models, result.models = arm_models(specs, mlog.rows, log)
-                    tests = linked_steps(specs, models, workspace, grid, controller.quantize)
+                    tests = linked_steps(specs, models, workspace, grid, controller.quantize,
+                                         linked_sets)
                     test_done = [False] * len(tests)
                 check_plan(tests, specs)
                 if not all(test_done):
@@ -648,7 +666,7 @@ def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int
 
 def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
                      channels: dict[str, tuple[int, int]], tracker_port: str | None = None,
-                     manual: bool = False, grid: int = 4, plan: Sequence[str] = SETS,
+                     manual: bool = False, grid: int = 4, plan: Sequence[str] = DEFAULT_PLAN,
                      settle_s: float = 1.0, resume: bool = False,
                      tracker_format: TrackerFormat = "pxyt", tracker_baud: int = 115200,
                      samples: int = 5, baud: int = 9600, maestro_protocol: str = "compact",
@@ -684,8 +702,9 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
     existing = MeasurementLog(rig_dir / MEASUREMENTS_FILE, list(meta["arms"]), resume,
                               check_only=True)
     if existing.rows:
-        match_recorded(meta["arms"], meta["workspace"], grid, quantize, singles,
-                       "test" in plan and len(meta["arms"]) > 1, existing.rows, existing.path)
+        linked = [s for s in LINKED_SETS if s in plan] if len(meta["arms"]) > 1 else []
+        match_recorded(meta["arms"], meta["workspace"], grid, quantize, singles, bool(linked),
+                       existing.rows, existing.path, linked_sets=linked)
     limits = {n: s.pulse_limits for n, s in meta["arms"].items()}
     controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
                                  maestro_protocol=maestro_protocol, device_number=device_number,
