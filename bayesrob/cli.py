@@ -294,11 +294,11 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
 def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
     from bayesrob.prediction import Grid
+    from bayesrob.report import grouped_notes
     from bayesrob.reproduction import (
         bound_notes,
         format_accuracy,
         grid_warnings,
-        grouped_notes,
         run_reproduction,
         write_reproduction,
     )
