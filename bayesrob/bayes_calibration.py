@@ -549,3 +549,114 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
         divs.append(int(diverging.sum()))
     return SBCResult(np.column_stack([params, noise_sd]), np.array(draws), np.array(divs),
                      time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- any chain
+
+
+@dataclass(frozen=True)
+class ChainPriors:
+    """Prior sd of each calibration group around the rig's nominal values (mm, rad)."""
+
+    instrument_mm: float = 200.0  # a rough placement of the robot in the measuring frame
+    instrument_rad: float = 0.2
+    marker_mm: float = 50.0
+    offset_rad: float = 0.05
+    origin_mm: float = 5.0  # a drawing's tolerance on a joint origin
+    origin_rad: float = 0.02
+    gain_rel: float = 0.05
+    noise_scale_mm: float = 20.0  # HalfNormal: room for unmodelled compliance as well
+
+    def sd(self, layout: kin.ParamLayout) -> np.ndarray:
+        out = np.empty(len(layout.params))
+        for i, p in enumerate(layout.params):
+            rot = p.name.rsplit(".", 1)[-1] in ("rx", "ry", "rz")
+            if ".instrument." in p.name:
+                out[i] = self.instrument_rad if rot else self.instrument_mm
+            elif ".marker." in p.name:
+                out[i] = self.marker_mm
+            elif p.group == "offsets":
+                out[i] = self.offset_rad
+            elif p.group == "geometric":
+                out[i] = self.origin_rad if rot else self.origin_mm
+            else:
+                out[i] = self.gain_rel * abs(p.nominal)
+        return out
+
+
+def calibrate_chain_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
+                          priors: ChainPriors = ChainPriors(), num_warmup: int = 400,
+                          num_samples: int = 500, num_chains: int = 2, seed: int = 0,
+                          progress=None):
+    """NUTS posterior of a chain rig's identifiable parameters (and the noise sd).
+
+    The model: x_free ~ Normal(nominal, ChainPriors), noise_sd ~ HalfNormal, every measured
+    coordinate ~ Normal(marker point, noise_sd); parameters the rank analysis fixes stay at
+    nominal. NUTS runs in coordinates whitened by the least-squares fit (x = x_ls + L z, L the
+    Cholesky factor of its covariance): there the posterior is close to a standard normal, so
+    the trajectories are short however correlated the ~100 parameters are. Returns a
+    :class:`~bayesrob.calibration.ChainCalibration` whose x is the posterior mean and se the
+    posterior sd, with R-hat, bulk ESS and the noise level from arviz.
+    """
+    import arviz as az
+    import numpyro
+    import numpyro.distributions as dist
+    from numpyro.infer import MCMC, NUTS, init_to_value
+
+    from bayesrob.calibration import (
+        ChainCalibration,
+        _residual_function,
+        calibrate_chain,
+        chain_errors,
+    )
+
+    t0 = time.perf_counter()
+    ls = calibrate_chain(rig, groups, progress=progress)
+    robot, free = ls.robot, ls.ident.free
+    full_res, full_jac, _ = _residual_function(rig, robot, "train")
+    jac = np.asarray(full_jac(jnp.asarray(ls.x)))[:, free]
+    r = np.asarray(full_res(jnp.asarray(ls.x)))
+    s2 = float(r @ r) / max(r.size - int(free.sum()), 1)
+    chol = np.linalg.cholesky(s2 * np.linalg.inv(jac.T @ jac))
+    idx = jnp.asarray(np.flatnonzero(free))
+    x_ls = jnp.asarray(ls.x)
+    nominal = jnp.asarray(robot.layout.nominal[free])
+    prior_sd = jnp.asarray(priors.sd(robot.layout)[free])
+    chol_j = jnp.asarray(chol)
+    k = int(free.sum())
+
+    def model():
+        z = numpyro.sample("z", dist.ImproperUniform(dist.constraints.real_vector, (), (k,)))
+        x_free = x_ls[idx] + chol_j @ z
+        numpyro.factor("prior", dist.Normal(nominal, prior_sd).log_prob(x_free).sum())
+        noise = numpyro.sample("noise_sd", dist.HalfNormal(priors.noise_scale_mm))
+        res = full_res(x_ls.at[idx].set(x_free))
+        numpyro.factor("likelihood", dist.Normal(0.0, noise).log_prob(res).sum())
+
+    if progress:
+        progress(f"NUTS over {k} parameters")
+    kernel = NUTS(model, init_strategy=init_to_value(
+        values={"z": jnp.zeros(k), "noise_sd": jnp.sqrt(s2)}), max_tree_depth=6)
+    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
+                num_chains=num_chains, chain_method="sequential", progress_bar=False)
+    mcmc.run(jax.random.PRNGKey(seed))
+    z = np.asarray(mcmc.get_samples()["z"])
+    draws = np.asarray(ls.x[free])[None] + z @ chol.T
+    x = ls.x.copy()
+    x[free] = draws.mean(axis=0)
+    se = np.full(len(x), np.nan)
+    se[free] = draws.std(axis=0, ddof=1)
+    summary = az.summary(az.from_numpyro(mcmc), var_names=["z", "noise_sd"])
+    extra = {"posterior": {
+        "r_hat_max": float(summary["r_hat"].max()),
+        "ess_bulk_min": float(summary["ess_bulk"].min()),
+        "noise_sd_mm": float(np.asarray(mcmc.get_samples()["noise_sd"]).mean()),
+        "draws": int(draws.shape[0]), "chains": num_chains,
+        "divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum()),
+        "least_squares_validation_mean_mm": ls.errors.get("validation", {}).get(
+            "all", {}).get("mean_mm")}}
+    full = np.repeat(ls.x[None], draws.shape[0], axis=0)
+    full[:, free] = draws
+    return ChainCalibration(robot, x, ls.groups, ls.ident, se, chain_errors(rig, robot, x),
+                            ls.nfev, time.perf_counter() - t0, method="bayes", extra=extra,
+                            draws=full)

@@ -341,6 +341,9 @@ class ChainCalibration:
     errors: dict  # set -> arm | "all" -> {mean_mm, sd_mm, max_mm, n}
     nfev: int
     seconds: float
+    method: str = "least-squares"
+    extra: dict = field(default_factory=dict)  # e.g. the Bayesian posterior's diagnostics
+    draws: np.ndarray | None = None  # (S, P) posterior draws of every parameter (bayes only)
 
     def distances(self, rig: Rig, set: str) -> dict[str, np.ndarray]:
         return chain_distances(rig, self.robot, self.x, set)
@@ -348,7 +351,7 @@ class ChainCalibration:
     def to_json(self) -> dict:
         layout = self.robot.layout
         return {
-            "method": "least-squares",
+            "method": self.method,
             "params": list(self.groups),
             "n_free": int(self.ident.free.sum()),
             "n_parameters": len(layout.params),
@@ -362,6 +365,7 @@ class ChainCalibration:
             "errors": self.errors,
             "nfev": self.nfev,
             "seconds": self.seconds,
+            **self.extra,
         }
 
 
@@ -443,21 +447,31 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     if groups != ("frames",):
         x, n = fit(ident.free, x)
         nfev += n
+    se = _chain_standard_errors(full_res, full_jac, x, ident.free)
+    return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
+                            time.perf_counter() - t0)
+
+
+def _chain_standard_errors(full_res, full_jac, x: np.ndarray, free: np.ndarray) -> np.ndarray:
     r = np.asarray(full_res(jnp.asarray(x)))
-    jac = np.asarray(full_jac(jnp.asarray(x)))[:, ident.free]
-    dof = r.size - int(ident.free.sum())
+    jac = np.asarray(full_jac(jnp.asarray(x)))[:, free]
+    dof = r.size - int(free.sum())
     se = np.full(len(x), np.nan)
     if dof > 0:
         cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
-        se[ident.free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+        se[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    return se
+
+
+def chain_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
+    """Marker error statistics per set and arm (and over all arms) at parameters x."""
     errors = {}
     for s in SETS:
         dist = chain_distances(rig, robot, x, s)
         if dist:
             errors[s] = {a: _error_stats(d) for a, d in dist.items()}
             errors[s]["all"] = _error_stats(np.concatenate(list(dist.values())))
-    return ChainCalibration(robot, x, groups, ident, se, errors, nfev,
-                            time.perf_counter() - t0)
+    return errors
 
 
 def calibrated_rig_document(rig: Rig, cal: ChainCalibration, urdf_name: str) -> dict:

@@ -224,14 +224,19 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
     from bayesrob.report import format_chain_calibration
     from bayesrob.rig import dump_toml
 
-    if args.method != "least-squares":
-        raise UsageError(f"--method {args.method} calibrates planar arms only; URDF/DH rigs "
-                         "(and --params) use least-squares")
+    if args.method == "hill-climb":
+        raise UsageError("--method hill-climb is the paper's eight-parameter planar fit; "
+                         "URDF/DH rigs (and --params) use least-squares or bayes")
     groups = args.params or GROUPS
     with progress(None, "calibrate", enabled=_progress(args),
                   postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
         try:
-            cal = calibrate_chain(rig, groups, progress=bar.set_postfix)
+            if args.method == "bayes":
+                from bayesrob.bayes_calibration import calibrate_chain_bayes
+
+                cal = calibrate_chain_bayes(rig, groups, progress=bar.set_postfix)
+            else:
+                cal = calibrate_chain(rig, groups, progress=bar.set_postfix)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     doc = {"rig": rig.name, **cal.to_json()}

@@ -59,6 +59,12 @@ def format_chain_calibration(doc: dict) -> str:
             parts.append(f"  ... and {len(doc['unidentifiable']) - 12} more (all in --json)")
     if doc["not_observed"]:
         parts.append(f"no measured point depends on: {', '.join(doc['not_observed'])}")
+    if "posterior" in doc:
+        p = doc["posterior"]
+        parts.append(f"\nposterior (NUTS, {p['chains']} chains, {p['draws']} draws): r_hat max "
+                     f"{p['r_hat_max']:.3f}, bulk ESS min {p['ess_bulk_min']:.0f}, "
+                     f"{p['divergences']} divergences, noise sd {p['noise_sd_mm']:.3f} mm; "
+                     "values below are at the posterior mean")
     rows = []
     for s, arms in doc["errors"].items():
         for arm, e in arms.items():
