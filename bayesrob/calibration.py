@@ -7,7 +7,8 @@ Two point-estimate methods:
   Euclidean error, halving the steps when none helps, stopped as soon as the error on the
   ``validation`` rows rises.
 A third, ``bayes``, samples the posterior of the parameters by NUTS (params = posterior mean,
-params_se = posterior sd); it lives in :mod:`bayesrob.bayes_calibration`.
+params_se = posterior sd); it lives in :mod:`bayesrob.bayes_calibration`, which builds on this
+module, and :func:`bayesrob.outputs.calibrate_rig` chooses among the three.
 """
 
 from __future__ import annotations
@@ -24,8 +25,10 @@ import scipy.stats
 from bayesrob import kinematics as kin
 from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
-Method = Literal["least-squares", "hill-climb", "bayes"]
-METHODS: tuple[str, ...] = ("least-squares", "hill-climb", "bayes")
+Method = Literal["least-squares", "hill-climb"]
+# The Bayesian method lives one layer up (bayesrob.bayes_calibration builds on this module);
+# bayesrob.outputs.calibrate_rig dispatches to all three.
+METHODS: tuple[str, ...] = ("least-squares", "hill-climb")
 
 
 @dataclass
@@ -159,10 +162,6 @@ def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = 
     if len(u) * 2 < N_ARM_PARAMS:
         raise ValueError(f"arm {spec.name!r}: {len(u)} train rows cannot fix {N_ARM_PARAMS} "
                          "parameters")
-    if method == "bayes":  # posterior by NUTS, see bayesrob.bayes_calibration
-        from bayesrob.bayes_calibration import calibrate_arm_bayes
-
-        return calibrate_arm_bayes(spec, u, d, u_val, d_val)
     v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
     if method == "least-squares":
         v, iters = _least_squares(v0, u, d)
@@ -237,24 +236,6 @@ def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str,
             if rig.measurements.mask(config, s).any():
                 out.setdefault(config, {})[s] = mean_ci95(observed_errors(rig, arms, config, s))
     return out
-
-
-def calibration_report(rig: Rig, method: Method = "least-squares") -> dict:
-    """The ``bayesrob calibrate --json`` document."""
-    cal = calibrate(rig, method)
-    arms = {n: c.arm for n, c in cal.items()}
-    doc = {
-        "method": method,
-        "rig": rig.name,
-        "arms": {n: c.to_json() for n, c in cal.items()},
-        "accuracy": observed_accuracy(rig, arms),
-        "param_names": list(kin.PARAM_NAMES),
-    }
-    if method == "bayes":  # adds predicted accuracy with parameter uncertainty
-        from bayesrob.bayes_calibration import report_extras
-
-        doc.update(report_extras(rig, cal))
-    return doc
 
 
 # ----------------------------------------------------------------------------- any chain

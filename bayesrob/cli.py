@@ -259,7 +259,7 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
 @command("calibrate", "fit each arm's parameters (planar, URDF or DH arms) and report accuracy")(
     _calibrate_args)
 def _calibrate(args: argparse.Namespace) -> int:
-    from bayesrob.calibration import calibration_report
+    from bayesrob.outputs import calibration_report
     from bayesrob.progress import progress
     from bayesrob.report import format_calibration
 
@@ -298,6 +298,7 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
                       "write Figures 3-8 and accuracy.json")(_reproduce_args)
 def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
+    from bayesrob.outputs import write_reproduction
     from bayesrob.prediction import Grid
     from bayesrob.report import grouped_notes
     from bayesrob.reproduction import (
@@ -305,7 +306,6 @@ def _reproduce(args: argparse.Namespace) -> int:
         format_accuracy,
         grid_warnings,
         run_reproduction,
-        write_reproduction,
     )
 
     rig = _load_rig_arg(args.rig)
@@ -545,7 +545,8 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
                      "show the gap shrink")(_diagnose_args)
 def _diagnose(args: argparse.Namespace) -> int:
-    from bayesrob.diagnosis import diagnose, format_diagnosis, write_report
+    from bayesrob.diagnosis import diagnose, format_diagnosis
+    from bayesrob.outputs import write_diagnosis_report
 
     rig = _load_rig_arg(args.rig)
     diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
@@ -553,7 +554,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.json != "-":
         print(format_diagnosis(doc))
     if args.report:
-        for path in write_report(diag, args.report):
+        for path in write_diagnosis_report(diag, args.report):
             _wrote(path, args.json)
     _write_json(doc, args.json)
     return 0

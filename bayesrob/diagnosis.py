@@ -965,31 +965,6 @@ def format_diagnosis(doc: dict) -> str:
     return "\n".join(out)
 
 
-def write_report(diag: Diagnosis, directory: str | Path) -> list[Path]:
-    """Save the diagnosis figures (PNG) into ``directory``; returns the files written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
-
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for a in diag.arms:
-        fig = residual_quiver_figure(diag, a)
-        path = out / f"residuals_{a}.png"
-        fig.savefig(path, dpi=110)
-        written.append(path)
-    fig = gap_figure(diag)
-    path = out / "gap_per_step.png"
-    fig.savefig(path, dpi=110)
-    written.append(path)
-    import matplotlib.pyplot as plt
-
-    plt.close("all")
-    return written
-
-
 def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
                  progress: bool = False, **kwargs) -> Diagnosis:
     """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
@@ -999,4 +974,4 @@ def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
 
 
 __all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
-           "evaluate_arm", "format_diagnosis", "residual_tests", "write_report"]
+           "evaluate_arm", "format_diagnosis", "residual_tests"]

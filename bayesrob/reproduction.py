@@ -6,7 +6,6 @@ arm alone and for the linked arms -> accuracy.json, Figures 3-8, a terminal tabl
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -150,32 +149,3 @@ def format_accuracy(doc: dict) -> str:
             rows.append(["", model, f"{p['expected_error_mm']:.2f}", "",
                          f"{p['ratio']:.2f}"])
     return format_table(["setup", "observed / model", "error mm", "95% CI", "pred/obs"], rows)
-
-
-def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
-    """Write accuracy.json and Figures 3-8 into ``out``; returns the paths written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from bayesrob.plots import paper as figs
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    written = [out / "accuracy.json"]
-    written[0].write_text(json.dumps(rep.accuracy, indent=2) + "\n")
-    makers = {
-        "fig3_workspace_errors.png": figs.workspace_errors,
-        "fig4_accuracy.png": figs.accuracy,
-        "fig5_ind_densities.png": figs.ind_densities,
-        "fig6_corr_densities.png": figs.corr_densities,
-        "fig7_cond_grid.png": figs.cond_grid,
-        "fig8_error_densities.png": figs.error_densities,
-    }
-    for name, make in makers.items():
-        fig = make(rep)
-        fig.savefig(out / name, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        written.append(out / name)
-    return written

@@ -16,7 +16,8 @@ import sys
 from pathlib import Path
 
 import bayesrob  # noqa: F401  (64-bit JAX)
-from bayesrob.diagnosis import Diagnosis, diagnose, format_diagnosis, write_report
+from bayesrob.diagnosis import Diagnosis, diagnose, format_diagnosis
+from bayesrob.outputs import write_diagnosis_report
 from bayesrob.rig import default_rig_dir, load_rig
 
 
@@ -26,7 +27,7 @@ def main(report_dir: str | Path = "diagnosis-default") -> Diagnosis:
     doc = diag.to_json()
     print(format_diagnosis(doc))
     out = Path(report_dir)
-    for path in write_report(diag, out):
+    for path in write_diagnosis_report(diag, out):
         print(f"wrote {path}")
     (out / "diagnosis.json").write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {out / 'diagnosis.json'}")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bayesrob import bayes_calibration as bc
-from bayesrob.calibration import METHODS, calibrate_arm, calibration_report
+from bayesrob.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
 from bayesrob.rig import load_rig
 from bayesrob.simulator import Truth
 
@@ -121,12 +121,10 @@ def test_linked_prediction_is_the_product_of_the_arms_gaussians(clean):
     assert np.all((t > -1e-9) & (t < 1 + 1e-9)), t
 
 
-def test_calibrate_arm_dispatches_to_bayes(clean):
+def test_calibrate_rig_dispatches_to_bayes(clean):
     rig, _, cal = clean
-    assert "bayes" in METHODS
-    u, d = rig.arm_rows("bottom", "train")
-    uv, dv = rig.arm_rows("bottom", "validation")
-    c = calibrate_arm(rig.arms["bottom"], u, d, "bayes", uv, dv)
+    assert "bayes" in CALIBRATION_METHODS
+    c = calibrate_rig(rig, "bayes")["bottom"]
     assert c.method == "bayes"
     # same default seed, same compiled sampler: the very same draws
     np.testing.assert_array_equal(c.posterior.draws, cal["bottom"].posterior.draws)

@@ -9,7 +9,8 @@ import pytest
 
 from bayesrob import kinematics as kin
 from bayesrob import simulator as sim
-from bayesrob.calibration import calibrate, calibration_report, mean_ci95
+from bayesrob.calibration import calibrate, mean_ci95
+from bayesrob.outputs import calibration_report
 from bayesrob.rig import load_rig
 
 

@@ -64,7 +64,7 @@ def test_simulate_force_overwrites_and_says_so_with_progress_lines(tmp_path, cap
     assert f"replaced (--force): {out / 'measurements.csv'}" in captured.out
     assert "wrote" in captured.out and "measurements.csv, rig.toml, truth.toml" in captured.out
     rows = load_rig(out, min_train_rows=0).measurements.observed.shape[0]
-    assert rows == 20  # 2 arms x (train + validation) x 4 points + 4 linked
+    assert rows == 23  # 2 arms x (train + validation) x 4 points + 4 linked + 3 holdout
     # capsys's stderr is not a terminal: plain status lines, the first one before any work.
     err = captured.err.splitlines()
     assert err, "no progress off a terminal"

@@ -315,12 +315,12 @@ def test_jacobian_of_every_model_is_finite(clean_rig_dir):
 def test_three_arm_rig_from_another_tool(handmade_rig_dir, tmp_path):
     """Other arm names, three arms, no repeated commands: runs, and names nothing on data
     that follow the nominal model."""
-    from bayesrob.diagnosis import write_report
+    from bayesrob.outputs import write_diagnosis_report
 
     diag = diagnose(load_rig(handmade_rig_dir))
     assert diag.arms == ["left", "right", "middle"] and diag.effects == []
     assert "lack_of_fit" not in diag.tests_before["left"]  # no repeats to test against
-    assert len(write_report(diag, tmp_path)) == 4
+    assert len(write_diagnosis_report(diag, tmp_path)) == 4
 
 
 def test_rig_without_validation_rows(rig_copy):

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.kinematics import transforms as tf
+import bayesrob.kinematics.transforms as tf
 
 JOINT_KINDS = ("revolute", "prismatic")
 GROUPS = ("frames", "offsets", "geometric", "servo")

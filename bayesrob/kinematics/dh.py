@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from bayesrob.kinematics import transforms as tf
+import bayesrob.kinematics.transforms as tf
 from bayesrob.kinematics.chain import Chain, KinematicsError
 
 CONVENTIONS = ("modified", "standard")

@@ -14,7 +14,7 @@ general chain.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +22,18 @@ import numpy as np
 
 from bayesrob.kinematics.chain import Chain
 
-if TYPE_CHECKING:  # the rig loader builds kinematic models, so kinematics never imports it
-    from bayesrob.rig import ArmSpec
+
+class ArmSpec(Protocol):
+    """What a planar arm is built from (the rig's ``ArmSpec``; the rig loader builds kinematic
+    models, so kinematics never imports it)."""
+
+    name: str
+    base: tuple[float, float]
+    links: tuple[float, float]
+    gain: tuple[float, float]
+    offset: tuple[float, float]
+    elbow: int
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
 
 PARAM_NAMES = ("bx", "by", "l1", "l2", "a1", "a2", "b1", "b2")
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesrob.kinematics import transforms as tf
+import bayesrob.kinematics.transforms as tf
 from bayesrob.kinematics.chain import Chain, KinematicsError, Robot
 
 M_TO_MM = 1000.0

@@ -1,7 +1,7 @@
 """Figures of the model-criticism workflow (:mod:`bayesrob.diagnosis`).
 
 Each function takes a :class:`~bayesrob.diagnosis.Diagnosis` and returns a matplotlib
-Figure; saving is the caller's business (:func:`bayesrob.diagnosis.write_report`).
+Figure; saving is the caller's business (:func:`bayesrob.outputs.write_diagnosis_report`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,106 @@
+"""What the commands write: the calibration document, the reproduction's accuracy.json and
+figures, the diagnosis figures.
+
+This module sits above the ones that compute results and the ones that draw them, so neither
+needs the other: plots take results as arguments, results never import plots, and the
+Bayesian calibration builds on the point-estimate one without being called back by it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bayesrob import kinematics as kin
+from bayesrob.bayes_calibration import calibrate_arm_bayes, report_extras
+from bayesrob.calibration import METHODS, ArmCalibration, calibrate, observed_accuracy
+from bayesrob.diagnosis import Diagnosis
+from bayesrob.reproduction import Reproduction
+from bayesrob.rig import Rig
+
+CALIBRATION_METHODS: tuple[str, ...] = (*METHODS, "bayes")
+
+
+def calibrate_rig(rig: Rig, method: str = "least-squares") -> dict[str, ArmCalibration]:
+    """Calibrate every planar arm of a rig on its ``train`` rows by any of the three methods."""
+    if method not in CALIBRATION_METHODS:
+        raise ValueError(f"unknown calibration method {method!r}; use one of "
+                         f"{CALIBRATION_METHODS}")
+    if method != "bayes":
+        return calibrate(rig, method)
+    out = {}
+    for name, spec in rig.arms.items():
+        u, d = rig.arm_rows(name, "train")
+        uv, dv = rig.arm_rows(name, "validation")
+        out[name] = calibrate_arm_bayes(spec, u, d, uv, dv)
+    return out
+
+
+def calibration_report(rig: Rig, method: str = "least-squares") -> dict:
+    """The ``bayesrob calibrate --json`` document of a planar rig."""
+    cal = calibrate_rig(rig, method)
+    arms = {n: c.arm for n, c in cal.items()}
+    doc = {
+        "method": method,
+        "rig": rig.name,
+        "arms": {n: c.to_json() for n, c in cal.items()},
+        "accuracy": observed_accuracy(rig, arms),
+        "param_names": list(kin.PARAM_NAMES),
+    }
+    if method == "bayes":  # adds predicted accuracy with parameter uncertainty
+        doc.update(report_extras(rig, cal))
+    return doc
+
+
+def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
+    """Write accuracy.json and Figures 3-8 into ``out``; returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bayesrob.plots import paper as figs
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "accuracy.json"]
+    written[0].write_text(json.dumps(rep.accuracy, indent=2) + "\n")
+    makers = {
+        "fig3_workspace_errors.png": figs.workspace_errors,
+        "fig4_accuracy.png": figs.accuracy,
+        "fig5_ind_densities.png": figs.ind_densities,
+        "fig6_corr_densities.png": figs.corr_densities,
+        "fig7_cond_grid.png": figs.cond_grid,
+        "fig8_error_densities.png": figs.error_densities,
+    }
+    for name, make in makers.items():
+        fig = make(rep)
+        fig.savefig(out / name, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        written.append(out / name)
+    return written
+
+
+def write_diagnosis_report(diag: Diagnosis, directory: str | Path) -> list[Path]:
+    """Save the diagnosis figures (PNG) into ``directory``; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for a in diag.arms:
+        fig = residual_quiver_figure(diag, a)
+        path = out / f"residuals_{a}.png"
+        fig.savefig(path, dpi=110)
+        written.append(path)
+    fig = gap_figure(diag)
+    path = out / "gap_per_step.png"
+    fig.savefig(path, dpi=110)
+    written.append(path)
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
+    return written
