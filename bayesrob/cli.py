@@ -363,7 +363,8 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
                         help="type each end point ('x y' in mm) at the prompt instead")
     p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
     p.add_argument("--plan", default="train,validation,test",
-                   help="sets to collect, run in this order (train,validation,test)")
+                   help="sets to collect, run in this order (train,validation,test); add "
+                        "holdout for rows at new poses (the grid's cell centres)")
     p.add_argument("--settle", type=_hw_number(float, 0.0), default=1.0, metavar="SECONDS",
                    help="wait after the controller reports a move done, before measuring (1.0)")
     p.add_argument("--resume", action="store_true",
@@ -579,7 +580,8 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
     p.add_argument("--sampler", choices=["nuts", "emcee", "grid", "all"], default="all",
                    help="nuts, emcee, grid or all (default); the grid always runs: it is the "
-                        "reference of the check and starts the chains")
+                        "reference of the check (the chains start around the target, never "
+                        "from the grid)")
     p.add_argument("--seed", type=int, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")

@@ -980,18 +980,14 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         raise ValueError(f"config {config!r}: no arm {unknown[0]!r} in the rig "
                          f"(arms: {', '.join(rig.arms)})")
     specs = discover_models(models_dir, [model])
-    # The steps before the samplers, which report on their own bars.
-    bar = _progress(3, progress, "sample", "steps", "calibrating")
-    cal = calibrate(rig)
+    cal = calibrate(rig)  # about a second: the reach is checked before anything reports
     arms = {a: cal[a].arm for a in members}
     target = np.asarray(target, float).reshape(1, 2)
     commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
-    try:
-        for a, u in zip(members, commands, strict=True):
-            _check_reach(arms[a], target[0], u[0])
-    except ValueError:
-        bar.close(done=False)
-        raise
+    for a, u in zip(members, commands, strict=True):
+        _check_reach(arms[a], target[0], u[0])
+    # The steps before the samplers, which report on their own bars.
+    bar = _progress(3, progress, "sample", "steps", "calibrated")
     bar.update()
     bar.set_postfix(f"fitting {model}")
     fitted = fit_noise_models(rig, arms, specs)[model]

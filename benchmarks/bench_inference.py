@@ -78,14 +78,18 @@ def main() -> None:
         emit(**base, method="grid_paper_100x100", seconds=seconds,
              compile_s=compile_s - seconds, cells=100 * 100)
 
+        def starts(seed: int, n: int) -> np.ndarray:
+            # as `sample` does: around the target, never from the grid the check uses
+            return inf.initial_points(models, arm_list, cmds, targets, n, seed)
+
         nuts_sampler = inf.NutsSampler()
-        nuts_sampler.run(models, arm_list, cmds, grid.sample(0, 4), seed=0)  # compile + warm
+        nuts_sampler.run(models, arm_list, cmds, starts(0, 4), seed=0)  # compile + warm
         # The machine is shared: repeat the cheap runs and keep the median-rate one. emcee on
         # 16 targets is already 16 runs in a row (about a minute), so it runs once.
-        nuts_runs = [nuts_sampler.run(models, arm_list, cmds, grid.sample(k, 4), seed=k)
+        nuts_runs = [nuts_sampler.run(models, arm_list, cmds, starts(k, 4), seed=k)
                      for k in range(1, 4)]
-        inf.run_emcee(models, arm_list, cmds, grid.sample(4, 32)[:, :1], n_steps=50, burn=0)
-        emcee_runs = [inf.run_emcee(models, arm_list, cmds, grid.sample(k, 32), seed=k)
+        inf.run_emcee(models, arm_list, cmds, starts(4, 32)[:, :1], n_steps=50, burn=0)
+        emcee_runs = [inf.run_emcee(models, arm_list, cmds, starts(k, 32), seed=k)
                       for k in range(5, 8 if count == 1 else 6)]
         for runs in (nuts_runs, emcee_runs):
             runs.sort(key=lambda r: r.ess_per_s)

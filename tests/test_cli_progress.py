@@ -68,9 +68,9 @@ def test_simulate_force_overwrites_and_says_so_with_progress_lines(tmp_path, cap
     # capsys's stderr is not a terminal: plain status lines, the first one before any work.
     err = captured.err.splitlines()
     assert err, "no progress off a terminal"
-    assert re.fullmatch(r"simulate: 0/20 pt \(0%\), \d+\.\d s", err[0]), err[0]
+    assert re.fullmatch(r"simulate: 0/23 pt \(0%\), \d+\.\d s", err[0]), err[0]
     assert all(re.fullmatch(STATUS.format(desc="simulate", unit="pt"), x) for x in err), err
-    assert err[-1].startswith("simulate: 20/20 pt (100%)") and err[-1].endswith(", done")
+    assert err[-1].startswith("simulate: 23/23 pt (100%)") and err[-1].endswith(", done")
 
 
 def test_no_progress_prints_nothing_on_stderr(tmp_path, capsys):
@@ -141,9 +141,12 @@ def test_sample_notes_are_under_the_notes_heading():
     grid = {"mean": [140.0, 220.0], "cov": [[0.2, 0.0], [0.0, 0.3]], "seconds": 0.5,
             "n": 150, "cell_mm": [0.05, 0.05], "edge_mass": 0.0}
     doc = {"config": "top+bottom", "target": [140.0, 220.0], "model": "cond_paper",
-           "samplers": {"grid": grid}, "check": {"passed": True, "failures": [], "compared": []},
+           "samplers": {"grid": grid},
+           "check": {"passed": True, "failures": [], "compared": [],
+                     "tolerances": {"mean_mm": 0.1, "cov_rel": 0.1, "r_hat": 1.01,
+                                    "ess_bulk": 400, "edge_mass": 1e-3}},
            "notes": ["NUTS divergences are trajectories that left the table's support"]}
     lines = format_sample(SampleReport(doc, None, {})).splitlines()
     i = lines.index(NOTES_HEADING)
     assert lines[i + 1] == "  NUTS divergences are trajectories that left the table's support"
-    assert lines[i - 1] == "check: no sampler ran, nothing to compare"
+    assert lines[i - 1].startswith("check: no sampler ran; the grid's box holds the posterior")
