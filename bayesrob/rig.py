@@ -23,7 +23,7 @@ import numpy as np
 
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
-SETS = ("train", "validation", "test")
+SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits")
 N_ARM_PARAMS = 8
 # A target a little outside the nominal reach is still accepted: nominal lengths are a
