@@ -462,6 +462,113 @@ def _loo_value_and_grad(
     return -ll, n - gx
 
 
+# Rows per tile of the size-independent objective below, and the smallest data buffer it is
+# compiled for. One compiled program serves every N up to the buffer (the loops over tiles
+# run to the data's true size, a traced number), so fits at new sizes do not recompile; the
+# buffer only costs memory (4096 x q floats). Past it the buffer doubles, one program each.
+_TILE = 256
+_MIN_CAPACITY = 4096
+
+
+def _capacity(n: int) -> int:
+    cap = _MIN_CAPACITY
+    while cap < n:
+        cap *= 2
+    return cap
+
+
+def _padded(y: np.ndarray) -> jnp.ndarray:
+    """``y`` (N, q) followed by zero rows up to its capacity; the objective never reads them."""
+    n = y.shape[0]
+    return jnp.asarray(np.pad(np.asarray(y, np.float64), ((0, _capacity(n) - n), (0, 0))))
+
+
+def _online_moments(state, logk: jnp.ndarray, vals: jnp.ndarray):
+    """Fold one column tile into running (max, sum e, sum e v, sum e v^2) of each row.
+
+    e_ij = exp(logk_ij - max_i): the streaming form of a row softmax, rescaling what was
+    summed so far whenever the row maximum grows. Masked entries (-inf) add exactly zero.
+    """
+    m, tot, r1, r2 = state
+    m_new = jnp.maximum(m, jnp.max(logk, axis=1))
+    alpha = jnp.exp(m - m_new)
+    e = jnp.exp(logk - m_new[:, None])
+    return (m_new, tot * alpha + jnp.sum(e, axis=1), r1 * alpha[:, None] + e @ vals,
+            r2 * alpha[:, None] + e @ (vals * vals))
+
+
+@partial(jax.jit, static_argnames=("dx", "conditional"))
+def _loo_value_and_grad_padded(
+    log_bw: jnp.ndarray, y: jnp.ndarray, n: jnp.ndarray, dx: int, conditional: bool
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """:func:`_loo_value_and_grad` of the first ``n`` rows of ``y``, for any traced ``n``.
+
+    ``y`` is a buffer of at least ``n`` rows (see :func:`_padded`); rows from ``n`` on have
+    zero weight: the loops over row and column tiles stop at ``n``, and the entries of the
+    last tiles beyond it are masked to -inf, so they contribute exactly nothing and the
+    result does not depend on the buffer's size. Each row's softmax is accumulated tile by
+    tile (:func:`_online_moments`) together with the first and second moments of the scaled
+    data under it, from which ``sum_j W_ij (s_ik - s_jk)^2 = s_ik^2 - 2 s_ik m1_ik + m2_ik``.
+    """
+    q = y.shape[1]
+    t = _TILE
+    s = y * jnp.exp(-log_bw)
+    n_tiles = (n + t - 1) // t
+    # A finite "minus infinity" for the running maxima: a fully masked tile then rescales by
+    # exp(0) = 1 and adds exp(-inf) = 0 instead of producing inf - inf.
+    low = jnp.float64(-1e300)
+
+    def start(width):
+        return (jnp.full(t, low), jnp.zeros(t), jnp.zeros((t, width)), jnp.zeros((t, width)))
+
+    def row_tile(a, acc):
+        val, gx, gz = acc
+        rows = a * t + jnp.arange(t)
+        s_r = jax.lax.dynamic_slice(s, (a * t, jnp.zeros_like(a)), (t, q))
+
+        def col_tile(b, states):
+            cols = b * t + jnp.arange(t)
+            s_c = jax.lax.dynamic_slice(s, (b * t, jnp.zeros_like(b)), (t, q))
+            keep = (cols[None, :] < n) & (rows[:, None] != cols[None, :])
+            logk = -0.5 * _sq_dist(s_r[:, :dx], s_c[:, :dx])
+            if not conditional:
+                return (_online_moments(states[0], jnp.where(keep, logk, -jnp.inf), s_c),)
+            lz = jnp.where(keep, -0.5 * _sq_dist(s_r[:, dx:], s_c[:, dx:]), -jnp.inf)
+            return (_online_moments(states[0], jnp.where(keep, logk + lz, -jnp.inf), s_c),
+                    _online_moments(states[1], lz, s_c[:, dx:]))
+
+        init = (start(q),) if not conditional else (start(q), start(q - dx))
+        states = jax.lax.fori_loop(0, n_tiles, col_tile, init)
+        valid = rows < n
+
+        def finish(state):
+            m, tot, r1, r2 = state
+            tot = jnp.where(valid, tot, 1.0)  # padded rows: no columns, no log(0)
+            return jnp.where(valid, jnp.log(tot) + m, 0.0), r1 / tot[:, None], r2 / tot[:, None]
+
+        lse, m1, m2 = finish(states[0])
+        w = valid[:, None]
+        sq = jnp.where(w, s_r * s_r - 2.0 * s_r * m1 + m2, 0.0)
+        val = val + jnp.sum(lse)
+        gx = gx + jnp.sum(sq[:, :dx], axis=0)
+        if conditional:
+            lse_z, v1, v2 = finish(states[1])
+            sz = s_r[:, dx:]
+            gz = gz + jnp.sum(jnp.where(w, -2.0 * sz * (m1[:, dx:] - v1) + m2[:, dx:] - v2,
+                                        0.0), axis=0)
+            val = val - jnp.sum(lse_z)
+        return val, gx, gz
+
+    acc = (jnp.float64(0.0), jnp.zeros(dx), jnp.zeros(q - dx))
+    val, gx, gz = jax.lax.fori_loop(0, n_tiles, row_tile, acc)
+    nf = n.astype(jnp.float64)
+    if conditional:
+        ll = val - nf * jnp.sum(log_bw[:dx]) - 0.5 * nf * dx * _LOG_2PI
+        return -ll, jnp.concatenate([nf - gx, -gz])
+    ll = val - nf * jnp.sum(log_bw) - nf * jnp.log(nf - 1.0) - 0.5 * nf * dx * _LOG_2PI
+    return -ll, nf - gx
+
+
 @jax.jit
 def _j_loo_normalised(h: jnp.ndarray, y: jnp.ndarray, log_scale: jnp.ndarray) -> jnp.ndarray:
     """The paper's J_LOO for normalised data ``y`` and width ``h`` (pdfs in original units).
@@ -638,7 +745,8 @@ def _select_log_bw(
     """
     n, q = joint.shape
     sigma = joint.std(axis=0)
-    y = jnp.asarray((joint - joint.mean(axis=0)) / sigma)
+    y = _padded((joint - joint.mean(axis=0)) / sigma)
+    n_traced = jnp.asarray(n, dtype=jnp.int32)
     x0 = np.full(q, math.log(1.06 * n ** (-1.0 / (4 + q))))
     lo = np.full(q, math.log(_DIAG_RANGE[0]))
     hi = np.full(q, math.log(_DIAG_RANGE[1]))
@@ -649,7 +757,8 @@ def _select_log_bw(
     with _single_threaded_blas():
         for x_start in starts:
             theta, val = _lbfgs_log_bw(
-                lambda t: _loo_value_and_grad(t, y, dx=dx, conditional=conditional),
+                lambda t: _loo_value_and_grad_padded(t, y, n_traced, dx=dx,
+                                                     conditional=conditional),
                 x_start,
                 lo,
                 hi,
