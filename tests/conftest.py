@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# Compiled programs go to a scratch cache, not the user's ~/.cache (set before any test module
+# imports bayesrob, which reads it once).
+os.environ.setdefault("BAYESROB_CACHE_DIR", tempfile.mkdtemp(prefix="bayesrob-test-cache-"))
 
 
 @pytest.fixture(scope="session")
