@@ -6,10 +6,12 @@ workspace boundary lose too much precision in float32.
 
 It also turns on JAX's persistent compilation cache, so a new process reuses the
 programs earlier ones compiled (a KDE fit then costs its run time, not the 0.4-0.5 s of
-XLA compilation). The cache lives in ``$XDG_CACHE_HOME/bayesrob/jax`` (default
-``~/.cache/bayesrob/jax``); ``BAYESROB_CACHE_DIR`` moves it, ``BAYESROB_NO_CACHE=1``
-turns it off, and a cache directory set through JAX's own configuration is left alone.
-The cache holds executable code: keep it in a directory only you can write to.
+XLA compilation). The cache lives in ``$XDG_CACHE_HOME/bayesrob`` (default
+``~/.cache/bayesrob``): JAX's entries in ``jax/``, the KDE bandwidth objectives as loadable
+executables in ``executables/`` (see :mod:`bayesrob.kde`). ``BAYESROB_CACHE_DIR`` moves it,
+``BAYESROB_NO_CACHE=1`` turns it off, and a cache directory set through JAX's own
+configuration is left alone. The cache holds executable code: keep it in a directory only
+you can write to.
 """
 
 from __future__ import annotations
@@ -27,15 +29,21 @@ __version__ = "0.1.0"
 _CACHE_MIN_COMPILE_SECS = 0.05
 
 
-def compilation_cache_dir() -> Path | None:
-    """Where the persistent compilation cache goes, or None when it is turned off."""
+def cache_dir() -> Path | None:
+    """The root of bayesrob's on-disk caches, or None when caching is turned off."""
     if os.environ.get("BAYESROB_NO_CACHE", "").strip().lower() not in ("", "0", "false", "no"):
         return None
     explicit = os.environ.get("BAYESROB_CACHE_DIR", "").strip()
     if explicit:
         return Path(explicit).expanduser()
     base = os.environ.get("XDG_CACHE_HOME", "").strip()
-    return (Path(base) if base else Path.home() / ".cache") / "bayesrob" / "jax"
+    return (Path(base) if base else Path.home() / ".cache") / "bayesrob"
+
+
+def compilation_cache_dir() -> Path | None:
+    """Where JAX's persistent compilation cache goes, or None when it is turned off."""
+    root = cache_dir()
+    return None if root is None else root / "jax"
 
 
 def _enable_compilation_cache() -> None:

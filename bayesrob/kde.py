@@ -32,16 +32,21 @@ The pure functions :func:`kde_logpdf`, :func:`conditional_kde_logpdf` and
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
+import os
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import serialize_executable
+from jax.experimental.compilation_cache import compilation_cache
 from jax.scipy.special import logsumexp
 from scipy import optimize
 
@@ -480,7 +485,8 @@ def _capacity(n: int) -> int:
 def _padded(y: np.ndarray) -> jnp.ndarray:
     """``y`` (N, q) followed by zero rows up to its capacity; the objective never reads them."""
     n = y.shape[0]
-    return jnp.asarray(np.pad(np.asarray(y, np.float64), ((0, _capacity(n) - n), (0, 0))))
+    # device_put, not jnp.asarray: a transfer, where asarray may compile a conversion.
+    return jax.device_put(np.pad(np.asarray(y, np.float64), ((0, _capacity(n) - n), (0, 0))))
 
 
 def _online_moments(state, logk: jnp.ndarray, vals: jnp.ndarray):
@@ -567,6 +573,117 @@ def _loo_value_and_grad_padded(
         return -ll, jnp.concatenate([nf - gx, -gz])
     ll = val - nf * jnp.sum(log_bw) - nf * jnp.log(nf - 1.0) - 0.5 * nf * dx * _LOG_2PI
     return -ll, nf - gx
+
+
+# The objective compiled ahead of time per (q, dx, conditional, buffer rows): called directly,
+# a fit neither traces nor lowers it again in this process, and (see _objective) not in the
+# next one either when the executable was stored on disk.
+_OBJECTIVES: dict[tuple[int, int, bool, int], Any] = {}
+
+
+def _executable_path(key: tuple[int, int, bool, int]) -> Path | None:
+    """Where the executable for ``key`` is stored, or None when caching is off.
+
+    The name hashes everything the program depends on (this module's source, the JAX and
+    XLA versions, the device, the shapes), so a stale file is never loaded: it is simply
+    not looked up again.
+    """
+    from bayesrob import cache_dir
+
+    root = cache_dir()
+    if root is None:
+        return None
+    dev = jax.devices()[0]
+    parts = [Path(__file__).read_bytes(), jax.__version__.encode(),
+             jax.lib.__version__.encode() if hasattr(jax.lib, "__version__") else b"",
+             str((dev.platform, dev.device_kind, dev.client.platform_version, key, _TILE,
+                  jax.config.jax_enable_x64)).encode()]
+    digest = hashlib.sha256(b"\0".join(parts)).hexdigest()[:32]
+    return root / "executables" / f"loo-{digest}.bin"
+
+
+def _loaded(blob: bytes, in_tree: Any, out_tree: Any, capacity: int, q: int) -> Any:
+    """The executable in ``blob``, or None if it does not load or cannot run.
+
+    One evaluation on two rows (about a millisecond) proves it runs: a file can load and
+    still lack kernels (see :func:`_objective`).
+    """
+    try:
+        fn = serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
+        two = np.zeros((capacity, q))
+        two[1] = 1.0
+        jax.block_until_ready(fn(np.zeros(q), jax.device_put(two), np.int32(2)))
+        return fn
+    except Exception:
+        return None
+
+
+def _serialised(fn: Any, in_tree: Any, out_tree: Any, capacity: int, q: int) -> bytes | None:
+    """``fn`` serialised, if what it serialises to loads and runs again."""
+    blob, _, _ = serialize_executable.serialize(fn)
+    return blob if _loaded(blob, in_tree, out_tree, capacity, q) is not None else None
+
+
+@contextlib.contextmanager
+def _persistent_cache_off():
+    """Compilations inside the block are fresh: not read from (nor written to) any cache.
+
+    JAX decides once per process whether the cache is used; resetting that decision on both
+    sides (public ``reset_cache``) makes it take the flag into account, and then the
+    configured directory again.
+    """
+    enabled = jax.config.jax_enable_compilation_cache
+    compilation_cache.reset_cache()
+    jax.config.update("jax_enable_compilation_cache", False)
+    jax.clear_caches()  # or the in-memory cache hands back the same executable
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", enabled)
+        compilation_cache.reset_cache()
+
+
+def _objective(q: int, dx: int, conditional: bool, capacity: int) -> Any:
+    """The compiled (value, gradient) of the LOO objective for a buffer of ``capacity`` rows.
+
+    In-process it is compiled once; across processes it is stored with JAX's executable
+    serialisation next to JAX's compilation cache, because a persistent-cache hit still
+    traces and lowers the function (about 0.3 s of Python per new process), more than a
+    whole fit at N = 1000 takes. A file that fails to load or run is compiled again and
+    replaced; failing to write one only costs the next process the compilation.
+    """
+    key = (q, dx, bool(conditional), capacity)
+    fn = _OBJECTIVES.get(key)
+    if fn is not None:
+        return fn
+    f64 = jnp.float64
+    args = (jax.ShapeDtypeStruct((q,), f64), jax.ShapeDtypeStruct((capacity, q), f64),
+            jax.ShapeDtypeStruct((), jnp.int32))
+    in_tree = jax.tree_util.tree_structure((args, {}))
+    out_tree = jax.tree_util.tree_structure((args[2], args[0]))
+    path = _executable_path(key)
+    if path is not None and path.is_file():
+        fn = _loaded(path.read_bytes(), in_tree, out_tree, capacity, q)
+    if fn is None:
+        fn = _loo_value_and_grad_padded.lower(*args, dx=dx, conditional=conditional).compile()
+        if path is not None:
+            with contextlib.suppress(Exception):
+                blob = _serialised(fn, in_tree, out_tree, capacity, q)
+                if blob is None:
+                    # That executable came from JAX's persistent cache, and XLA:CPU cannot
+                    # serialise a deserialised executable again in full (it loses its fused
+                    # kernels); compile it afresh, past that cache, to store it.
+                    with _persistent_cache_off():
+                        fresh = _loo_value_and_grad_padded.lower(
+                            *args, dx=dx, conditional=conditional).compile()
+                    blob = _serialised(fresh, in_tree, out_tree, capacity, q)
+                if blob is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                    tmp.write_bytes(blob)
+                    os.replace(tmp, path)  # atomic: a concurrent reader never sees half a file
+    _OBJECTIVES[key] = fn
+    return fn
 
 
 @jax.jit
@@ -690,7 +807,7 @@ def _lbfgs_log_bw(vg, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[n
     """Minimise a jitted value-and-grad objective of log-bandwidths with bounded L-BFGS-B."""
 
     def fun(theta):
-        v, g = vg(jnp.asarray(theta))
+        v, g = vg(np.asarray(theta, dtype=np.float64))
         return float(v), np.asarray(g, dtype=np.float64)
 
     res = optimize.minimize(
@@ -746,7 +863,8 @@ def _select_log_bw(
     n, q = joint.shape
     sigma = joint.std(axis=0)
     y = _padded((joint - joint.mean(axis=0)) / sigma)
-    n_traced = jnp.asarray(n, dtype=jnp.int32)
+    n_traced = jax.device_put(np.int32(n))
+    objective = _objective(q, dx, conditional, int(y.shape[0]))
     x0 = np.full(q, math.log(1.06 * n ** (-1.0 / (4 + q))))
     lo = np.full(q, math.log(_DIAG_RANGE[0]))
     hi = np.full(q, math.log(_DIAG_RANGE[1]))
@@ -757,8 +875,7 @@ def _select_log_bw(
     with _single_threaded_blas():
         for x_start in starts:
             theta, val = _lbfgs_log_bw(
-                lambda t: _loo_value_and_grad_padded(t, y, n_traced, dx=dx,
-                                                     conditional=conditional),
+                lambda t: objective(t, y, n_traced),
                 x_start,
                 lo,
                 hi,

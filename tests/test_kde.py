@@ -228,14 +228,13 @@ def test_fits_of_new_sizes_reuse_one_compiled_objective(monkeypatch) -> None:
     and their bandwidths do not depend on how far the data were padded."""
     rng = np.random.default_rng(3)
     data = _skewed_bimodal(rng, 520)
-    fn = kde_mod._loo_value_and_grad_padded
     KDE.fit(data[:150], "loo-ml-diag")
     ConditionalKDE.fit(data[:150, :2], data[:150, 2:], "kernel")
-    compiled = fn._cache_size()
+    compiled = dict(kde_mod._OBJECTIVES)
     fits = {n: KDE.fit(data[:n], "loo-ml-diag").bandwidth for n in (333, 520)}
     conds = {n: ConditionalKDE.fit(data[:n, :2], data[:n, 2:], "kernel").bandwidth
              for n in (333, 520)}
-    assert fn._cache_size() == compiled
+    assert kde_mod._OBJECTIVES == compiled
     # A buffer of 1024 rows instead of 4096: a different program, the same answers (the loops
     # never reach the extra zero-weight rows, so equal to the last bit in practice; 1e-12).
     monkeypatch.setattr(kde_mod, "_MIN_CAPACITY", 1024)
@@ -245,7 +244,7 @@ def test_fits_of_new_sizes_reuse_one_compiled_objective(monkeypatch) -> None:
         np.testing.assert_allclose(
             ConditionalKDE.fit(data[:n, :2], data[:n, 2:], "kernel").bandwidth, conds[n],
             rtol=1e-12)
-    assert fn._cache_size() > compiled
+    assert len(kde_mod._OBJECTIVES) == len(compiled) + 2
 
 
 def test_loo_ml_single_width_is_the_grid_argmax() -> None:
