@@ -467,11 +467,13 @@ def _loo_value_and_grad(
     return -ll, n - gx
 
 
-# Rows per tile of the size-independent objective below, and the smallest data buffer it is
-# compiled for. One compiled program serves every N up to the buffer (the loops over tiles
-# run to the data's true size, a traced number), so fits at new sizes do not recompile; the
-# buffer only costs memory (4096 x q floats). Past it the buffer doubles, one program each.
-_TILE = 256
+# Rows per tile of the size-independent objective below (128: the last, partly empty tile
+# wastes less than with 256 and the loop overhead is still small; both timed at N = 700-1300),
+# and the smallest data buffer it is compiled for. One compiled program serves every N up to
+# the buffer (the loops over tiles run to the data's true size, a traced number), so fits at
+# new sizes do not recompile; the buffer only costs memory (4096 x q floats). Past it the
+# buffer doubles, one program each.
+_TILE = 128
 _MIN_CAPACITY = 4096
 
 
