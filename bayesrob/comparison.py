@@ -2,7 +2,7 @@
 
 The score of a point is its log predictive density: the log of the model's predicted density
 (per mm^2) of the observed end point, normalised over the grid box like every grid
-prediction (:func:`bayesrob.inference.grid_posterior`). Two sets of points:
+prediction (:func:`bayesrob.inference.grid_posterior`). The points:
 
 - held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
   linked ``test`` rows (predicted from both arms' models), the data no model has seen; when the
