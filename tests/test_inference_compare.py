@@ -208,3 +208,31 @@ def test_compare_reports_holdout_rows_beside_the_held_out_ones(clean_rig_dir, tm
     assert plain["holdout_rows"] == {} and plain["holdout_compare"] == []
     assert plain["models"]["ind"]["holdout"] is None
     assert "holdout points" not in format_comparison(plain)
+
+
+# The README's two tables for `bayesrob compare` on the default rig: model -> (elpd, se,
+# elpd_diff, dse) as printed (one decimal).
+README_HELDOUT = {
+    "cond": (-122.6, 21.6, 0.0, 0.0), "ind": (-128.5, 12.5, 5.9, 12.6),
+    "corr": (-129.4, 13.5, 6.7, 11.9), "ind_paper": (-145.0, 4.9, 22.3, 19.1),
+    "corr_paper": (-145.1, 4.7, 22.4, 19.2), "cond_paper": (-1520.6, 966.7, 1397.9, 953.0),
+}
+README_LOO = {
+    "cond": (-84.9, 10.1, 0.0, 0.0), "ind": (-98.2, 7.4, 13.3, 5.6),
+    "corr": (-101.6, 8.0, 16.8, 4.1), "ind_paper": (-107.8, 2.4, 22.9, 8.3),
+    "corr_paper": (-107.9, 2.4, 23.0, 8.4), "cond_paper": (-791.0, 687.6, 706.1, 682.2),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:The inplace keyword")
+def test_the_readme_comparison_tables():
+    """Every elpd, se, elpd_diff and dse of the README's held-out and LOO tables (about two
+    minutes). Deterministic: the tolerance is the table's rounding, half of 0.1."""
+    doc = compare_models(load_rig(default_rig_dir())).document()
+    tol = 0.05 + 1e-9
+    for key, table in (("heldout_compare", README_HELDOUT), ("loo_compare", README_LOO)):
+        got = {r["model"]: (r["elpd"], r["se"], r["elpd_diff"], r["dse"]) for r in doc[key]}
+        assert [r["model"] for r in doc[key]] == list(table), key  # the ranking
+        for model, figures in table.items():
+            assert got[model] == pytest.approx(figures, abs=tol), (key, model)
