@@ -491,18 +491,18 @@ def _padded(y: np.ndarray) -> jnp.ndarray:
     return jax.device_put(np.pad(np.asarray(y, np.float64), ((0, _capacity(n) - n), (0, 0))))
 
 
-def _online_moments(state, logk: jnp.ndarray, vals: jnp.ndarray):
-    """Fold one column tile into running (max, sum e, sum e v, sum e v^2) of each row.
+def _online_moments(state, logk: jnp.ndarray, ext: jnp.ndarray):
+    """Fold one column tile into each row's running max and ``sum_j e_ij [1, v_j, v_j^2]``.
 
     e_ij = exp(logk_ij - max_i): the streaming form of a row softmax, rescaling what was
     summed so far whenever the row maximum grows. Masked entries (-inf) add exactly zero.
+    ``ext`` holds the columns [1, v, v^2] of the tile's points, so the sum of weights and both
+    moments come from one matrix product.
     """
-    m, tot, r1, r2 = state
+    m, acc = state
     m_new = jnp.maximum(m, jnp.max(logk, axis=1))
-    alpha = jnp.exp(m - m_new)
     e = jnp.exp(logk - m_new[:, None])
-    return (m_new, tot * alpha + jnp.sum(e, axis=1), r1 * alpha[:, None] + e @ vals,
-            r2 * alpha[:, None] + e @ (vals * vals))
+    return m_new, acc * jnp.exp(m - m_new)[:, None] + e @ ext
 
 
 @partial(jax.jit, static_argnames=("dx", "conditional"))
@@ -521,13 +521,16 @@ def _loo_value_and_grad_padded(
     q = y.shape[1]
     t = _TILE
     s = y * jnp.exp(-log_bw)
+    ones = jnp.ones((s.shape[0], 1))
+    ext = jnp.concatenate([ones, s, s * s], axis=1)
+    ext_z = jnp.concatenate([ones, s[:, dx:], s[:, dx:] ** 2], axis=1)
     n_tiles = (n + t - 1) // t
     # A finite "minus infinity" for the running maxima: a fully masked tile then rescales by
     # exp(0) = 1 and adds exp(-inf) = 0 instead of producing inf - inf.
     low = jnp.float64(-1e300)
 
     def start(width):
-        return (jnp.full(t, low), jnp.zeros(t), jnp.zeros((t, width)), jnp.zeros((t, width)))
+        return jnp.full(t, low), jnp.zeros((t, 1 + 2 * width))
 
     def row_tile(a, acc):
         val, gx, gz = acc
@@ -536,23 +539,28 @@ def _loo_value_and_grad_padded(
 
         def col_tile(b, states):
             cols = b * t + jnp.arange(t)
-            s_c = jax.lax.dynamic_slice(s, (b * t, jnp.zeros_like(b)), (t, q))
+            zero = jnp.zeros_like(b)
+            s_c = jax.lax.dynamic_slice(s, (b * t, zero), (t, q))
+            e_c = jax.lax.dynamic_slice(ext, (b * t, zero), (t, 1 + 2 * q))
             keep = (cols[None, :] < n) & (rows[:, None] != cols[None, :])
             logk = -0.5 * _sq_dist(s_r[:, :dx], s_c[:, :dx])
             if not conditional:
-                return (_online_moments(states[0], jnp.where(keep, logk, -jnp.inf), s_c),)
+                return (_online_moments(states[0], jnp.where(keep, logk, -jnp.inf), e_c),)
+            ez_c = jax.lax.dynamic_slice(ext_z, (b * t, zero), (t, 1 + 2 * (q - dx)))
             lz = jnp.where(keep, -0.5 * _sq_dist(s_r[:, dx:], s_c[:, dx:]), -jnp.inf)
-            return (_online_moments(states[0], jnp.where(keep, logk + lz, -jnp.inf), s_c),
-                    _online_moments(states[1], lz, s_c[:, dx:]))
+            return (_online_moments(states[0], jnp.where(keep, logk + lz, -jnp.inf), e_c),
+                    _online_moments(states[1], lz, ez_c))
 
         init = (start(q),) if not conditional else (start(q), start(q - dx))
         states = jax.lax.fori_loop(0, n_tiles, col_tile, init)
         valid = rows < n
 
         def finish(state):
-            m, tot, r1, r2 = state
-            tot = jnp.where(valid, tot, 1.0)  # padded rows: no columns, no log(0)
-            return jnp.where(valid, jnp.log(tot) + m, 0.0), r1 / tot[:, None], r2 / tot[:, None]
+            m, acc = state
+            w = acc.shape[1] // 2
+            tot = jnp.where(valid, acc[:, 0], 1.0)  # padded rows: no columns, no log(0)
+            moments = acc[:, 1:] / tot[:, None]
+            return jnp.where(valid, jnp.log(tot) + m, 0.0), moments[:, :w], moments[:, w:]
 
         lse, m1, m2 = finish(states[0])
         w = valid[:, None]
