@@ -820,13 +820,16 @@ def _lbfgs_log_bw(vg, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[n
         v, g = vg(np.asarray(theta, dtype=np.float64))
         return float(v), np.asarray(g, dtype=np.float64)
 
+    # ftol 1e-11 / gtol 1e-7: bandwidths to 1e-6 relative or better (statsmodels stops at
+    # 1e-3 absolute). Tighter, the last iterations only chase rounding: at N = 700 a 2-D | 2-D
+    # conditional fit took 34 evaluations instead of 21 for the same widths to 8 digits.
     res = optimize.minimize(
         fun,
         x0,
         jac=True,
         method="L-BFGS-B",
         bounds=list(zip(lo, hi, strict=True)),
-        options={"ftol": 1e-13, "gtol": 1e-9, "maxiter": 1000, "maxcor": 20},
+        options={"ftol": 1e-11, "gtol": 1e-7, "maxiter": 1000, "maxcor": 20},
     )
     if not (np.all(np.isfinite(res.x)) and np.isfinite(res.fun)):
         raise KDEError("bandwidth optimisation diverged (non-finite objective or bandwidth)")
