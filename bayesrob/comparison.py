@@ -2,16 +2,21 @@
 
 The score of a point is its log predictive density: the log of the model's predicted density
 (per mm^2) of the observed end point, normalised over the grid box like every grid
-prediction (:func:`bayesrob.inference.grid_posterior`). Two sets of points:
+prediction (:func:`bayesrob.inference.grid_posterior`). The points:
 
 - held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
-  linked ``test`` rows (predicted from both arms' models), the data no model has seen;
-- leave-one-out over the training rows: training row i scored by the model refitted without
-  row i. The refit keeps the bandwidths chosen on all rows (re-selecting them 16 times per
-  arm would cost minutes for COND), which flatters the LOO-ML variants a little: their
-  bandwidths maximise a leave-one-out likelihood in joint-error space. The calibrated arm is
-  kept as well. This is exact LOO, so no Pareto-smoothed approximation is needed: a KDE has
-  no posterior draws to importance-weight, but dropping one of its points is cheap.
+  linked ``test`` rows (predicted from both arms' models), the data no model has seen; when the
+  rig has ``holdout`` rows (single-arm rows at new poses, linked rows at new targets), those
+  are scored the same way and reported beside them, never pooled with them;
+- leave-one-out over the training rows: training row i scored with everything that was fitted
+  on it refitted without it: the arm's geometric calibration (a row's leverage on the 8
+  calibration parameters is about 0.25 with 16 rows, so keeping it would flatter every model),
+  the joint errors that calibration implies, and the density, the histogram COND's grid
+  included. The density keeps the bandwidths chosen on all rows (re-selecting them 16 times
+  per arm would cost minutes for COND), which flatters the LOO-ML variants a little: their
+  bandwidths maximise a leave-one-out likelihood in joint-error space. This is exact LOO, so
+  no Pareto-smoothed approximation is needed: a KDE has no posterior draws to
+  importance-weight, but dropping one of its points is cheap.
 
 Both go through ``arviz.compare`` (as ``ELPDData`` built from the exact pointwise values), which
 gives the elpd differences, their standard errors ``dse = sqrt(n) sd(pointwise differences)``
@@ -36,7 +41,7 @@ import scipy.stats
 import xarray as xr
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import calibrate
+from bayesrob.calibration import calibrate, calibrate_arm, predicted_points
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
 from bayesrob.kde import KDE, ConditionalKDE
 from bayesrob.noise_models import (
@@ -44,6 +49,7 @@ from bayesrob.noise_models import (
     ModelSpec,
     discover_models,
     fit_noise_models,
+    joint_errors,
 )
 from bayesrob.prediction import setup_rows, setups
 from bayesrob.report import format_table
@@ -57,13 +63,21 @@ __all__ = [
     "ModelComparison",
     "score_points",
     "score_setup",
+    "score_holdout",
+    "holdout_setups",
+    "refit_at_bandwidths",
     "loo_training_scores",
+    "loo_calibrations",
     "compare_models",
     "comparison_figure",
     "format_comparison",
 ]
 
 MASSES = (0.5, 0.9)
+
+# Rows taken where no training, validation or test row was: single-arm rows at new poses and
+# linked rows at new targets. Scored beside the validation/test rows, never fitted on.
+HOLDOUT = "holdout"
 
 
 @dataclass
@@ -130,9 +144,34 @@ def score_setup(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNois
     return scores
 
 
-def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel:
-    """The model refitted on the rows ``keep`` (boolean mask) at its current bandwidths."""
-    x, u = model.theta_err[keep], model.u[keep]
+def holdout_setups(rig: Rig) -> list[str]:
+    """Every single arm, then every linked config, that has ``holdout`` rows."""
+    single = [a for a in rig.arms if rig.measurements.mask(a, HOLDOUT).any()]
+    linked = [c for c in rig.linked_configs if rig.measurements.mask(c, HOLDOUT).any()]
+    return single + linked
+
+
+def score_holdout(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
+                  config: str) -> PointScores:
+    """Scores of a setup's ``holdout`` rows (new poses for one arm, new targets when linked)."""
+    rows = rig.config_rows(config, HOLDOUT)
+    members = config.split("+")
+    scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
+                             [rows["commands"][a] for a in members],
+                             predicted_points(rig, arms, config, HOLDOUT), rows["observed"])
+    return scores
+
+
+def refit_at_bandwidths(model: FittedNoiseModel, theta_err: np.ndarray, u: np.ndarray
+                        ) -> FittedNoiseModel:
+    """``model``'s density refitted to other joint errors and commands at its bandwidths.
+
+    Everything else is re-derived from the new rows exactly as :meth:`ModelSpec.fit` derives
+    it, the histogram COND's grid (its ``bin_margin`` or declared ``bin_widths``) included:
+    a grid carried over from other rows, or none at all, would put the scored row off the
+    histogram where only the floor density is.
+    """
+    x, u = np.asarray(theta_err, float), np.asarray(u, float)
     spec = model.spec
     if model.conditional is None:
         if spec.family == "IND":
@@ -145,24 +184,50 @@ def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel
         cond = ConditionalKDE.fit(x, u, "kernel", np.concatenate([c.bw_x, c.bw_z]))
     else:
         cond = ConditionalKDE.fit(x, u, "histogram", c.joint.bandwidth, bins=spec.bins,
-                                  bin_widths=spec.bin_widths, floor=c.floor,
+                                  bin_widths=spec._bin_widths(x, u), floor=c.floor,
                                   warn_on_bound=False)
     return FittedNoiseModel(spec, x, u, conditional=cond)
 
 
-def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel) -> np.ndarray:
+def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel:
+    """The model refitted on the rows ``keep`` (boolean mask) at its current bandwidths."""
+    return refit_at_bandwidths(model, model.theta_err[keep], model.u[keep])
+
+
+def loo_calibrations(rig: Rig, arm: str) -> list[kin.Arm]:
+    """The arm calibrated (least squares, as :func:`calibrate`) without each training row."""
+    u, d = rig.arm_rows(arm, "train")
+    uv, dv = rig.arm_rows(arm, "validation")
+    spec = rig.arms[arm]
+    return [calibrate_arm(spec, u[np.arange(len(u)) != i], d[np.arange(len(u)) != i],
+                          "least-squares", uv, dv).arm for i in range(len(u))]
+
+
+def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel,
+                        recalibrate: bool = True,
+                        calibrations: Sequence[kin.Arm] | None = None) -> np.ndarray:
     """Exact leave-one-out log predictive density of each of an arm's training rows.
 
     Row i's observed end point is scored by the single-arm prediction for its command u_i,
-    with the model refitted on the other rows (same bandwidths; see the module docstring).
+    with everything fitted on the training rows refitted without row i: the arm's geometric
+    calibration (``recalibrate``; with False the calibrated ``arm`` is kept), the joint errors
+    it implies and the density at the full fit's bandwidths (see the module docstring).
+    ``calibrations``: :func:`loo_calibrations` of the arm, when already computed (they do not
+    depend on the model).
     """
     u, d = rig.arm_rows(arm.name, "train")
-    target = np.asarray(arm.forward_u(jnp.asarray(u)))
+    if recalibrate and calibrations is None:
+        calibrations = loo_calibrations(rig, arm.name)
     out = np.empty(len(u))
     for i in range(len(u)):
         keep = np.arange(len(u)) != i
-        m = refit_without(model, keep)
-        scores, _ = score_points([m], [arm], [u[i:i + 1]], target[i:i + 1], d[i:i + 1])
+        if recalibrate:
+            arm_i = calibrations[i]
+            m = refit_at_bandwidths(model, joint_errors(arm_i, u[keep], d[keep]), u[keep])
+        else:
+            arm_i, m = arm, refit_without(model, keep)
+        target = np.asarray(arm_i.forward_u(jnp.asarray(u[i:i + 1])))
+        scores, _ = score_points([m], [arm_i], [u[i:i + 1]], target, d[i:i + 1])
         out[i] = scores.lpd[0]
     return out
 
@@ -195,6 +260,26 @@ def _table(compared: Any) -> list[dict]:
     return rows
 
 
+def _score_summary(by_config: dict[str, PointScores]) -> dict:
+    """elpd, its SE and per-setup calibration of one model's scores over a set of rows."""
+    by_setup = {}
+    for config, s in by_config.items():
+        by_setup[config] = {
+            "n": int(s.lpd.size), "elpd": float(s.lpd.sum()),
+            "mean_lpd": float(s.lpd.mean()),
+            "coverage50": s.coverage(0.5), "coverage90": s.coverage(0.9),
+            "mean_hdr_level": float(s.hdr_level.mean()),
+        }
+    for config, s in by_config.items():
+        if "+" in config:
+            ppc = s.ppc()
+            by_setup[config]["ppc"] = {k: v for k, v in ppc.items() if k != "hdr_levels"}
+    pw = np.concatenate([s.lpd for s in by_config.values()])
+    return {"n": int(pw.size), "elpd": float(pw.sum()),
+            "se": float(np.sqrt(pw.size * np.var(pw))),
+            "mean_lpd": float(pw.mean()), "by_setup": by_setup}
+
+
 @dataclass
 class ModelComparison:
     """Held-out and leave-one-out scores of every model, with arviz's comparison tables."""
@@ -208,38 +293,29 @@ class ModelComparison:
     loo_compare: Any
     seconds: float
     notes: list[str] = field(default_factory=list)
+    holdout: dict[str, dict[str, PointScores]] = field(default_factory=dict)  # empty: none
+    holdout_compare: Any = None  # az.compare DataFrame when the rig has holdout rows
+    loo_recalibrated: bool = True  # whether LOO refitted the calibration without the row too
 
     def heldout_pointwise(self, model: str) -> np.ndarray:
         return np.concatenate([s.lpd for s in self.heldout[model].values()])
+
+    def holdout_pointwise(self, model: str) -> np.ndarray:
+        return np.concatenate([s.lpd for s in self.holdout[model].values()])
 
     def document(self) -> dict:
         """The ``bayesrob compare --json`` document."""
         models = {}
         for spec in self.specs:
             name = spec.name
-            by_setup = {}
-            for config, s in self.heldout[name].items():
-                by_setup[config] = {
-                    "n": int(s.lpd.size), "elpd": float(s.lpd.sum()),
-                    "mean_lpd": float(s.lpd.mean()),
-                    "coverage50": s.coverage(0.5), "coverage90": s.coverage(0.9),
-                    "mean_hdr_level": float(s.hdr_level.mean()),
-                }
-            for config, s in self.heldout[name].items():
-                if "+" in config:
-                    ppc = s.ppc()
-                    by_setup[config]["ppc"] = {k: v for k, v in ppc.items()
-                                               if k != "hdr_levels"}
-            pw = self.heldout_pointwise(name)
             loo = self.loo[name]
             models[name] = {
                 "description": spec.description, "paper": spec.paper,
-                "heldout": {"n": int(pw.size), "elpd": float(pw.sum()),
-                            "se": float(np.sqrt(pw.size * np.var(pw))),
-                            "mean_lpd": float(pw.mean()), "by_setup": by_setup},
+                "heldout": _score_summary(self.heldout[name]),
                 "loo_train": {"n": int(loo.size), "elpd": float(loo.sum()),
                               "se": float(np.sqrt(loo.size * np.var(loo))),
                               "p_loo": float(self.in_sample[name].sum() - loo.sum())},
+                "holdout": _score_summary(self.holdout[name]) if self.holdout else None,
             }
         held = _table(self.heldout_compare)
         loo = _table(self.loo_compare)
@@ -254,6 +330,11 @@ class ModelComparison:
             "models": models,
             "heldout_compare": held,
             "loo_compare": loo,
+            "holdout_rows": ({c: int(s.lpd.size) for c, s in
+                              self.holdout[self.specs[0].name].items()} if self.holdout else {}),
+            "holdout_compare": (_table(self.holdout_compare)
+                                if self.holdout_compare is not None else []),
+            "loo_recalibrated": self.loo_recalibrated,
             "winner": {
                 "model": winner["model"],
                 "over": runner_up["model"] if runner_up else None,
@@ -277,9 +358,14 @@ def heldout_scores(rig: Rig, specs: Sequence[ModelSpec], arms: dict[str, kin.Arm
 
 
 def compare_models(rig: Rig, models: Sequence[str] | None = None,
-                   models_dir: str | Path | None = None, progress: bool = False
-                   ) -> ModelComparison:
-    """Fit every model on the training rows and score it on held-out and LOO points."""
+                   models_dir: str | Path | None = None, progress: bool = False,
+                   recalibrate: bool = True) -> ModelComparison:
+    """Fit every model on the training rows and score it on held-out and LOO points.
+
+    Held out are the validation/test rows and, when the rig has them, the ``holdout`` rows
+    (scored separately). ``recalibrate``: leave-one-out refits each arm's calibration without
+    the left-out row as well (see :func:`loo_training_scores`).
+    """
     from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
@@ -288,15 +374,22 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
                           postfix="calibrating")
     arms = {n: c.arm for n, c in calibrate(rig).items()}
     configs = setups(rig)
+    hold_configs = holdout_setups(rig)
+    bar.set_postfix("calibrating without each training row")
+    loo_arms = {a: loo_calibrations(rig, a) for a in arms} if recalibrate else {}
     heldout: dict[str, dict[str, PointScores]] = {}
     loo: dict[str, np.ndarray] = {}
     in_sample: dict[str, np.ndarray] = {}
+    holdout: dict[str, dict[str, PointScores]] = {}
     for spec in specs:
         bar.set_postfix_str(spec.name)
         fitted = fit_noise_models(rig, arms, [spec])[spec.name]
         heldout[spec.name] = {c: score_setup(rig, arms, fitted, c) for c in configs}
+        if hold_configs:
+            holdout[spec.name] = {c: score_holdout(rig, arms, fitted, c) for c in hold_configs}
         loo[spec.name] = np.concatenate(
-            [loo_training_scores(rig, arms[a], fitted[a]) for a in arms])
+            [loo_training_scores(rig, arms[a], fitted[a], recalibrate, loo_arms.get(a))
+             for a in arms])
         in_sample[spec.name] = np.concatenate(
             [_in_sample_scores(rig, arms[a], fitted[a]) for a in arms])
         bar.update()
@@ -307,38 +400,53 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
             for s in specs}
     notes = [
         "held out: validation rows of each arm + linked test rows; models fitted on train rows",
-        "loo_train: exact leave-one-out over each arm's train rows, bandwidths kept from the "
-        "full fit (flatters the LOO-ML variants slightly)",
+        "loo_train: exact leave-one-out over each arm's train rows: "
+        + ("calibration, joint errors and density refitted without the row"
+           if recalibrate else "density refitted without the row, calibration kept")
+        + "; bandwidths kept from the full fit (flatters the LOO-ML variants slightly)",
         "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
     ]
     with warnings.catch_warnings():
         # arviz 0.23 calls a pandas sort_values(inplace=True) that pandas deprecates.
         warnings.filterwarnings("ignore", message="The inplace keyword")
         tables = az.compare(held, method="stacking"), az.compare(loos, method="stacking")
+        hold_table = None
+        if hold_configs:
+            notes.append("holdout: rows at poses and targets no other set has; models fitted "
+                         "on train rows, scored like the held-out rows")
+            hold_table = az.compare(
+                {s.name: _elpd_data(np.concatenate([x.lpd for x in holdout[s.name].values()]),
+                                    float("nan")) for s in specs}, method="stacking")
     return ModelComparison(rig, list(specs), heldout, loo, in_sample, *tables,
-                           time.perf_counter() - t0, notes)
+                           time.perf_counter() - t0, notes, holdout, hold_table, recalibrate)
 
 
 def format_comparison(doc: dict) -> str:
     """Terminal tables of a comparison document."""
     parts = []
-    for key, title in (("heldout_compare", "held-out points"),
-                       ("loo_compare", "leave-one-out over training rows")):
+    tables = [("heldout_compare", "heldout", "held-out points"),
+              ("loo_compare", "loo_train", "leave-one-out over training rows")]
+    if doc.get("holdout_compare"):
+        tables.append(("holdout_compare", "holdout", "holdout points (new poses and targets)"))
+    for key, summary, title in tables:
         rows = [[r["model"], str(r["rank"]), f"{r['elpd']:.1f}", f"{r['se']:.1f}",
                  f"{r['elpd_diff']:.1f}", f"{r['dse']:.1f}", f"{r['weight']:.2f}"]
                 for r in doc[key]]
-        n = next(iter(doc["models"].values()))["heldout" if key.startswith("held")
-                                               else "loo_train"]["n"]
+        n = next(iter(doc["models"].values()))[summary]["n"]
         parts.append(f"{title} (n = {n}; elpd = sum of log density per mm^2)")
         parts.append(format_table(["model", "rank", "elpd", "se", "elpd_diff", "dse", "weight"],
                                   rows))
         parts.append("")
     rows = []
     for name, m in doc["models"].items():
-        for config, s in m["heldout"]["by_setup"].items():
-            rows.append([name, config, str(s["n"]), f"{s['mean_lpd']:.2f}",
-                         f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
-                         f"{s['mean_hdr_level']:.2f}"])
+        sets = [("heldout", "")]
+        if m.get("holdout"):
+            sets.append(("holdout", " (holdout)"))
+        for key, label in sets:
+            for config, s in m[key]["by_setup"].items():
+                rows.append([name, config + label, str(s["n"]), f"{s['mean_lpd']:.2f}",
+                             f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
+                             f"{s['mean_hdr_level']:.2f}"])
     parts.append("held-out points by setup (coverage of the 50% / 90% regions; a calibrated "
                  "model has mean HDR level 0.5)")
     parts.append(format_table(["model", "setup", "n", "mean lpd", "cov50", "cov90",

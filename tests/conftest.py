@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import atexit
+import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
+
+# Compiled programs go to a scratch cache, not the user's ~/.cache (set before any test module
+# imports bayesrob, which reads it once), removed when the session ends.
+if "BAYESROB_CACHE_DIR" not in os.environ:
+    os.environ["BAYESROB_CACHE_DIR"] = tempfile.mkdtemp(prefix="bayesrob-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["BAYESROB_CACHE_DIR"], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

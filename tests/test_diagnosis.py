@@ -162,9 +162,16 @@ def test_decision_rule_text_and_logic():
          "cv_error_before_mm": 1.0, "cv_error_after_mm": 0.9}
     assert rule.passes(s)
     assert not rule.passes({**s, "elpd_diff_se": 6.0})
+    assert not rule.passes({**s, "elpd_diff": 3.5, "elpd_diff_se": 1.0})  # under min_elpd_diff
     assert not rule.passes({**s, "heldout_error_after_mm": 1.1})
+    assert not rule.passes({**s, "cv_error_after_mm": 1.2})
     assert not rule.passes({**s, "arms": []})
-    assert "elpd_diff >" in rule.text()
+    # Without validation rows the held-out condition drops out; the flags switch each off.
+    assert rule.passes({**s, "heldout_error_before_mm": None, "heldout_error_after_mm": None})
+    assert DecisionRule(require_heldout=False).passes({**s, "heldout_error_after_mm": 1.1})
+    assert DecisionRule(require_cv=False).passes({**s, "cv_error_after_mm": 1.2})
+    assert rule.text() == ("elpd_diff > 2 * se and > 4 AND validation error shrinks AND "
+                           "cross-validated error shrinks")
 
 
 # ------------------------------------------------------------------------------ rigs
@@ -202,14 +209,12 @@ def test_names_exactly_the_hidden_effects(diagnoses, name):
 
 
 @pytest.mark.parametrize("name", [n for n, (_, e) in REPRESENTATIVE.items() if e])
-def test_each_named_effect_shrinks_the_held_out_gap(diagnoses, name):
+def test_naming_the_effects_wins_back_a_clear_part_of_the_held_out_gap(diagnoses, name):
+    """Each step already passed the decision rule (held-out error down, elpd gain beyond 2
+    se) or it would not be a step, so re-checking those says nothing. What the rule does not
+    require: a hidden effect of the size used here costs 0.3-1 mm, and naming it must win
+    back a clear part of that (20%, far beyond the 2-3% run-to-run wobble of held-out noise)."""
     doc = diagnoses[name].to_json()
-    for step in doc["steps"]:
-        assert step["heldout_error_after_mm"] < step["heldout_error_before_mm"]
-        # The decision rule itself: the elpd gain is clearly beyond its uncertainty.
-        assert step["elpd_diff"] > 2 * step["elpd_diff_se"]
-    # A hidden effect of the size used here costs 0.3-1 mm; naming it must win back a
-    # clear part of that (20%, far beyond the 2-3% run-to-run wobble of held-out noise).
     assert doc["final_heldout_error_mm"] < 0.8 * doc["baseline_heldout_error_mm"]
 
 

@@ -9,6 +9,8 @@ sweep as a markdown table.
 
 from __future__ import annotations
 
+from collections import Counter
+
 import pytest
 from generators import confusion_cases, make_rig
 
@@ -29,8 +31,45 @@ def sweep(tmp_path_factory) -> list[tuple]:
     return out
 
 
-def test_sweep_has_at_least_30_rigs(sweep):
-    assert len(sweep) >= 30
+def _key(effects) -> str:
+    return "+".join(sorted(effects)) or "none"
+
+
+# The README's confusion matrix ("Proof on hidden effects"): hidden (rows) x named (columns).
+# The sweep is seeded and diagnose is deterministic, so the published counts are asserted
+# exactly; a change that moves any of them must update the README with it.
+README_CONFUSION = {
+    "none": {"none": 8},
+    "gravity_sag": {"gravity_sag": 8},
+    "backlash": {"none": 3, "backlash": 5},
+    "servo_nonlinearity": {"servo_nonlinearity": 8},
+    "backlash+gravity_sag": {"none": 1, "servo_nonlinearity": 2, "backlash+gravity_sag": 5},
+}
+# The README's breakdown: (source, geometry, grid) -> (rigs, correct).
+README_BREAKDOWN = {
+    ("simulator", "paper", 4): (10, 10),
+    ("simulator", "paper", 6): (5, 5),
+    ("generator", "paper_like", 4): (5, 5),
+    ("generator", "paper_like", 6): (5, 5),
+    ("generator", "tilted", 4): (10, 6),
+    ("generator", "tilted", 6): (5, 3),
+}
+
+
+def test_the_readme_confusion_matrix(sweep):
+    assert len(sweep) == 40
+    counts: dict[str, Counter] = {}
+    for case, effects, _ in sweep:
+        counts.setdefault(_key(case.effects), Counter())[_key(effects)] += 1
+    assert {k: dict(v) for k, v in counts.items()} == README_CONFUSION
+
+
+def test_the_readme_breakdown_by_source_and_geometry(sweep):
+    groups: dict[tuple, list[bool]] = {}
+    for case, effects, _ in sweep:
+        groups.setdefault((case.source, case.geometry, case.grid), []).append(
+            effects == sorted(case.effects))
+    assert {k: (len(v), sum(v)) for k, v in groups.items()} == README_BREAKDOWN
 
 
 def test_clean_rigs_name_nothing(sweep):
@@ -51,20 +90,11 @@ def test_paper_like_generator_rigs_name_exactly_the_hidden_effects(sweep):
     assert not wrong
 
 
-def test_most_rigs_name_exactly_the_hidden_effects(sweep):
-    """At least 80% of the 40 rigs (34/40 when this was written).
-
-    The misses are all on the tilted plane (see the README section): there the gravity
-    torque on a joint changes sign at one grid point at most, so play shows at one point and
-    no single point can tell an effect from an outlier (named: none); with sag as well, the
-    smooth servo nonlinearity takes the combined misfit instead. The sweep is seeded: the
-    count is deterministic.
-    """
-    right = sum(e == sorted(c.effects) for c, e, _ in sweep)
-    assert right >= 0.8 * len(sweep)
-
-
-def test_named_effects_shrink_the_gap(sweep):
-    for case, effects, doc in sweep:
-        if effects:
-            assert doc["final_heldout_error_mm"] < doc["baseline_heldout_error_mm"], case
+def test_the_readme_held_out_error_reduction(sweep):
+    """"Where effects were named, the held-out error fell to 58% of the base model's on
+    average" (rigs with a hidden effect and something named). The README rounds to a whole
+    per cent, so the mean ratio is asserted within half a per cent of 0.58."""
+    ratios = [doc["final_heldout_error_mm"] / doc["baseline_heldout_error_mm"]
+              for case, effects, doc in sweep if case.effects and effects]
+    assert len(ratios) == 28  # 40 rigs - 8 clean - 4 that named nothing
+    assert abs(sum(ratios) / len(ratios) - 0.58) <= 0.005

@@ -9,10 +9,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob.calibration import calibrate
+from bayesrob.calibration import calibrate, calibrate_arm
 from bayesrob.cli import main
-from bayesrob.comparison import _elpd_data, loo_training_scores, refit_without, score_points
-from bayesrob.noise_models import discover_models, fit_noise_models, models_dir
+from bayesrob.comparison import (
+    _elpd_data,
+    compare_models,
+    format_comparison,
+    loo_calibrations,
+    loo_training_scores,
+    refit_at_bandwidths,
+    refit_without,
+    score_points,
+)
+from bayesrob.noise_models import discover_models, fit_noise_models, joint_errors, models_dir
 from bayesrob.rig import default_rig_dir, load_rig
 
 
@@ -42,7 +51,7 @@ def test_leave_one_out_drops_exactly_one_training_row():
     m3 = refit_without(model, keep)
     np.testing.assert_array_equal(m3.theta_err, model.theta_err[keep])
     np.testing.assert_array_equal(m3.bandwidth, model.bandwidth)  # bandwidths are kept
-    loo = loo_training_scores(rig, arm, model)
+    loo = loo_training_scores(rig, arm, model, recalibrate=False)
     u, d = rig.arm_rows("top", "train")
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
     full, _ = score_points([model], [arm], [u], target, d)
@@ -52,6 +61,63 @@ def test_leave_one_out_drops_exactly_one_training_row():
     # Row 3's LOO score is the full-data machinery applied to the refitted model.
     s3, _ = score_points([m3], [arm], [u[3:4]], target[3:4], d[3:4])
     assert loo[3] == pytest.approx(float(s3.lpd[0]))
+
+
+def test_leave_one_out_refits_the_calibration_without_the_row():
+    """Row i is scored by an arm calibrated on the other 15 rows, whose joint errors (under
+    that arm) the density is refitted to; compare's LOO is this by default."""
+    rig = load_rig(default_rig_dir())
+    arm = calibrate(rig)["bottom"].arm
+    spec = discover_models(names=["corr"])[0]
+    model = fit_noise_models(rig, {"bottom": arm}, [spec])["corr"]["bottom"]
+    u, d = rig.arm_rows("bottom", "train")
+    uv, dv = rig.arm_rows("bottom", "validation")
+    loo = loo_training_scores(rig, arm, model)
+    kept_cal = loo_training_scores(rig, arm, model, recalibrate=False)
+    i = 5
+    keep = np.arange(16) != i
+    arm_i = calibrate_arm(rig.arms["bottom"], u[keep], d[keep], "least-squares", uv, dv).arm
+    assert not np.allclose(arm_i.params.to_vector(), arm.params.to_vector())
+    m_i = refit_at_bandwidths(model, joint_errors(arm_i, u[keep], d[keep]), u[keep])
+    np.testing.assert_array_equal(m_i.bandwidth, model.bandwidth)
+    target = np.asarray(arm_i.forward_u(jnp.asarray(u[i:i + 1])))
+    s_i, _ = score_points([m_i], [arm_i], [u[i:i + 1]], target, d[i:i + 1])
+    # Same arithmetic, same inputs: equal to rounding.
+    assert loo[i] == pytest.approx(float(s_i.lpd[0]), abs=1e-9)
+    # A calibration that has seen the row pulls the arm towards it (leverage about 0.25), so
+    # keeping it flatters the row: summed over the 16 rows, honest LOO scores lower.
+    assert loo.sum() < kept_cal.sum()
+
+
+def test_histogram_cond_leave_one_out_keeps_its_bin_margin():
+    """The paper COND's grid (data extent plus a quarter of the range, ``bin_margin``) is
+    re-derived from the kept rows. A left-out row then scores the histogram's floor (log
+    1e-300 = -690.8) exactly when it lies outside that grid, which is the model's support;
+    without the margin every row at the edge of the data fell there."""
+    rig = load_rig(default_rig_dir())
+    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    spec = discover_models(names=["cond_paper"])[0]
+    assert spec.bin_widths is None and spec.bin_margin > 0
+    fitted = fit_noise_models(rig, arms, [spec])["cond_paper"]
+    inside_all = []
+    for name, arm in arms.items():
+        model = fitted[name]
+        u, d = rig.arm_rows(name, "train")
+        cals = loo_calibrations(rig, name)
+        loo = loo_training_scores(rig, arm, model, calibrations=cals)
+        for i, arm_i in enumerate(cals):
+            keep = np.arange(16) != i
+            m = refit_at_bandwidths(model, joint_errors(arm_i, u[keep], d[keep]), u[keep])
+            c = m.conditional
+            np.testing.assert_allclose(c.bin_widths, spec._bin_widths(m.theta_err, m.u))
+            p = np.r_[joint_errors(arm_i, u[i:i + 1], d[i:i + 1])[0], u[i]]
+            rel = (p - c.grid_lo) / c.bin_widths
+            inside = bool(np.all((rel >= 0) & (rel <= c.bins)))
+            inside_all.append(inside)
+            # Inside the grid every score here is above -15; the floor puts one near -700.
+            assert (loo[i] > -100.0) == inside, (name, i, loo[i])
+    # The margin keeps all but the most extreme rows on the grid (31 of 32 on this rig).
+    assert sum(inside_all) >= 30
 
 
 def test_compare_command_writes_table_json_and_plot(tmp_path, capsys):
@@ -86,3 +152,87 @@ def test_compare_command_writes_table_json_and_plot(tmp_path, capsys):
     w = doc["winner"]
     assert w["model"] == doc["heldout_compare"][0]["model"]
     assert "winner on held-out points" in printed
+
+
+def _relabel(src, dest, pick) -> None:
+    """Copy a rig, turning the rows ``pick(index, row)`` selects into ``holdout`` rows."""
+    import csv
+    import shutil
+
+    shutil.copytree(src, dest)
+    path = dest / "measurements.csv"
+    with path.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+        fields = list(rows[0])
+    for i, row in enumerate(rows):
+        if pick(i, row):
+            row["set"] = "holdout"
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fields, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+
+
+@pytest.mark.filterwarnings("ignore:The inplace keyword")
+def test_compare_reports_holdout_rows_beside_the_held_out_ones(clean_rig_dir, tmp_path):
+    """Every other validation/test row relabelled ``holdout``: those rows are scored apart,
+    each exactly as it was scored as a held-out row (models see only the train rows)."""
+    before = compare_models(load_rig(clean_rig_dir), ["ind"], recalibrate=False)
+    _relabel(clean_rig_dir, tmp_path / "rig",
+             lambda i, row: row["set"] in ("validation", "test") and i % 2 == 0)
+    rig = load_rig(tmp_path / "rig")
+    after = compare_models(rig, ["ind"], recalibrate=False)
+    doc = after.document()
+    m = doc["models"]["ind"]
+    n_hold = int(rig.measurements.mask(set="holdout").sum())
+    assert n_hold > 0
+    assert m["holdout"]["n"] == n_hold == sum(doc["holdout_rows"].values())
+    assert m["heldout"]["n"] + n_hold == before.document()["models"]["ind"]["heldout"]["n"]
+    assert set(doc["holdout_rows"]) == set(doc["heldout_rows"])
+    assert [r["model"] for r in doc["holdout_compare"]] == ["ind"]
+    assert doc["holdout_compare"][0]["elpd"] == pytest.approx(m["holdout"]["elpd"])
+    for config in doc["holdout_rows"]:
+        mask = rig.measurements.mask(config)
+        sets = rig.measurements.set[mask & (rig.measurements.set != "train")]
+        old = before.heldout["ind"][config].lpd
+        np.testing.assert_allclose(after.holdout["ind"][config].lpd, old[sets == "holdout"],
+                                   rtol=1e-9)
+        np.testing.assert_allclose(after.heldout["ind"][config].lpd, old[sets != "holdout"],
+                                   rtol=1e-9)
+    # LOO is over the train rows, which did not change.
+    np.testing.assert_allclose(after.loo["ind"], before.loo["ind"], rtol=1e-9)
+    text = format_comparison(doc)
+    assert "holdout points" in text and "top+bottom (holdout)" in text
+    # Without holdout rows the keys are there, empty.
+    plain = before.document()
+    assert plain["holdout_rows"] == {} and plain["holdout_compare"] == []
+    assert plain["models"]["ind"]["holdout"] is None
+    assert "holdout points" not in format_comparison(plain)
+
+
+# The README's two tables for `bayesrob compare` on the default rig: model -> (elpd, se,
+# elpd_diff, dse) as printed (one decimal).
+README_HELDOUT = {
+    "cond": (-122.6, 21.6, 0.0, 0.0), "ind": (-128.5, 12.5, 5.9, 12.6),
+    "corr": (-129.4, 13.5, 6.7, 11.9), "ind_paper": (-145.0, 4.9, 22.3, 19.1),
+    "corr_paper": (-145.1, 4.7, 22.4, 19.2), "cond_paper": (-1520.6, 966.7, 1397.9, 953.0),
+}
+README_LOO = {
+    "cond": (-84.9, 10.1, 0.0, 0.0), "ind": (-98.2, 7.4, 13.3, 5.6),
+    "corr": (-101.6, 8.0, 16.8, 4.1), "ind_paper": (-107.8, 2.4, 22.9, 8.3),
+    "corr_paper": (-107.9, 2.4, 23.0, 8.4), "cond_paper": (-791.0, 687.6, 706.1, 682.2),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:The inplace keyword")
+def test_the_readme_comparison_tables():
+    """Every elpd, se, elpd_diff and dse of the README's held-out and LOO tables (about two
+    minutes). Deterministic: the tolerance is the table's rounding, half of 0.1."""
+    doc = compare_models(load_rig(default_rig_dir())).document()
+    tol = 0.05 + 1e-9
+    for key, table in (("heldout_compare", README_HELDOUT), ("loo_compare", README_LOO)):
+        got = {r["model"]: (r["elpd"], r["se"], r["elpd_diff"], r["dse"]) for r in doc[key]}
+        assert [r["model"] for r in doc[key]] == list(table), key  # the ranking
+        for model, figures in table.items():
+            assert got[model] == pytest.approx(figures, abs=tol), (key, model)

@@ -196,6 +196,57 @@ def test_hand_written_gradients_equal_autodiff() -> None:
     np.testing.assert_allclose([v, *g], [v_ref, *g_ref], rtol=1e-10)
 
 
+@pytest.mark.parametrize(
+    ("n", "q", "dx", "conditional"),
+    [(40, 4, 4, False), (256, 3, 3, False), (300, 4, 2, True), (513, 2, 1, True),
+     (700, 4, 4, False)],
+)
+def test_padded_objective_equals_the_unpadded_one(n, q, dx, conditional) -> None:
+    """The size-independent objective (zero-weight rows up to the buffer, tiles of
+    ``_TILE``) against the plain N x N one, for N below, at and past tile boundaries.
+
+    Tolerance: the same sums in another order (tile by tile, with running rescaling), so only
+    rounding separates them: 1e-12 relative on the value; the gradient is ``n - sum(...)``,
+    near zero close to the optimum, so it is compared to 1e-12 * n absolutely.
+    """
+    rng = np.random.default_rng(n)
+    y = rng.normal(size=(n, q))
+    y[: n // 2, 0] += 3.0
+    y = (y - y.mean(axis=0)) / y.std(axis=0)
+    theta = jnp.asarray(np.log(rng.uniform(0.1, 0.6, q)))
+    v0, g0 = kde_mod._loo_value_and_grad(theta, jnp.asarray(y), dx=dx, conditional=conditional)
+    for cap in (kde_mod._capacity(n), 2 * kde_mod._capacity(n)):
+        buf = jnp.asarray(np.pad(y, ((0, cap - n), (0, 0)), constant_values=7.0))
+        v1, g1 = kde_mod._loo_value_and_grad_padded(theta, buf, jnp.asarray(n), dx=dx,
+                                                   conditional=conditional)
+        assert float(v1) == pytest.approx(float(v0), rel=1e-12, abs=0)
+        np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=0, atol=1e-12 * n)
+
+
+def test_fits_of_new_sizes_reuse_one_compiled_objective(monkeypatch) -> None:
+    """Fits at N = 150, 333 and 520 (4-D, and 2-D given 2-D) run one compiled program each,
+    and their bandwidths do not depend on how far the data were padded."""
+    rng = np.random.default_rng(3)
+    data = _skewed_bimodal(rng, 520)
+    KDE.fit(data[:150], "loo-ml-diag")
+    ConditionalKDE.fit(data[:150, :2], data[:150, 2:], "kernel")
+    compiled = dict(kde_mod._OBJECTIVES)
+    fits = {n: KDE.fit(data[:n], "loo-ml-diag").bandwidth for n in (333, 520)}
+    conds = {n: ConditionalKDE.fit(data[:n, :2], data[:n, 2:], "kernel").bandwidth
+             for n in (333, 520)}
+    assert kde_mod._OBJECTIVES == compiled
+    # A buffer of 1024 rows instead of 4096: a different program, the same answers (the loops
+    # never reach the extra zero-weight rows, so equal to the last bit in practice; 1e-12).
+    monkeypatch.setattr(kde_mod, "_MIN_CAPACITY", 1024)
+    for n in (333, 520):
+        np.testing.assert_allclose(KDE.fit(data[:n], "loo-ml-diag").bandwidth, fits[n],
+                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            ConditionalKDE.fit(data[:n, :2], data[:n, 2:], "kernel").bandwidth, conds[n],
+            rtol=1e-12)
+    assert len(kde_mod._OBJECTIVES) == len(compiled) + 2
+
+
 def test_loo_ml_single_width_is_the_grid_argmax() -> None:
     data = np.random.default_rng(6).normal(size=(40, 2)) * np.array([1.0, 5.0])
     kde = KDE.fit(data, "loo-ml")

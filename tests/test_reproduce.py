@@ -58,6 +58,40 @@ def test_reproduces_the_papers_findings(reproduced):
                 np.log(setup["predicted"][f"{fam}_paper"]["ratio"]))
 
 
+# The README's table ("Results on the default data"): per setup, the observed mean error and
+# its 95% CI, then each model's predicted expected error and ratio to the observation.
+README_TABLE = {
+    "top": ((1.36, 1.04, 1.68), {
+        "ind_paper": (2.33, 1.71), "ind": (1.26, 0.93), "corr_paper": (2.32, 1.70),
+        "corr": (1.28, 0.94), "cond_paper": (1.58, 1.16), "cond": (1.43, 1.05)}),
+    "bottom": ((1.32, 0.99, 1.65), {
+        "ind_paper": (2.99, 2.27), "ind": (1.62, 1.22), "corr_paper": (2.98, 2.26),
+        "corr": (1.59, 1.21), "cond_paper": (2.03, 1.54), "cond": (1.64, 1.24)}),
+    "top+bottom": ((0.85, 0.63, 1.07), {
+        "ind_paper": (1.34, 1.58), "ind": (0.80, 0.94), "corr_paper": (1.35, 1.59),
+        "corr": (0.86, 1.02), "cond_paper": (1.11, 1.31), "cond": (0.90, 1.06)}),
+}
+
+
+def test_the_readme_reproduction_table(reproduced):
+    """Every figure of the README's table, as printed (two decimals).
+
+    The data are embedded and every step is deterministic, so the only tolerance is the
+    table's rounding: half a unit of the last printed digit (plus 1e-9 for float noise).
+    """
+    out, _ = reproduced
+    s = json.loads((out / "accuracy.json").read_text())["setups"]
+    tol = 0.005 + 1e-9
+    for setup, ((mean, lo, hi), predicted) in README_TABLE.items():
+        obs = s[setup]["observed"]
+        assert obs["mean_mm"] == pytest.approx(mean, abs=tol), setup
+        assert obs["ci95_mm"] == pytest.approx([lo, hi], abs=tol), setup
+        for model, (err, ratio) in predicted.items():
+            p = s[setup]["predicted"][model]
+            assert p["expected_error_mm"] == pytest.approx(err, abs=tol), (setup, model)
+            assert p["ratio"] == pytest.approx(ratio, abs=tol), (setup, model)
+
+
 def test_unknown_model_is_a_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "bayesrob", "reproduce", "--models", "nope",
                         "--out", str(tmp_path)], capture_output=True, text=True)
