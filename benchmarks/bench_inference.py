@@ -78,7 +78,7 @@ def main() -> None:
         emit(**base, method="grid_paper_100x100", seconds=seconds,
              compile_s=compile_s - seconds, cells=100 * 100)
 
-        def starts(seed: int, n: int) -> np.ndarray:
+        def starts(seed: int, n: int, cmds=cmds, targets=targets) -> np.ndarray:
             # as `sample` does: around the target, never from the grid the check uses
             return inf.initial_points(models, arm_list, cmds, targets, n, seed)
 
