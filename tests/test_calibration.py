@@ -99,4 +99,6 @@ def test_calibrate_command_json(tmp_path, clean_rig):
     assert set(doc["arms"]["top"]["params"]) == {"base", "links", "gain", "offset"}
     assert doc["accuracy"]["top+bottom"]["test"]["n"] == 36
     assert "observed accuracy" in r.stdout
-    _ = kin  # the kinematics names used in the report
+    # the report names the eight parameters in the order the standard errors follow
+    assert doc["param_names"] == list(kin.PARAM_NAMES)
+    assert set(doc["arms"]["top"]["params_se"]) == {"base", "links", "gain", "offset"}
