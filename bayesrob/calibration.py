@@ -13,7 +13,7 @@ module, and :func:`bayesrob.outputs.calibrate_rig` chooses among the three.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import jax
@@ -246,7 +246,7 @@ def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str,
 # Groups are tried in this order when the rank analysis decides which of two redundant
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
 # general correction of a joint's origin.
-PRIORITY = ("frames", "offsets", "servo", "geometric")
+PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance")
 # A column is identifiable when the part of it no earlier column explains is at least this
 # fraction of its length (column-scaled to each parameter's typical size). Exact
 # redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would
@@ -377,6 +377,10 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
         def jacobian(x, data):
             return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
                                     for a, (u, _) in zip(arms, data, strict=True)])
+        if robot.gravity is not None:
+            # the prefix/suffix Jacobian knows rigid chains only; joints that give way under
+            # gravity are differentiated by JAX
+            jacobian = jax.jacfwd(residuals)
         cache[arms] = (jax.jit(residuals), jax.jit(jacobian))
     res, jac = cache[arms]
     return (lambda x: res(x, data)), (lambda x: jac(x, data)), sum(int(d.size) for _, d in data)
@@ -389,12 +393,16 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     import time
 
     t0 = time.perf_counter()
-    unknown = [g for g in groups if g not in kin.GROUPS]
+    unknown = [g for g in groups if g not in kin.ALL_GROUPS]
     if unknown:
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
-                         f"{', '.join(kin.GROUPS)}")
-    groups = tuple(g for g in kin.GROUPS if g in set(groups) | {"frames"})
+                         f"{', '.join(kin.ALL_GROUPS)}")
+    groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
     robot = rig.robot
+    if "compliance" in groups:
+        gravity = np.zeros(3)
+        gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
+        robot = replace(robot, gravity=gravity)
     layout = robot.layout
     full_res, full_jac, n_res = _residual_function(rig, robot, "train")
     x = layout.nominal.copy()
@@ -426,6 +434,16 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
                          "measured coordinates in the train rows")
     if groups != ("frames",):
+        x, n = fit(ident.free, x)
+        nfev += n
+    if "compliance" in groups:
+        # Masses are seen only through non-zero compliances: at the start (compliance 0) the
+        # rank analysis frees the compliances alone; a second round frees the masses and
+        # first moments the fitted compliances make visible.
+        if progress:
+            progress("compliances fitted; freeing link masses")
+        ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,
+                                layout.group_mask(groups))
         x, n = fit(ident.free, x)
         nfev += n
     se = _chain_standard_errors(full_res, full_jac, x, ident.free)

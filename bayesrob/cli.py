@@ -197,23 +197,25 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
                    help="parameter groups to fit, comma-separated: frames (instrument pose and "
                         "markers; always fitted), offsets (joint zero offsets), geometric (every "
-                        "joint origin), servo (command gains). Default for URDF/DH rigs: all; a "
-                        "planar rig without --params fits its eight parameters per arm")
+                        "joint origin), servo (command gains), compliance (joints giving way "
+                        "under gravity; link masses fitted too; slow on big trees). Default for "
+                        "URDF/DH rigs: the first four; a planar rig without --params fits its "
+                        "eight parameters per arm")
     p.add_argument("--urdf-out", metavar="FILE",
                    help="write the calibrated robot as URDF to FILE, and FILE with suffix "
                         ".rig.toml: a rig.toml (instrument poses, markers) that loads it back")
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
-    from bayesrob.kinematics import GROUPS
+    from bayesrob.kinematics import ALL_GROUPS
 
     items = tuple(g.strip() for g in text.split(",") if g.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one group")
     for g in items:
-        if g not in GROUPS:
+        if g not in ALL_GROUPS:
             raise argparse.ArgumentTypeError(
-                f"unknown parameter group {g!r} (choose from {', '.join(GROUPS)})")
+                f"unknown parameter group {g!r} (choose from {', '.join(ALL_GROUPS)})")
     return items
 
 

@@ -6,7 +6,14 @@ The planar functions are re-exported here because the grid predictions, samplers
 diagnosis work on them directly (``from bayesrob import kinematics as kin; kin.forward_u``).
 """
 
-from bayesrob.kinematics.chain import GROUPS, Chain, KinematicsError, ParamLayout, Robot
+from bayesrob.kinematics.chain import (
+    ALL_GROUPS,
+    GROUPS,
+    Chain,
+    KinematicsError,
+    ParamLayout,
+    Robot,
+)
 from bayesrob.kinematics.dh import dh_chain
 from bayesrob.kinematics.planar import (
     PARAM_NAMES,
@@ -27,7 +34,7 @@ from bayesrob.kinematics.planar import (
 from bayesrob.kinematics.urdf import urdf_chain, write_urdf
 
 __all__ = [
-    "GROUPS", "PARAM_NAMES", "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout",
+    "ALL_GROUPS", "GROUPS", "PARAM_NAMES", "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout",
     "Robot", "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",

@@ -32,6 +32,11 @@ import bayesrob.kinematics.transforms as tf
 
 JOINT_KINDS = ("revolute", "prismatic")
 GROUPS = ("frames", "offsets", "geometric", "servo")
+# Fitted only when asked for: joints that give way under gravity (see Robot.deflections).
+OPTIONAL_GROUPS = ("compliance",)
+ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
+G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
+LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 
 
@@ -175,6 +180,19 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
     for c in chains.values():
         add((c.name, "gain"), [f"{c.name}.u{k + 1}.gain" for k in range(c.n_columns)], "servo",
             c.gain, np.maximum(np.abs(c.gain) * 1e-3, 1e-12))
+    for c in chains.values():
+        # compliance (rad per N mm) of each joint first: of a mass and a compliance only their
+        # product is seen, so the rank analysis keeps the compliance and drops a mass
+        add((c.name, "compliance"), [f"{c.name}.{j}.compliance" for j in c.joint_names],
+            "compliance", np.zeros(c.n_joints), [1e-7] * c.n_joints)
+    for c in chains.values():
+        half = 0.5 * c.origins[1:, :3]  # each link's middle: half way to the next origin
+        names, nominal, scale = [], [], []
+        for j, h in zip(c.joint_names, half, strict=True):
+            names += [f"{c.name}.{j}.mass", *(f"{c.name}.{j}.moment.{a}" for a in "xyz")]
+            nominal += [LINK_MASS_GUESS_KG, *(LINK_MASS_GUESS_KG * h)]
+            scale += [1.0, 100.0, 100.0, 100.0]
+        add((c.name, "links"), names, "compliance", nominal, scale)
     return ParamLayout(tuple(params), slices)
 
 
@@ -192,6 +210,9 @@ class Robot:
 
     chains: dict[str, Chain]
     dim: int = 3
+    # Unit gravity in the robot base frame: joints give way under it when the compliance
+    # parameters are non-zero (None: no gravity model).
+    gravity: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         seen: set[str] = set()
@@ -237,10 +258,13 @@ class Robot:
         if arm in cache:
             return cache[arm]
         sl = self.layout.slices
+        zero = len(self.layout.params)  # index of a zero appended to x: tools have no mass
         nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
+        compliance_idx, link_idx = [], []
         n_q = 0
         for chain in self.path(arm):
             start = sl[(chain.name, "origins")].start
+            c0, l0 = sl[(chain.name, "compliance")].start, sl[(chain.name, "links")].start
             for i in range(chain.n_joints + 1):
                 nominal.append(tf.np_pose_matrix(chain.origins[i]))
                 delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
@@ -248,19 +272,23 @@ class Robot:
                 axes.append(np.zeros(3) if last else chain.axes[i])
                 prismatic.append(0.0 if last else float(chain.kinds[i] == "prismatic"))
                 q_idx.append(-1 if last else n_q + i)
+                compliance_idx.append(zero if last else c0 + i)
+                link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
             n_q += chain.n_joints
         q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
         out = {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
                "axes": np.stack(axes), "prismatic": np.array(prismatic),
-               "q_idx": np.array(q_idx)}
+               "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
+               "link_idx": np.array(link_idx)}
         cache[arm] = out
         return out
 
-    def element_frames(self, x: jax.Array, arm: str, u: jax.Array
-                       ) -> tuple[jax.Array, jax.Array]:
+    def element_frames(self, x: jax.Array, arm: str, u: jax.Array,
+                       deflection: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """Frames along the path to ``arm`` (instrument frame), each (E, N, 4, 4): ``joints``,
         where each element's motion happens (its axis passes through the origin), and
-        ``links``, the frame after the motion (the child link's)."""
+        ``links``, the frame after the motion (the child link's). ``deflection`` (N, E) is
+        added to the elements' joint values (zero on tools)."""
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
         sl = self.layout.slices
@@ -282,14 +310,51 @@ class Robot:
             joint = t @ (nominal @ tf.perturbation(delta))
             return joint @ motion, (joint, joint @ motion)
 
+        qe = q[:, el["q_idx"]]
+        if deflection is not None:
+            qe = qe + deflection
         xs = (jnp.asarray(el["nominal"]), x[el["delta_idx"]], jnp.asarray(el["axes"]),
-              jnp.asarray(el["prismatic"]), q[:, el["q_idx"]].T)
+              jnp.asarray(el["prismatic"]), qe.T)
         _, (joints, links) = jax.lax.scan(step, t0, xs)
         return joints, links
 
+    def deflections(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """How far each joint on the path gives way under gravity, (N, E) rad (mm if prismatic).
+
+        Joint e turns by its compliance times the gravity torque about its axis of the links
+        beyond it on the path: tau_e = a_e . (sum_k (m_k (p_k - o_e)) x g), with each link's
+        mass m_k and first moment h_k = m_k c_k (its centre of mass c_k in its own frame), so
+        sum_k m_k p_k = sum_k (m_k t_k + R_k h_k). Masses are not known: the compliance
+        calibration fits them with the compliances (only their products are identifiable; the
+        rank analysis drops the rest). One step at the commanded pose: a deflection of a few
+        mrad changes the torques by a few parts in a thousand, far below what the data resolve.
+        """
+        x = jnp.asarray(x)
+        el = self._elements(arm)
+        joints, links = self.element_frames(x, arm, u)
+        xz = jnp.concatenate([x, jnp.zeros(1)])
+        s = xz[el["compliance_idx"]]  # (E,)
+        link = xz[el["link_idx"]]  # (E, 4): mass, first moment
+        mass, moment = link[:, 0], link[:, 1:]
+        weight = mass[:, None, None] * links[:, :, :3, 3] + jnp.einsum(
+            "enij,ej->eni", links[:, :, :3, :3], moment)  # (E, N, 3)
+        beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
+        mass_beyond = jnp.cumsum(mass[::-1])[::-1]
+        path = self.path(arm)
+        t0 = tf.np_pose_matrix(path[0].instrument) @ tf.perturbation(
+            x[self.layout.slices[(path[0].name, "instrument")]])
+        g = t0[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
+        origin = joints[:, :, :3, 3]
+        axis = jnp.einsum("enij,ej->eni", joints[:, :, :3, :3], jnp.asarray(el["axes"]))
+        lever = beyond - mass_beyond[:, None, None] * origin
+        tau = jnp.sum(axis * jnp.cross(lever, g), axis=-1)  # (E, N)
+        return (s[:, None] * tau).T
+
     def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns)."""
-        return self.element_frames(x, arm, u)[1][-1]
+        if self.gravity is None:
+            return self.element_frames(x, arm, u)[1][-1]
+        return self.element_frames(x, arm, u, self.deflections(x, arm, u))[1][-1]
 
     def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """d marker_points / d x, (N, dim, P), from prefix and suffix products.
@@ -412,7 +477,7 @@ class Robot:
                 x[sl[(c.name, "gain")]].copy(), c.offset.copy(),
                 x[sl[(c.name, "marker")]].copy() if (c.name, "marker") in sl else c.marker,
                 c.mount, instrument, c.source)
-        return Robot(chains, self.dim)
+        return Robot(chains, self.dim, self.gravity)
 
     def measured_arms(self) -> list[str]:
         """Chains that carry a marker (the leaves of the tree)."""
