@@ -34,7 +34,8 @@ from bayesrob.kinematics.planar import (
 from bayesrob.kinematics.urdf import urdf_chain, write_urdf
 
 __all__ = [
-    "ALL_GROUPS", "GROUPS", "PARAM_NAMES", "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout",
+    "ALL_GROUPS", "GROUPS", "PARAM_NAMES", "Arm", "ArmParams", "Chain", "KinematicsError",
+    "ParamLayout",
     "Robot", "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",
