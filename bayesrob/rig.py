@@ -444,6 +444,18 @@ def _read_csv(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
     return header, rows, starts
 
 
+def _records(path: Path, header: list[str], rows: list[list[str]], starts: list[int]):
+    """The rows that carry a measurement: (index, line, place to name in messages, fields).
+    Blank lines are skipped; a row whose field count differs from the header's is an error."""
+    for r, row in enumerate(rows):
+        if not row or all(not c.strip() for c in row):
+            continue
+        where = f"{path}: line {starts[r]}"
+        if len(row) != len(header):
+            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+        yield r, starts[r], where, row
+
+
 def _config_members(row: list[str], idx: dict, arms: Iterable[str], where: str) -> list[str]:
     members = [m.strip() for m in row[idx["config"]].split("+")]
     cfg = "+".join(members)  # 'top + bottom' is 'top+bottom'
@@ -488,15 +500,9 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     commands = {a: np.full((n, 2), np.nan) for a in arms}
     lines = np.zeros(n, int)
     extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.ones(n, bool)
-    for r, row in enumerate(rows):
-        lineno = starts[r]
-        where = f"{path}: line {lineno}"
-        if not row or all(not c.strip() for c in row):
-            keep[r] = False  # blank lines carry no measurement
-            continue
-        if len(row) != len(header):
-            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+    keep = np.zeros(n, bool)
+    for r, lineno, where, row in _records(path, header, rows, starts):
+        keep[r] = True
         members = _config_members(row, idx, arms, where)
         cfg = "+".join(members)
         st = _set_of(row, idx, where)
@@ -588,15 +594,9 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     commands = {c: np.full((n, chains[c].n_columns), np.nan) for c in chains}
     lines = np.zeros(n, int)
     extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.ones(n, bool)
-    for r, row in enumerate(rows):
-        lineno = starts[r]
-        where = f"{path}: line {lineno}"
-        if not row or all(not c.strip() for c in row):
-            keep[r] = False
-            continue
-        if len(row) != len(header):
-            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+    keep = np.zeros(n, bool)
+    for r, lineno, where, row in _records(path, header, rows, starts):
+        keep[r] = True
         members = _config_members(row, idx, chains, where)
         if len(members) > 1:
             raise RigError(f"{where}: config {'+'.join(members)!r} links chain arms; this "
