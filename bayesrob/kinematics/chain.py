@@ -283,6 +283,21 @@ class Robot:
         cache[arm] = out
         return out
 
+    def _element_values(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+        """Joint values (N, E) of the path's elements for rows u (zero on tools)."""
+        qs, col = [], 0
+        for chain in self.path(arm):
+            qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
+            col += chain.n_columns
+        q = jnp.concatenate([*qs, jnp.zeros((u.shape[0], 1))], axis=1)
+        return q[:, self._elements(arm)["q_idx"]]
+
+    def instrument_pose(self, x: jax.Array, arm: str) -> jax.Array:
+        """The 4x4 pose of ``arm``'s root in the instrument frame under parameters x."""
+        root = self.path(arm)[0]
+        return tf.np_pose_matrix(root.instrument) @ tf.perturbation(
+            x[self.layout.slices[(root.name, "instrument")]])
+
     def element_frames(self, x: jax.Array, arm: str, u: jax.Array,
                        deflection: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """Frames along the path to ``arm`` (instrument frame), each (E, N, 4, 4): ``joints``,
@@ -291,17 +306,8 @@ class Robot:
         added to the elements' joint values (zero on tools)."""
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
-        sl = self.layout.slices
-        path = self.path(arm)
-        qs, col = [], 0
-        for chain in path:
-            qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
-            col += chain.n_columns
-        q = jnp.concatenate([*qs, jnp.zeros((u.shape[0], 1))], axis=1)
         el = self._elements(arm)
-        t0 = tf.np_pose_matrix(path[0].instrument) @ tf.perturbation(
-            x[sl[(path[0].name, "instrument")]])
-        t0 = jnp.broadcast_to(t0, (u.shape[0], 4, 4))
+        t0 = jnp.broadcast_to(self.instrument_pose(x, arm), (u.shape[0], 4, 4))
 
         def step(t, e):
             nominal, delta, axis, prismatic, qe = e
@@ -310,7 +316,7 @@ class Robot:
             joint = t @ (nominal @ tf.perturbation(delta))
             return joint @ motion, (joint, joint @ motion)
 
-        qe = q[:, el["q_idx"]]
+        qe = self._element_values(x, arm, u)
         if deflection is not None:
             qe = qe + deflection
         xs = (jnp.asarray(el["nominal"]), x[el["delta_idx"]], jnp.asarray(el["axes"]),
@@ -340,10 +346,7 @@ class Robot:
             "enij,ej->eni", links[:, :, :3, :3], moment)  # (E, N, 3)
         beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
         mass_beyond = jnp.cumsum(mass[::-1])[::-1]
-        path = self.path(arm)
-        t0 = tf.np_pose_matrix(path[0].instrument) @ tf.perturbation(
-            x[self.layout.slices[(path[0].name, "instrument")]])
-        g = t0[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
+        g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
         origin = joints[:, :, :3, 3]
         axis = jnp.einsum("enij,ej->eni", joints[:, :, :3, :3], jnp.asarray(el["axes"]))
         lever = beyond - mass_beyond[:, None, None] * origin
@@ -370,11 +373,7 @@ class Robot:
         sl = self.layout.slices
         path = self.path(arm)
         el = self._elements(arm)
-        qs, col = [], 0
-        for chain in path:
-            qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
-            col += chain.n_columns
-        q = jnp.concatenate([*qs, jnp.zeros((n_rows, 1))], axis=1)[:, el["q_idx"]].T  # (E, N)
+        q = self._element_values(x, arm, u).T  # (E, N)
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
         prismatic = jnp.asarray(el["prismatic"])
@@ -383,7 +382,7 @@ class Robot:
         motions = tf.homogeneous(turn, (q * prismatic[:, None])[..., None] * axes[:, None, :])
         inst_nominal = tf.np_pose_matrix(path[0].instrument)
         inst_delta = x[sl[(path[0].name, "instrument")]]
-        t0 = jnp.broadcast_to(inst_nominal @ tf.perturbation(inst_delta), (n_rows, 4, 4))
+        t0 = jnp.broadcast_to(self.instrument_pose(x, arm), (n_rows, 4, 4))
 
         def forward(t, fm):
             f, m = fm
