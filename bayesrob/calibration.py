@@ -326,9 +326,6 @@ class ChainCalibration:
     extra: dict = field(default_factory=dict)  # e.g. the Bayesian posterior's diagnostics
     draws: np.ndarray | None = None  # (S, P) posterior draws of every parameter (bayes only)
 
-    def distances(self, rig: Rig, set: str) -> dict[str, np.ndarray]:
-        return chain_distances(rig, self.robot, self.x, set)
-
     def to_json(self) -> dict:
         layout = self.robot.layout
         return {

@@ -68,16 +68,10 @@ class ArmSpec:
 
 @dataclass(frozen=True)
 class ChainSpec:
-    """An arm described as a chain (a URDF or a DH table): its nominal chain in mm and rad, and
-    the rig.toml table it came from (written back, with calibrated values, by calibrate)."""
+    """An arm described as a chain (a URDF or a DH table): its nominal chain in mm and rad."""
 
     name: str
     chain: Chain
-    table: dict
-
-    @property
-    def n_columns(self) -> int:
-        return self.chain.n_columns
 
 
 @dataclass
@@ -252,9 +246,8 @@ def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> Cha
     key = f"{where}: arms.{name}"
     if ("urdf" in table) == ("dh" in table):
         raise RigError(f"{key}: give either 'urdf' (with 'root' and 'tip') or 'dh', not both")
-    for k in ("mount",):
-        if k in table and not isinstance(table[k], str):
-            raise RigError(f"{key}.{k}: expected an arm name, got {table[k]!r}")
+    if "mount" in table and not isinstance(table["mount"], str):
+        raise RigError(f"{key}.mount: expected an arm name, got {table['mount']!r}")
     marker = _numbers(table.get("marker", [0.0, 0.0, 0.0]), 3, f"{key}.marker")
     if "instrument" in table and "mount" in table:
         raise RigError(f"{key}: a mounted arm has no 'instrument' pose of its own (its root "
@@ -314,7 +307,7 @@ def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> Cha
         t = tf.np_pose_matrix(_numbers(table["tool"], 6, f"{key}.tool"))
         origins[-1] = tf.matrix_to_pose(tf.np_pose_matrix(origins[-1]) @ t)
     changes["origins"] = origins
-    return ChainSpec(name, replace(chain, **changes), dict(table))
+    return ChainSpec(name, replace(chain, **changes))
 
 
 def _ordered_chains(specs: dict[str, ChainSpec], where: str) -> dict[str, Chain]:

@@ -4,6 +4,7 @@ the analytic marker Jacobian, and the calibrated URDF written back."""
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -203,7 +204,6 @@ def test_dh_tree_writes_a_urdf_that_loads_back(tmp_path):
     for name, c in calibrated.chains.items():
         chain = kin.urdf_chain(tmp_path / "j.urdf", keys[name]["root"], keys[name]["tip"], name,
                                marker=c.marker, mount=c.mount, instrument=c.instrument)
-        from dataclasses import replace
         rebuilt[name] = replace(chain, coupling=c.coupling, gain=c.gain, offset=c.offset)
     back = kin.Robot(rebuilt)
     u = rng.normal(0, 1, (6, 10))

@@ -145,9 +145,6 @@ class ParamLayout:
     def group_mask(self, groups: Sequence[str]) -> np.ndarray:
         return np.array([p.group in groups for p in self.params])
 
-    def index(self, name: str) -> int:
-        return self.names.index(name)
-
 
 def _layout(chains: dict[str, Chain]) -> ParamLayout:
     params: list[Param] = []

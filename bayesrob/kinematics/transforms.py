@@ -103,9 +103,3 @@ def matrix_to_pose(t: np.ndarray) -> np.ndarray:
         yaw = float(np.arctan2(-r[0, 1], r[1, 1]))
     return np.array([t[0, 3], t[1, 3], t[2, 3], roll, pitch, yaw])
 
-
-def rotation_to_rpy(r: np.ndarray) -> np.ndarray:
-    """roll, pitch, yaw of a 3x3 rotation (URDF's convention)."""
-    t = np.eye(4)
-    t[:3, :3] = r
-    return matrix_to_pose(t)[3:]
