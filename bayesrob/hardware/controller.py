@@ -369,9 +369,16 @@ class ServoController(ABC):
                 return pos
             stops.append(pos)
             # A lost command leaves an output at its earlier target; outputs that left it and
-            # stopped short at the very same pulses twice are held there by the controller.
+            # stopped short at the very same pulses twice are held there by the controller. An
+            # output never commanded before has no known earlier target (it sits wherever the
+            # controller started it), so only the tries running out can tell that apart from
+            # commands lost on a noisy line. Nor can a range hold an output outside the rig's
+            # pulse_limits (a clamp pulls a target inside the limits' span): such an output got
+            # a target damaged on the wire, and the resent move puts it right.
             if len(stops) >= 2 and stops[-1] == stops[-2] and all(
-                    p != before.get(ch) for _, _, ch, _, p in self._short(pos, checked)):
+                    before.get(ch) is not None and p != before[ch]
+                    and self.limits[a][j - 1][0] <= p <= self.limits[a][j - 1][1]
+                    for a, j, ch, _, p in self._short(pos, checked)):
                 raise self.stuck_error(pos, checked)
             self.resent_moves += 1
         if len(stops) >= 2 and stops[-1] == stops[-2]:
