@@ -617,6 +617,56 @@ def _sample(args: argparse.Namespace) -> int:
     return 0 if report.passed else 1
 
 
+# ------------------------------------------------------------------------------ predict
+
+
+def _predict_args(p: argparse.ArgumentParser) -> None:
+    from bayesrob.fusion import DEFAULT_FUSION, FUSIONS
+
+    p.add_argument("rig", help="rig directory: the modules' single-arm rows are enough")
+    p.add_argument("--config", required=True,
+                   help="one arm, or arms linked at their end point joined by '+' (A+B+C)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--targets", metavar="FILE", help="CSV of targets with columns x,y (mm)")
+    where.add_argument("--grid", type=_positive_int, metavar="N",
+                       help="an N x N grid of targets over the rig's workspace")
+    p.add_argument("--fusion", choices=FUSIONS, default=DEFAULT_FUSION,
+                   help="how linked arms share the end point: equilibrium (their stiffnesses "
+                        "balance; default) or product (the paper's product of likelihoods)")
+    p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
+    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
+    p.add_argument("--plot", metavar="PATH",
+                   help="write the expected-error map and the least accurate target's regions "
+                        "(PNG)")
+
+
+@command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
+                    "before it is built, from its modules' single-arm rows")(_predict_args)
+def _predict(args: argparse.Namespace) -> int:
+    from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly, read_targets
+    from bayesrob.noise_models import ModelFileError
+
+    rig = _load_rig_arg(args.rig)
+    members = args.config.split("+")
+    targets = (read_targets(args.targets) if args.targets
+               else grid_targets(rig, members, args.grid))
+    try:
+        pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
+                                args.models_dir, args.seed)
+    except (ModelFileError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
+    if args.json != "-":
+        print(pred.format())
+    _write_json(pred.document, args.json)
+    if args.plot:
+        assembly_figure(pred, rig).savefig(args.plot, dpi=120)
+        if args.json != "-":
+            print(f"wrote {args.plot}")
+    return 0
+
+
 # ------------------------------------------------------------------------------ compare
 
 

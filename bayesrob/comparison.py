@@ -42,6 +42,7 @@ import xarray as xr
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import calibrate, calibrate_arm, predicted_points
+from bayesrob.fusion import fused_posterior, kde_log_density
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
 from bayesrob.kde import KDE, ConditionalKDE
 from bayesrob.noise_models import (
@@ -74,6 +75,7 @@ __all__ = [
 ]
 
 MASSES = (0.5, 0.9)
+EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.fusion)
 
 # Rows taken where no training, validation or test row was: single-arm rows at new poses and
 # linked rows at new targets. Scored beside the validation/test rows, never fitted on.
@@ -121,26 +123,32 @@ class PointScores:
 
 def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                  commands: Sequence[np.ndarray], targets: np.ndarray, observed: np.ndarray,
+                 fusion: str = "product", stiffness: Sequence[Any] | None = None,
                  **grid_kw: Any) -> tuple[PointScores, GridPosterior]:
     """Log predictive density and HDR level of ``observed`` (T, 2), one point per target.
 
     ``models``/``arms``/``commands`` describe the setup: one arm, or arms linked at their end
-    point; the prediction for row t is the grid's, centred at ``targets[t]``.
+    point, fused by ``fusion`` (:mod:`bayesrob.fusion`); the prediction for row t is centred
+    at ``targets[t]``.
     """
-    post = grid_posterior(models, arms, commands, targets, **grid_kw)
     observed = np.asarray(observed, float)
+    if fusion != "product" and len(arms) > 1:
+        post, draws = fused_posterior(models, arms, commands, targets, fusion, stiffness)
+        lpd = kde_log_density(draws, observed)
+        return PointScores(lpd, post.hdr_level(lpd), post, observed), post
+    post = grid_posterior(models, arms, commands, targets, **grid_kw)
     lpd = point_log_density(post, models, arms, commands, observed)
     return PointScores(lpd, post.hdr_level(lpd), post, observed), post
 
 
 def score_setup(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
-                config: str) -> PointScores:
+                config: str, fusion: str = "product") -> PointScores:
     """Scores of a setup's judged rows: validation for one arm, test for linked arms."""
     rows = setup_rows(rig, arms, config)
     members = config.split("+")
     scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
                              [rows["commands"][a] for a in members], rows["targets"],
-                             rows["observed"])
+                             rows["observed"], fusion, rig_stiffness(rig, members))
     return scores
 
 
@@ -152,14 +160,21 @@ def holdout_setups(rig: Rig) -> list[str]:
 
 
 def score_holdout(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
-                  config: str) -> PointScores:
+                  config: str, fusion: str = "product") -> PointScores:
     """Scores of a setup's ``holdout`` rows (new poses for one arm, new targets when linked)."""
     rows = rig.config_rows(config, HOLDOUT)
     members = config.split("+")
     scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
                              [rows["commands"][a] for a in members],
-                             predicted_points(rig, arms, config, HOLDOUT), rows["observed"])
+                             predicted_points(rig, arms, config, HOLDOUT), rows["observed"],
+                             fusion, rig_stiffness(rig, members))
     return scores
+
+
+def rig_stiffness(rig: Rig, members: Sequence[str]) -> list | None:
+    """The rig's joint stiffnesses of the members (None for an arm without; None if none)."""
+    known = [rig.arms[a].stiffness for a in members]
+    return known if any(k is not None for k in known) else None
 
 
 def refit_at_bandwidths(model: FittedNoiseModel, theta_err: np.ndarray, u: np.ndarray
@@ -296,6 +311,9 @@ class ModelComparison:
     holdout: dict[str, dict[str, PointScores]] = field(default_factory=dict)  # empty: none
     holdout_compare: Any = None  # az.compare DataFrame when the rig has holdout rows
     loo_recalibrated: bool = True  # whether LOO refitted the calibration without the row too
+    # the same setups with linked ones fused by the equilibrium rule (model -> setup -> scores)
+    fused: dict[str, dict[str, PointScores]] = field(default_factory=dict)
+    fused_holdout: dict[str, dict[str, PointScores]] = field(default_factory=dict)
 
     def heldout_pointwise(self, model: str) -> np.ndarray:
         return np.concatenate([s.lpd for s in self.heldout[model].values()])
@@ -316,7 +334,16 @@ class ModelComparison:
                               "se": float(np.sqrt(loo.size * np.var(loo))),
                               "p_loo": float(self.in_sample[name].sum() - loo.sum())},
                 "holdout": _score_summary(self.holdout[name]) if self.holdout else None,
+                "fusion": "product",
             }
+            if self.fused.get(name) and any("+" in c for c in self.fused[name]):
+                models[f"{name}:{EQUILIBRIUM}"] = {
+                    "model": name, "fusion": EQUILIBRIUM,
+                    "description": spec.description, "paper": spec.paper,
+                    "heldout": _score_summary(self.fused[name]),
+                    "holdout": (_score_summary(self.fused_holdout[name])
+                                if self.fused_holdout else None),
+                }
         held = _table(self.heldout_compare)
         loo = _table(self.loo_compare)
         winner = held[0]
@@ -381,12 +408,20 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     loo: dict[str, np.ndarray] = {}
     in_sample: dict[str, np.ndarray] = {}
     holdout: dict[str, dict[str, PointScores]] = {}
+    fused: dict[str, dict[str, PointScores]] = {}
+    fused_holdout: dict[str, dict[str, PointScores]] = {}
     for spec in specs:
         bar.set_postfix_str(spec.name)
         fitted = fit_noise_models(rig, arms, [spec])[spec.name]
         heldout[spec.name] = {c: score_setup(rig, arms, fitted, c) for c in configs}
+        # the other fusion rule: single arms are the same prediction under both
+        fused[spec.name] = {c: (score_setup(rig, arms, fitted, c, EQUILIBRIUM) if "+" in c
+                                else heldout[spec.name][c]) for c in configs}
         if hold_configs:
             holdout[spec.name] = {c: score_holdout(rig, arms, fitted, c) for c in hold_configs}
+            fused_holdout[spec.name] = {
+                c: (score_holdout(rig, arms, fitted, c, EQUILIBRIUM) if "+" in c
+                    else holdout[spec.name][c]) for c in hold_configs}
         loo[spec.name] = np.concatenate(
             [loo_training_scores(rig, arms[a], fitted[a], recalibrate, loo_arms.get(a))
              for a in arms])
@@ -417,8 +452,13 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
             hold_table = az.compare(
                 {s.name: _elpd_data(np.concatenate([x.lpd for x in holdout[s.name].values()]),
                                     float("nan")) for s in specs}, method="stacking")
+    if any("+" in c for c in configs):
+        notes.append(f"linked setups are scored under both fusion rules: models.<name> by the "
+                     f"product of likelihoods (the paper's), models.<name>:{EQUILIBRIUM} by the "
+                     "arms' stiffness balance (bayesrob.fusion); elpd tables use the product")
     return ModelComparison(rig, list(specs), heldout, loo, in_sample, *tables,
-                           time.perf_counter() - t0, notes, holdout, hold_table, recalibrate)
+                           time.perf_counter() - t0, notes, holdout, hold_table, recalibrate,
+                           fused, fused_holdout)
 
 
 def format_comparison(doc: dict) -> str:
@@ -444,6 +484,8 @@ def format_comparison(doc: dict) -> str:
             sets.append(("holdout", " (holdout)"))
         for key, label in sets:
             for config, s in m[key]["by_setup"].items():
+                if m.get("fusion") == EQUILIBRIUM and "+" not in config:
+                    continue  # one arm: the same prediction as the product's row
                 rows.append([name, config + label, str(s["n"]), f"{s['mean_lpd']:.2f}",
                              f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
                              f"{s['mean_hdr_level']:.2f}"])

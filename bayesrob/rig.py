@@ -27,7 +27,7 @@ from bayesrob.kinematics import transforms as tf
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
 SETS = ("train", "validation", "test", "holdout")
-ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "meta")
+ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "stiffness", "meta")
 # Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
               "gain", "offset", "mount", "origin", "tool", "coupling", "meta")
@@ -53,6 +53,9 @@ class ArmSpec:
     offset: tuple[float, float]
     elbow: int = 1
     pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
+    # Joint stiffnesses (N mm / rad) when known: linked arms settle where these balance
+    # (bayesrob.fusion); None: a prior over them is used instead.
+    stiffness: tuple[float, float] | None = None
 
     @property
     def reach_mm(self) -> tuple[float, float]:
@@ -225,7 +228,11 @@ def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
     for j, (lo, hi) in enumerate(limits):
         if lo >= hi:
             raise RigError(f"{where}: arms.{name}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
-    return ArmSpec(name, base, links, gain, offset, int(elbow), limits)  # type: ignore[arg-type]
+    stiffness = None
+    if "stiffness" in table:
+        stiffness = _pair(table["stiffness"], f"{where}: arms.{name}.stiffness", positive=True)
+    return ArmSpec(name, base, links, gain, offset, int(elbow), limits,  # type: ignore[arg-type]
+                   stiffness)
 
 
 def _numbers(value: object, n: int, where: str) -> np.ndarray:
@@ -732,6 +739,7 @@ def rig_toml_dict(
             "offset": list(a.offset),
             "elbow": a.elbow,
             "pulse_limits": [list(p) for p in a.pulse_limits],
+            **({"stiffness": list(a.stiffness)} if a.stiffness is not None else {}),
         }
         for a in arms.values()
     }
