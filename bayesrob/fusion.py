@@ -73,9 +73,9 @@ __all__ = [
 
 FUSIONS = ("product", "equilibrium")
 DEFAULT_FUSION = "equilibrium"
-# Prior sd of each joint's log stiffness when the rig does not give it: a factor e^0.5 = 1.65
+# Prior sd of each joint's log stiffness when the rig does not give it: a factor e^0.75 = 2.1
 # at one sd. Chosen on tuning rigs (simulator seeds 101-106), never on the reported ones.
-STIFFNESS_LOG_SD = 0.5
+STIFFNESS_LOG_SD = 0.75
 # Draws per target: the KDE's bandwidth is n^(-1/6) of the spread (0.25 at 4000), and the
 # HDR level of a point moves by about sqrt(p (1 - p) / n) < 0.008.
 DRAWS = 4000

@@ -185,6 +185,18 @@ def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Tr
         effects)
 
 
+def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Truth:
+    """The paper's two arms and a third standing to the left of the workspace (``side``):
+    three arms linked at one end point, for predictions of assemblies of more than two."""
+    pair = paper_truth(effects, seed, grid)
+    base, links, gain = (-170.0, 190.0), (260.0, 240.0), (0.00151, 0.00149)
+    limits = ((600.0, 2400.0), (600.0, 2400.0))
+    offset = _offsets_for(base, links, gain, -1, limits, pair.workspace)
+    side = ArmTruth("side", base, links, gain, offset, -1, limits, link_mass_kg=(0.045, 0.035),
+                    elbow_mass_kg=0.07, end_mass_kg=0.015)
+    return replace(pair, name="three-arm-rig", arms={**pair.arms, "side": side})
+
+
 # ------------------------------------------------------------------------------ physics
 
 
