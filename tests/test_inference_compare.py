@@ -135,7 +135,9 @@ def test_compare_command_writes_table_json_and_plot(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert (tmp_path / "cmp" / "compare.png").stat().st_size > 10_000
     assert doc["plot"].endswith("compare.png")
-    assert set(doc["models"]) == {"ind_wide", "ind"}
+    assert set(doc["models"]) == {"ind_wide", "ind", "ind_wide:equilibrium",
+                                  "ind:equilibrium"}
+    assert {m["fusion"] for m in doc["models"].values()} == {"product", "equilibrium"}
     assert doc["winner"]["model"] == "ind" and doc["winner"]["over"] == "ind_wide"
     assert doc["heldout_rows"] == {"top": 16, "bottom": 16, "top+bottom": 16}
     for table in ("heldout_compare", "loo_compare"):
