@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,8 +24,9 @@ import numpy as np
 from bayesrob import kinematics as kin
 from bayesrob.calibration import calibrate
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, fused_posterior
-from bayesrob.inference import GridPosterior
+from bayesrob.inference import GridPosterior, check_reach
 from bayesrob.noise_models import discover_models, fit_noise_models
+from bayesrob.prediction import hdr_area
 from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
@@ -92,7 +92,7 @@ class AssemblyPrediction:
                                               "50% mm^2", "90% mm^2"], rows), tail])
 
 
-def grid_targets(rig: Rig, members: Sequence[str], n: int) -> np.ndarray:
+def grid_targets(rig: Rig, n: int) -> np.ndarray:
     """An n x n grid of targets over the rig's workspace (cell centres, x fastest)."""
     if rig.workspace is None:
         raise RigError(f"{rig.path}: no 'workspace' in rig.toml to lay a --grid over; give "
@@ -129,18 +129,10 @@ def read_targets(path: str | Path) -> np.ndarray:
 
 
 def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
-    """Pulses aiming the calibrated arm at each target; refuses targets out of reach."""
-    ok = np.asarray(arm.reachable(jnp.asarray(targets)))
+    """Pulses aiming the calibrated arm at each target; refuses targets it cannot be aimed at."""
     u = np.asarray(arm.command(jnp.asarray(targets)))
-    for i, t in enumerate(targets):
-        if not ok[i]:
-            raise RigError(f"target {i} ({t[0]:g}, {t[1]:g}) is out of arm {arm.name!r}'s "
-                           "reach")
-        for j, (lo, hi) in enumerate(arm.pulse_limits):
-            if not lo <= u[i, j] <= hi:
-                raise RigError(f"target {i} ({t[0]:g}, {t[1]:g}) needs arm {arm.name!r} "
-                               f"servo {j + 1} at {u[i, j]:.0f} us, outside its pulse_limits "
-                               f"[{lo:g}, {hi:g}]")
+    for t, ut in zip(targets, u, strict=True):
+        check_reach(arm, t, ut)
     return u
 
 
@@ -177,14 +169,8 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str = "c
     return AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, post.mean,
         np.einsum("tm,tm->t", post.prob, dist),
-        _hdr_area(post.prob, 0.5) * cell, _hdr_area(post.prob, 0.9) * cell,
+        hdr_area(post.prob, 0.5, cell), hdr_area(post.prob, 0.9, cell),
         post, time.perf_counter() - t0)
-
-
-def _hdr_area(prob: np.ndarray, mass: float) -> np.ndarray:
-    """Cells in the smallest set holding ``mass`` (T,)."""
-    p = np.sort(prob, axis=-1)[:, ::-1]
-    return (np.argmax(np.cumsum(p, axis=-1) >= mass, axis=-1) + 1).astype(float)
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:

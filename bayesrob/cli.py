@@ -649,9 +649,7 @@ def _predict(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
 
     rig = _load_rig_arg(args.rig)
-    members = args.config.split("+")
-    targets = (read_targets(args.targets) if args.targets
-               else grid_targets(rig, members, args.grid))
+    targets = read_targets(args.targets) if args.targets else grid_targets(rig, args.grid)
     try:
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
                                 args.models_dir, args.seed)

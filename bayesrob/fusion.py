@@ -167,7 +167,8 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
 def _bandwidth(draws: np.ndarray) -> np.ndarray:
     """Scott's rule per target: H = n^(-1/3) cov for 2-D draws (T, 2, 2)."""
     n = draws.shape[0]
-    cov = np.einsum("sti,stj->tij", draws - draws.mean(0), draws - draws.mean(0)) / (n - 1)
+    dev = draws - draws.mean(axis=0)
+    cov = np.einsum("sti,stj->tij", dev, dev) / (n - 1)
     return cov * n ** (-1.0 / 3.0)
 
 

@@ -77,6 +77,7 @@ __all__ = [
     "point_log_density",
     "prior_spread",
     "initial_points",
+    "check_reach",
     "run_nuts",
     "run_emcee",
     "cross_check",
@@ -985,7 +986,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     target = np.asarray(target, float).reshape(1, 2)
     commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
     for a, u in zip(members, commands, strict=True):
-        _check_reach(arms[a], target[0], u[0])
+        check_reach(arms[a], target[0], u[0])
     # The steps before the samplers, which report on their own bars.
     bar = _progress(3, progress, "sample", "steps", "calibrated")
     bar.update()
@@ -1061,7 +1062,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     return SampleReport(doc, grid, results)
 
 
-def _check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
+def check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
     """Refuse a target the arm cannot be aimed at: one line naming target, arm and reach."""
     l1, l2 = (float(x) for x in np.asarray(arm.params.links))
     base = np.asarray(arm.params.base, float)

@@ -112,7 +112,8 @@ class Prediction:
         return self.prob[i].reshape(self.grid.n, self.grid.n) / self.grid.cell_area_mm2
 
 
-def _hdr_area(prob: np.ndarray, mass: float, cell_area: float) -> np.ndarray:
+def hdr_area(prob: np.ndarray, mass: float, cell_area: float | np.ndarray) -> np.ndarray:
+    """Area of the smallest set of cells holding ``mass`` of each row of ``prob`` (T,)."""
     p = np.sort(prob, axis=-1)[:, ::-1]
     k = np.argmax(np.cumsum(p, axis=-1) >= mass, axis=-1) + 1
     return k * cell_area
@@ -144,8 +145,8 @@ def predict(config: str, models: dict[str, FittedNoiseModel], arms: dict[str, ki
         prob=prob,
         expected_point=expected,
         expected_error_mm=prob @ dist,
-        hdr50_mm2=_hdr_area(prob, 0.5, grid.cell_area_mm2),
-        hdr90_mm2=_hdr_area(prob, 0.9, grid.cell_area_mm2),
+        hdr50_mm2=hdr_area(prob, 0.5, grid.cell_area_mm2),
+        hdr90_mm2=hdr_area(prob, 0.9, grid.cell_area_mm2),
     )
 
 

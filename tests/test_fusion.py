@@ -126,7 +126,7 @@ def test_draws_posterior_is_normalised_and_agrees_with_the_exact_kde():
     assert scipy.stats.kstest(levels, "uniform").pvalue > ALPHA
 
 
-def test_equilibrium_program_and_grid_draws_agree_for_a_sampleable_model(sag_rig):
+def test_equilibrium_program_and_grid_draws_agree_for_a_sampleable_model(sag_rig, monkeypatch):
     """The numpyro program (Predictive) and the grid route (free points drawn from each
     arm's single-arm grid prediction) are two samplers of the same law for a model with the
     Jacobian: their means agree within 0.05 mm and sds within 10% (4000 draws each; the
@@ -138,13 +138,8 @@ def test_equilibrium_program_and_grid_draws_agree_for_a_sampleable_model(sag_rig
             [rows["commands"]["top"][:4], rows["commands"]["bottom"][:4]], rows["targets"][:4])
     program = fusion.equilibrium_draws(*args, seed=1)
     assert fitted["top"].spec.jacobian  # else the grid route draws another law
-    import bayesrob.fusion as fz
-    real = fz.is_sampleable
-    try:
-        fz.is_sampleable = lambda m: False
-        grid = fusion.equilibrium_draws(*args, seed=2)
-    finally:
-        fz.is_sampleable = real
+    monkeypatch.setattr(fusion, "is_sampleable", lambda m: False)
+    grid = fusion.equilibrium_draws(*args, seed=2)
     np.testing.assert_allclose(program.mean(0), grid.mean(0), atol=0.05)
     np.testing.assert_allclose(program.std(0), grid.std(0), rtol=0.10)
 
@@ -219,7 +214,7 @@ def test_predict_grid_plot_and_product(tmp_path):
     (["--config", "top+top", "--grid", "2"], "appears twice"),
     (["--config", "top+bottom", "--targets", "MISSING"], "file not found"),
     (["--config", "top+bottom", "--targets", "BAD"], "line 3: x, y must be numbers"),
-    (["--config", "top+bottom", "--targets", "FAR"], "out of arm 'top''s reach"),
+    (["--config", "top+bottom", "--targets", "FAR"], "is out of reach of arm 'top'"),
 ])
 def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, message):
     (tmp_path / "BAD").write_text("x,y\n150,150\n150,abc\n")
