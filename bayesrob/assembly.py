@@ -7,7 +7,11 @@ inverse model, and the linked end point is predicted by a fusion rule
 (:mod:`bayesrob.fusion`). A rig without any linked row works: that is the point.
 
 Per target: the expected end point, the expected distance from the target, and the areas of
-the 50% / 90% highest-density regions.
+the 50% / 90% highest-density regions (volumes in 3-D).
+
+Chain rigs (URDF / DH arms, 2-D or 3-D) go through :mod:`bayesrob.chain_prediction`: their
+joint-error models are the latent-variable populations of :mod:`bayesrob.latent_errors`
+(``ind`` or ``corr``), and the prediction is a set of draws rather than a grid.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from bayesrob import kinematics as kin
 from bayesrob.calibration import calibrate
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, fused_posterior
 from bayesrob.inference import GridPosterior, check_reach
+from bayesrob.latent_errors import LATENT_MODELS
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import hdr_area
 from bayesrob.rig import Rig, RigError
@@ -44,19 +49,26 @@ class AssemblyPrediction:
     config: str
     model: str
     fusion: str
-    targets: np.ndarray  # (T, 2) mm
-    commands: dict[str, np.ndarray]  # arm -> (T, 2) pulses
-    expected_point: np.ndarray  # (T, 2)
+    targets: np.ndarray  # (T, dim) mm
+    commands: dict[str, np.ndarray]  # arm -> (T, c) pulses or chain columns
+    expected_point: np.ndarray  # (T, dim)
     expected_error_mm: np.ndarray  # (T,)
-    hdr50_mm2: np.ndarray  # (T,)
-    hdr90_mm2: np.ndarray  # (T,)
-    posterior: GridPosterior
+    hdr50: np.ndarray  # (T,) area (mm^2) or, in 3-D, volume (mm^3) of the 50% region
+    hdr90: np.ndarray  # (T,)
+    posterior: GridPosterior | None  # planar arms: the grid
     seconds: float
+    draws: np.ndarray | None = None  # (S, T, dim) chain arms: the draws the prediction is
+
+    @property
+    def size_key(self) -> str:
+        """Unit of the region sizes: ``mm2`` (areas) or ``mm3`` (volumes)."""
+        return f"mm{self.targets.shape[1]}"
 
     @property
     def document(self) -> dict:
         """The ``bayesrob predict --json`` document."""
         e = self.expected_error_mm
+        u = self.size_key
         return {
             "rig": self.rig, "config": self.config, "model": self.model, "fusion": self.fusion,
             "rows_used": "train rows of each arm alone (no linked row is read)",
@@ -65,63 +77,67 @@ class AssemblyPrediction:
                  "commands": {a: [float(v) for v in u[i]] for a, u in self.commands.items()},
                  "expected_point": [float(x) for x in self.expected_point[i]],
                  "expected_error_mm": float(e[i]),
-                 "hdr50_mm2": float(self.hdr50_mm2[i]), "hdr90_mm2": float(self.hdr90_mm2[i])}
+                 f"hdr50_{u}": float(self.hdr50[i]), f"hdr90_{u}": float(self.hdr90[i])}
                 for i, t in enumerate(self.targets)],
             "summary": {"n_targets": int(e.size), "mean_expected_error_mm": float(e.mean()),
                         "max_expected_error_mm": float(e.max()),
-                        "mean_hdr50_mm2": float(self.hdr50_mm2.mean()),
-                        "mean_hdr90_mm2": float(self.hdr90_mm2.mean())},
+                        f"mean_hdr50_{u}": float(self.hdr50.mean()),
+                        f"mean_hdr90_{u}": float(self.hdr90.mean())},
             "seconds": self.seconds,
         }
 
     def format(self) -> str:
         from bayesrob.report import format_table
 
-        rows = [[f"{t[0]:.1f}, {t[1]:.1f}", f"{p[0]:.2f}, {p[1]:.2f}", f"{e:.2f}",
-                 f"{a50:.2f}", f"{a90:.2f}"]
+        rows = [[", ".join(f"{v:.1f}" for v in t), ", ".join(f"{v:.2f}" for v in p), f"{e:.2f}",
+                 f"{a50:.3g}", f"{a90:.3g}"]
                 for t, p, e, a50, a90 in zip(self.targets, self.expected_point,
-                                             self.expected_error_mm, self.hdr50_mm2,
-                                             self.hdr90_mm2, strict=True)]
+                                             self.expected_error_mm, self.hdr50,
+                                             self.hdr90, strict=True)]
         head = (f"{self.config} on {self.rig}: model {self.model}, fusion {self.fusion}, "
                 f"{len(self.targets)} targets (from single-arm train rows only)")
         s = self.document["summary"]
+        u = self.size_key
+        unit = f"mm^{u[-1]}"
         tail = (f"mean expected error {s['mean_expected_error_mm']:.2f} mm (max "
                 f"{s['max_expected_error_mm']:.2f}); mean 50% / 90% region "
-                f"{s['mean_hdr50_mm2']:.2f} / {s['mean_hdr90_mm2']:.2f} mm^2")
+                f"{s[f'mean_hdr50_{u}']:.3g} / {s[f'mean_hdr90_{u}']:.3g} {unit}")
         return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
-                                              "50% mm^2", "90% mm^2"], rows), tail])
+                                              f"50% {unit}", f"90% {unit}"], rows), tail])
 
 
 def grid_targets(rig: Rig, n: int) -> np.ndarray:
-    """An n x n grid of targets over the rig's workspace (cell centres, x fastest)."""
+    """An n x n grid of targets over the rig's workspace (n x n x n for a 3-D workspace; cell
+    centres, x fastest)."""
     if rig.workspace is None:
         raise RigError(f"{rig.path}: no 'workspace' in rig.toml to lay a --grid over; give "
                        "--targets FILE instead")
-    (x0, x1), (y0, y1) = rig.workspace
-    xs = x0 + (x1 - x0) * (np.arange(n) + 0.5) / n
-    ys = y0 + (y1 - y0) * (np.arange(n) + 0.5) / n
-    gx, gy = np.meshgrid(xs, ys)
-    return np.column_stack([gx.ravel(), gy.ravel()])
+    axes = [lo + (hi - lo) * (np.arange(n) + 0.5) / n for lo, hi in rig.workspace]
+    mesh = np.meshgrid(*axes[::-1], indexing="ij")  # last axis x: x runs fastest
+    return np.column_stack([m.ravel() for m in mesh[::-1]])
 
 
-def read_targets(path: str | Path) -> np.ndarray:
-    """Targets (T, 2) from a CSV file with columns ``x,y`` (mm; other columns ignored)."""
+def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
+    """Targets (T, dim) from a CSV file with columns ``x,y`` (and ``z`` in 3-D; mm; other
+    columns ignored)."""
     path = Path(path)
     if not path.is_file():
         raise RigError(f"{path}: file not found")
+    names = list("xyz"[:dim])
     with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.DictReader(fh)
-        if not reader.fieldnames or not {"x", "y"} <= set(reader.fieldnames):
-            raise RigError(f"{path}: needs a header with columns x,y, got {reader.fieldnames}")
+        if not reader.fieldnames or not set(names) <= set(reader.fieldnames):
+            raise RigError(f"{path}: needs a header with columns {','.join(names)}, got "
+                           f"{reader.fieldnames}")
         out = []
         for i, row in enumerate(reader, start=2):
             try:
-                xy = [float(row["x"]), float(row["y"])]
+                xy = [float(row[c]) for c in names]
             except (TypeError, ValueError):
-                raise RigError(f"{path}: line {i}: x, y must be numbers, got "
-                               f"{row.get('x')!r}, {row.get('y')!r}") from None
+                raise RigError(f"{path}: line {i}: {', '.join(names)} must be numbers, got "
+                               f"{', '.join(repr(row.get(c)) for c in names)}") from None
             if not np.all(np.isfinite(xy)):
-                raise RigError(f"{path}: line {i}: x, y must be finite, got {xy}")
+                raise RigError(f"{path}: line {i}: {', '.join(names)} must be finite, got {xy}")
             out.append(xy)
     if not out:
         raise RigError(f"{path}: no targets")
@@ -136,10 +152,13 @@ def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
     return u
 
 
-def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str = "cond",
+def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
                      fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0
                      ) -> AssemblyPrediction:
-    """Predict ``config`` (arms joined by '+') at ``targets`` (T, 2) from single-arm rows."""
+    """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
+
+    ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains).
+    """
     t0 = time.perf_counter()
     if fusion not in FUSIONS:
         raise RigError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
@@ -153,6 +172,14 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str = "c
             raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
                            "and fit its joint-error model on")
     targets = np.atleast_2d(np.asarray(targets, float))
+    dim = rig.robot.dim if rig.robot is not None else 2
+    if targets.shape[1] != dim:
+        raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
+                       f"{targets.shape[1]} coordinates")
+    if rig.is_chain:
+        return _predict_chain(rig, config, members, targets, model or LATENT_MODELS[0], fusion,
+                              seed, t0)
+    model = model or "cond"
     spec = discover_models(models_dir, [model])
     cal = calibrate(rig)
     arms = {a: cal[a].arm for a in members}
@@ -173,9 +200,29 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str = "c
         post, time.perf_counter() - t0)
 
 
+def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
+                   fusion: str, seed: int, t0: float) -> AssemblyPrediction:
+    from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
+
+    if model not in LATENT_MODELS:
+        raise RigError(f"model {model!r}: chain arms take the latent joint-error models "
+                       f"{', '.join(LATENT_MODELS)} (their joint errors are not read off a "
+                       "residual, so there is no per-row density to condition)")
+    mods = fit_chain_modules(rig, members, model, seed=seed)
+    commands, draws, _ = predict_chain_points(mods, rig, members, targets, fusion, seed)
+    sizes = hdr_sizes(draws)
+    return AssemblyPrediction(
+        rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
+        np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
+        None, time.perf_counter() - t0, draws)
+
+
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     """Expected error over the targets (left) and the 50% / 90% regions of a few (right)."""
     import matplotlib.pyplot as plt
+
+    if pred.posterior is None:
+        return _draws_figure(pred, rig)
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6))
     t = pred.targets
@@ -205,5 +252,46 @@ def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
                  "50% (red) / 90% (blue)", fontsize=9)
     bx.set_xlabel("x - target (mm)")
     bx.set_ylabel("y - target (mm)")
+    fig.tight_layout()
+    return fig
+
+
+def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
+    """A chain assembly: expected error seen from above (left), and the least accurate
+    target's draws in and out of its 50% / 90% regions, projected on two planes."""
+    import matplotlib.pyplot as plt
+
+    from bayesrob.chain_prediction import hdr_levels
+
+    fig, axs = plt.subplots(1, 3, figsize=(15, 4.6))
+    t = pred.targets
+    sc = axs[0].scatter(t[:, 0], t[:, 1], c=pred.expected_error_mm, cmap="viridis", s=90)
+    fig.colorbar(sc, ax=axs[0], label="expected error (mm)")
+    x = rig.robot.layout.nominal
+    for a in pred.config.split("+"):
+        base = np.asarray(rig.robot.instrument_pose(x, a))[:3, 3]
+        axs[0].plot(base[0], base[1], "k^")
+        axs[0].annotate(a, base[:2], textcoords="offset points", xytext=(4, 4))
+    axs[0].set_aspect("equal")
+    axs[0].set_title(f"{pred.config}: expected error ({pred.model}, {pred.fusion})", fontsize=9)
+    axs[0].set_xlabel("x (mm)")
+    axs[0].set_ylabel("y (mm)")
+    worst = int(np.argmax(pred.expected_error_mm))
+    draws = pred.draws[:, worst: worst + 1]
+    sub = draws[:1500]
+    level = hdr_levels(draws, sub)[:, 0]
+    dev = sub[:, 0] - t[worst]
+    for ax, (i, j) in zip(axs[1:], [(0, 1), (0, 2)], strict=True):
+        for lo, hi, colour, label in ((0.9, 1.01, "0.8", "outside 90%"),
+                                      (0.5, 0.9, "C0", "50-90%"), (0.0, 0.5, "C3", "50%")):
+            m = (level >= lo) & (level < hi)
+            ax.scatter(dev[m, i], dev[m, j], s=3, color=colour, label=label)
+        ax.plot(0, 0, "k+", ms=12)
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{'xyz'[i]} - target (mm)")
+        ax.set_ylabel(f"{'xyz'[j]} - target (mm)")
+    axs[1].legend(fontsize=7, markerscale=3)
+    axs[1].set_title(f"least accurate target ({', '.join(f'{v:.0f}' for v in t[worst])}): "
+                     "draws by region", fontsize=9)
     fig.tight_layout()
     return fig

@@ -448,15 +448,30 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
                             time.perf_counter() - t0)
 
 
-def _chain_standard_errors(full_res, full_jac, x: np.ndarray, free: np.ndarray) -> np.ndarray:
+def _chain_covariance(full_res, full_jac, x: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Gauss-Newton covariance (P, P) of the fitted parameters, zero where fixed."""
     r = np.asarray(full_res(jnp.asarray(x)))
     jac = np.asarray(full_jac(jnp.asarray(x)))[:, free]
     dof = r.size - int(free.sum())
-    se = np.full(len(x), np.nan)
+    cov = np.zeros((len(x), len(x)))
     if dof > 0:
-        cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
-        se[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+        cov[np.ix_(free, free)] = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+    return cov
+
+
+def _chain_standard_errors(full_res, full_jac, x: np.ndarray, free: np.ndarray) -> np.ndarray:
+    cov = _chain_covariance(full_res, full_jac, x, free)
+    se = np.full(len(x), np.nan)
+    if cov.any():
+        se[free] = np.sqrt(np.clip(np.diag(cov)[free], 0, None))
     return se
+
+
+def chain_parameter_covariance(rig: Rig, cal: ChainCalibration) -> np.ndarray:
+    """The calibrated parameters' covariance (P, P) on the train rows (zero where fixed): what
+    a prediction at a new pose inherits from the fit, beside the joint errors."""
+    full_res, full_jac, _ = _residual_function(rig, cal.robot, "train")
+    return _chain_covariance(full_res, full_jac, cal.x, cal.ident.free)
 
 
 def chain_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:

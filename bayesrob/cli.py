@@ -627,13 +627,17 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True,
                    help="one arm, or arms linked at their end point joined by '+' (A+B+C)")
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--targets", metavar="FILE", help="CSV of targets with columns x,y (mm)")
+    where.add_argument("--targets", metavar="FILE",
+                       help="CSV of targets with columns x,y (x,y,z for a 3-D rig; mm)")
     where.add_argument("--grid", type=_positive_int, metavar="N",
-                       help="an N x N grid of targets over the rig's workspace")
+                       help="an N x N grid of targets over the rig's workspace (N x N x N "
+                            "over a 3-D workspace)")
     p.add_argument("--fusion", choices=FUSIONS, default=DEFAULT_FUSION,
                    help="how linked arms share the end point: equilibrium (their stiffnesses "
                         "balance; default) or product (the paper's product of likelihoods)")
-    p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
+    p.add_argument("--model", default=None,
+                   help="joint-error model name (default cond; ind or corr for URDF/DH arms, "
+                        "whose joint errors are latent: default ind)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
@@ -648,8 +652,9 @@ def _predict(args: argparse.Namespace) -> int:
     from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly, read_targets
     from bayesrob.noise_models import ModelFileError
 
-    rig = _load_rig_arg(args.rig)
-    targets = read_targets(args.targets) if args.targets else grid_targets(rig, args.grid)
+    rig = _load_rig_arg(args.rig, chains=True)
+    dim = rig.robot.dim if rig.robot is not None else 2
+    targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
     try:
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
                                 args.models_dir, args.seed)

@@ -165,21 +165,27 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
 
 
 def _bandwidth(draws: np.ndarray) -> np.ndarray:
-    """Scott's rule per target: H = n^(-1/3) cov for 2-D draws (T, 2, 2)."""
-    n = draws.shape[0]
+    """Scott's rule per target: H = n^(-2 / (d + 4)) cov for d-dimensional draws (T, d, d)
+    (n^(-1/3) in the plane)."""
+    n, d = draws.shape[0], draws.shape[-1]
     dev = draws - draws.mean(axis=0)
     cov = np.einsum("sti,stj->tij", dev, dev) / (n - 1)
-    return cov * n ** (-1.0 / 3.0)
+    return cov * n ** (-2.0 / (d + 4))
 
 
 def kde_log_density(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Exact Gaussian-KDE log density (per mm^2) of draws (S, T, 2) at one point per target."""
+    """Exact Gaussian-KDE log density (per mm^d) of draws (S, T, d) at points (T, d), or at
+    several points per target (K, T, d) giving (K, T)."""
     h = _bandwidth(draws)
     hinv = np.linalg.inv(h)
-    dev = np.asarray(points, float)[None] - draws  # (S, T, 2)
-    q = np.einsum("sti,tij,stj->st", dev, hinv, dev)
-    log_norm = -np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(h)[1]
-    return logsumexp(-0.5 * q, axis=0) - np.log(draws.shape[0]) + log_norm
+    d = draws.shape[-1]
+    log_norm = -0.5 * d * np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(h)[1]
+    pts = np.asarray(points, float)
+    if pts.ndim == 2:
+        dev = pts[None] - draws  # (S, T, d)
+        q = np.einsum("sti,tij,stj->st", dev, hinv, dev)
+        return logsumexp(-0.5 * q, axis=0) - np.log(draws.shape[0]) + log_norm
+    return np.stack([kde_log_density(draws, p) for p in pts])
 
 
 def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> GridPosterior:

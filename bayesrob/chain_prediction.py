@@ -1,0 +1,293 @@
+"""Accuracy predictions for chain robots (URDF / DH arms, 2-D or 3-D), alone or linked.
+
+Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
+residuals (:mod:`bayesrob.latent_errors`). At a target, each arm is aimed through its calibrated
+model (position-only inverse kinematics, the minimum-norm solution nearest the train pose that
+came closest), and its *free* end point is the push-forward of the population: draws of
+(Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated chain, plus
+N(0, s^2) for what no joint explains.
+
+Linked arms share one point:
+
+- ``equilibrium`` (default): the point where the arms' elastic forces balance, linearised about
+  the free points as in :mod:`bayesrob.fusion`. A redundant arm's Cartesian compliance is
+  C_a = J_a diag(1 / k_a) J_a^T (J_a: 3 x n, k_a its joint stiffnesses), its stiffness
+  K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
+  J^-T diag(k) J^-1. Unknown stiffnesses take the same log-normal prior as the planar arms.
+  Forward draws (``numpyro.infer.Predictive``), no sampler needed.
+- ``product`` (the paper's rule): the density of the shared point is the product of the arms'
+  end-point densities. Every arm's joint errors and the shared point are latent and sampled
+  together with NUTS: p ~ flat, e_a ~ N(0, Sigma_a), p ~ N(f_a(e_a), s_a^2) for each arm a.
+
+Densities of draws are Gaussian KDEs (Scott's rule, :func:`bayesrob.fusion.kde_log_density`);
+region sizes are the volumes (areas in 2-D) of the 50% / 90% highest-density regions, by
+Monte Carlo: vol{p > c} = E_p[1{p > c} / p].
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+from numpyro.infer import MCMC, NUTS, Predictive
+
+from bayesrob import kinematics as kin
+from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
+from bayesrob.fusion import DRAWS, FUSIONS, STIFFNESS_LOG_SD, kde_log_density
+from bayesrob.latent_errors import (
+    LatentJointErrors,
+    fit_latent_errors,
+    joint_jacobian,
+    marker_points_with_errors,
+)
+from bayesrob.rig import Rig, RigError
+
+__all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "chain_equilibrium",
+           "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
+
+IK_TOL_MM = 1e-3
+IK_ITERATIONS = 60
+VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
+
+
+@dataclass
+class ChainModules:
+    """Calibrated chain arms and their fitted joint-error populations."""
+
+    calibration: ChainCalibration
+    errors: dict[str, LatentJointErrors]
+    stiffness: dict[str, np.ndarray | None]
+    param_cov: np.ndarray  # (P, P) the fitted parameters' covariance, zero where fixed
+
+    @property
+    def robot(self) -> kin.Robot:
+        return self.calibration.robot
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.calibration.x
+
+
+def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
+                      groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
+                      calibration: ChainCalibration | None = None) -> ChainModules:
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors."""
+    measured = rig.robot.measured_arms()
+    for a in arms:
+        if a not in measured:
+            raise RigError(f"{rig.path}: {a!r} is not a measured arm of the rig (measured: "
+                           f"{', '.join(measured)})")
+        if not rig.measurements.mask(a, "train").any():
+            raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
+                           "and fit its joint-error model on")
+    cal = calibration if calibration is not None else calibrate_chain(rig, groups)
+    n_free = int(cal.ident.free.sum())
+    errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
+              for i, a in enumerate(arms)}
+    stiffness = {a: getattr(rig.arms[a], "stiffness", None) for a in arms}
+    return ChainModules(cal, errors, stiffness, chain_parameter_covariance(rig, cal))
+
+
+def _column_jacobian(robot: kin.Robot, arm: str):
+    """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c))."""
+    cache = robot.__dict__.setdefault("_column_jacobians", {})
+    if arm not in cache:
+        def point(x, row):
+            return robot.marker_points(x, arm, row[None])[0]
+
+        def both(x, u):
+            return jax.vmap(lambda r: point(x, r))(u), jax.vmap(
+                lambda r: jax.jacfwd(lambda v: point(x, v))(r))(u)
+        cache[arm] = jax.jit(both)
+    return cache[arm]
+
+
+def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
+              ) -> np.ndarray:
+    """Columns (T, c) putting ``arm``'s marker on each target under the calibrated model.
+
+    Damped minimum-norm Gauss-Newton steps from the train pose whose observed point is
+    nearest, so the redundant arm stays on the branch of poses it was calibrated on. A target
+    it does not reach within IK_TOL_MM is refused with one line.
+    """
+    targets = np.atleast_2d(np.asarray(targets, float))
+    u_train, d_train = rig.chain_rows(arm, "train")
+    nearest = np.argmin(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
+    u = u_train[nearest].copy()
+    f = _column_jacobian(robot, arm)
+    xj = jnp.asarray(x)
+    for _ in range(IK_ITERATIONS):
+        p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))
+        r = targets - p
+        err = np.linalg.norm(r, axis=1)
+        if np.all(err < IK_TOL_MM):
+            break
+        # the step is limited to 0.3 rad per column, so far targets are approached, not jumped
+        jjt = np.einsum("tic,tjc->tij", jac, jac) + 1e-6 * np.eye(jac.shape[1])
+        step = np.einsum("tic,ti->tc", jac, np.linalg.solve(jjt, r[..., None])[..., 0])
+        big = np.abs(step).max(axis=1, keepdims=True)
+        u = u + step * np.minimum(1.0, 0.3 / np.maximum(big, 1e-12))
+    p = np.asarray(f(xj, jnp.asarray(u))[0])
+    miss = np.linalg.norm(targets - p, axis=1)
+    for t, m in zip(targets, miss, strict=True):
+        if m >= IK_TOL_MM:
+            raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
+                           f"{arm!r}: its calibrated model gets no closer than {m:.1f} mm")
+    return u
+
+
+def _log_stiffness_prior(n_joints: Sequence[int], stiffness: Sequence[np.ndarray | None]
+                         ) -> None:
+    """Each arm's joint log stiffnesses: the rig's values, or Normal(0, STIFFNESS_LOG_SD)."""
+    for i, (n, k) in enumerate(zip(n_joints, stiffness, strict=True)):
+        if k is None:
+            numpyro.sample(f"log_stiffness_{i}",
+                           dist.Normal(0.0, STIFFNESS_LOG_SD).expand([n]).to_event(1))
+        else:
+            numpyro.deterministic(f"log_stiffness_{i}", jnp.log(jnp.asarray(k, jnp.float64)))
+
+
+def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
+                      log_k: Sequence[jax.Array]) -> jax.Array:
+    """The balance (S, T, dim) of free points (each (S, T, dim)) held by arms with joint
+    Jacobians (T, dim, n_a) and log joint stiffnesses (S, n_a)."""
+    springs = [jnp.linalg.inv(jnp.einsum("tik,sk,tjk->stij", j, jnp.exp(-lk), j))
+               for j, lk in zip(jacs, log_k, strict=True)]
+    k = jnp.stack(springs)
+    pull = jnp.einsum("astij,astj->sti", k, jnp.stack([jnp.asarray(f) for f in free]))
+    return jnp.linalg.solve(k.sum(0), pull[..., None])[..., 0]
+
+
+def _parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
+    """Parameter vectors (S, P) from the calibration's Gaussian approximation: one per draw,
+    shared by every arm (the arms of a tree share links and the instrument)."""
+    w, v = np.linalg.eigh(mods.param_cov)
+    root = v * np.sqrt(np.clip(w, 0.0, None))
+    z = jax.random.normal(key, (n, len(w)))
+    return jnp.asarray(mods.x) + z @ jnp.asarray(root).T
+
+
+def _free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array
+                ) -> np.ndarray:
+    """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
+    vector of xs (S, P) per draw."""
+    n = xs.shape[0]
+    e, noise = mods.errors[arm].draw(key, (n, len(u)))
+    pts = _points_with_errors(mods.robot, arm)(xs, jnp.asarray(u), e)
+    eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
+    return np.asarray(pts + eps)
+
+
+def _points_with_errors(robot: kin.Robot, arm: str):
+    """A jitted (xs (S, P), u (T, c), e (S, T, n)) -> points (S, T, dim)."""
+    cache = robot.__dict__.setdefault("_points_with_errors", {})
+    if arm not in cache:
+        cache[arm] = jax.jit(jax.vmap(
+            lambda x, u, e: marker_points_with_errors(robot, x, arm, u, e), in_axes=(0, None, 0)))
+    return cache[arm]
+
+
+def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],
+                fusion: str = "equilibrium", num_samples: int = DRAWS, seed: int = 0
+                ) -> np.ndarray:
+    """Draws (S, T, dim) of one arm's end point or of linked arms' shared point."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
+    key = jax.random.PRNGKey(seed)
+    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+    if fusion == "product" and len(arms) > 1:
+        return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
+    xs = _parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
+    free = [_free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1))
+            for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
+    if len(arms) == 1:
+        return free[0]
+    jacs = [joint_jacobian(mods.robot, jnp.asarray(mods.x), a, jnp.asarray(u))
+            for a, u in zip(arms, commands, strict=True)]
+    # The joint Jacobian at the commanded pose serves every draw: joint errors of a few mrad
+    # change it by parts in a thousand.
+    n_joints = [j.shape[-1] for j in jacs]
+    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
+        jax.random.fold_in(key, 0), n_joints, [mods.stiffness[a] for a in arms])
+    log_k = [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, n))
+             for i, n in enumerate(n_joints)]
+    return np.asarray(chain_equilibrium(free, jacs, log_k))
+
+
+def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
+    t, dim = start.shape
+    p = numpyro.sample("p", dist.ImproperUniform(dist.constraints.real_vector, (t,), (dim,)))
+    for i, (a, u, cov, s) in enumerate(zip(arms, commands, covs, noises, strict=True)):
+        n = cov.shape[0]
+        chol = jnp.linalg.cholesky(cov + 1e-18 * jnp.eye(n))
+        z = numpyro.sample(f"z_{i}", dist.Normal(0.0, 1.0).expand([t, n]).to_event(2))
+        e = z @ chol.T
+        f = marker_points_with_errors(robot, x, a, u, e)
+        numpyro.sample(f"link_{i}", dist.Normal(f, s).to_event(2), obs=p)
+
+
+def product_draws_nuts(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],
+                       seed: int = 0, num_samples: int = DRAWS, warmup: int = 500,
+                       chains: int = 2) -> np.ndarray:
+    """NUTS draws (S, T, dim) of the shared point under the product of the arms' densities.
+
+    The population parameters are held at their posterior means (a mixture over them would
+    make the target multimodal in Sigma for nothing the draws could resolve).
+    """
+    from numpyro.infer import init_to_value
+
+    commands = [jnp.asarray(np.atleast_2d(np.asarray(u, float))) for u in commands]
+    covs = [jnp.asarray(mods.errors[a].covariance.mean(0)) for a in arms]
+    noises = [float(mods.errors[a].noise_sd.mean()) for a in arms]
+    x = jnp.asarray(mods.x)
+    start = jnp.mean(jnp.stack([mods.robot.compiled_points(a)(x, u)
+                                for a, u in zip(arms, commands, strict=True)]), axis=0)
+    init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))
+                           for i, c in enumerate(covs)}}
+    kernel = NUTS(_product_model, init_strategy=init_to_value(values=init), dense_mass=False,
+                  target_accept_prob=0.85)
+    per_chain = -(-num_samples // chains)
+    mcmc = MCMC(kernel, num_warmup=warmup, num_samples=per_chain, num_chains=chains,
+                chain_method="sequential", progress_bar=False)
+    mcmc.run(jax.random.PRNGKey(seed), commands, mods.robot, x, list(arms), covs, noises,
+             start)
+    return np.asarray(mcmc.get_samples()["p"])[:num_samples]
+
+
+def hdr_levels(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The HDR level of each point, (T,) for points (T, dim) or (K, T) for (K, T, dim): the
+    share of the KDE's mass denser than the point (inside the 50% region: level < 0.5),
+    estimated over the draws themselves."""
+    log_at = kde_log_density(draws, points)
+    ref = kde_log_density(draws, draws[:VOLUME_POINTS])  # (K0, T)
+    if log_at.ndim == 1:
+        return np.mean(ref > log_at[None], axis=0)
+    return np.mean(ref[None] > log_at[:, None], axis=1)
+
+
+def hdr_sizes(draws: np.ndarray, masses: Sequence[float] = (0.5, 0.9)) -> np.ndarray:
+    """Volumes (areas in 2-D) (len(masses), T) of the KDE's highest-density regions."""
+    sub = draws[: VOLUME_POINTS]
+    log_p = kde_log_density(draws, sub)  # (K, T)
+    out = []
+    for m in masses:
+        level = np.quantile(log_p, 1.0 - m, axis=0)
+        inside = log_p >= level[None]
+        out.append(np.mean(np.where(inside, np.exp(-log_p), 0.0), axis=0))
+    return np.asarray(out)
+
+
+def predict_chain_points(mods: ChainModules, rig: Rig, arms: Sequence[str], targets: np.ndarray,
+                         fusion: str, seed: int = 0, num_samples: int = DRAWS
+                         ) -> tuple[dict[str, np.ndarray], np.ndarray, float]:
+    """Aim ``arms`` at targets and draw the (shared) end point: (commands, draws, seconds)."""
+    t0 = time.perf_counter()
+    commands = {a: aim_chain(rig, mods.robot, mods.x, a, targets) for a in arms}
+    draws = chain_draws(mods, arms, [commands[a] for a in arms], fusion, num_samples, seed)
+    return commands, draws, time.perf_counter() - t0
