@@ -565,7 +565,12 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
 def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
     """``measurements.csv`` of a chain rig: ``x,y`` or ``x,y,z`` (mm) and each chain's
     ``<arm>_u1..<arm>_uN``; a row's ``config`` names the arm whose marker was measured, and the
-    row carries that arm's columns and its mounts' (targets are optional)."""
+    row carries that arm's columns and its mounts' (targets are optional).
+
+    A linked row (``config`` = ``left+right``) measures the one point where the named arms'
+    markers are joined: every member must carry a marker (a measured arm), and the row carries
+    the columns of every member's path. Calibration reads single-arm rows only
+    (:meth:`Rig.chain_rows` matches ``config`` exactly), so linked rows never enter a fit."""
     header, rows, starts = _read_csv(path)
     dim = 3 if "z" in header else 2
     robot = Robot(chains, dim)
@@ -598,24 +603,32 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     for r, lineno, where, row in _records(path, header, rows, starts):
         keep[r] = True
         members = _config_members(row, idx, chains, where)
-        if len(members) > 1:
-            raise RigError(f"{where}: config {'+'.join(members)!r} links chain arms; this "
-                           "version calibrates chain arms on single-marker rows only")
-        arm = members[0]
-        if arm not in measured:
-            raise RigError(f"{where}: config {arm!r} names an arm other arms are mounted on; "
-                           f"a marker is measured on an arm's tip ({', '.join(measured)})")
+        cfg = "+".join(members)
+        for arm in members:
+            if arm in measured:
+                continue
+            if len(members) == 1:
+                raise RigError(f"{where}: config {arm!r} names an arm other arms are mounted "
+                               f"on; a marker is measured on an arm's tip ({', '.join(measured)})")
+            raise RigError(f"{where}: linked config {cfg!r} names {arm!r}, an arm other arms "
+                           "are mounted on; arms are linked at the markers on their tips "
+                           f"({', '.join(measured)})")
         st = _set_of(row, idx, where)
-        uses = {c.name for c in robot.path(arm)}
+        # Members may share chains (two hands on one torso): each chain's columns once.
+        owner = {c.name: a for a in members for c in robot.path(a)}
         for c in chains.values():
+            uses = c.name in owner
             for k in range(c.n_columns):
                 col = f"{c.name}_u{k + 1}"
-                v = parse_number(row[idx[col]], where, col, allow_empty=c.name not in uses)
-                commands[c.name][r, k] = v if c.name in uses else math.nan
+                if uses and len(members) > 1 and row[idx[col]].strip() == "":
+                    raise RigError(f"{where}: a linked row for {cfg!r} is missing arm "
+                                   f"{owner[c.name]!r}'s {col!r}")
+                v = parse_number(row[idx[col]], where, col, allow_empty=not uses)
+                commands[c.name][r, k] = v if uses else math.nan
         observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
         if has_target:
             target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]
-        config[r], sets[r], lines[r] = arm, st, lineno
+        config[r], sets[r], lines[r] = cfg, st, lineno
         for h in extra_cols:
             extra[h].append(row[idx[h]])
     meas = Measurements(config=config[keep].astype(str), set=sets[keep].astype(str),
