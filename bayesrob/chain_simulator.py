@@ -7,17 +7,25 @@ carry joint repeatability noise and measurement noise, and optionally joint comp
 gravity: each joint gives way by its gravity torque over its stiffness (point masses at the
 links' centres), at the deflected pose's equilibrium. Training, validation and holdout rows are
 drawn at different random poses. The planar paper rigs come from :mod:`bayesrob.simulator`.
+
+:func:`simulate_linked_chain_rig` writes a rig of two such arms facing each other, with
+single-arm rows for each and ``left+right`` rows where their markers are joined at one point:
+the arms settle at the exact minimum of their summed spring and gravity energy with the
+markers together (:func:`linked_equilibrium`).
 """
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from importlib.resources import files
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from bayesrob.kinematics import Robot, urdf_chain
 from bayesrob.rig import dump_toml
@@ -53,14 +61,18 @@ class ChainTruth:
     true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
 
 
+# The working range of arm6's joints (rad): the shoulder lift keeps the arm off its own base.
+POSE_LO = np.array([-2.8, -2.2, -2.4, -2.8, -2.8, -3.0])
+POSE_HI = np.array([2.8, -0.6, 2.4, 2.8, 2.8, 3.0])
+
+
 def _poses(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Random joint angles over a working range that keeps the arm off its own base."""
-    lo = np.array([-2.8, -2.2, -2.4, -2.8, -2.8, -3.0])
-    hi = np.array([2.8, -0.6, 2.4, 2.8, 2.8, 3.0])
-    return rng.uniform(lo, hi, size=(n, 6))
+    """Random joint angles over the working range."""
+    return rng.uniform(POSE_LO, POSE_HI, size=(n, 6))
 
 
-def _true_vector(robot: Robot, truth: ChainTruth, rng: np.random.Generator) -> np.ndarray:
+def _true_vector(robot: Robot, truth: ChainTruth | LinkedChainTruth,
+                 rng: np.random.Generator) -> np.ndarray:
     layout = robot.layout
     x = layout.nominal.copy()
     for i, p in enumerate(layout.params):
@@ -77,6 +89,15 @@ def _true_vector(robot: Robot, truth: ChainTruth, rng: np.random.Generator) -> n
     return x
 
 
+def _frames_program(robot: Robot, arm: str):
+    """``robot.element_frames`` of one arm, compiled once per robot and arm: the fixed-point
+    steps below call it repeatedly, and run eagerly it took most of a simulation's time."""
+    cache = robot.__dict__.setdefault("_simulator_frames", {})
+    if arm not in cache:
+        cache[arm] = jax.jit(lambda x, u: robot.element_frames(x, arm, u))
+    return cache[arm]
+
+
 def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                        masses_kg: np.ndarray, stiffness: np.ndarray,
                        gravity: np.ndarray, iterations: int = 4) -> np.ndarray:
@@ -84,14 +105,16 @@ def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
 
     Each link's mass sits halfway along the next origin's translation (its centre); the
     torque about a joint is that of the masses beyond it about its axis. Deflections are a few
-    mrad, so the step contracts fast (four steps change nothing above 1e-9 rad).
+    mrad, so the step contracts fast: at the default masses and stiffnesses four steps leave
+    about 1e-6 rad, eight about 1e-12 rad (more for softer joints).
     """
     chain = robot.chains[arm]
+    frames = _frames_program(robot, arm)
     half = np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]])  # (n, 4)
     g = np.asarray(gravity, float) * G_N_PER_KG
     dq = np.zeros_like(q)
     for _ in range(iterations):
-        joints, links = robot.element_frames(jnp.asarray(x), arm, jnp.asarray(q + dq))
+        joints, links = frames(jnp.asarray(x), jnp.asarray(q + dq))
         joints, links = np.asarray(joints), np.asarray(links)
         n = chain.n_joints
         centres = np.einsum("enij,ej->eni", links[:n], half)[..., :3]  # (n, N, 3)
@@ -156,8 +179,457 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
 
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:
-    """The true parameter values a simulated chain rig was made with."""
+    """The true parameter values a simulated chain rig (one arm or two linked) was made with."""
     import tomllib
 
     doc = tomllib.loads((Path(rig_dir) / "truth.toml").read_text())
-    return doc["chain_truth"]["true_params"]
+    table = doc["chain_truth"] if "chain_truth" in doc else doc["linked_chain_truth"]
+    return table["true_params"]
+
+
+# ----------------------------------------------------------------------------- linked arms
+# Two arm6 arms facing each other over a shared workspace, their markers joined by a ball
+# joint for the linked rows. The joined point is found exactly, as the minimum of the arms'
+# summed spring and gravity energy under the constraint that the markers coincide: the
+# prediction code under test balances linearised stiffnesses, so the simulator must not.
+
+LINKED_ARMS = ("left", "right")
+GRAVITY = (0.0, 0.0, -1.0)  # unit gravity in the instrument frame
+
+
+def _left_stiffness() -> tuple[float, ...]:
+    return ChainTruth().stiffness_nmm_per_rad
+
+
+@dataclass
+class LinkedChainTruth:
+    """What a simulated rig of two linked arm6 arms really is (written to truth.toml).
+
+    Per-arm settings are tables keyed by arm name (``left``, ``right``); everything else is
+    shared. ``true_params`` holds both arms' parameters under their full names
+    (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
+    :func:`simulate_linked_chain_rig`).
+    """
+
+    seed: int = 0
+    n_train: int = 80
+    n_validation: int = 40
+    n_holdout: int = 40
+    n_linked: int = 24
+    origin_sd_mm: float = 1.0
+    origin_sd_rad: float = 2e-3
+    offset_sd_rad: float = 3e-3
+    marker_nominal_mm: tuple[float, float, float] = (0.0, 0.0, 50.0)
+    marker_sd_mm: float = 2.0
+    # Bases 900 mm apart on the x axis, facing each other (the right one turned half a turn).
+    instrument_nominal: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
+        "left": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), "right": (900.0, 0.0, 0.0, 0.0, 0.0, np.pi)})
+    instrument_sd: tuple[float, float] = (5.0, 5e-3)  # mm, rad
+    joint_noise_rad: float = 1e-4
+    measurement_noise_mm: float = 0.1
+    compliance: bool = True
+    masses_kg: tuple[float, ...] = (3.7, 8.4, 2.3, 1.2, 1.2, 0.2)
+    # The right arm is the softer one (0.6 of the left's stiffness): where the linked point
+    # settles between the arms depends on the ratio.
+    stiffness_nmm_per_rad: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
+        "left": _left_stiffness(), "right": tuple(0.6 * k for k in _left_stiffness())})
+    # Linked targets are drawn uniformly in this box (instrument frame, mm): between the bases,
+    # 300-600 mm in front of each, within both arms' reach at their working joint ranges.
+    target_box_mm: tuple[tuple[float, float], ...] = ((300.0, 600.0), (-150.0, 150.0),
+                                                      (100.0, 300.0))
+    calibration_groups: tuple[str, ...] = ("frames", "offsets", "geometric")
+    true_params: dict = field(default_factory=dict)
+    linked_rows: dict = field(default_factory=dict)
+
+
+@dataclass
+class LinkedEquilibrium:
+    """Where arms whose markers are joined settle, row by row (N rows, mm and rad)."""
+
+    point: np.ndarray  # (N, 3) the joined marker point in the instrument frame
+    joints: dict[str, np.ndarray]  # arm -> (N, n) joint columns at the linked equilibrium
+    free_points: dict[str, np.ndarray]  # arm -> (N, 3) the marker at the arm's own equilibrium
+    free_joints: dict[str, np.ndarray]  # arm -> (N, n) joint columns there
+    multipliers: np.ndarray  # (N, 3 (A - 1)) Lagrange multipliers: the joint's forces (N)
+    violation_mm: np.ndarray  # (N,) largest distance between joined markers
+    iterations: int  # Newton steps on the Lagrange conditions (all rows step together)
+
+
+def _gravity_forces(masses_kg: np.ndarray | None, gravity: Sequence[float] | None,
+                    n: int) -> np.ndarray:
+    """Weights (n, 3) in N of the links' point masses; zero without gravity."""
+    if masses_kg is None or gravity is None:
+        return np.zeros((n, 3))
+    g = np.asarray(gravity, float)
+    return np.asarray(masses_kg, float)[:, None] * (G_N_PER_KG * g / np.linalg.norm(g))[None]
+
+
+def _arm_program(robot: Robot, arm: str):
+    """A compiled ``(x, u, u0, k, weight) -> dict`` of one arm over rows u (N, n), built once
+    per robot and arm: the energy of springs (stiffness k, N mm/rad) holding the joint columns
+    at u0 plus the potential of the link weights (N, at the links' centres as in
+    :func:`gravity_deflection`), its gradient and Hessian, and the marker with its first and
+    second derivatives.
+
+    The derivatives are closed forms on the frames of one forward pass (no automatic
+    differentiation through the chain's scan, which took seconds to compile): a point r
+    carried beyond joint j moves by a_j x (r - o_j) when j turns (axis a_j through o_j), and
+    d2 r / du_i du_j = a_i x (a_j x (r - o_j)) for i <= j, since joint i carries axis j and
+    its origin along.
+    """
+    cache = robot.__dict__.setdefault("_linked_arm_programs", {})
+    if arm in cache:
+        return cache[arm]
+    chain = robot.chains[arm]
+    if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
+        raise ValueError(f"arm {arm!r}: linked equilibria are computed for arms of revolute "
+                         "joints standing on their own (not mounted on another arm)")
+    n = chain.n_joints
+    half = jnp.asarray(np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]]))
+    axes = jnp.asarray(chain.axes)
+    marker = robot.layout.slices[(arm, "marker")]
+    upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
+    ordered = jnp.asarray(upper[:, :, None] & upper[None, :, :])  # [i, j, k]: i <= j <= k
+
+    def evaluate(x, u, u0, k, weight):
+        joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
+        a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
+        o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
+        centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
+        tip = links[-1]
+        p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
+        jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
+        hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
+        hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
+        # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
+        s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
+        torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
+        t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
+                       weight, ordered)
+        hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
+        d = u - u0
+        return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
+                - jnp.einsum("nkd,kd->n", centres, weight),
+                "grad": k * d - torque, "hess": jnp.diag(k)[None] + hv,
+                "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
+
+    cache[arm] = jax.jit(evaluate)
+    return cache[arm]
+
+
+def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np.ndarray],
+                u0s: Sequence[np.ndarray], ks: Sequence[jax.Array],
+                weights: Sequence[jax.Array]) -> list[dict[str, np.ndarray]]:
+    return [{key: np.asarray(v) for key, v in _arm_program(robot, a)(
+        x, jnp.asarray(u), jnp.asarray(u0), k, w).items()}
+        for a, u, u0, k, w in zip(arms, us, u0s, ks, weights, strict=True)]
+
+
+def _physics_arguments(robot: Robot, arms: Sequence[str], stiffness: Mapping[str, np.ndarray],
+                       masses_kg: Mapping[str, np.ndarray] | None,
+                       gravity: Sequence[float] | None) -> tuple[list, list]:
+    ks = [jnp.asarray(np.asarray(stiffness[a], float)) for a in arms]
+    weights = [jnp.asarray(_gravity_forces(None if masses_kg is None else masses_kg[a],
+                                           gravity, robot.chains[a].n_joints)) for a in arms]
+    return ks, weights
+
+
+def linked_energy(robot: Robot, x: np.ndarray, u: Mapping[str, np.ndarray],
+                  u0: Mapping[str, np.ndarray], stiffness: Mapping[str, np.ndarray],
+                  masses_kg: Mapping[str, np.ndarray] | None = None,
+                  gravity: Sequence[float] | None = GRAVITY) -> np.ndarray:
+    """Total potential energy (N mm) of the arms at joint columns ``u[arm]`` (N, n), per row:
+    springs of stiffness ``stiffness[arm]`` (N mm/rad) holding the columns at ``u0[arm]``,
+    plus the potential of the link masses (``masses_kg[arm]``, kg, at the links' centres)
+    under ``gravity`` (instrument frame; None or no masses: none). The markers need not meet.
+    """
+    arms = tuple(u)
+    ks, weights = _physics_arguments(robot, arms, stiffness, masses_kg, gravity)
+    states = _arm_states(robot, arms, jnp.asarray(x, float),
+                         [np.atleast_2d(u[a]) for a in arms],
+                         [np.atleast_2d(u0[a]) for a in arms], ks, weights)
+    return sum(s["energy"] for s in states)
+
+
+def _kkt_system(states: list[dict[str, np.ndarray]], lam: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gradient and Hessian of the Lagrangian, the constraints (each marker on the next) and
+    their Jacobian, over rows: (N, Z), (N, Z, Z), (N, M), (N, M, Z)."""
+    n_rows, n_arms = len(lam), len(states)
+    sizes = [s["grad"].shape[1] for s in states]
+    cuts = np.cumsum([0, *sizes])
+    lam = lam.reshape(n_rows, n_arms - 1, 3)
+    zero = np.zeros((n_rows, 1, 3))
+    # c_j = p_j - p_{j+1}: arm a's marker carries lam_a - lam_{a-1}
+    mu = np.concatenate([lam, zero], 1) - np.concatenate([zero, lam], 1)
+    grad = np.concatenate([s["grad"] + np.einsum("ndj,nd->nj", s["jac"], mu[:, a])
+                           for a, s in enumerate(states)], axis=1)
+    hess = np.zeros((n_rows, cuts[-1], cuts[-1]))
+    jc = np.zeros((n_rows, 3 * (n_arms - 1), cuts[-1]))
+    for a, s in enumerate(states):
+        block = slice(cuts[a], cuts[a + 1])
+        hess[:, block, block] = s["hess"] + np.einsum("nijd,nd->nij", s["point_hess"], mu[:, a])
+        if a < n_arms - 1:
+            jc[:, 3 * a:3 * a + 3, block] = s["jac"]
+        if a > 0:
+            jc[:, 3 * a - 3:3 * a, block] = -s["jac"]
+    c = np.concatenate([states[a]["point"] - states[a + 1]["point"]
+                        for a in range(n_arms - 1)], axis=1)
+    return grad, hess, c, jc
+
+
+def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray],
+                       stiffness: Mapping[str, np.ndarray],
+                       masses_kg: Mapping[str, np.ndarray] | None = None,
+                       gravity: Sequence[float] | None = GRAVITY, tol_mm: float = 1e-9,
+                       max_iter: int = 40) -> LinkedEquilibrium:
+    """The exact equilibrium of arms whose markers are joined by a ball joint, row by row.
+
+    Each arm's joints are torsional springs (``stiffness[arm]``, N mm/rad) holding its joint
+    columns at ``u0[arm]`` (N, n) (commanded plus joint noise); the links' point masses
+    (``masses_kg[arm]``, kg, at the links' centres as in :func:`gravity_deflection`) hang
+    under ``gravity`` (a direction in the instrument frame; None: no gravity). The arms settle
+    at the minimum of their summed energy subject to every marker (true parameters ``x``)
+    being at one point; the joint's orientation is free. Solved by Newton's method on the
+    Lagrange conditions with exact first and second derivatives, started from each arm's own
+    (free) equilibrium, itself found by Newton on its energy. Raises RuntimeError when a row
+    does not converge (markers more than ``tol_mm`` apart, at most 1e-6 mm) or stops at a
+    point that is not a constrained minimum.
+    """
+    arms = tuple(u0)
+    if len(arms) < 2:
+        raise ValueError("a linked equilibrium needs two arms or more")
+    xj = jnp.asarray(x, float)
+    ks, weights = _physics_arguments(robot, arms, stiffness, masses_kg, gravity)
+    u0s = [np.atleast_2d(np.asarray(u0[a], float)) for a in arms]
+
+    def states(us):
+        return _arm_states(robot, arms, xj, us, u0s, ks, weights)
+
+    us = [u.copy() for u in u0s]
+    for _ in range(max_iter):
+        steps = [-np.linalg.solve(s["hess"], s["grad"][..., None])[..., 0] for s in states(us)]
+        us = [u + d for u, d in zip(us, steps, strict=True)]
+        if max(np.abs(d).max() for d in steps) < 1e-12:
+            break
+    else:
+        raise RuntimeError(f"free equilibrium did not converge in {max_iter} Newton steps")
+    free = states(us)
+    free_joints = [u.copy() for u in us]
+    cuts = np.cumsum([0, *(u.shape[1] for u in us)])
+    n_rows = len(us[0])
+    lam = np.zeros((n_rows, 3 * (len(arms) - 1)))
+    iterations = 0
+    while True:
+        grad, hess, c, jc = _kkt_system(states(us), lam)
+        m = c.shape[1]
+        kkt = np.block([[hess, np.swapaxes(jc, 1, 2)], [jc, np.zeros((n_rows, m, m))]])
+        step = np.linalg.solve(kkt, -np.concatenate([grad, c], axis=1)[..., None])[..., 0]
+        dz = step[:, :cuts[-1]]
+        us = [u + dz[:, cuts[i]:cuts[i + 1]] for i, u in enumerate(us)]
+        lam = lam + step[:, cuts[-1]:]
+        iterations += 1
+        if np.abs(dz).max() < 1e-12 or iterations == max_iter:
+            break
+    final = states(us)
+    _, hess, c, jc = _kkt_system(final, lam)
+    violation_mm = np.linalg.norm(c.reshape(n_rows, -1, 3), axis=2).max(axis=1)
+    worst = int(np.argmax(violation_mm))
+    if not np.all(np.isfinite(violation_mm)) or violation_mm[worst] > min(tol_mm, 1e-6):
+        raise RuntimeError(f"linked equilibrium did not converge in {iterations} Newton steps: "
+                           f"row {worst}'s markers are {violation_mm[worst]:.3g} mm apart")
+    # A stationary point of the Lagrangian is the minimum only if the energy curves upwards
+    # along every direction that keeps the markers together.
+    for r in range(n_rows):
+        _, sv, vt = np.linalg.svd(jc[r])
+        tangent = vt[int(np.sum(sv > 1e-12 * sv[0])):].T
+        lowest = np.linalg.eigvalsh(tangent.T @ hess[r] @ tangent).min()
+        if lowest <= 0:
+            raise RuntimeError(f"linked equilibrium of row {r} is not a minimum (reduced "
+                               f"Hessian eigenvalue {lowest:.3g})")
+    return LinkedEquilibrium(
+        point=np.mean([s["point"] for s in final], axis=0),
+        joints=dict(zip(arms, us, strict=True)),
+        free_points={a: s["point"] for a, s in zip(arms, free, strict=True)},
+        free_joints=dict(zip(arms, free_joints, strict=True)),
+        multipliers=lam, violation_mm=violation_mm, iterations=iterations)
+
+
+def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seeds: np.ndarray,
+                lo: np.ndarray = POSE_LO, hi: np.ndarray = POSE_HI, tol_mm: float = 1e-8,
+                max_iter: int = 60, max_step_rad: float = 0.3) -> np.ndarray:
+    """Joint columns (N, n) that put ``arm``'s marker on each of ``targets`` (N, 3) (mm)
+    under parameters x, all rows at once.
+
+    Gauss-Newton on the 3-D marker point from ``seeds`` (N, S, n), best first, or (S, n) for
+    every row: a 6-joint arm is redundant for a point, so each step is the minimum-norm one
+    (the pseudo-inverse), which keeps near the seed's posture; steps longer than
+    ``max_step_rad`` are shortened while far from the target. A row takes the first solution
+    within ``tol_mm`` whose joints lie in [lo, hi], and moves on to its next seed when a
+    solution leaves the range or ``max_iter`` steps do not converge; RuntimeError when a
+    row's seeds run out.
+    """
+    targets = np.atleast_2d(np.asarray(targets, float))
+    n_rows = len(targets)
+    seeds = np.asarray(seeds, float)
+    if seeds.ndim == 2:
+        seeds = np.broadcast_to(seeds, (n_rows, *seeds.shape))
+    program = _arm_program(robot, arm)
+    n = robot.chains[arm].n_joints
+    xj, k0, w0 = jnp.asarray(x, float), jnp.zeros(n), jnp.zeros((n, 3))
+    rows = np.arange(n_rows)
+    which = np.zeros(n_rows, int)
+    u = seeds[:, 0].copy()
+    steps = np.zeros(n_rows, int)
+    done = np.zeros(n_rows, bool)
+    while True:
+        state = program(xj, jnp.asarray(u), jnp.asarray(u), k0, w0)
+        err = targets - np.asarray(state["point"])
+        close = np.linalg.norm(err, axis=1) < tol_mm
+        done |= close & np.all((u >= lo) & (u <= hi), axis=1)
+        if done.all():
+            return u
+        restart = ~done & (close | (steps >= max_iter))
+        which[restart] += 1
+        if np.any(which >= seeds.shape[1]):
+            r = int(np.flatnonzero(which >= seeds.shape[1])[0])
+            raise RuntimeError(f"arm {arm!r}: no joint solution in the working range reaches "
+                               f"{targets[r].round(1).tolist()} mm from {seeds.shape[1]} seeds")
+        u[restart] = seeds[rows[restart], which[restart]]
+        steps[restart] = 0
+        move = ~done & ~restart
+        step = np.einsum("nij,nj->ni", np.linalg.pinv(np.asarray(state["jac"])), err)
+        size = np.linalg.norm(step, axis=1)
+        scale = np.minimum(1.0, max_step_rad / np.maximum(size, 1e-300))
+        u[move] += (step * scale[:, None])[move]
+        steps[move] += 1
+
+
+def _arm_table(name: str, marker: Sequence[float], instrument: Sequence[float]) -> dict:
+    return {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0", "marker": list(marker),
+            "instrument": [float(v) for v in instrument]}
+
+
+def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
+             commands: Mapping[str, np.ndarray], point: np.ndarray) -> str:
+    cells = [config, set_name]
+    cells += [f"{v:.4f}" for v in target] if target is not None else ["", "", ""]
+    for a in LINKED_ARMS:
+        cells += [f"{v:.10g}" for v in commands[a]] if a in commands else [""] * 6
+    return ",".join(cells + [f"{v:.4f}" for v in point])
+
+
+def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedChainTruth,
+                    rng: np.random.Generator) -> tuple:
+    """The linked rows of the rig in ``out`` (single-arm rows written): targets (L, 3),
+    commands and spring set points per arm (L, 6), and the true equilibrium."""
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.rig import load_rig
+
+    rig = load_rig(out)
+    # The rig's robot is the simulator's (same URDF, names and layout): one compiled program
+    # per arm then serves the inverse kinematics and the physics.
+    if rig.robot.layout.names != robot.layout.names:
+        raise RuntimeError("the written rig does not read back as the simulated robot")
+    # The commands come from what a user would have: each arm's model calibrated on its own
+    # train rows, not the truth.
+    cal = calibrate_chain(rig, tuple(truth.calibration_groups))
+    box = np.asarray(truth.target_box_mm, float)
+    targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
+    commands = {}
+    for arm in LINKED_ARMS:
+        u_train, p_train = rig.chain_rows(arm, "train")
+        nearest = np.argsort(np.linalg.norm(p_train[None] - targets[:, None], axis=2), axis=1)
+        u = position_ik(cal.robot, cal.x, arm, targets, u_train[nearest])
+        # Ten significant digits, as written: the springs hold what the file says.
+        commands[arm] = np.array([[float(f"{v:.10g}") for v in row] for row in u])
+    u0 = {a: commands[a] + rng.normal(0, truth.joint_noise_rad, commands[a].shape)
+          for a in LINKED_ARMS}
+    masses = np.asarray(truth.masses_kg, float)
+    eq = linked_equilibrium(
+        rig.robot, x_true, u0,
+        {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS},
+        {a: masses for a in LINKED_ARMS} if truth.compliance else None,
+        GRAVITY if truth.compliance else None)
+    return targets, commands, u0, eq
+
+
+def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
+    """Write a rig of two arm6 arms, ``left`` and ``right``, into out_dir: rig.toml, arm6.urdf
+    (nominal), measurements.csv and truth.toml.
+
+    Each arm has single-arm train, validation and holdout rows at random poses (as
+    :func:`simulate_chain_rig`, with its own true geometry, noise and compliance). Then each
+    arm is calibrated on its train rows (``truth.calibration_groups``) and the ``left+right``
+    test rows aim both arms at random targets in ``truth.target_box_mm`` through their
+    calibrated models (position-only inverse kinematics); their observed point is where the
+    joined markers really settle (:func:`linked_equilibrium`), plus measurement noise.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(truth.seed)
+    chains = {a: urdf_chain(arm6_urdf_path(), "base_link", "tool0", a,
+                            marker=truth.marker_nominal_mm,
+                            instrument=truth.instrument_nominal[a]) for a in LINKED_ARMS}
+    robot = Robot(chains, 3)
+    x_true = _true_vector(robot, truth, rng)
+    masses = np.asarray(truth.masses_kg, float)
+    stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS}
+    lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
+                       *[f"{a}_u{k + 1}" for a in LINKED_ARMS for k in range(6)],
+                       "x", "y", "z"])]
+    sets = [(s, n) for s, n in (("train", truth.n_train), ("validation", truth.n_validation),
+                                ("holdout", truth.n_holdout)) if n]
+    for arm in LINKED_ARMS:
+        q_cmd = _poses(rng, sum(n for _, n in sets))
+        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
+        if truth.compliance:
+            # Frames in the instrument frame, so gravity is the instrument's -z. Eight steps:
+            # the softer arm's fixed point contracts more slowly than four steps allow (they
+            # leave up to 6e-6 rad).
+            q = q + gravity_deflection(robot, x_true, arm, q, masses, stiffness[arm],
+                                       np.asarray(GRAVITY), iterations=8)
+        p = np.asarray(robot.marker_points(jnp.asarray(x_true), arm, jnp.asarray(q)))
+        p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+        names = [s for s, n in sets for _ in range(n)]
+        lines += [_fmt_row(arm, s, None, {arm: qc}, pc)
+                  for s, qc, pc in zip(names, q_cmd, p, strict=True)]
+    shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
+    rig_doc = {"name": f"arm6-linked-seed{truth.seed}", "gravity": list(GRAVITY),
+               "arms": {a: _arm_table(a, truth.marker_nominal_mm, truth.instrument_nominal[a])
+                        for a in LINKED_ARMS}}
+    (out / "rig.toml").write_text(dump_toml(rig_doc))
+    (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+
+    linked: dict = {}
+    if truth.n_linked:
+        # Small dense solves throughout (the fit's rank analysis, pseudo-inverses, KKT
+        # systems): BLAS threads only hand them between busy cores, several times slower.
+        with threadpool_limits(limits=1, user_api="blas"):
+            targets, commands, u0, eq = _aim_and_settle(out, robot, x_true, truth, rng)
+        observed = eq.point + rng.normal(0, truth.measurement_noise_mm, eq.point.shape)
+        first_line = len(lines) + 1
+        lines += [_fmt_row("+".join(LINKED_ARMS), "test", t,
+                           {a: commands[a][i] for a in LINKED_ARMS}, o)
+                  for i, (t, o) in enumerate(zip(targets, observed, strict=True))]
+        (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+        linked = {
+            "line": list(range(first_line, first_line + truth.n_linked)),
+            "target": targets.tolist(),
+            "point": eq.point.tolist(),
+            **{f"free_{a}": eq.free_points[a].tolist() for a in LINKED_ARMS},
+            **{f"u0_{a}": u0[a].tolist() for a in LINKED_ARMS},
+            "max_violation_mm": float(eq.violation_mm.max()),
+        }
+    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
+                                                            strict=True)}
+    truth.linked_rows = linked
+    (out / "truth.toml").write_text(dump_toml({"linked_chain_truth": asdict(truth)}))
+    return out
+
+
+def load_linked_truth(rig_dir: str | Path) -> dict:
+    """The ``linked_chain_truth`` table of a rig written by :func:`simulate_linked_chain_rig`."""
+    import tomllib
+
+    return tomllib.loads((Path(rig_dir) / "truth.toml").read_text())["linked_chain_truth"]
