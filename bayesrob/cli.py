@@ -116,11 +116,16 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", choices=["paper", "arm6"], default="paper",
                    help="paper: the two planar arms (default); arm6: a 6-joint 3-D URDF arm "
                         "with perturbed joint origins, offsets, marker and instrument pose")
-    p.add_argument("--compliance", action="store_true",
-                   help="arm6: joints give way under gravity (point masses, joint stiffness)")
+    p.add_argument("--compliance", action=argparse.BooleanOptionalAction, default=None,
+                   help="arm6: joints give way under gravity (point masses, joint stiffness); "
+                        "off by default, on by default with --linked")
     p.add_argument("--poses", type=_positive_int, nargs=3, default=None,
                    metavar=("TRAIN", "VALIDATION", "HOLDOUT"),
                    help="arm6: random poses per set (80 40 40), each set at its own poses")
+    p.add_argument("--linked", action="store_true",
+                   help="arm6: two arms (left, right) facing each other, single-arm rows for "
+                        "each (--poses per arm) and 24 left+right test rows with their markers "
+                        "joined at one point")
 
 
 def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
@@ -131,7 +136,9 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     if args.effects or args.grid != 4:
         raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
                          "--compliance and --poses")
-    truth = ChainTruth(seed=args.seed, compliance=args.compliance)
+    if args.linked:
+        return _simulate_linked_chain(args, out_dir, existing)
+    truth = ChainTruth(seed=args.seed, compliance=bool(args.compliance))
     if args.poses:
         truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
                         n_holdout=args.poses[2])
@@ -145,6 +152,34 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
           f"seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml")
+    return 0
+
+
+def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
+    from dataclasses import replace
+
+    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+
+    truth = LinkedChainTruth(seed=args.seed)
+    if args.compliance is not None:
+        truth = replace(truth, compliance=args.compliance)
+    if args.poses:
+        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
+                        n_holdout=args.poses[2])
+    if args.joint_noise_rad is not None:
+        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
+    if args.measurement_noise_mm is not None:
+        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    try:
+        out = simulate_linked_chain_rig(out_dir, truth)
+    except RuntimeError as exc:  # an unreachable target or an equilibrium that did not settle
+        raise UsageError(str(exc)) from None
+    if existing:
+        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    print(f"wrote {out}/ (arm6 left+right, {truth.n_train}/{truth.n_validation}/"
+          f"{truth.n_holdout} train/validation/holdout poses per arm, {truth.n_linked} linked "
+          f"test rows, compliance {'on' if truth.compliance else 'off'}, seed {args.seed}): "
+          "measurements.csv, rig.toml, arm6.urdf, truth.toml")
     return 0
 
 
@@ -168,8 +203,8 @@ def _simulate(args: argparse.Namespace) -> int:
                          "--force to overwrite, or choose another directory)")
     if args.robot == "arm6":
         return _simulate_chain(args, out_dir, existing)
-    if args.compliance or args.poses:
-        raise UsageError("--compliance and --poses are for --robot arm6")
+    if args.compliance is not None or args.poses or args.linked:
+        raise UsageError("--compliance, --poses and --linked are for --robot arm6")
     truth = paper_truth(args.effects, seed=args.seed, grid=args.grid)
     if args.joint_noise_rad is not None:
         truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
