@@ -197,6 +197,11 @@ LINKED_ARMS = ("left", "right")
 GRAVITY = (0.0, 0.0, -1.0)  # unit gravity in the instrument frame
 
 
+class LinkedSimulationError(RuntimeError):
+    """A linked row cannot be made: no joint solution reaches a target within the working
+    range, or the joined arms' equilibrium did not settle."""
+
+
 def _left_stiffness() -> tuple[float, ...]:
     return ChainTruth().stiffness_nmm_per_rad
 
@@ -392,9 +397,9 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
     at the minimum of their summed energy subject to every marker (true parameters ``x``)
     being at one point; the joint's orientation is free. Solved by Newton's method on the
     Lagrange conditions with exact first and second derivatives, started from each arm's own
-    (free) equilibrium, itself found by Newton on its energy. Raises RuntimeError when a row
-    does not converge (markers more than ``tol_mm`` apart, at most 1e-6 mm) or stops at a
-    point that is not a constrained minimum.
+    (free) equilibrium, itself found by Newton on its energy. Raises LinkedSimulationError
+    when a row does not converge (markers more than ``tol_mm`` apart, at most 1e-6 mm) or
+    stops at a point that is not a constrained minimum.
     """
     arms = tuple(u0)
     if len(arms) < 2:
@@ -413,7 +418,7 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
         if max(np.abs(d).max() for d in steps) < 1e-12:
             break
     else:
-        raise RuntimeError(f"free equilibrium did not converge in {max_iter} Newton steps")
+        raise LinkedSimulationError(f"free equilibrium did not converge in {max_iter} Newton steps")
     free = states(us)
     free_joints = [u.copy() for u in us]
     cuts = np.cumsum([0, *(u.shape[1] for u in us)])
@@ -436,8 +441,9 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
     violation_mm = np.linalg.norm(c.reshape(n_rows, -1, 3), axis=2).max(axis=1)
     worst = int(np.argmax(violation_mm))
     if not np.all(np.isfinite(violation_mm)) or violation_mm[worst] > min(tol_mm, 1e-6):
-        raise RuntimeError(f"linked equilibrium did not converge in {iterations} Newton steps: "
-                           f"row {worst}'s markers are {violation_mm[worst]:.3g} mm apart")
+        raise LinkedSimulationError(
+            f"linked equilibrium did not converge in {iterations} Newton steps: row {worst}'s "
+            f"markers are {violation_mm[worst]:.3g} mm apart")
     # A stationary point of the Lagrangian is the minimum only if the energy curves upwards
     # along every direction that keeps the markers together.
     for r in range(n_rows):
@@ -445,8 +451,8 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
         tangent = vt[int(np.sum(sv > 1e-12 * sv[0])):].T
         lowest = np.linalg.eigvalsh(tangent.T @ hess[r] @ tangent).min()
         if lowest <= 0:
-            raise RuntimeError(f"linked equilibrium of row {r} is not a minimum (reduced "
-                               f"Hessian eigenvalue {lowest:.3g})")
+            raise LinkedSimulationError(f"linked equilibrium of row {r} is not a minimum "
+                                        f"(reduced Hessian eigenvalue {lowest:.3g})")
     return LinkedEquilibrium(
         point=np.mean([s["point"] for s in final], axis=0),
         joints=dict(zip(arms, us, strict=True)),
@@ -466,8 +472,8 @@ def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seed
     (the pseudo-inverse), which keeps near the seed's posture; steps longer than
     ``max_step_rad`` are shortened while far from the target. A row takes the first solution
     within ``tol_mm`` whose joints lie in [lo, hi], and moves on to its next seed when a
-    solution leaves the range or ``max_iter`` steps do not converge; RuntimeError when a
-    row's seeds run out.
+    solution leaves the range or ``max_iter`` steps do not converge; LinkedSimulationError
+    when a row's seeds run out.
     """
     targets = np.atleast_2d(np.asarray(targets, float))
     n_rows = len(targets)
@@ -493,8 +499,9 @@ def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seed
         which[restart] += 1
         if np.any(which >= seeds.shape[1]):
             r = int(np.flatnonzero(which >= seeds.shape[1])[0])
-            raise RuntimeError(f"arm {arm!r}: no joint solution in the working range reaches "
-                               f"{targets[r].round(1).tolist()} mm from {seeds.shape[1]} seeds")
+            raise LinkedSimulationError(
+                f"arm {arm!r}: no joint solution in the working range reaches "
+                f"{targets[r].round(1).tolist()} mm from {seeds.shape[1]} seeds")
         u[restart] = seeds[rows[restart], which[restart]]
         steps[restart] = 0
         move = ~done & ~restart

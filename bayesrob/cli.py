@@ -158,7 +158,11 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
 def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
     from dataclasses import replace
 
-    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.chain_simulator import (
+        LinkedChainTruth,
+        LinkedSimulationError,
+        simulate_linked_chain_rig,
+    )
 
     truth = LinkedChainTruth(seed=args.seed)
     if args.compliance is not None:
@@ -172,7 +176,7 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
         truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
     try:
         out = simulate_linked_chain_rig(out_dir, truth)
-    except RuntimeError as exc:  # an unreachable target or an equilibrium that did not settle
+    except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     if existing:
         print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
