@@ -39,7 +39,7 @@ from numpyro.infer import MCMC, NUTS, Predictive
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
-from bayesrob.fusion import DRAWS, FUSIONS, STIFFNESS_LOG_SD, kde_log_density
+from bayesrob.fusion import DRAWS, FUSIONS, STIFFNESS_LOG_SD, kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
     LatentJointErrors,
     fit_latent_errors,
@@ -76,8 +76,15 @@ class ChainModules:
 
 def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                       groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
-                      calibration: ChainCalibration | None = None) -> ChainModules:
-    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors."""
+                      calibration: ChainCalibration | None = None,
+                      parameter_uncertainty: bool = False) -> ChainModules:
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
+
+    ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
+    covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
+    too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
+    residual scaling for the fit's degrees of freedom having already widened them.
+    """
     measured = rig.robot.measured_arms()
     for a in arms:
         if a not in measured:
@@ -91,7 +98,9 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
     stiffness = {a: getattr(rig.arms[a], "stiffness", None) for a in arms}
-    return ChainModules(cal, errors, stiffness, chain_parameter_covariance(rig, cal))
+    cov = (chain_parameter_covariance(rig, cal) if parameter_uncertainty
+           else np.zeros((len(cal.x), len(cal.x))))
+    return ChainModules(cal, errors, stiffness, cov)
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -260,12 +269,20 @@ def product_draws_nuts(mods: ChainModules, arms: Sequence[str], commands: Sequen
     return np.asarray(mcmc.get_samples()["p"])[:num_samples]
 
 
+def _kde_draws(draws: np.ndarray) -> np.ndarray:
+    """VOLUME_POINTS draws (K, T, dim) from the KDE itself (a draw plus kernel noise): the
+    region estimators below are expectations under the KDE, not under the draws it smooths."""
+    sub = draws[:VOLUME_POINTS]
+    chol = np.linalg.cholesky(kde_bandwidth(draws))  # (T, dim, dim)
+    z = np.random.default_rng(0).standard_normal(sub.shape)
+    return sub + np.einsum("tij,ktj->kti", chol, z)
+
+
 def hdr_levels(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The HDR level of each point, (T,) for points (T, dim) or (K, T) for (K, T, dim): the
-    share of the KDE's mass denser than the point (inside the 50% region: level < 0.5),
-    estimated over the draws themselves."""
+    share of the KDE's mass denser than the point (inside the 50% region: level < 0.5)."""
     log_at = kde_log_density(draws, points)
-    ref = kde_log_density(draws, draws[:VOLUME_POINTS])  # (K0, T)
+    ref = kde_log_density(draws, _kde_draws(draws))  # (K0, T)
     if log_at.ndim == 1:
         return np.mean(ref > log_at[None], axis=0)
     return np.mean(ref[None] > log_at[:, None], axis=1)
@@ -273,8 +290,7 @@ def hdr_levels(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def hdr_sizes(draws: np.ndarray, masses: Sequence[float] = (0.5, 0.9)) -> np.ndarray:
     """Volumes (areas in 2-D) (len(masses), T) of the KDE's highest-density regions."""
-    sub = draws[: VOLUME_POINTS]
-    log_p = kde_log_density(draws, sub)  # (K, T)
+    log_p = kde_log_density(draws, _kde_draws(draws))  # (K, T)
     out = []
     for m in masses:
         level = np.quantile(log_p, 1.0 - m, axis=0)

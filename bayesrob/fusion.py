@@ -68,6 +68,7 @@ __all__ = [
     "equilibrium_draws",
     "draws_posterior",
     "kde_log_density",
+    "kde_bandwidth",
     "fused_posterior",
 ]
 
@@ -164,7 +165,7 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
     return np.asarray(equilibrium_point(jnp.asarray(np.stack(frees)), jnp.stack(springs)))
 
 
-def _bandwidth(draws: np.ndarray) -> np.ndarray:
+def kde_bandwidth(draws: np.ndarray) -> np.ndarray:
     """Scott's rule per target: H = n^(-2 / (d + 4)) cov for d-dimensional draws (T, d, d)
     (n^(-1/3) in the plane)."""
     n, d = draws.shape[0], draws.shape[-1]
@@ -176,7 +177,7 @@ def _bandwidth(draws: np.ndarray) -> np.ndarray:
 def kde_log_density(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Exact Gaussian-KDE log density (per mm^d) of draws (S, T, d) at points (T, d), or at
     several points per target (K, T, d) giving (K, T)."""
-    h = _bandwidth(draws)
+    h = kde_bandwidth(draws)
     hinv = np.linalg.inv(h)
     d = draws.shape[-1]
     log_norm = -0.5 * d * np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(h)[1]
@@ -194,7 +195,7 @@ def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> Gri
     t0 = time.perf_counter()
     draws = np.asarray(draws, float)
     targets = np.atleast_2d(np.asarray(targets, float))
-    h = _bandwidth(draws)
+    h = kde_bandwidth(draws)
     sd = np.sqrt(np.einsum("tii->ti", h))
     lo = draws.min(axis=0) - 4 * sd
     hi = draws.max(axis=0) + 4 * sd

@@ -44,6 +44,7 @@ LATENT_MODELS = ("ind", "corr")
 # ten times the errors of the arms this package has seen (about 1 mrad).
 JOINT_SD_PRIOR = 0.01
 NOISE_SD_PRIOR_MM = 2.0  # prior scale of what no joint explains (mm)
+JOINT_SD_SPREAD = 1.0  # sd of a joint's log error sd about the arm's scale
 LKJ_CONCENTRATION = 2.0  # mild pull of CORR's correlations towards zero
 WARMUP, SAMPLES, CHAINS = 400, 400, 2
 
@@ -89,7 +90,12 @@ def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array) -> ja
 
 def _model(jac: jax.Array, res: jax.Array, structure: str) -> None:
     n = jac.shape[-1]
-    sd = numpyro.sample("joint_sd", dist.HalfNormal(JOINT_SD_PRIOR).expand([n]).to_event(1))
+    # The joints of one arm share a scale: a joint the residuals hardly see (its lever to the
+    # marker is short) is drawn towards its neighbours rather than left at the prior's width.
+    scale = numpyro.sample("joint_sd_scale", dist.HalfNormal(JOINT_SD_PRIOR))
+    log_sd = numpyro.sample("joint_log_sd_dev",
+                            dist.Normal(0.0, JOINT_SD_SPREAD).expand([n]).to_event(1))
+    sd = numpyro.deterministic("joint_sd", scale * jnp.exp(log_sd))
     noise = numpyro.sample("noise_sd", dist.HalfNormal(NOISE_SD_PRIOR_MM))
     if structure == "corr":
         chol = numpyro.sample("joint_corr_chol", dist.LKJCholesky(n, LKJ_CONCENTRATION))
