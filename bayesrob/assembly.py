@@ -153,11 +153,12 @@ def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
 
 
 def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
-                     fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0
-                     ) -> AssemblyPrediction:
+                     fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0,
+                     groups: tuple[str, ...] | None = None) -> AssemblyPrediction:
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
     ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains).
+    ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``).
     """
     t0 = time.perf_counter()
     if fusion not in FUSIONS:
@@ -178,7 +179,7 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
                        f"{targets.shape[1]} coordinates")
     if rig.is_chain:
         return _predict_chain(rig, config, members, targets, model or LATENT_MODELS[0], fusion,
-                              seed, t0)
+                              seed, t0, groups or kin.GROUPS)
     model = model or "cond"
     spec = discover_models(models_dir, [model])
     cal = calibrate(rig)
@@ -201,14 +202,15 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 
 
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
-                   fusion: str, seed: int, t0: float) -> AssemblyPrediction:
+                   fusion: str, seed: int, t0: float, groups: tuple[str, ...]
+                   ) -> AssemblyPrediction:
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
 
     if model not in LATENT_MODELS:
         raise RigError(f"model {model!r}: chain arms take the latent joint-error models "
                        f"{', '.join(LATENT_MODELS)} (their joint errors are not read off a "
                        "residual, so there is no per-row density to condition)")
-    mods = fit_chain_modules(rig, members, model, seed=seed)
+    mods = fit_chain_modules(rig, members, model, groups, seed=seed)
     commands, draws, _ = predict_chain_points(mods, rig, members, targets, fusion, seed)
     sizes = hdr_sizes(draws)
     return AssemblyPrediction(

@@ -13,7 +13,7 @@ Linked arms share one point:
   the free points as in :mod:`bayesrob.fusion`. A redundant arm's Cartesian compliance is
   C_a = J_a diag(1 / k_a) J_a^T (J_a: 3 x n, k_a its joint stiffnesses), its stiffness
   K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
-  J^-T diag(k) J^-1. Unknown stiffnesses take the same log-normal prior as the planar arms.
+  J^-T diag(k) J^-1. Unknown stiffnesses take a log-normal prior (CHAIN_STIFFNESS_LOG_SD).
   Forward draws (``numpyro.infer.Predictive``), no sampler needed.
 - ``product`` (the paper's rule): the density of the shared point is the product of the arms'
   end-point densities. Every arm's joint errors and the shared point are latent and sampled
@@ -39,7 +39,7 @@ from numpyro.infer import MCMC, NUTS, Predictive
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
-from bayesrob.fusion import DRAWS, FUSIONS, STIFFNESS_LOG_SD, kde_bandwidth, kde_log_density
+from bayesrob.fusion import DRAWS, FUSIONS, kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
     LatentJointErrors,
     fit_latent_errors,
@@ -54,6 +54,9 @@ __all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "cha
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
+# Prior sd of each joint's log stiffness when the rig does not give it: chosen among 0.05, 0.25,
+# 0.5 and 0.75 on the linked tuning rigs (arm6 --linked seeds 201, 202) only.
+CHAIN_STIFFNESS_LOG_SD = 0.5
 
 
 @dataclass
@@ -97,10 +100,17 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = {a: getattr(rig.arms[a], "stiffness", None) for a in arms}
+    stiffness = {a: _path_stiffness(rig, a) for a in arms}
     cov = (chain_parameter_covariance(rig, cal) if parameter_uncertainty
            else np.zeros((len(cal.x), len(cal.x))))
     return ChainModules(cal, errors, stiffness, cov)
+
+
+def _path_stiffness(rig: Rig, arm: str) -> np.ndarray | None:
+    """Joint stiffnesses along the path to ``arm`` (its mounts' first), if every chain on it
+    gives them."""
+    parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
+    return None if any(p is None for p in parts) else np.concatenate(parts)
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -157,7 +167,7 @@ def _log_stiffness_prior(n_joints: Sequence[int], stiffness: Sequence[np.ndarray
     for i, (n, k) in enumerate(zip(n_joints, stiffness, strict=True)):
         if k is None:
             numpyro.sample(f"log_stiffness_{i}",
-                           dist.Normal(0.0, STIFFNESS_LOG_SD).expand([n]).to_event(1))
+                           dist.Normal(0.0, CHAIN_STIFFNESS_LOG_SD).expand([n]).to_event(1))
         else:
             numpyro.deterministic(f"log_stiffness_{i}", jnp.log(jnp.asarray(k, jnp.float64)))
 

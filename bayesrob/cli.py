@@ -678,6 +678,10 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                    help="joint-error model name (default cond; ind or corr for URDF/DH arms, "
                         "whose joint errors are latent: default ind)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="URDF/DH rigs: parameter groups the modules are calibrated with, as "
+                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo; "
+                        "add compliance for arms that sag under gravity)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
@@ -695,8 +699,11 @@ def _predict(args: argparse.Namespace) -> int:
     dim = rig.robot.dim if rig.robot is not None else 2
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
     try:
+        if args.params is not None and not rig.is_chain:
+            raise UsageError("--params is for URDF/DH rigs; planar arms are calibrated with "
+                             "their eight parameters")
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
-                                args.models_dir, args.seed)
+                                args.models_dir, args.seed, groups=args.params)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     if args.json != "-":

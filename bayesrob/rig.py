@@ -30,7 +30,7 @@ SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "stiffness", "meta")
 # Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
-              "gain", "offset", "mount", "origin", "tool", "coupling", "meta")
+              "gain", "offset", "mount", "origin", "tool", "coupling", "stiffness", "meta")
 TOP_KEYS = ("name", "gravity", "workspace", "arms", "meta")
 N_ARM_PARAMS = 8
 # A target a little outside the nominal reach is still accepted: nominal lengths are a
@@ -75,6 +75,9 @@ class ChainSpec:
 
     name: str
     chain: Chain
+    # each joint's stiffness (N mm / rad; N / mm if prismatic), when known: it decides where
+    # linked arms settle (bayesrob.chain_prediction)
+    stiffness: np.ndarray | None = None
 
 
 @dataclass
@@ -314,7 +317,13 @@ def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> Cha
         t = tf.np_pose_matrix(_numbers(table["tool"], 6, f"{key}.tool"))
         origins[-1] = tf.matrix_to_pose(tf.np_pose_matrix(origins[-1]) @ t)
     changes["origins"] = origins
-    return ChainSpec(name, replace(chain, **changes))
+    stiffness = None
+    if "stiffness" in table:
+        stiffness = _numbers(table["stiffness"], n, f"{key}.stiffness")
+        if np.any(stiffness <= 0):
+            raise RigError(f"{key}.stiffness: must be positive (N mm / rad per joint), got "
+                           f"{stiffness.tolist()}")
+    return ChainSpec(name, replace(chain, **changes), stiffness)
 
 
 def _ordered_chains(specs: dict[str, ChainSpec], where: str) -> dict[str, Chain]:
@@ -391,8 +400,9 @@ def load_rig_toml(path: Path) -> dict:
     gravity = tuple(g / norm for g in gravity)
     workspace = doc.get("workspace")
     if workspace is not None:
-        if not isinstance(workspace, list) or len(workspace) != 2:
-            raise RigError(f"{path}: workspace must be [[x0, x1], [y0, y1]], got {workspace!r}")
+        if not isinstance(workspace, list) or len(workspace) not in (2, 3):
+            raise RigError(f"{path}: workspace must be [[x0, x1], [y0, y1]] (with [z0, z1] "
+                           f"for a 3-D rig), got {workspace!r}")
         workspace = tuple(_pair(r, f"{path}: workspace") for r in workspace)
     name = doc.get("name", path.parent.name)
     if not isinstance(name, str):
