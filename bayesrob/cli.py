@@ -91,8 +91,8 @@ def _load_rig_arg(path: str | None, chains: bool = False):
     rig = load_rig(path if path is not None else default_rig_dir())
     if rig.is_chain and not chains:
         raise UsageError(f"{rig.path}: arms described by URDF or DH tables can be calibrated "
-                         "('bayesrob calibrate') but not yet predicted, sampled, compared or "
-                         "diagnosed by this version")
+                         "and predicted ('bayesrob calibrate', 'bayesrob predict') but not yet "
+                         "sampled, compared or diagnosed by this version")
     return rig
 
 
