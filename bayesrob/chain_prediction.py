@@ -13,7 +13,10 @@ Linked arms share one point:
   the free points as in :mod:`bayesrob.fusion`. A redundant arm's Cartesian compliance is
   C_a = J_a diag(1 / k_a) J_a^T (J_a: 3 x n, k_a its joint stiffnesses), its stiffness
   K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
-  J^-T diag(k) J^-1. Unknown stiffnesses take a log-normal prior (CHAIN_STIFFNESS_LOG_SD).
+  J^-T diag(k) J^-1. Stiffnesses: the rig's ``stiffness`` when given; else, when the
+  modules were calibrated with the ``compliance`` group, around the fitted compliances' inverses
+  (a joint the fit could not see takes the arm's typical value); else a log-normal prior
+  centred on equal joints (CHAIN_STIFFNESS_LOG_SD).
   Forward draws (``numpyro.infer.Predictive``), no sampler needed.
 - ``product`` (the paper's rule): the density of the shared point is the product of the arms'
   end-point densities. Every arm's joint errors and the shared point are latent and sampled
@@ -57,6 +60,8 @@ VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Prior sd of each joint's log stiffness when the rig does not give it: chosen among 0.05, 0.25,
 # 0.5 and 0.75 on the linked tuning rigs (arm6 --linked seeds 201, 202) only.
 CHAIN_STIFFNESS_LOG_SD = 0.5
+FITTED_LOG_SD = 0.3  # least log sd of a stiffness read from a fitted compliance: chosen
+# among 0.1, 0.2 and 0.3 on the linked tuning rigs (seeds 201, 202) only
 
 
 @dataclass
@@ -65,7 +70,8 @@ class ChainModules:
 
     calibration: ChainCalibration
     errors: dict[str, LatentJointErrors]
-    stiffness: dict[str, np.ndarray | None]
+    # per arm: the log joint stiffnesses' prior centre and sd (sd 0 where known)
+    stiffness: dict[str, tuple[np.ndarray, np.ndarray]]
     param_cov: np.ndarray  # (P, P) the fitted parameters' covariance, zero where fixed
 
     @property
@@ -100,17 +106,37 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = {a: _path_stiffness(rig, a) for a in arms}
+    stiffness = {a: _stiffness_prior(rig, cal, a) for a in arms}
     cov = (chain_parameter_covariance(rig, cal) if parameter_uncertainty
            else np.zeros((len(cal.x), len(cal.x))))
     return ChainModules(cal, errors, stiffness, cov)
 
 
-def _path_stiffness(rig: Rig, arm: str) -> np.ndarray | None:
-    """Joint stiffnesses along the path to ``arm`` (its mounts' first), if every chain on it
-    gives them."""
+def _stiffness_prior(rig: Rig, cal: ChainCalibration, arm: str
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and sd of the log joint stiffnesses along the path to ``arm`` (mounts first)."""
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
-    return None if any(p is None for p in parts) else np.concatenate(parts)
+    if all(p is not None for p in parts):
+        k = np.concatenate(parts)
+        return np.log(k), np.zeros_like(k)
+    n = sum(c.n_joints for c in rig.robot.path(arm))
+    if "compliance" not in cal.groups:
+        return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    sl = cal.robot.layout.slices
+    every = np.arange(len(cal.x))
+    idx = np.concatenate([every[sl[(c.name, "compliance")]] for c in rig.robot.path(arm)])
+    s, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
+    seen = free & (s > 0)
+    if not seen.any():
+        return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    loc = np.where(seen, -np.log(np.where(seen, s, 1.0)), 0.0)
+    typical = loc[seen].mean()
+    # a fitted compliance is known to its relative standard error (at least FITTED_LOG_SD); an
+    # unseen joint (no gravity torque about it, or too little to resolve) is drawn around the
+    # arm's typical stiffness with the prior's width
+    rel = np.where(seen, np.nan_to_num(se / np.where(seen, s, 1.0), nan=1.0), 0.0)
+    scale = np.where(seen, np.maximum(rel, FITTED_LOG_SD), CHAIN_STIFFNESS_LOG_SD)
+    return np.where(seen, loc, typical), scale
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -161,15 +187,12 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return u
 
 
-def _log_stiffness_prior(n_joints: Sequence[int], stiffness: Sequence[np.ndarray | None]
-                         ) -> None:
-    """Each arm's joint log stiffnesses: the rig's values, or Normal(0, STIFFNESS_LOG_SD)."""
-    for i, (n, k) in enumerate(zip(n_joints, stiffness, strict=True)):
-        if k is None:
-            numpyro.sample(f"log_stiffness_{i}",
-                           dist.Normal(0.0, CHAIN_STIFFNESS_LOG_SD).expand([n]).to_event(1))
-        else:
-            numpyro.deterministic(f"log_stiffness_{i}", jnp.log(jnp.asarray(k, jnp.float64)))
+def _log_stiffness_prior(priors: Sequence[tuple[np.ndarray, np.ndarray]]) -> None:
+    """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known)."""
+    for i, (loc, scale) in enumerate(priors):
+        z = numpyro.sample(f"log_stiffness_z_{i}",
+                           dist.Normal(0.0, 1.0).expand([len(loc)]).to_event(1))
+        numpyro.deterministic(f"log_stiffness_{i}", jnp.asarray(loc) + jnp.asarray(scale) * z)
 
 
 def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
@@ -233,7 +256,7 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     # change it by parts in a thousand.
     n_joints = [j.shape[-1] for j in jacs]
     sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
-        jax.random.fold_in(key, 0), n_joints, [mods.stiffness[a] for a in arms])
+        jax.random.fold_in(key, 0), [mods.stiffness[a] for a in arms])
     log_k = [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, n))
              for i, n in enumerate(n_joints)]
     return np.asarray(chain_equilibrium(free, jacs, log_k))

@@ -179,7 +179,8 @@ def test_linked_arms_with_known_stiffness_land_where_predicted(linked_modules):
     k = load_linked_truth(d)["stiffness_nmm_per_rad"]
     known = dict(mods.stiffness)
     try:
-        mods.stiffness = {a: np.asarray(k[a], float) for a in ("left", "right")}
+        mods.stiffness = {a: (np.log(np.asarray(k[a], float)), np.zeros(6))
+                          for a in ("left", "right")}
         draws = chain_draws(mods, ["left", "right"], rows["commands"], seed=2)
     finally:
         mods.stiffness = known
@@ -213,3 +214,31 @@ def test_nuts_product_agrees_with_the_gaussian_product(linked_modules):
     assert np.all(gap < 0.1) and np.all(gap < 0.25 * sd), (gap, sd)
     var = nuts.var(0)
     assert np.all(np.abs(var / sd**2 - 1) < 0.2), var / sd**2
+
+
+def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp_path):
+    """A rig's ``stiffness`` is taken as known (sd 0); without it, and without a compliance
+    calibration, every joint gets the default prior; a non-positive stiffness is refused
+    naming the key."""
+    import dataclasses
+    import shutil
+
+    from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
+
+    rig, mods = arm6_modules
+    loc, sd = _stiffness_prior(rig, mods.calibration, "arm")
+    np.testing.assert_array_equal(loc, 0.0)
+    np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
+    k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
+    given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
+                                                                      stiffness=k)})
+    loc, sd = _stiffness_prior(given, mods.calibration, "arm")
+    np.testing.assert_allclose(np.exp(loc), k)
+    np.testing.assert_array_equal(sd, 0.0)
+    bad = tmp_path / "bad"
+    shutil.copytree(arm6_rig, bad)
+    toml = (bad / "rig.toml").read_text()
+    (bad / "rig.toml").write_text(toml.replace('tip = "tool0"',
+                                               'tip = "tool0"\nstiffness = [1, 1, 1, 1, 1, -1]'))
+    with pytest.raises(RigError, match=r"arms\.arm\.stiffness: must be positive"):
+        load_rig(bad)
