@@ -13,9 +13,7 @@ Linked arms share one point:
   the free points as in :mod:`bayesrob.fusion`. A redundant arm's Cartesian compliance is
   C_a = J_a diag(1 / k_a) J_a^T (J_a: 3 x n, k_a its joint stiffnesses), its stiffness
   K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
-  J^-T diag(k) J^-1. Stiffnesses: the rig's ``stiffness`` when given; else, when the
-  modules were calibrated with the ``compliance`` group, around the fitted compliances' inverses
-  (a joint the fit could not see takes the arm's typical value); else a log-normal prior
+  J^-T diag(k) J^-1. Stiffnesses: the rig's ``stiffness`` when given, else a log-normal prior
   centred on equal joints (CHAIN_STIFFNESS_LOG_SD).
   Forward draws (``numpyro.infer.Predictive``), no sampler needed.
 - ``product`` (the paper's rule): the density of the shared point is the product of the arms'
@@ -60,8 +58,6 @@ VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Prior sd of each joint's log stiffness when the rig does not give it: chosen among 0.05, 0.25,
 # 0.5 and 0.75 on the linked tuning rigs (arm6 --linked seeds 201, 202) only.
 CHAIN_STIFFNESS_LOG_SD = 0.5
-FITTED_LOG_SD = 0.3  # least log sd of a stiffness read from a fitted compliance: chosen
-# among 0.1, 0.2 and 0.3 on the linked tuning rigs (seeds 201, 202) only
 
 
 @dataclass
@@ -106,37 +102,24 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = {a: _stiffness_prior(rig, cal, a) for a in arms}
+    stiffness = {a: _stiffness_prior(rig, a) for a in arms}
     cov = (chain_parameter_covariance(rig, cal) if parameter_uncertainty
            else np.zeros((len(cal.x), len(cal.x))))
     return ChainModules(cal, errors, stiffness, cov)
 
 
-def _stiffness_prior(rig: Rig, cal: ChainCalibration, arm: str
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _stiffness_prior(rig: Rig, arm: str) -> tuple[np.ndarray, np.ndarray]:
     """Centre and sd of the log joint stiffnesses along the path to ``arm`` (mounts first)."""
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
     if all(p is not None for p in parts):
         k = np.concatenate(parts)
         return np.log(k), np.zeros_like(k)
     n = sum(c.n_joints for c in rig.robot.path(arm))
-    if "compliance" not in cal.groups:
-        return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
-    sl = cal.robot.layout.slices
-    every = np.arange(len(cal.x))
-    idx = np.concatenate([every[sl[(c.name, "compliance")]] for c in rig.robot.path(arm)])
-    s, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
-    seen = free & (s > 0)
-    if not seen.any():
-        return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
-    loc = np.where(seen, -np.log(np.where(seen, s, 1.0)), 0.0)
-    typical = loc[seen].mean()
-    # a fitted compliance is known to its relative standard error (at least FITTED_LOG_SD); an
-    # unseen joint (no gravity torque about it, or too little to resolve) is drawn around the
-    # arm's typical stiffness with the prior's width
-    rel = np.where(seen, np.nan_to_num(se / np.where(seen, s, 1.0), nan=1.0), 0.0)
-    scale = np.where(seen, np.maximum(rel, FITTED_LOG_SD), CHAIN_STIFFNESS_LOG_SD)
-    return np.where(seen, loc, typical), scale
+    # Not from a fitted compliance: without masses only compliance x first moment is
+    # identified, so each arm's compliances carry its own unknown mass scale. Read as
+    # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
+    # overflowed on another (seed 1), though they helped on the tuning rigs.
+    return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):

@@ -217,22 +217,22 @@ def test_nuts_product_agrees_with_the_gaussian_product(linked_modules):
 
 
 def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp_path):
-    """A rig's ``stiffness`` is taken as known (sd 0); without it, and without a compliance
-    calibration, every joint gets the default prior; a non-positive stiffness is refused
+    """A rig's ``stiffness`` is taken as known (sd 0); without it every joint gets the
+    default prior; a non-positive stiffness is refused
     naming the key."""
     import dataclasses
     import shutil
 
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
 
-    rig, mods = arm6_modules
-    loc, sd = _stiffness_prior(rig, mods.calibration, "arm")
+    rig, _ = arm6_modules
+    loc, sd = _stiffness_prior(rig, "arm")
     np.testing.assert_array_equal(loc, 0.0)
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
                                                                       stiffness=k)})
-    loc, sd = _stiffness_prior(given, mods.calibration, "arm")
+    loc, sd = _stiffness_prior(given, "arm")
     np.testing.assert_allclose(np.exp(loc), k)
     np.testing.assert_array_equal(sd, 0.0)
     bad = tmp_path / "bad"
