@@ -45,7 +45,6 @@ from bayesrob.latent_errors import (
     LatentJointErrors,
     fit_latent_errors,
     joint_jacobian,
-    marker_points_with_errors,
 )
 from bayesrob.rig import Rig, RigError
 
@@ -114,7 +113,7 @@ def _stiffness_prior(rig: Rig, arm: str) -> tuple[np.ndarray, np.ndarray]:
     if all(p is not None for p in parts):
         k = np.concatenate(parts)
         return np.log(k), np.zeros_like(k)
-    n = sum(c.n_joints for c in rig.robot.path(arm))
+    n = rig.robot.n_path_joints(arm)
     # Not from a fitted compliance: without masses only compliance x first moment is
     # identified, so each arm's compliances carry its own unknown mass scale. Read as
     # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
@@ -214,7 +213,7 @@ def _points_with_errors(robot: kin.Robot, arm: str):
     cache = robot.__dict__.setdefault("_points_with_errors", {})
     if arm not in cache:
         cache[arm] = jax.jit(jax.vmap(
-            lambda x, u, e: marker_points_with_errors(robot, x, arm, u, e), in_axes=(0, None, 0)))
+            lambda x, u, e: robot.marker_points(x, arm, u, e), in_axes=(0, None, 0)))
     return cache[arm]
 
 
@@ -253,7 +252,7 @@ def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
         chol = jnp.linalg.cholesky(cov + 1e-18 * jnp.eye(n))
         z = numpyro.sample(f"z_{i}", dist.Normal(0.0, 1.0).expand([t, n]).to_event(2))
         e = z @ chol.T
-        f = marker_points_with_errors(robot, x, a, u, e)
+        f = robot.marker_points(x, a, u, e)
         numpyro.sample(f"link_{i}", dist.Normal(f, s).to_event(2), obs=p)
 
 

@@ -36,8 +36,8 @@ from numpyro.infer import MCMC, NUTS
 from bayesrob import kinematics as kin
 from bayesrob.rig import Rig
 
-__all__ = ["LATENT_MODELS", "LatentJointErrors", "fit_latent_errors", "marker_points_with_errors",
-           "joint_jacobian", "joint_names"]
+__all__ = ["LATENT_MODELS", "LatentJointErrors", "fit_latent_errors", "joint_jacobian",
+           "joint_names"]
 
 LATENT_MODELS = ("ind", "corr")
 # Prior scale of a joint's error sd (rad, or mm for prismatic joints): weakly informative,
@@ -54,37 +54,14 @@ def joint_names(robot: kin.Robot, arm: str) -> list[str]:
     return [f"{c.name}.{j}" for c in robot.path(arm) for j in c.joint_names]
 
 
-def _joint_elements(robot: kin.Robot, arm: str) -> np.ndarray:
-    """Element index of each joint on the path (elements also hold the chains' tools)."""
-    idx, start = [], 0
-    for c in robot.path(arm):
-        idx += list(range(start, start + c.n_joints))
-        start += c.n_joints + 1
-    return np.asarray(idx)
-
-
-def marker_points_with_errors(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array,
-                              err: jax.Array) -> jax.Array:
-    """Marker points (N, dim) with joint errors ``err`` (N, n) added to the path's joints."""
-    u = jnp.atleast_2d(u)
-    el = robot._elements(arm)
-    n_el = el["q_idx"].shape[0]
-    dq = jnp.zeros((u.shape[0], n_el)).at[:, _joint_elements(robot, arm)].set(err)
-    if robot.gravity is not None:
-        dq = dq + robot.deflections(x, arm, u)
-    tip = robot.element_frames(x, arm, u, dq)[1][-1]
-    m = jnp.asarray(x)[robot.layout.slices[(arm, "marker")]]
-    return (tip[:, :3, :3] @ m + tip[:, :3, 3])[:, : robot.dim]
-
-
 def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
     """d marker / d joint errors at zero error, (N, dim, n)."""
     u = jnp.atleast_2d(jnp.asarray(u))
-    n = len(_joint_elements(robot, arm))
+    n = robot.n_path_joints(arm)
 
     def per_row(row):
-        return jax.jacfwd(lambda e: marker_points_with_errors(robot, x, arm, row[None],
-                                                              e[None])[0])(jnp.zeros(n))
+        return jax.jacfwd(lambda e: robot.marker_points(x, arm, row[None], e[None])[0])(
+            jnp.zeros(n))
     return jax.vmap(per_row)(u)
 
 

@@ -350,11 +350,27 @@ class Robot:
         tau = jnp.sum(axis * jnp.cross(lever, g), axis=-1)  # (E, N)
         return (s[:, None] * tau).T
 
-    def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
-        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns)."""
-        if self.gravity is None:
-            return self.element_frames(x, arm, u)[1][-1]
-        return self.element_frames(x, arm, u, self.deflections(x, arm, u))[1][-1]
+    def n_path_joints(self, arm: str) -> int:
+        """How many joints the path to ``arm`` has (its mounts' and its own)."""
+        return sum(c.n_joints for c in self.path(arm))
+
+    def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array,
+                       joint_errors: jax.Array | None = None) -> jax.Array:
+        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns).
+
+        ``joint_errors`` (N, n_path_joints) are added to the path's joint values, base first
+        (what a joint-error model draws).
+        """
+        u = jnp.atleast_2d(jnp.asarray(u))
+        deflection = None
+        if joint_errors is not None:
+            # elements index the joints, tools the zero column appended after them
+            err = jnp.concatenate([jnp.asarray(joint_errors), jnp.zeros((u.shape[0], 1))], axis=1)
+            deflection = err[:, self._elements(arm)["q_idx"]]
+        if self.gravity is not None:
+            sag = self.deflections(x, arm, u)
+            deflection = sag if deflection is None else deflection + sag
+        return self.element_frames(x, arm, u, deflection)[1][-1]
 
     def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """d marker_points / d x, (N, dim, P), from prefix and suffix products.
@@ -428,9 +444,11 @@ class Robot:
             col += chain.n_columns
         return jac[:, : self.dim, :]
 
-    def marker_points(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
-        """Where the instrument sees ``arm``'s marker: (N, dim) in mm."""
-        t = self.tip_transforms(x, arm, u)
+    def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
+                      joint_errors: jax.Array | None = None) -> jax.Array:
+        """Where the instrument sees ``arm``'s marker: (N, dim) in mm (with ``joint_errors``
+        added to the path's joints, as :meth:`tip_transforms`)."""
+        t = self.tip_transforms(x, arm, u, joint_errors)
         m = jnp.asarray(x)[self.layout.slices[(arm, "marker")]]
         p = t[:, :3, :3] @ m + t[:, :3, 3]
         return p[:, : self.dim]
