@@ -211,7 +211,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
                        f"{', '.join(LATENT_MODELS)} (their joint errors are not read off a "
                        "residual, so there is no per-row density to condition)")
     mods = fit_chain_modules(rig, members, model, groups, seed=seed)
-    commands, draws, _ = predict_chain_points(mods, rig, members, targets, fusion, seed)
+    commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)
     sizes = hdr_sizes(draws)
     return AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),

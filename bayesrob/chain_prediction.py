@@ -27,7 +27,6 @@ Monte Carlo: vol{p > c} = E_p[1{p > c} / p].
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -67,7 +66,8 @@ class ChainModules:
     errors: dict[str, LatentJointErrors]
     # per arm: the log joint stiffnesses' prior centre and sd (sd 0 where known)
     stiffness: dict[str, tuple[np.ndarray, np.ndarray]]
-    param_cov: np.ndarray  # (P, P) the fitted parameters' covariance, zero where fixed
+    # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
+    param_cov: np.ndarray | None
 
     @property
     def robot(self) -> kin.Robot:
@@ -102,8 +102,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
     stiffness = {a: _stiffness_prior(rig, a) for a in arms}
-    cov = (chain_parameter_covariance(rig, cal) if parameter_uncertainty
-           else np.zeros((len(cal.x), len(cal.x))))
+    cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
     return ChainModules(cal, errors, stiffness, cov)
 
 
@@ -191,6 +190,8 @@ def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
 def _parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
     """Parameter vectors (S, P) from the calibration's Gaussian approximation: one per draw,
     shared by every arm (the arms of a tree share links and the instrument)."""
+    if mods.param_cov is None:
+        return jnp.broadcast_to(jnp.asarray(mods.x), (n, len(mods.x)))
     w, v = np.linalg.eigh(mods.param_cov)
     root = v * np.sqrt(np.clip(w, 0.0, None))
     z = jax.random.normal(key, (n, len(w)))
@@ -316,9 +317,8 @@ def hdr_sizes(draws: np.ndarray, masses: Sequence[float] = (0.5, 0.9)) -> np.nda
 
 def predict_chain_points(mods: ChainModules, rig: Rig, arms: Sequence[str], targets: np.ndarray,
                          fusion: str, seed: int = 0, num_samples: int = DRAWS
-                         ) -> tuple[dict[str, np.ndarray], np.ndarray, float]:
-    """Aim ``arms`` at targets and draw the (shared) end point: (commands, draws, seconds)."""
-    t0 = time.perf_counter()
+                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Aim ``arms`` at targets and draw the (shared) end point: (commands, draws)."""
     commands = {a: aim_chain(rig, mods.robot, mods.x, a, targets) for a in arms}
-    draws = chain_draws(mods, arms, [commands[a] for a in arms], fusion, num_samples, seed)
-    return commands, draws, time.perf_counter() - t0
+    return commands, chain_draws(mods, arms, [commands[a] for a in arms], fusion, num_samples,
+                                 seed)

@@ -47,7 +47,7 @@ def main() -> None:
         mods = fit_chain_modules(rig, ["left", "right"])
         for k in range(args.repeats + 1):
             t0 = time.perf_counter()
-            _, draws, _ = predict_chain_points(mods, rig, ["left", "right"], targets,
+            _, draws = predict_chain_points(mods, rig, ["left", "right"], targets,
                                                "equilibrium", seed=k)
             hdr_sizes(draws)
             if k:
