@@ -39,8 +39,9 @@ def arm6_urdf_path() -> Path:
 
 
 @dataclass
-class ChainTruth:
-    """What a simulated chain rig really is (written to truth.toml)."""
+class _ArmErrors:
+    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are: the
+    settings a single-arm and a linked chain rig share."""
 
     seed: int = 0
     n_train: int = 80
@@ -51,12 +52,18 @@ class ChainTruth:
     offset_sd_rad: float = 3e-3
     marker_nominal_mm: tuple[float, float, float] = (0.0, 0.0, 50.0)
     marker_sd_mm: float = 2.0
-    instrument_nominal: tuple[float, ...] = (1200.0, -300.0, 150.0, 0.0, 0.0, 0.4)
     instrument_sd: tuple[float, float] = (5.0, 5e-3)  # mm, rad
     joint_noise_rad: float = 1e-4
     measurement_noise_mm: float = 0.1
-    compliance: bool = False
     masses_kg: tuple[float, ...] = (3.7, 8.4, 2.3, 1.2, 1.2, 0.2)
+
+
+@dataclass
+class ChainTruth(_ArmErrors):
+    """What a simulated chain rig really is (written to truth.toml)."""
+
+    instrument_nominal: tuple[float, ...] = (1200.0, -300.0, 150.0, 0.0, 0.0, 0.4)
+    compliance: bool = False
     stiffness_nmm_per_rad: tuple[float, ...] = (4e6, 4e6, 2e6, 6e5, 6e5, 6e5)
     true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
 
@@ -71,8 +78,7 @@ def _poses(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform(POSE_LO, POSE_HI, size=(n, 6))
 
 
-def _true_vector(robot: Robot, truth: ChainTruth | LinkedChainTruth,
-                 rng: np.random.Generator) -> np.ndarray:
+def _true_vector(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -> np.ndarray:
     layout = robot.layout
     x = layout.nominal.copy()
     for i, p in enumerate(layout.params):
@@ -207,7 +213,7 @@ def _left_stiffness() -> tuple[float, ...]:
 
 
 @dataclass
-class LinkedChainTruth:
+class LinkedChainTruth(_ArmErrors):
     """What a simulated rig of two linked arm6 arms really is (written to truth.toml).
 
     Per-arm settings are tables keyed by arm name (``left``, ``right``); everything else is
@@ -216,24 +222,11 @@ class LinkedChainTruth:
     :func:`simulate_linked_chain_rig`).
     """
 
-    seed: int = 0
-    n_train: int = 80
-    n_validation: int = 40
-    n_holdout: int = 40
     n_linked: int = 24
-    origin_sd_mm: float = 1.0
-    origin_sd_rad: float = 2e-3
-    offset_sd_rad: float = 3e-3
-    marker_nominal_mm: tuple[float, float, float] = (0.0, 0.0, 50.0)
-    marker_sd_mm: float = 2.0
     # Bases 900 mm apart on the x axis, facing each other (the right one turned half a turn).
     instrument_nominal: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
         "left": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), "right": (900.0, 0.0, 0.0, 0.0, 0.0, np.pi)})
-    instrument_sd: tuple[float, float] = (5.0, 5e-3)  # mm, rad
-    joint_noise_rad: float = 1e-4
-    measurement_noise_mm: float = 0.1
     compliance: bool = True
-    masses_kg: tuple[float, ...] = (3.7, 8.4, 2.3, 1.2, 1.2, 0.2)
     # The right arm is the softer one (0.6 of the left's stiffness): where the linked point
     # settles between the arms depends on the ratio.
     stiffness_nmm_per_rad: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
