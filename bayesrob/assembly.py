@@ -206,10 +206,6 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
                    ) -> AssemblyPrediction:
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
 
-    if model not in LATENT_MODELS:
-        raise RigError(f"model {model!r}: chain arms take the latent joint-error models "
-                       f"{', '.join(LATENT_MODELS)} (their joint errors are not read off a "
-                       "residual, so there is no per-row density to condition)")
     mods = fit_chain_modules(rig, members, model, groups, seed=seed)
     commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)
     sizes = hdr_sizes(draws)

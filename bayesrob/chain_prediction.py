@@ -42,6 +42,7 @@ from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parame
 from bayesrob.fusion import DRAWS, FUSIONS, kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
     LatentJointErrors,
+    check_latent_model,
     fit_latent_errors,
     joint_jacobian,
 )
@@ -89,6 +90,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
     residual scaling for the fit's degrees of freedom having already widened them.
     """
+    check_latent_model(model)  # before the calibration, which takes the time
     measured = rig.robot.measured_arms()
     for a in arms:
         if a not in measured:

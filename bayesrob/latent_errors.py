@@ -34,10 +34,10 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
 from bayesrob import kinematics as kin
-from bayesrob.rig import Rig
+from bayesrob.rig import Rig, RigError
 
-__all__ = ["LATENT_MODELS", "LatentJointErrors", "fit_latent_errors", "joint_jacobian",
-           "joint_names"]
+__all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",
+           "joint_jacobian", "joint_names"]
 
 LATENT_MODELS = ("ind", "corr")
 # Prior scale of a joint's error sd (rad, or mm for prismatic joints): weakly informative,
@@ -47,6 +47,14 @@ NOISE_SD_PRIOR_MM = 2.0  # prior scale of what no joint explains (mm)
 JOINT_SD_SPREAD = 1.0  # sd of a joint's log error sd about the arm's scale
 LKJ_CONCENTRATION = 2.0  # mild pull of CORR's correlations towards zero
 WARMUP, SAMPLES, CHAINS = 400, 400, 2
+
+
+def check_latent_model(model: str) -> None:
+    """Refuse a joint-error model chain arms do not have, in one line."""
+    if model not in LATENT_MODELS:
+        raise RigError(f"model {model!r}: chain arms take the latent joint-error models "
+                       f"{', '.join(LATENT_MODELS)} (their joint errors are not read off a "
+                       "residual, so there is no per-row density to condition)")
 
 
 def joint_names(robot: kin.Robot, arm: str) -> list[str]:
@@ -140,9 +148,7 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
     """
     import arviz as az
 
-    if model not in LATENT_MODELS:
-        raise ValueError(f"chain arms take the latent joint-error models {', '.join(LATENT_MODELS)}"
-                         f", not {model!r}")
+    check_latent_model(model)
     t0 = time.perf_counter()
     u, d = rig.chain_rows(arm, "train")
     xj, uj = jnp.asarray(x), jnp.asarray(u)
