@@ -173,7 +173,7 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
             raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
                            "and fit its joint-error model on")
     targets = np.atleast_2d(np.asarray(targets, float))
-    dim = rig.robot.dim if rig.robot is not None else 2
+    dim = rig.robot.dim
     if targets.shape[1] != dim:
         raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
                        f"{targets.shape[1]} coordinates")

@@ -696,7 +696,7 @@ def _predict(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
 
     rig = _load_rig_arg(args.rig, chains=True)
-    dim = rig.robot.dim if rig.robot is not None else 2
+    dim = rig.robot.dim
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
     try:
         if args.params is not None and not rig.is_chain:
