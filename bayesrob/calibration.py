@@ -101,15 +101,20 @@ def _least_squares(v0: np.ndarray, u: np.ndarray, d: np.ndarray) -> tuple[np.nda
     return res.x, int(res.nfev)
 
 
-def _standard_errors(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
+def parameter_covariance(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Gauss-Newton covariance (8, 8) of a planar arm's fitted parameters ``v``
+    (``ArmParams.to_vector`` order) on its train rows; NaN when the rows cannot fix them."""
+    v = np.asarray(v, float)
     r = np.asarray(_residuals(jnp.asarray(v), jnp.asarray(u), jnp.asarray(d)))
     J = np.asarray(_residual_jac(jnp.asarray(v), jnp.asarray(u), jnp.asarray(d)))
     dof = r.size - v.size
     if dof <= 0:
-        return np.full(v.size, np.nan)
-    s2 = float(r @ r) / dof
-    cov = s2 * np.linalg.pinv(J.T @ J)
-    return np.sqrt(np.clip(np.diag(cov), 0, None))
+        return np.full((v.size, v.size), np.nan)
+    return float(r @ r) / dof * np.linalg.pinv(J.T @ J)
+
+
+def _standard_errors(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.clip(np.diag(parameter_covariance(v, u, d)), 0, None))
 
 
 def _hill_climb(v0: np.ndarray, u: np.ndarray, d: np.ndarray, u_val: np.ndarray | None,

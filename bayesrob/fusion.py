@@ -52,9 +52,11 @@ from bayesrob import kinematics as kin
 from bayesrob.inference import (
     COARSE_GRID,
     GridPosterior,
+    error_arrays,
+    error_distribution,
+    error_kind,
     grid_posterior,
     is_sampleable,
-    joint_error_distribution,
 )
 from bayesrob.noise_models import FittedNoiseModel
 
@@ -65,6 +67,7 @@ __all__ = [
     "cartesian_stiffness",
     "equilibrium_point",
     "equilibrium_model",
+    "equilibrium_program",
     "equilibrium_draws",
     "draws_posterior",
     "kde_log_density",
@@ -82,9 +85,17 @@ STIFFNESS_LOG_SD = 0.75
 DRAWS = 4000
 
 
+def inv2(m: jax.Array) -> jax.Array:
+    """Inverse of 2 x 2 matrices (..., 2, 2) in closed form: XLA's batched LAPACK calls cost
+    a call per matrix, and the draws hold tens of thousands of them."""
+    a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
+    det = a * d - b * c
+    return jnp.stack([jnp.stack([d, -b], -1), jnp.stack([-c, a], -1)], -2) / det[..., None, None]
+
+
 def cartesian_stiffness(params: kin.ArmParams, theta: jax.Array, k: jax.Array) -> jax.Array:
     """K = J^-T diag(k) J^-1 (..., 2, 2): the force (N) per mm the arm's end point resists with."""
-    jinv = jnp.linalg.inv(kin.jacobian(params, theta))
+    jinv = inv2(kin.jacobian(params, theta))
     return jnp.einsum("...ji,...j,...jk->...ik", jinv, k, jinv)
 
 
@@ -92,7 +103,7 @@ def equilibrium_point(free: jax.Array, stiffness: jax.Array) -> jax.Array:
     """Where springs K_a (A, ..., 2, 2) holding points d_a (A, ..., 2) balance (..., 2)."""
     total = stiffness.sum(axis=0)
     pull = jnp.einsum("a...ik,a...k->...i", stiffness, free)
-    return jnp.linalg.solve(total, pull[..., None])[..., 0]
+    return jnp.einsum("...ik,...k->...i", inv2(total), pull)
 
 
 def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
@@ -119,16 +130,67 @@ def equilibrium_model(commands: Sequence[jax.Array], *, models: Sequence[FittedN
     ``stiffness`` ((2,) N mm/rad per arm, None for unknown) or the prior; then the linked
     point ``d`` = :func:`equilibrium_point` of the free points with K_k at theta_k.
     """
+    equilibrium_program(commands, kinds=tuple(error_kind(m) for m in models),
+                        arrays=[error_arrays(m) for m in models],
+                        params=[a.params for a in arms], names=tuple(a.name for a in arms),
+                        stiffness=stiffness)
+
+
+def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...],
+                        arrays: Sequence[dict[str, jax.Array]],
+                        params: Sequence[kin.ArmParams], names: tuple[str, ...],
+                        stiffness: Sequence[Any] | None = None,
+                        param_cov: Sequence[jax.Array] | None = None,
+                        tracker_noise_mm: float = 0.0) -> None:
+    """:func:`equilibrium_model` on the models' arrays and the arms' parameters, so a compiled
+    caller (the configuration designer) traces them rather than baking them in: one program
+    serves every placement of the same modules.
+
+    ``param_cov``: each arm's calibrated-parameter covariance (8, 8); the arm that executes
+    the commands then differs from the calibrated one that aimed them by a draw from it (one
+    per draw, shared by the targets): what calibration error does at poses it never saw.
+
+    ``tracker_noise_mm``: the tracker's noise (sd per axis). The joint-error densities were
+    fitted to measured points, so each arm's carries the tracker's noise, and the balance
+    averages it down (to sum_a W_a W_a^T sigma^2, W_a = (sum K)^-1 K_a); but the linked point
+    is measured once, with all of it. The missing sigma^2 (I - sum_a W_a W_a^T) is added back.
+    """
     frees, springs = [], []
-    log_k = _log_stiffness(len(arms), stiffness)
-    for i, (model, arm, u) in enumerate(zip(models, arms, commands, strict=True)):
+    log_k = _log_stiffness(len(kinds), stiffness)
+    for i, (kind, arr, p, u) in enumerate(zip(kinds, arrays, params, commands, strict=True)):
         u = jnp.atleast_2d(jnp.asarray(u, dtype=jnp.float64))
+        if param_cov is not None:
+            v = p.to_vector()
+            delta = numpyro.sample(f"param_err_{names[i]}", dist.MultivariateNormal(
+                jnp.zeros_like(v), covariance_matrix=param_cov[i]))
+            p = kin.ArmParams.from_vector(v + delta)
         with numpyro.plate("targets", u.shape[0]):
-            err = numpyro.sample(f"theta_err_{arm.name}", joint_error_distribution(model, u))
-        theta = kin.servo(arm.params, u) + err
-        frees.append(numpyro.deterministic(f"free_{arm.name}", kin.forward(arm.params, theta)))
-        springs.append(cartesian_stiffness(arm.params, theta, jnp.exp(log_k[i])))
-    numpyro.deterministic("d", equilibrium_point(jnp.stack(frees), jnp.stack(springs)))
+            err = numpyro.sample(f"theta_err_{names[i]}", error_distribution(kind, arr, u))
+        theta = kin.servo(p, u) + err
+        frees.append(numpyro.deterministic(f"free_{names[i]}", kin.forward(p, theta)))
+        springs.append(cartesian_stiffness(p, theta, jnp.exp(log_k[i])))
+    d = equilibrium_point(jnp.stack(frees), jnp.stack(springs))
+    if tracker_noise_mm > 0 and len(kinds) > 1:
+        k = jnp.stack(springs)
+        w = jnp.einsum("...ij,a...jk->a...ik", inv2(k.sum(axis=0)), k)  # (A, ..., 2, 2)
+        cov = tracker_noise_mm**2 * (jnp.eye(2) - jnp.einsum("a...ij,a...kj->...ik", w, w))
+        with numpyro.plate("targets", d.shape[-2]):
+            z = numpyro.sample("tracker", dist.Normal(0.0, 1.0).expand([2]).to_event(1))
+        d = d + jnp.einsum("...ij,...j->...i", _sqrt_psd2(cov), z)
+    numpyro.deterministic("d", d)
+
+
+def _sqrt_psd2(m: jax.Array) -> jax.Array:
+    """Symmetric square root of 2 x 2 matrices (..., 2, 2) in closed form, the matrix made
+    symmetric and shifted up to a zero least eigenvalue first when it has a negative one (a
+    sum of W W^T can poke past I by rounding)."""
+    m = 0.5 * (m + jnp.swapaxes(m, -1, -2))
+    a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
+    least = 0.5 * (a + d) - jnp.sqrt(0.25 * (a - d) ** 2 + b**2)
+    m = m + jnp.clip(-least, 0.0)[..., None, None] * jnp.eye(2)
+    s = jnp.sqrt(jnp.clip(m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] ** 2, 0.0))
+    t = jnp.sqrt(jnp.clip(m[..., 0, 0] + m[..., 1, 1] + 2 * s, 1e-300))
+    return (m + s[..., None, None] * jnp.eye(2)) / t[..., None, None]
 
 
 def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],

@@ -136,7 +136,7 @@ def kde_distribution(data: Any, bandwidth: Any, weights: Any | None = None
     return dist.MixtureSameFamily(dist.Categorical(probs=weights), comp)
 
 
-def _kind(model: FittedNoiseModel) -> str:
+def error_kind(model: FittedNoiseModel) -> str:
     if model.conditional is None:
         return model.spec.family
     return "COND" if model.conditional.method == "kernel" else "HIST"
@@ -144,12 +144,12 @@ def _kind(model: FittedNoiseModel) -> str:
 
 def is_sampleable(model: FittedNoiseModel) -> bool:
     """Whether the model can draw joint errors (everything but the histogram COND)."""
-    return _kind(model) != "HIST"
+    return error_kind(model) != "HIST"
 
 
-def _arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
+def error_arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
     """The model's learned state as arrays: traced, not baked in, by the compiled samplers."""
-    kind = _kind(model)
+    kind = error_kind(model)
     if kind == "IND":
         a, b = model.parts
         if a.n != b.n:
@@ -167,7 +167,7 @@ def _arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
     return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
 
-def _distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | None
+def error_distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | None
                   ) -> dist.Distribution:
     x, bw = arrays["x"], arrays["bw_x"]
     if kind == "IND":
@@ -194,12 +194,12 @@ def joint_error_distribution(model: FittedNoiseModel, u: Any | None = None) -> d
     latter giving batch shape (T,)). The histogram COND (the paper's) has a density but no
     sampler: it raises ``NotImplementedError``; score it with :func:`joint_error_log_prob`.
     """
-    kind = _kind(model)
+    kind = error_kind(model)
     if kind == "HIST":
         raise NotImplementedError(
             f"model {model.spec.name!r} (histogram COND) is a scored density only; "
             "use joint_error_log_prob inside numpyro.factor")
-    return _distribution(kind, _arrays(model), u)
+    return error_distribution(kind, error_arrays(model), u)
 
 
 @dataclass(frozen=True)
@@ -218,7 +218,7 @@ def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err:
                     u: jax.Array) -> jax.Array:
     u = jnp.broadcast_to(jnp.asarray(u, dtype=jnp.float64), theta_err.shape)
     if static.kind != "HIST":
-        return _distribution(static.kind, arrays, u).log_prob(theta_err)
+        return error_distribution(static.kind, arrays, u).log_prob(theta_err)
     # The paper's COND: the fitted table itself (grid and emcee see exactly it), with a
     # gradient from a smooth guide so that NUTS can move on a piecewise-constant density.
     shape = theta_err.shape[:-1]
@@ -229,7 +229,7 @@ def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err:
 
 
 def _static(model: FittedNoiseModel, arm: kin.Arm | None) -> _ArmStatic:
-    kind = _kind(model)
+    kind = error_kind(model)
     hist = {}
     if kind == "HIST":
         c = model.conditional
@@ -245,7 +245,7 @@ def _structure(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
         raise ValueError("need one fitted model per arm, and at least one arm")
     statics = tuple(_static(m, a) for m, a in zip(models, arms, strict=True))
     params = tuple((kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64) for x in a.params)),
-                    _arrays(m)) for m, a in zip(models, arms, strict=True))
+                    error_arrays(m)) for m, a in zip(models, arms, strict=True))
     return statics, params
 
 
@@ -256,7 +256,7 @@ def joint_error_log_prob(model: FittedNoiseModel, theta_err: jax.Array, u: jax.A
     The mixture distribution's ``log_prob`` for the kernel models, the histogram table for the
     paper's COND; traceable either way.
     """
-    return _error_log_prob_jit(_static(model, None), _arrays(model), jnp.asarray(theta_err),
+    return _error_log_prob_jit(_static(model, None), error_arrays(model), jnp.asarray(theta_err),
                                jnp.asarray(u, dtype=jnp.float64))
 
 
