@@ -52,7 +52,7 @@ def _wrote(path: str | Path, json_out: str | None) -> None:
 
 # Commands that report progress on stderr (a bar on a terminal, lines otherwise).
 PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
-                     "compare")
+                     "compare", "design")
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -113,9 +113,13 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the rig files (measurements.csv, rig.toml, truth.toml) the "
                         "directory already holds")
-    p.add_argument("--robot", choices=["paper", "arm6"], default="paper",
-                   help="paper: the two planar arms (default); arm6: a 6-joint 3-D URDF arm "
+    p.add_argument("--robot", choices=["paper", "three-arm", "arm6"], default="paper",
+                   help="paper: the two planar arms (default); three-arm: those two and a third "
+                        "(side), linked rows joining all three; arm6: a 6-joint 3-D URDF arm "
                         "with perturbed joint origins, offsets, marker and instrument pose")
+    p.add_argument("--planned", action="store_true",
+                   help="measure the planned rows (empty x, y) of the rig in out_dir with the "
+                        "physics of its truth.toml, e.g. a candidate of bayesrob design")
     p.add_argument("--compliance", action=argparse.BooleanOptionalAction, default=None,
                    help="arm6: joints give way under gravity (point masses, joint stiffness); "
                         "off by default, on by default with --linked")
@@ -187,6 +191,14 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     return 0
 
 
+def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
+    from bayesrob.simulator import measure_planned
+
+    n, total = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
+    print(f"measured {n} planned rows of {out_dir / 'measurements.csv'} ({total} rows in all)")
+    return 0
+
+
 @command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
                      "arm) with chosen physical effects")(
     _simulate_args)
@@ -194,11 +206,13 @@ def _simulate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE
-    from bayesrob.simulator import TRUTH_FILE, paper_truth, simulate_rig
+    from bayesrob.simulator import TRUTH_FILE, paper_truth, simulate_rig, three_arm_truth
 
     out_dir = Path(args.out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
+    if args.planned:
+        return _simulate_planned(args, out_dir)
     names = (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE)
     existing = [out_dir / n for n in names if (out_dir / n).exists()]
     if existing and not args.force:
@@ -209,7 +223,8 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_chain(args, out_dir, existing)
     if args.compliance is not None or args.poses or args.linked:
         raise UsageError("--compliance, --poses and --linked are for --robot arm6")
-    truth = paper_truth(args.effects, seed=args.seed, grid=args.grid)
+    make = three_arm_truth if args.robot == "three-arm" else paper_truth
+    truth = make(args.effects, seed=args.seed, grid=args.grid)
     if args.joint_noise_rad is not None:
         truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
     if args.measurement_noise_mm is not None:
@@ -755,6 +770,57 @@ def _compare(args: argparse.Namespace) -> int:
         _wrote(plot, args.json)
     _write_json(doc, args.json)
     return 0
+
+
+# ------------------------------------------------------------------------------ design
+
+
+def _design_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("design", help="design file (TOML): modules, mount points, task region, "
+                                  "requirement, limits (see examples/design/design.toml)")
+    p.add_argument("--out", metavar="DIR", default="design-out",
+                   help="where design.json, design.png and the best candidate's rig directory "
+                        "(best/) go (default design-out)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://host:8786); default: a LocalCluster on "
+                        "this machine")
+    p.add_argument("--workers", type=_positive_int, default=2,
+                   help="LocalCluster worker processes (2)")
+    p.add_argument("--top", type=_positive_int, default=10,
+                   help="candidates shown in the table (10) and, up to 4, in the figure")
+
+
+@command("design", "search the assemblies of calibrated modules (which, mounted where, linked "
+                   "how) for the fewest that meet an accuracy over a task region, on Dask")(
+    _design_args)
+def _design(args: argparse.Namespace) -> int:
+    from bayesrob.design import (
+        DesignError,
+        design_figure,
+        load_design,
+        load_modules,
+        run_design,
+        write_candidate_rig,
+    )
+
+    try:
+        design = load_design(args.design)
+        modules = load_modules(design)
+        result = run_design(design, modules, scheduler=args.scheduler, workers=args.workers,
+                            progress=_progress(args))
+    except DesignError as exc:
+        raise UsageError(str(exc)) from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    print(result.format(args.top))
+    (out / "design.json").write_text(json.dumps(result.document, indent=1))
+    design_figure(result, modules, min(args.top, 4)).savefig(out / "design.png", dpi=120)
+    written = [out / "design.json", out / "design.png"]
+    if result.best is not None:
+        written.append(write_candidate_rig(result.best, result, modules, out / "best"))
+    print(f"wrote {', '.join(str(w) for w in written)}")
+    # exit 1: the search ran and nothing met the requirement (the closest is shown above)
+    return 0 if result.met else 1
 
 
 # ------------------------------------------------------------------------------ main

@@ -553,6 +553,9 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
         target[r] = tx, ty
+        if not row[idx["x"]].strip() and not row[idx["y"]].strip():
+            keep[r] = False  # planned, not measured yet (bayesrob design writes such rows)
+            continue
         observed[r] = (parse_number(row[idx["x"]], where, "x"),
                        parse_number(row[idx["y"]], where, "y"))
         config[r], sets[r], lines[r] = cfg, st, lineno
@@ -707,8 +710,9 @@ def format_row(
     row += [num(float(v)) for v in target] if target is not None else ["", ""]
     for a in arm_names:
         row += [num(float(v)) for v in commands[a]] if a in commands else ["", ""]
-    ox, oy = observed
-    return row + [f"{float(ox):.4f}", f"{float(oy):.4f}"]
+    # a planned row (not measured yet) leaves x, y empty
+    return row + ["" if v is None or math.isnan(float(v)) else f"{float(v):.4f}"
+                  for v in observed]
 
 
 def _toml_value(v: object) -> str:

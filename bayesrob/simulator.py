@@ -47,6 +47,7 @@ from bayesrob.rig import (
     MEASUREMENTS_FILE,
     RIG_FILE,
     ArmSpec,
+    RigError,
     dump_toml,
     format_row,
     measurement_header,
@@ -507,3 +508,62 @@ def _check_limits(name: str, u: np.ndarray, limits) -> None:
 def _progress(total: int, enabled: bool, desc: str):
     from bayesrob.progress import progress
     return progress(total, desc, "pt", enabled=enabled)
+
+
+def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
+                    ) -> tuple[int, int]:
+    """Measure a rig's planned rows (commands given, x and y empty) with the physics of its
+    ``truth.toml``: how a candidate written by ``bayesrob design`` is tried in simulation.
+
+    Rows already measured are kept as they are; the file is replaced in one step at the end,
+    so an interrupted run leaves it unchanged. Returns (rows measured, rows in the file).
+    """
+    import csv
+    import io
+    import os
+
+    directory = Path(directory)
+    truth_path = directory / TRUTH_FILE
+    if not truth_path.is_file():
+        raise RigError(f"{truth_path}: file not found (only a rig with the simulator's truth "
+                       "can be measured in simulation; use bayesrob collect on hardware)")
+    truth = Truth.from_toml(truth_path)
+    path = directory / MEASUREMENTS_FILE
+    if not path.is_file():
+        raise RigError(f"{path}: file not found")
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise RigError(f"{path}: empty file (a header row is required)")
+    header, body = rows[0], rows[1:]
+    idx = {h: i for i, h in enumerate(header)}
+    for col in ("config", "x", "y"):
+        if col not in idx:
+            raise RigError(f"{path}: missing column '{col}'")
+    plant = PhysicalRig(truth, seed=seed)
+    planned = [r for r, row in enumerate(body)
+               if len(row) == len(header) and not row[idx["x"]].strip()
+               and not row[idx["y"]].strip()]
+    bar = _progress(len(planned), progress, "measure")
+    for r in planned:
+        row, where = body[r], f"{path}: line {r + 2}"
+        members = row[idx["config"]].split("+")
+        cmds = {}
+        for a in members:
+            if a not in truth.arms:
+                raise RigError(f"{where}: arm {a!r} is not in {truth_path}")
+            try:
+                cmds[a] = [float(row[idx[f"{a}_u{j}"]]) for j in (1, 2)]
+            except (KeyError, ValueError):
+                raise RigError(f"{where}: arm {a!r} needs numbers in {a}_u1 and {a}_u2") \
+                    from None
+        d = plant.end_point(cmds)
+        row[idx["x"]], row[idx["y"]] = (f"{v:.6g}" for v in d)
+        bar.update()
+    bar.close()
+    buf = io.StringIO()
+    csv.writer(buf).writerows([header, *body])
+    tmp = path.with_suffix(".csv.tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+    return len(planned), len(body)

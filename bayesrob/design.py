@@ -1,0 +1,788 @@
+"""The configuration designer (``bayesrob design``): which calibrated modules, mounted where and
+linked how, reach a required accuracy over a task region.
+
+A design file (TOML) names the inventory and the task::
+
+    fusion = "equilibrium"          # how linked arms share their end point (bayesrob.fusion)
+    seed = 0
+    tracker_noise_mm = 0.35         # the tracker's noise, sd per axis (default 0: not known)
+
+    [modules.top]                   # a calibrated module: an arm of a rig directory
+    rig = "modules"                 # relative to the design file
+    arm = "top"                     # default: the module's name
+    model = "ind"                   # its joint-error model (default ind)
+
+    [mounts]                        # where module bases may go: a list ...
+    points = [[20.0, 440.0], [20.0, -20.0]]
+    # ... or a grid: grid = { x = [lo, hi, n], y = [lo, hi, n] }
+
+    [task]                          # the region the end point must serve
+    box = [[80.0, 260.0], [100.0, 280.0]]   # or polygon = [[x, y], ...]
+    targets = 16                    # sampled inside it (scrambled Halton, seeded)
+
+    [requirement]
+    error_mm = 1.0                  # the end point within error_mm of the target ...
+    quantile = 0.95                 # ... this often, over the region ...
+    confidence = 0.9                # ... in this share of the assemblies one might build
+
+    [limits]
+    max_arms = 3                    # arms per assembly (min_arms = 2: linked ones only)
+    linked = true                   # false: single arms only
+
+A module keeps its calibrated geometry and joint-error model wherever it is mounted: mounting
+translates its base (its orientation, hence its servo offsets, is kept). Every assembly of one
+to ``max_arms`` modules on distinct mount points is a candidate; those where some arm cannot
+reach some target on its configured elbow branch within its pulse limits are dropped before
+anything is predicted. The others are predicted a priori, from the modules' single-arm data
+only (as ``bayesrob predict`` does), and ranked: requirement met first, then fewest modules,
+then the smaller predicted error quantile over the region.
+
+The error of a candidate is the distance from the target of the predicted end point as the
+tracker would measure it (the joint-error models are fitted to measured end points, and
+``tracker_noise_mm`` puts back the tracker noise that linking averages away in them). Its
+quantile "over the region" pools every target's predicted distribution, one target as likely
+as another: the accuracy at a target drawn at random from the task.
+
+A built assembly is one draw of its calibration errors: its modules' parameters are off by
+fixed amounts, the same at every target (each prediction draw carries one such set, from the
+calibration's covariance). So an assembly whose pooled quantile just meets the requirement
+misses it about half the time once built. The requirement is therefore met when the share of
+draws whose own quantile over the targets is within ``error_mm`` reaches ``confidence``.
+
+Candidates are evaluated as Dask tasks (``dask.distributed``): batches of candidates per task,
+so each worker compiles its JAX program once per kind of assembly and reuses it (the
+modules' arrays and the bases are traced arguments, not constants). The modules are
+scattered to every worker once; each task carries only its candidates' names and bases.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import math
+import os
+import time
+import tomllib
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, equilibrium_program, fused_posterior
+from bayesrob.inference import error_arrays, error_kind, is_sampleable
+from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.rig import ArmSpec, RigError
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from bayesrob.simulator import ArmTruth, Truth
+
+__all__ = ["DesignError", "DesignSpec", "ModuleSpec", "Module", "Candidate", "DesignResult",
+           "load_design", "load_modules", "task_targets", "reach_table", "enumerate_candidates",
+           "evaluate_batch", "run_design", "design_figure", "write_candidate_rig",
+           "mounted_truth"]
+
+jax.config.update("jax_enable_x64", True)  # draws are compared at 0.01 mm over 300 mm arms
+
+DRAWS = 2000  # per candidate: the 0.95 quantile over 16 targets pools 32,000 draws
+BATCH = 25  # candidates per Dask task: enough to hide a task's overhead, small to spread well
+DEFAULT_MODEL = "ind"  # holds its linked coverage with equilibrium fusion (docs/fusion.md)
+MAX_CANDIDATES = 200_000
+COV_JITTER = 1e-12  # keeps a parameter covariance with an unidentified direction sampleable
+# Worker processes run one XLA thread each: two workers on two cores then share nothing, and a
+# single worker is not secretly using both cores (the speed-up benchmark would lie).
+WORKER_ENV = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+              "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+TOP_KEYS = ("fusion", "seed", "draws", "tracker_noise_mm", "modules", "mounts", "task",
+            "requirement", "limits")
+
+
+class DesignError(ValueError):
+    """A design file, a module or the search itself is unusable; the message is one line."""
+
+
+# ------------------------------------------------------------------------------ the file
+
+
+@dataclass(frozen=True)
+class ModuleSpec:
+    """One module of the inventory: arm ``arm`` of the rig directory ``rig``."""
+
+    name: str
+    rig: Path
+    arm: str
+    model: str = DEFAULT_MODEL
+
+
+@dataclass(frozen=True)
+class DesignSpec:
+    """A parsed design file."""
+
+    path: Path
+    modules: dict[str, ModuleSpec]
+    mounts: np.ndarray  # (P, 2) mm
+    region: np.ndarray  # (V, 2) polygon vertices, counter-clockwise or not (a box: 4 corners)
+    n_targets: int
+    error_mm: float
+    quantile: float
+    confidence: float = 0.9
+    max_arms: int = 3
+    min_arms: int = 1
+    linked: bool = True
+    fusion: str = DEFAULT_FUSION
+    seed: int = 0
+    draws: int = DRAWS
+    tracker_noise_mm: float = 0.0
+
+    @property
+    def requirement(self) -> dict:
+        return {"error_mm": self.error_mm, "quantile": self.quantile,
+                "confidence": self.confidence}
+
+
+def _table(doc: dict, key: str, where: str) -> dict:
+    value = doc.get(key)
+    if not isinstance(value, dict):
+        raise DesignError(f"{where}: needs a [{key}] table")
+    return value
+
+
+def _unknown(table: dict, known: Sequence[str], where: str) -> None:
+    for k in table:
+        if k not in known:
+            raise DesignError(f"{where}: unknown key {k!r} (known: {', '.join(known)})")
+
+
+def _points(value: Any, where: str, min_rows: int = 1) -> np.ndarray:
+    try:
+        arr = np.asarray(value, float)
+    except (TypeError, ValueError):
+        arr = np.zeros((0, 0))
+    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < min_rows or not np.isfinite(arr).all():
+        raise DesignError(f"{where}: expected a list of at least {min_rows} [x, y] points in "
+                          f"mm, got {value!r}")
+    return arr
+
+
+def _number(table: dict, key: str, where: str, kind: type = float, default: Any = None,
+            lo: float | None = None, hi: float | None = None) -> Any:
+    if key not in table:
+        if default is None:
+            raise DesignError(f"{where}: missing {key!r}")
+        return default
+    v = table[key]
+    ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    if kind is int:
+        ok = ok and float(v).is_integer()
+    if not ok or (lo is not None and v <= lo) or (hi is not None and v >= hi):
+        bounds = (f" (must be above {lo:g}" + (f" and below {hi:g})" if hi is not None else ")")
+                  if lo is not None else "")
+        what = "an integer" if kind is int else "a number"
+        raise DesignError(f"{where}: {key} = {v!r} must be {what}{bounds}")
+    return kind(v)
+
+
+def _mount_grid(grid: Any, where: str) -> np.ndarray:
+    if not isinstance(grid, dict) or set(grid) != {"x", "y"}:
+        raise DesignError(f"{where}: grid must be {{ x = [lo, hi, n], y = [lo, hi, n] }}")
+    axes = []
+    for k in ("x", "y"):
+        v = grid[k]
+        if (not isinstance(v, list) or len(v) != 3 or not all(isinstance(t, int | float)
+                                                               for t in v)
+                or not float(v[2]).is_integer() or v[2] < 1):
+            raise DesignError(f"{where}: grid.{k} must be [lo, hi, n] with n a positive "
+                              f"integer, got {v!r}")
+        axes.append(np.linspace(float(v[0]), float(v[1]), int(v[2])))
+    xx, yy = np.meshgrid(*axes, indexing="xy")
+    return np.column_stack([xx.ravel(), yy.ravel()])
+
+
+def load_design(path: str | Path) -> DesignSpec:
+    """Parse and check a design file; every problem is one :class:`DesignError` line."""
+    path = Path(path)
+    if not path.is_file():
+        raise DesignError(f"{path}: design file not found")
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise DesignError(f"{path}: not valid TOML ({e})") from None
+    _unknown(doc, TOP_KEYS, str(path))
+    fusion = doc.get("fusion", DEFAULT_FUSION)
+    if fusion not in FUSIONS:
+        raise DesignError(f"{path}: fusion = {fusion!r}; choose from {', '.join(FUSIONS)}")
+    mods = _table(doc, "modules", str(path))
+    if not mods:
+        raise DesignError(f"{path}: [modules] names no module")
+    modules = {}
+    for name, t in mods.items():
+        where = f"{path}: [modules.{name}]"
+        if not isinstance(t, dict):
+            raise DesignError(f"{where}: must be a table with rig, arm, model")
+        _unknown(t, ("rig", "arm", "model"), where)
+        if not isinstance(t.get("rig"), str):
+            raise DesignError(f"{where}: needs rig = \"DIR\" (a rig directory)")
+        rig = (path.parent / t["rig"]).resolve()
+        modules[name] = ModuleSpec(name, rig, str(t.get("arm", name)),
+                                   str(t.get("model", DEFAULT_MODEL)))
+    mt = _table(doc, "mounts", str(path))
+    _unknown(mt, ("points", "grid"), f"{path}: [mounts]")
+    if ("points" in mt) == ("grid" in mt):
+        raise DesignError(f"{path}: [mounts] needs exactly one of points or grid")
+    mounts = (_points(mt["points"], f"{path}: [mounts] points") if "points" in mt
+              else _mount_grid(mt["grid"], f"{path}: [mounts] grid"))
+    task = _table(doc, "task", str(path))
+    _unknown(task, ("box", "polygon", "targets"), f"{path}: [task]")
+    if ("box" in task) == ("polygon" in task):
+        raise DesignError(f"{path}: [task] needs exactly one of box or polygon")
+    if "box" in task:
+        box = _points(task["box"], f"{path}: [task] box = [[x0, x1], [y0, y1]]", 2)
+        if len(box) != 2 or not (box[:, 0] < box[:, 1]).all():
+            raise DesignError(f"{path}: [task] box must be [[x0, x1], [y0, y1]] with x0 < x1 "
+                              f"and y0 < y1, got {task['box']!r}")
+        (x0, x1), (y0, y1) = box
+        region = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    else:
+        region = _points(task["polygon"], f"{path}: [task] polygon", 3)
+    req = _table(doc, "requirement", str(path))
+    _unknown(req, ("error_mm", "quantile", "confidence"), f"{path}: [requirement]")
+    lim = doc.get("limits", {})
+    _unknown(lim, ("max_arms", "min_arms", "linked"), f"{path}: [limits]")
+    linked = lim.get("linked", True)
+    if not isinstance(linked, bool):
+        raise DesignError(f"{path}: [limits] linked must be true or false, got {linked!r}")
+    return DesignSpec(
+        path=path, modules=modules, mounts=mounts, region=region,
+        n_targets=_number(task, "targets", f"{path}: [task]", int, 16, lo=0),
+        error_mm=_number(req, "error_mm", f"{path}: [requirement]", lo=0),
+        quantile=_number(req, "quantile", f"{path}: [requirement]", lo=0, hi=1),
+        confidence=_number(req, "confidence", f"{path}: [requirement]", float, 0.9, lo=0, hi=1),
+        max_arms=_number(lim, "max_arms", f"{path}: [limits]", int, 3, lo=0),
+        min_arms=_number(lim, "min_arms", f"{path}: [limits]", int, 1, lo=0),
+        linked=linked, fusion=fusion,
+        seed=_number(doc, "seed", str(path), int, 0, lo=-1),
+        draws=_number(doc, "draws", str(path), int, DRAWS, lo=99),
+        tracker_noise_mm=abs(_number(doc, "tracker_noise_mm", str(path), float, 0.0)))
+
+
+# ------------------------------------------------------------------------------ modules
+
+
+@dataclass
+class Module:
+    """A calibrated module, ready to be mounted anywhere."""
+
+    name: str
+    arm: kin.Arm  # calibrated, at the base it was calibrated at
+    fitted: FittedNoiseModel
+    spec: ArmSpec  # the calibrated values as a rig.toml arm (for the planned rig)
+    gravity: tuple[float, float]
+    param_cov: np.ndarray  # (8, 8) the calibration's parameter covariance
+    truth: ArmTruth | None = None  # simulated modules: the physics, for the proof
+    truth_rig: Truth | None = None
+
+    def at(self, base: Sequence[float]) -> kin.Arm:
+        """The module with its base moved to ``base``."""
+        return replace(self.arm, name=self.name,
+                       params=self.arm.params._replace(base=jnp.asarray(base, jnp.float64)))
+
+
+def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module]:
+    """Calibrate each module's arm on its rig's train rows and fit its joint-error model."""
+    from bayesrob.calibration import calibrate, parameter_covariance
+    from bayesrob.noise_models import ModelFileError, discover_models, fit_noise_models
+    from bayesrob.rig import load_rig
+    from bayesrob.simulator import TRUTH_FILE, Truth
+
+    out: dict[str, Module] = {}
+    by_rig: dict[Path, list[ModuleSpec]] = {}
+    for m in design.modules.values():
+        by_rig.setdefault(m.rig, []).append(m)
+    for rig_dir, mods in by_rig.items():
+        where = f"{design.path}: [modules.{mods[0].name}]"
+        try:
+            rig = load_rig(rig_dir)
+        except RigError as e:
+            raise DesignError(f"{where}: {e}") from None
+        if rig.is_chain:
+            raise DesignError(f"{where}: {rig_dir} is a URDF/DH rig; the designer places "
+                              "planar arms so far")
+        for m in mods:
+            if m.arm not in rig.arms:
+                raise DesignError(f"{design.path}: [modules.{m.name}]: unknown module arm "
+                                  f"{m.arm!r} in {rig_dir} (arms: {', '.join(rig.arms)})")
+        cal = calibrate(rig)
+        truth = (Truth.from_toml(rig_dir / TRUTH_FILE) if (rig_dir / TRUTH_FILE).is_file()
+                 else None)
+        for m in mods:
+            try:
+                spec = discover_models(models_dir, [m.model])
+            except (ModelFileError, KeyError, ValueError) as e:
+                raise DesignError(f"{design.path}: [modules.{m.name}]: {e}") from None
+            if not spec:
+                raise DesignError(f"{design.path}: [modules.{m.name}]: unknown model "
+                                  f"{m.model!r}")
+            arm = cal[m.arm].arm
+            fitted = fit_noise_models(rig, {m.arm: arm}, spec)[m.model][m.arm]
+            p = arm.params
+            orig = rig.arms[m.arm]
+            cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
+                                      for x in (p.base, p.links, p.gain, p.offset)),
+                            orig.elbow, orig.pulse_limits, orig.stiffness)
+            u, d = rig.arm_rows(m.arm, "train")
+            cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
+            out[m.name] = Module(m.name, arm, fitted, cspec, tuple(rig.gravity),
+                                 cov + COV_JITTER * np.eye(len(cov)),
+                                 truth.arms.get(m.arm) if truth else None, truth)
+    return out
+
+
+def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` targets inside the polygon ``region``: a scrambled Halton sequence over its
+    bounding box, keeping the points inside (even spread, reproducible from ``seed``)."""
+    from matplotlib.path import Path as Polygon
+    from scipy.stats import qmc
+
+    lo, hi = region.min(axis=0), region.max(axis=0)
+    poly = Polygon(region)
+    sampler = qmc.Halton(2, scramble=True, seed=seed)
+    out = np.zeros((0, 2))
+    for _ in range(50):
+        pts = qmc.scale(sampler.random(4 * n), lo, hi)
+        out = np.vstack([out, pts[poly.contains_points(pts)]])
+        if len(out) >= n:
+            return out[:n]
+    raise DesignError(f"the task region {region.tolist()} has no area to place {n} targets in")
+
+
+# ------------------------------------------------------------------------------ candidates
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One assembly: modules ``arms`` with their bases at ``mounts`` (indices) = ``bases``."""
+
+    arms: tuple[str, ...]
+    mounts: tuple[int, ...]
+    bases: tuple[tuple[float, float], ...]
+
+    @property
+    def linking(self) -> str:
+        return "alone" if len(self.arms) == 1 else "linked at the end point"
+
+    @property
+    def config(self) -> str:
+        return "+".join(self.arms)
+
+
+def _aims(arm: kin.Arm, targets: np.ndarray) -> np.ndarray | None:
+    """Pulses aiming ``arm`` at every target, or None when one is out of its reach, off its
+    elbow branch or outside its pulse limits."""
+    if not bool(np.all(np.asarray(arm.reachable(jnp.asarray(targets))))):
+        return None
+    u = np.asarray(arm.command(jnp.asarray(targets)))
+    lim = np.asarray(arm.pulse_limits)
+    if not np.all((u >= lim[:, 0]) & (u <= lim[:, 1])):
+        return None
+    return u
+
+
+def reach_table(modules: dict[str, Module], mounts: np.ndarray, targets: np.ndarray
+                ) -> dict[tuple[str, int], np.ndarray]:
+    """{(module, mount index): pulses (T, 2)} for every placement that reaches every target."""
+    out = {}
+    for name, m in modules.items():
+        for j, base in enumerate(mounts):
+            u = _aims(m.at(base), targets)
+            if u is not None:
+                out[name, j] = u
+    return out
+
+
+def enumerate_candidates(design: DesignSpec, reach: dict[tuple[str, int], np.ndarray]
+                         ) -> list[Candidate]:
+    """Every assembly of 1..max_arms modules on distinct mounts that reaches every target
+    (single arms only when ``linked`` is false)."""
+    names = list(design.modules)
+    sizes = range(design.min_arms, (design.max_arms if design.linked else 1) + 1)
+    out = []
+    for k in sizes:
+        for group in itertools.combinations(names, k):
+            options = [[j for j in range(len(design.mounts)) if (a, j) in reach] for a in group]
+            for mounts in itertools.product(*options):
+                if len(set(mounts)) < k:
+                    continue
+                out.append(Candidate(group, mounts, tuple(
+                    (float(design.mounts[j][0]), float(design.mounts[j][1])) for j in mounts)))
+                if len(out) > MAX_CANDIDATES:
+                    raise DesignError(f"{design.path}: more than {MAX_CANDIDATES} candidate "
+                                      "assemblies; use fewer mounts, modules or max_arms")
+    return out
+
+
+# ------------------------------------------------------------------------------ evaluation
+
+
+@dataclass(frozen=True)
+class _Job:
+    """What every task shares (scattered to the workers once)."""
+
+    modules: dict[str, Module]
+    targets: np.ndarray
+    reach: dict[tuple[str, int], np.ndarray]
+    fusion: str
+    quantile: float
+    error_mm: float
+    confidence: float
+    draws: int
+    seed: int
+    tracker_noise_mm: float = 0.0
+
+
+@partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm"))
+def _draws(key: jax.Array, commands: tuple, arrays: tuple, params: tuple, param_cov: tuple, *,
+           kinds: tuple[str, ...], stiffness: tuple | None, num_samples: int,
+           tracker_noise_mm: float) -> jax.Array:
+    # One compiled program per kind of assembly (model kinds, stiffness knowledge, shapes):
+    # which modules and where they stand are traced arguments.
+    from numpyro.infer import Predictive
+
+    names = tuple(f"arm{i}" for i in range(len(kinds)))
+    out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
+        key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
+        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm)
+    return out["d"]
+
+
+def _quantiles(dist: np.ndarray, weights: np.ndarray | None, q: float) -> np.ndarray:
+    """Per-target quantile of distances (T, M) (weights (T, M) summing to 1 per target)."""
+    if weights is None:
+        return np.quantile(dist, q, axis=1)
+    order = np.argsort(dist, axis=1)
+    d = np.take_along_axis(dist, order, 1)
+    c = np.cumsum(np.take_along_axis(weights, order, 1), axis=1)
+    idx = np.minimum((c < q).sum(axis=1), d.shape[1] - 1)
+    return d[np.arange(len(d)), idx]
+
+
+def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
+    mods = [job.modules[a] for a in cand.arms]
+    arms = [m.at(b) for m, b in zip(mods, cand.bases, strict=True)]
+    commands = [job.reach[a, j] for a, j in zip(cand.arms, cand.mounts, strict=True)]
+    t = job.targets
+    sampleable = all(is_sampleable(m.fitted) for m in mods)
+    if sampleable and (job.fusion == "equilibrium" or len(arms) == 1):
+        stiff = [m.spec.stiffness for m in mods]
+        stiffness = (tuple(tuple(s) if s is not None else None for s in stiff)
+                     if any(s is not None for s in stiff) else None)
+        d = np.asarray(_draws(
+            jax.random.PRNGKey(job.seed + index), tuple(jnp.asarray(u) for u in commands),
+            tuple(error_arrays(m.fitted) for m in mods), tuple(a.params for a in arms),
+            tuple(jnp.asarray(m.param_cov) for m in mods),
+            kinds=tuple(error_kind(m.fitted) for m in mods), stiffness=stiffness,
+            num_samples=job.draws, tracker_noise_mm=job.tracker_noise_mm))
+        dist = np.linalg.norm(d - t[None], axis=-1).T  # (T, S)
+        weights = None
+        mean = d.mean(axis=0)
+        # each draw is one possible built assembly: its own quantile over the targets
+        confidence = float(np.mean(np.quantile(dist, job.quantile, axis=0) <= job.error_mm))
+    else:  # the product of likelihoods (or the paper's histogram COND): the grid
+        post, _ = fused_posterior([m.fitted for m in mods], arms, commands, t, job.fusion,
+                                  seed=job.seed + index)
+        dist = np.linalg.norm(post.points() - t[:, None, :], axis=-1)
+        weights = post.prob
+        mean = post.mean
+        confidence = None
+    per = _quantiles(dist, weights, job.quantile)
+    pooled = _quantiles(dist.reshape(1, -1), None if weights is None
+                        else weights.reshape(1, -1) / len(t), job.quantile)[0]
+    expected = (dist.mean(axis=1) if weights is None else (dist * weights).sum(axis=1))
+    return {
+        "arms": list(cand.arms), "bases": [list(b) for b in cand.bases],
+        "mounts": list(cand.mounts), "linking": cand.linking,
+        "models": [m.fitted.spec.name for m in mods], "fusion": job.fusion,
+        "error_quantile_mm": [float(v) for v in per],
+        "expected_error_mm": [float(v) for v in expected],
+        "expected_point": [[float(v) for v in p] for p in mean],
+        "overall": {"error_quantile_mm": float(pooled),
+                    "worst_target_quantile_mm": float(per.max()),
+                    "expected_error_mm": float(expected.mean())},
+        # the grid has no draws of a whole assembly: its pooled quantile decides alone
+        "confidence": confidence,
+        "meets": bool(pooled <= job.error_mm if confidence is None
+                      else confidence >= job.confidence),
+    }
+
+
+def evaluate_batch(job: _Job, batch: Sequence[tuple[int, Candidate]]) -> list[tuple[int, dict]]:
+    """Predict every candidate of a batch (one Dask task): (index, result) pairs."""
+    return [(i, _evaluate(job, c, i)) for i, c in batch]
+
+
+# ------------------------------------------------------------------------------ the run
+
+
+@dataclass
+class DesignResult:
+    """The ranked candidates of one design run."""
+
+    design: DesignSpec
+    targets: np.ndarray
+    candidates: list[dict]  # ranked, best first
+    n_placements: int  # (module, mount) pairs considered
+    n_reachable: int
+    workers: int
+    scheduler: str
+    seconds: float
+    retried: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def best(self) -> dict | None:
+        return self.candidates[0] if self.candidates else None
+
+    @property
+    def met(self) -> bool:
+        return bool(self.candidates) and self.candidates[0]["meets"]
+
+    @property
+    def document(self) -> dict:
+        d = self.design
+        return {
+            "design": str(d.path), "requirement": d.requirement, "fusion": d.fusion,
+            "region": d.region.tolist(), "targets": self.targets.tolist(),
+            "modules": {n: {"rig": str(m.rig), "arm": m.arm, "model": m.model}
+                        for n, m in d.modules.items()},
+            "mounts": d.mounts.tolist(),
+            "n_candidates": len(self.candidates),
+            "n_meeting": sum(c["meets"] for c in self.candidates),
+            "workers": self.workers, "scheduler": self.scheduler, "seconds": self.seconds,
+            "rows_used": "train rows of each module's rig (no assembly was measured)",
+            "candidates": self.candidates,
+        }
+
+    def format(self, top: int = 10) -> str:
+        from bayesrob.report import format_table
+
+        d = self.design
+        q = f"q{round(100 * d.quantile)}"
+        rows = [[str(c["rank"]), c["config"],
+                 "; ".join(f"({b[0]:.0f}, {b[1]:.0f})" for b in c["bases"]),
+                 f"{c['overall']['error_quantile_mm']:.3f}",
+                 f"{c['overall']['worst_target_quantile_mm']:.3f}",
+                 f"{c['overall']['expected_error_mm']:.3f}", "yes" if c["meets"] else "no"]
+                for c in self.candidates[:top]]
+        head = (f"{len(self.candidates)} candidate assemblies ({self.n_reachable} of "
+                f"{self.n_placements} module placements reach all {len(self.targets)} "
+                f"targets), requirement {d.error_mm:g} mm at {d.quantile:g}, fusion "
+                f"{d.fusion}, {self.workers} worker(s), {self.seconds:.1f} s")
+        table = format_table(["rank", "assembly", "bases (mm)", f"{q} mm", f"worst {q} mm",
+                              "E error mm", "meets"], rows)
+        best = self.best
+        if best is None:
+            tail = "no candidate"
+        elif best["meets"]:
+            tail = (f"best: {best['config']} at "
+                    + "; ".join(f"({b[0]:.0f}, {b[1]:.0f})" for b in best["bases"])
+                    + f", predicted {q} {best['overall']['error_quantile_mm']:.3f} mm")
+        else:
+            tail = (f"no candidate meets {d.error_mm:g} mm at {d.quantile:g}; the closest is "
+                    f"{best['config']} at {best['overall']['error_quantile_mm']:.3f} mm")
+        return "\n".join([head, table, *self.notes, tail])
+
+
+def _rank_key(c: dict) -> tuple:
+    # those that meet: fewest modules first; those that miss: closest first
+    q = c["overall"]["error_quantile_mm"]
+    return (False, len(c["arms"]), q) if c["meets"] else (True, q, len(c["arms"]))
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
+    """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
+    ``workers`` single-threaded worker processes (closed on exit)."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as e:
+            raise DesignError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
+                              f"({type(e).__name__}: {e})") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    saved = {k: os.environ.get(k) for k in WORKER_ENV}
+    os.environ.update(WORKER_ENV)  # the nanny's worker processes inherit them at start
+    try:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=40)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
+               scheduler: str | None = None, workers: int = 2, batch: int = BATCH,
+               limit: int | None = None, progress: bool = False,
+               evaluate: Callable = evaluate_batch, client: Any = None) -> DesignResult:
+    """Enumerate, filter, predict (as Dask tasks) and rank the candidate assemblies.
+
+    ``limit``: evaluate only the first ``limit`` candidates (benchmarks). ``client``: an open
+    Dask client to use instead of making one. ``evaluate``: the task function (tests wrap it
+    to lose a worker mid-run).
+    """
+    from distributed import as_completed
+
+    from bayesrob.progress import progress as make_progress
+
+    t0 = time.perf_counter()
+    modules = modules if modules is not None else load_modules(design)
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    reach = reach_table(modules, design.mounts, targets)
+    placements = len(modules) * len(design.mounts)
+    unreachable = [n for n in modules if not any(k[0] == n for k in reach)]
+    if not reach:
+        raise DesignError(f"{design.path}: no module reaches every target from any mount "
+                          "point; move the mounts closer to the task region")
+    cands = enumerate_candidates(design, reach)
+    if limit is not None:
+        cands = cands[:limit]
+    notes = [f"module {n!r} reaches the task from no mount point" for n in unreachable]
+    job = _Job(modules, targets, reach, design.fusion, design.quantile, design.error_mm,
+               design.confidence, design.draws, design.seed, design.tracker_noise_mm)
+    batches = [list(enumerate(cands))[i:i + batch] for i in range(0, len(cands), batch)]
+    results: dict[int, dict] = {}
+    ctx = contextlib.nullcontext(client) if client is not None else dask_client(scheduler,
+                                                                               workers)
+    with ctx as cl, make_progress(len(cands), "design", "candidate", enabled=progress) as bar:
+        n_workers = len(cl.scheduler_info().get("workers", {})) or workers
+        shared = cl.scatter(job, broadcast=True)
+        futures = [cl.submit(evaluate, shared, b, pure=False, retries=3) for b in batches]
+        for fut in as_completed(futures):
+            for i, res in fut.result():  # kept as soon as it is back
+                results[i] = res
+            bar.update(len(fut.result()))
+    ranked = sorted(({**r, "config": "+".join(r["arms"])} for r in results.values()),
+                    key=_rank_key)
+    for k, r in enumerate(ranked, start=1):
+        r["rank"] = k
+    return DesignResult(design, targets, ranked, placements, len(reach), n_workers,
+                        scheduler or f"LocalCluster({workers} workers)",
+                        time.perf_counter() - t0, notes=notes)
+
+
+# ------------------------------------------------------------------------------ outputs
+
+
+def design_figure(result: DesignResult, modules: dict[str, Module], top: int = 4) -> Figure:
+    """The top candidates side by side: bases, links (posed at the region's first target) and
+    each target coloured by its predicted error quantile."""
+    import matplotlib.pyplot as plt
+
+    cands = result.candidates[:top]
+    n = max(len(cands), 1)
+    fig, axs = plt.subplots(1, n, figsize=(4.4 * n, 4.4), squeeze=False)
+    t = result.targets
+    vmax = max((max(c["error_quantile_mm"]) for c in cands), default=1.0)
+    d = result.design
+    sc = None
+    for ax, c in zip(axs[0], cands, strict=False):
+        ax.fill(*d.region.T, color="0.93", zorder=0)
+        sc = ax.scatter(t[:, 0], t[:, 1], c=c["error_quantile_mm"], cmap="viridis", vmin=0,
+                        vmax=vmax, s=60, marker="s", zorder=2)
+        aim = t[0]
+        for a, b in zip(c["arms"], c["bases"], strict=True):
+            arm = modules[a].at(b)
+            e = np.asarray(kin.elbow_point(arm.params, arm.inverse(jnp.asarray(aim))))
+            ax.plot([b[0], e[0], aim[0]], [b[1], e[1], aim[1]], "-o", color="0.35", ms=3,
+                    zorder=1)
+            ax.plot(*b, "k^", ms=9)
+            ax.annotate(a, b, textcoords="offset points", xytext=(5, 5), fontsize=8)
+        ax.set_aspect("equal")
+        ax.set_title(f"#{c['rank']} {c['config']}: q{round(100 * d.quantile)} "
+                     f"{c['overall']['error_quantile_mm']:.2f} mm "
+                     f"({'meets' if c['meets'] else 'misses'} {d.error_mm:g})", fontsize=9)
+        ax.set_xlabel("x (mm)")
+    axs[0][0].set_ylabel("y (mm)")
+    if sc is not None:
+        fig.colorbar(sc, ax=list(axs[0]), label=f"predicted error at {d.quantile:g} (mm)",
+                     shrink=0.8)
+    return fig
+
+
+def mounted_truth(module: Module, base: Sequence[float]) -> ArmTruth:
+    """A simulated module's true arm, moved with its calibrated base to ``base``: the
+    mounting moves the whole module, so its calibration's base error moves with it."""
+    shift = np.asarray(base, float) - np.asarray(module.arm.params.base, float)
+    b = np.asarray(module.truth.base) + shift
+    return replace(module.truth, name=module.name, base=(float(b[0]), float(b[1])))
+
+
+def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str, Module],
+                        out_dir: str | Path) -> Path:
+    """The candidate as a rig directory: rig.toml (the modules' calibrated values at their new
+    bases), measurements.csv (the planned test rows: commands and targets, empty x, y) and,
+    when every module is simulated, truth.toml (their physics at the new bases) so that
+    ``bayesrob simulate DIR --planned`` can measure it; ``bayesrob collect`` on hardware."""
+    import csv
+
+    from bayesrob.rig import (
+        MEASUREMENTS_FILE,
+        RIG_FILE,
+        dump_toml,
+        format_row,
+        measurement_header,
+        rig_toml_dict,
+    )
+    from bayesrob.simulator import TRUTH_FILE
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = candidate["arms"]
+    specs = {a: replace(modules[a].spec, base=tuple(b))
+             for a, b in zip(names, candidate["bases"], strict=True)}
+    lo, hi = result.design.region.min(axis=0), result.design.region.max(axis=0)
+    workspace = ((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
+    gravity = modules[names[0]].gravity
+    doc = rig_toml_dict(f"design-{candidate['config']}", specs, gravity, workspace)
+    (out / RIG_FILE).write_text(dump_toml(doc))
+    config = "+".join(names)
+    commands = {a: modules[a].at(b) for a, b in zip(names, candidate["bases"], strict=True)}
+    with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(measurement_header(names))
+        for target in result.targets:
+            cmds = {a: np.round(np.asarray(arm.command(jnp.asarray(target))) * 4) / 4
+                    for a, arm in commands.items()}
+            row = format_row(names, config, "test", target, cmds, (math.nan, math.nan))
+            w.writerow(row)
+    mods = [modules[a] for a in names]
+    if all(m.truth is not None for m in mods):
+        truth = replace(mods[0].truth_rig, name=doc["name"], arms={
+            a: mounted_truth(modules[a], b) for a, b in zip(names, candidate["bases"],
+                                                            strict=True)},
+            workspace=workspace)
+        (out / TRUTH_FILE).write_text(truth.to_toml())
+    (out / "design.json").write_text(json.dumps(
+        {"candidate": candidate, "requirement": result.design.requirement}, indent=1))
+    return out
