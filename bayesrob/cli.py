@@ -790,8 +790,8 @@ def _design_args(p: argparse.ArgumentParser) -> None:
                    help="candidates shown in the table (10) and, up to 4, in the figure")
 
 
-@command("design", "search the assemblies of calibrated modules (which, mounted where, linked "
-                   "how) for the fewest that meet an accuracy over a task region, on Dask")(
+@command("design", "find the fewest calibrated modules, mounted and linked, that meet an "
+                   "accuracy over a task region (Dask)")(
     _design_args)
 def _design(args: argparse.Namespace) -> int:
     from bayesrob.design import (
