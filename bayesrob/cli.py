@@ -12,12 +12,14 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from bayesrob.rig import RigError
 
 # name -> (one-line help, add_arguments(parser), run(args) -> exit code)
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 COMMANDS: dict[str, Command] = {}
+T = TypeVar("T")
 
 
 class UsageError(ValueError):
@@ -132,8 +134,27 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                         "joined at one point")
 
 
-def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
+def _truth_options(truth: T, args: argparse.Namespace) -> T:
+    """The simulate options every robot shares, applied to its truth: noise levels, and the
+    pose counts of the chain arms (refused for the planar rigs before this)."""
     from dataclasses import replace
+
+    if args.poses:
+        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
+                        n_holdout=args.poses[2])
+    if args.joint_noise_rad is not None:
+        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
+    if args.measurement_noise_mm is not None:
+        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    return truth
+
+
+def _say_replaced(existing: list[Path]) -> None:
+    if existing:
+        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+
+
+def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
 
     from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 
@@ -142,17 +163,9 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
                          "--compliance and --poses")
     if args.linked:
         return _simulate_linked_chain(args, out_dir, existing)
-    truth = ChainTruth(seed=args.seed, compliance=bool(args.compliance))
-    if args.poses:
-        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
-                        n_holdout=args.poses[2])
-    if args.joint_noise_rad is not None:
-        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
-    if args.measurement_noise_mm is not None:
-        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance)), args)
     out = simulate_chain_rig(out_dir, truth)
-    if existing:
-        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
           f"seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml")
@@ -171,19 +184,12 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     truth = LinkedChainTruth(seed=args.seed)
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
-    if args.poses:
-        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
-                        n_holdout=args.poses[2])
-    if args.joint_noise_rad is not None:
-        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
-    if args.measurement_noise_mm is not None:
-        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    truth = _truth_options(truth, args)
     try:
         out = simulate_linked_chain_rig(out_dir, truth)
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
-    if existing:
-        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    _say_replaced(existing)
     print(f"wrote {out}/ (arm6 left+right, {truth.n_train}/{truth.n_validation}/"
           f"{truth.n_holdout} train/validation/holdout poses per arm, {truth.n_linked} linked "
           f"test rows, compliance {'on' if truth.compliance else 'off'}, seed {args.seed}): "
@@ -203,7 +209,6 @@ def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
                      "arm) with chosen physical effects")(
     _simulate_args)
 def _simulate(args: argparse.Namespace) -> int:
-    from dataclasses import replace
 
     from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE
     from bayesrob.simulator import TRUTH_FILE, paper_truth, simulate_rig, three_arm_truth
@@ -224,15 +229,10 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.compliance is not None or args.poses or args.linked:
         raise UsageError("--compliance, --poses and --linked are for --robot arm6")
     make = three_arm_truth if args.robot == "three-arm" else paper_truth
-    truth = make(args.effects, seed=args.seed, grid=args.grid)
-    if args.joint_noise_rad is not None:
-        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
-    if args.measurement_noise_mm is not None:
-        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+    truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid), args)
     out = simulate_rig(args.out_dir, truth, progress=_progress(args))
     effects = ",".join(truth.effects) or "none"
-    if existing:
-        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    _say_replaced(existing)
     print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}): "
           f"{', '.join(names)}")
     return 0
