@@ -286,8 +286,12 @@ class Module:
     spec: ArmSpec  # the calibrated values as a rig.toml arm (for the planned rig)
     gravity: tuple[float, float]
     param_cov: np.ndarray  # (8, 8) the calibration's parameter covariance
-    truth: ArmTruth | None = None  # simulated modules: the physics, for the proof
-    truth_rig: Truth | None = None
+    truth_rig: Truth | None = None  # simulated modules: their rig's physics, for the proof
+
+    @property
+    def truth(self) -> ArmTruth | None:
+        """The module's own true arm, when its rig was simulated."""
+        return self.truth_rig.arms.get(self.arm.name) if self.truth_rig else None
 
     def at(self, base: Sequence[float]) -> kin.Arm:
         """The module with its base moved to ``base``."""
@@ -303,6 +307,7 @@ def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module
     from bayesrob.simulator import TRUTH_FILE, Truth
 
     out: dict[str, Module] = {}
+    specs: dict[str, list] = {}  # model name -> its discovered file, read once
     by_rig: dict[Path, list[ModuleSpec]] = {}
     for m in design.modules.values():
         by_rig.setdefault(m.rig, []).append(m)
@@ -323,15 +328,16 @@ def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module
         truth = (Truth.from_toml(rig_dir / TRUTH_FILE) if (rig_dir / TRUTH_FILE).is_file()
                  else None)
         for m in mods:
-            try:
-                spec = discover_models(models_dir, [m.model])
-            except (ModelFileError, KeyError, ValueError) as e:
-                raise DesignError(f"{design.path}: [modules.{m.name}]: {e}") from None
-            if not spec:
+            if m.model not in specs:
+                try:
+                    specs[m.model] = discover_models(models_dir, [m.model])
+                except (ModelFileError, KeyError, ValueError) as e:
+                    raise DesignError(f"{design.path}: [modules.{m.name}]: {e}") from None
+            if not specs[m.model]:
                 raise DesignError(f"{design.path}: [modules.{m.name}]: unknown model "
                                   f"{m.model!r}")
             arm = cal[m.arm].arm
-            fitted = fit_noise_models(rig, {m.arm: arm}, spec)[m.model][m.arm]
+            fitted = fit_noise_models(rig, {m.arm: arm}, specs[m.model])[m.model][m.arm]
             p = arm.params
             orig = rig.arms[m.arm]
             cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
@@ -340,8 +346,7 @@ def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module
             u, d = rig.arm_rows(m.arm, "train")
             cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
             out[m.name] = Module(m.name, arm, fitted, cspec, tuple(rig.gravity),
-                                 cov + COV_JITTER * np.eye(len(cov)),
-                                 truth.arms.get(m.arm) if truth else None, truth)
+                                 cov + COV_JITTER * np.eye(len(cov)), truth)
     return out
 
 
@@ -542,7 +547,6 @@ class DesignResult:
     workers: int
     scheduler: str
     seconds: float
-    retried: int = 0
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -670,7 +674,8 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
     notes = [f"module {n!r} reaches the task from no mount point" for n in unreachable]
     job = _Job(modules, targets, reach, design.fusion, design.quantile, design.error_mm,
                design.confidence, design.draws, design.seed, design.tracker_noise_mm)
-    batches = [list(enumerate(cands))[i:i + batch] for i in range(0, len(cands), batch)]
+    indexed = list(enumerate(cands))
+    batches = [indexed[i:i + batch] for i in range(0, len(indexed), batch)]
     results: dict[int, dict] = {}
     ctx = contextlib.nullcontext(client) if client is not None else dask_client(scheduler,
                                                                                workers)
@@ -679,9 +684,9 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
         shared = cl.scatter(job, broadcast=True)
         futures = [cl.submit(evaluate, shared, b, pure=False, retries=3) for b in batches]
         for fut in as_completed(futures):
-            for i, res in fut.result():  # kept as soon as it is back
-                results[i] = res
-            bar.update(len(fut.result()))
+            done = fut.result()
+            results.update(done)  # kept as soon as it is back
+            bar.update(len(done))
     ranked = sorted(({**r, "config": "+".join(r["arms"])} for r in results.values()),
                     key=_rank_key)
     for k, r in enumerate(ranked, start=1):
@@ -754,7 +759,7 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
         measurement_header,
         rig_toml_dict,
     )
-    from bayesrob.simulator import TRUTH_FILE
+    from bayesrob.simulator import TRUTH_FILE, round_pulse
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -767,15 +772,14 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
     doc = rig_toml_dict(f"design-{candidate['config']}", specs, gravity, workspace)
     (out / RIG_FILE).write_text(dump_toml(doc))
     config = "+".join(names)
-    commands = {a: modules[a].at(b) for a, b in zip(names, candidate["bases"], strict=True)}
+    pulses = {a: round_pulse(np.asarray(modules[a].at(b).command(jnp.asarray(result.targets))))
+              for a, b in zip(names, candidate["bases"], strict=True)}
     with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(measurement_header(names))
-        for target in result.targets:
-            cmds = {a: np.round(np.asarray(arm.command(jnp.asarray(target))) * 4) / 4
-                    for a, arm in commands.items()}
-            row = format_row(names, config, "test", target, cmds, (math.nan, math.nan))
-            w.writerow(row)
+        for i, target in enumerate(result.targets):
+            w.writerow(format_row(names, config, "test", target,
+                                  {a: u[i] for a, u in pulses.items()}, (math.nan, math.nan)))
     mods = [modules[a] for a in names]
     if all(m.truth is not None for m in mods):
         truth = replace(mods[0].truth_rig, name=doc["name"], arms={
