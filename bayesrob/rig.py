@@ -489,6 +489,12 @@ def _set_of(row: list[str], idx: dict, where: str) -> str:
     return st
 
 
+def is_planned(row: list[str], idx: dict[str, int]) -> bool:
+    """A row with commands but x and y both empty: planned, not measured yet (``bayesrob
+    design`` writes such rows; ``simulate --planned`` fills them; loading skips them)."""
+    return not row[idx["x"]].strip() and not row[idx["y"]].strip()
+
+
 def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     """Parse and validate ``measurements.csv`` against the rig's arms."""
     header, rows, starts = _read_csv(path)
@@ -553,8 +559,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
         target[r] = tx, ty
-        if not row[idx["x"]].strip() and not row[idx["y"]].strip():
-            keep[r] = False  # planned, not measured yet (bayesrob design writes such rows)
+        if is_planned(row, idx):
+            keep[r] = False
             continue
         observed[r] = (parse_number(row[idx["x"]], where, "x"),
                        parse_number(row[idx["y"]], where, "y"))

@@ -50,6 +50,7 @@ from bayesrob.rig import (
     RigError,
     dump_toml,
     format_row,
+    is_planned,
     measurement_header,
     rig_toml_dict,
 )
@@ -541,9 +542,8 @@ def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
         if col not in idx:
             raise RigError(f"{path}: missing column '{col}'")
     plant = PhysicalRig(truth, seed=seed)
-    planned = [r for r, row in enumerate(body)
-               if len(row) == len(header) and not row[idx["x"]].strip()
-               and not row[idx["y"]].strip()]
+    planned = [r for r, row in enumerate(body) if len(row) == len(header)
+               and is_planned(row, idx)]
     bar = _progress(len(planned), progress, "measure")
     for r in planned:
         row, where = body[r], f"{path}: line {r + 2}"
