@@ -270,7 +270,14 @@ def load_design(path: str | Path) -> DesignSpec:
         linked=linked, fusion=fusion,
         seed=_number(doc, "seed", str(path), int, 0, lo=-1),
         draws=_number(doc, "draws", str(path), int, DRAWS, lo=99),
-        tracker_noise_mm=abs(_number(doc, "tracker_noise_mm", str(path), float, 0.0)))
+        tracker_noise_mm=_tracker_noise(doc, str(path)))
+
+
+def _tracker_noise(doc: dict, where: str) -> float:
+    v = _number(doc, "tracker_noise_mm", where, float, 0.0)
+    if v < 0:  # zero is allowed (no tracker noise known), a negative sd is a typo
+        raise DesignError(f"{where}: tracker_noise_mm = {v!r} must be 0 or more")
+    return v
 
 
 # ------------------------------------------------------------------------------ modules
