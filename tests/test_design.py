@@ -103,6 +103,7 @@ def test_run_on_a_local_cluster_ranks_and_keeps_every_candidate(small, tmp_path)
         # the pooled quantile lies between the targets' own
         assert q.min() - 1e-9 <= c["overall"]["error_quantile_mm"] <= q.max() + 1e-9
         assert c["meets"] == (c["confidence"] >= design.confidence)
+        assert c["meets"] == (c["overall"]["assured_error_mm"] <= design.error_mm)
     # linking helps here: the best linked pair is predicted better than the best single arm
     best = {k: min(c["overall"]["error_quantile_mm"] for c in res.candidates
                    if len(c["arms"]) == k) for k in (1, 2)}
@@ -192,3 +193,19 @@ def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
     rc = main(["design", str(path), "--scheduler", "tcp://127.0.0.1:9", "--no-progress"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "cannot reach the Dask scheduler" in err, err
+
+
+def test_a_requirement_nobody_meets_exits_1_and_names_the_closest(tmp_path, capsys):
+    path = _small_design(tmp_path, **{"max_arms = 3": "max_arms = 1",
+                                      "error_mm = 1.2": "error_mm = 0.01"})
+    out = tmp_path / "out"
+    rc = main(["design", str(path), "--out", str(out), "--no-progress"])
+    text = capsys.readouterr().out.strip().splitlines()
+    doc = json.loads((out / "design.json").read_text())
+    closest = doc["candidates"][0]
+    assert rc == 1 and not any(c["meets"] for c in doc["candidates"])
+    verdict = next(t for t in text if t.startswith("no candidate meets 0.01 mm"))
+    assert closest["config"] in verdict
+    # the closest is the one nearest to meeting
+    assert closest["overall"]["assured_error_mm"] == min(
+        c["overall"]["assured_error_mm"] for c in doc["candidates"])
