@@ -73,6 +73,7 @@ from typing import TYPE_CHECKING, Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from distributed import WorkerPlugin
 
 from bayesrob import kinematics as kin
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, equilibrium_program, fused_posterior
@@ -626,6 +627,29 @@ def _rank_key(c: dict) -> tuple:
             else (True, o["assured_error_mm"], len(c["arms"])))
 
 
+class OneCorePerWorker(WorkerPlugin):
+    """Pins each local worker process, every thread of it, to a core of its own.
+
+    XLA sizes its thread pool to the cores a process may use and splits some operations over
+    it; two unpinned workers on two cores then run four busy threads and each goes at about
+    half speed (measured: 0.20 s per candidate instead of 0.115). Pinned, a worker's pool is
+    one core and the workers share nothing. The worker's name (0, 1, ... in a LocalCluster,
+    kept when a lost worker is restarted) picks the core.
+    """
+
+    def __init__(self, cores: Sequence[int]):
+        self.cores = tuple(cores)
+
+    def setup(self, worker: Any) -> None:
+        try:
+            core = self.cores[int(worker.name) % len(self.cores)]
+        except (TypeError, ValueError):
+            return  # a worker not named by a LocalCluster: leave it as it is
+        for tid in os.listdir("/proc/self/task"):
+            with contextlib.suppress(OSError):  # a thread that ended meanwhile
+                os.sched_setaffinity(int(tid), {core})
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
     """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
@@ -655,6 +679,8 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
             else:
                 os.environ[k] = v
     client = Client(cluster)
+    if hasattr(os, "sched_setaffinity"):  # Linux; elsewhere the workers stay unpinned
+        client.register_plugin(OneCorePerWorker(sorted(os.sched_getaffinity(0))))
     try:
         yield client
     finally:

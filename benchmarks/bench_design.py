@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import tempfile
 import time
@@ -96,15 +95,10 @@ def scale() -> dict:
 
 
 def proof() -> dict:
-    from distributed import Client, LocalCluster
-
-    from bayesrob.design import WORKER_ENV, load_design, load_modules, run_design
+    from bayesrob.design import dask_client, load_design, load_modules, run_design
 
     rows = []
-    os.environ.update(WORKER_ENV)
-    with tempfile.TemporaryDirectory() as tmp, \
-            LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None,
-                         silence_logs=40) as cluster, Client(cluster) as client:
+    with tempfile.TemporaryDirectory() as tmp, dask_client(None, 2) as client:
         for seed in REPORT_SEEDS:
             design = load_design(_design(Path(tmp), seed))
             modules = load_modules(design)
