@@ -379,10 +379,6 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
         def jacobian(x, data):
             return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
                                     for a, (u, _) in zip(arms, data, strict=True)])
-        if robot.gravity is not None:
-            # the prefix/suffix Jacobian knows rigid chains only; joints that give way under
-            # gravity are differentiated by JAX
-            jacobian = jax.jacfwd(residuals)
         cache[arms] = (jax.jit(residuals), jax.jit(jacobian))
     res, jac = cache[arms]
     return (lambda x: res(x, data)), (lambda x: jac(x, data)), sum(int(d.size) for _, d in data)

@@ -333,8 +333,13 @@ class Robot:
         mrad changes the torques by a few parts in a thousand, far below what the data resolve.
         """
         x = jnp.asarray(x)
+        return self._deflections_at(x, arm, *self.element_frames(x, arm, u))
+
+    def _deflections_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array
+                        ) -> jax.Array:
+        # the torques of deflections() in frames already computed: linear in the masses and
+        # first moments, the deflections linear in the compliances
         el = self._elements(arm)
-        joints, links = self.element_frames(x, arm, u)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         s = xz[el["compliance_idx"]]  # (E,)
         link = xz[el["link_idx"]]  # (E, 4): mass, first moment
@@ -387,6 +392,9 @@ class Robot:
         path = self.path(arm)
         el = self._elements(arm)
         q = self._element_values(x, arm, u).T  # (E, N)
+        if self.gravity is not None:
+            frames = self.element_frames(x, arm, u)
+            q = q + self._deflections_at(x, arm, *frames).T
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
         prismatic = jnp.asarray(el["prismatic"])
@@ -442,6 +450,19 @@ class Robot:
             jac = jac.at[:, :, sl[(chain.name, "gain")]].set(d_gain)
             start += k + 1
             col += chain.n_columns
+        if self.gravity is not None:
+            # The compliance parameters move the marker through the joints they deflect:
+            # d p / d c = sum_e (d p / d q_e)(d defl_e / d c), the deflections' own derivative
+            # taken in the commanded frames. Their dependence on the geometry, offsets and
+            # gains is left out: a relative change of order 1e-3 in a deflection of a few mrad,
+            # far below what the fit resolves (tests/test_chain.py compares with jax.jacfwd).
+            idx = np.flatnonzero(self.layout.group_mask(("compliance",)))
+
+            def deflect(v):
+                return self._deflections_at(x.at[idx].set(v), arm, *frames)
+
+            d_defl = jax.jacfwd(deflect)(x[idx])  # (N, E, C)
+            jac = jac.at[:, :, idx].add(jnp.einsum("eni,nec->nic", j_q[:, :, :3], d_defl))
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
