@@ -103,7 +103,9 @@ def test_run_on_a_local_cluster_ranks_and_keeps_every_candidate(small, tmp_path)
         # the pooled quantile lies between the targets' own
         assert q.min() - 1e-9 <= c["overall"]["error_quantile_mm"] <= q.max() + 1e-9
         assert c["meets"] == (c["confidence"] >= design.confidence)
-        assert c["meets"] == (c["overall"]["assured_error_mm"] <= design.error_mm)
+        o = c["overall"]
+        assert c["meets"] == (o["assured_error_mm"] <= design.error_mm)
+        assert 0 < o["optimistic_error_mm"] <= o["assured_error_mm"]
     # linking helps here: the best linked pair is predicted better than the best single arm
     best = {k: min(c["overall"]["error_quantile_mm"] for c in res.candidates
                    if len(c["arms"]) == k) for k in (1, 2)}
