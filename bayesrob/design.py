@@ -747,37 +747,42 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
 
 def design_figure(result: DesignResult, modules: dict[str, Module], top: int = 4) -> Figure:
     """The top candidates side by side: bases, links (posed at the region's first target) and
-    each target coloured by its predicted error quantile."""
+    a map over the region of the predicted error quantile, interpolated between the targets
+    (white dots)."""
     import matplotlib.pyplot as plt
 
     cands = result.candidates[:top]
     n = max(len(cands), 1)
-    fig, axs = plt.subplots(1, n, figsize=(4.4 * n, 4.4), squeeze=False)
+    fig, axs = plt.subplots(1, n, figsize=(3.6 * n + 1.2, 4.2), squeeze=False, sharex=True,
+                            sharey=True, layout="constrained")
     t = result.targets
-    vmax = max((max(c["error_quantile_mm"]) for c in cands), default=1.0)
+    values = [v for c in cands for v in c["error_quantile_mm"]]
+    vmin, vmax = (min(values), max(values)) if values else (0.0, 1.0)
+    levels = np.linspace(vmin, vmax + 1e-9, 13)  # one scale for every panel and the bar
     d = result.design
+    q = f"q{round(100 * d.quantile)}"
     sc = None
     for ax, c in zip(axs[0], cands, strict=False):
         ax.fill(*d.region.T, color="0.93", zorder=0)
-        sc = ax.scatter(t[:, 0], t[:, 1], c=c["error_quantile_mm"], cmap="viridis", vmin=0,
-                        vmax=vmax, s=60, marker="s", zorder=2)
+        sc = ax.tricontourf(t[:, 0], t[:, 1], c["error_quantile_mm"], levels=levels,
+                            cmap="viridis", zorder=1)
+        ax.plot(t[:, 0], t[:, 1], "o", color="white", ms=2.5, zorder=3)
         aim = t[0]
         for a, b in zip(c["arms"], c["bases"], strict=True):
             arm = modules[a].at(b)
             e = np.asarray(kin.elbow_point(arm.params, arm.inverse(jnp.asarray(aim))))
             ax.plot([b[0], e[0], aim[0]], [b[1], e[1], aim[1]], "-o", color="0.35", ms=3,
-                    zorder=1)
+                    zorder=2)
             ax.plot(*b, "k^", ms=9)
             ax.annotate(a, b, textcoords="offset points", xytext=(5, 5), fontsize=8)
         ax.set_aspect("equal")
-        ax.set_title(f"#{c['rank']} {c['config']}: q{round(100 * d.quantile)} "
-                     f"{c['overall']['error_quantile_mm']:.2f} mm "
-                     f"({'meets' if c['meets'] else 'misses'} {d.error_mm:g})", fontsize=9)
+        ax.set_title(f"#{c['rank']} {c['config']}\n{q} {c['overall']['error_quantile_mm']:.2f} mm"
+                     f", {'meets' if c['meets'] else 'misses'} {d.error_mm:g}", fontsize=9)
         ax.set_xlabel("x (mm)")
     axs[0][0].set_ylabel("y (mm)")
     if sc is not None:
         fig.colorbar(sc, ax=list(axs[0]), label=f"predicted error at {d.quantile:g} (mm)",
-                     shrink=0.8)
+                     shrink=0.8, format="%.2f")
     return fig
 
 
