@@ -359,29 +359,40 @@ def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
     for arm in robot.measured_arms():
         u, d = rig.chain_rows(arm, set)
         if len(u):
-            p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u)))
+            p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u),
+                                                      _side(rig, robot, arm, set)))
             out[arm] = np.linalg.norm(p - d, axis=1)
     return out
+
+
+def _side(rig: Rig, robot: kin.Robot, arm: str, set: str) -> dict | None:
+    # the rest of each pose matters only where joints give way under gravity
+    if robot.gravity is None:
+        return None
+    side = rig.chain_side_rows(arm, set)
+    return None if side is None else {b: jnp.asarray(u) for b, u in side.items()}
 
 
 def _residual_function(rig: Rig, robot: kin.Robot, set: str):
     """Residuals and their Jacobian as functions of the parameters alone, compiled once per
     robot (the rows are arguments, so a second calibration of the same rig is warm)."""
     arms = tuple(a for a in robot.measured_arms() if len(rig.chain_rows(a, set)[0]))
-    data = tuple((jnp.asarray(u), jnp.asarray(d))
-                 for u, d in (rig.chain_rows(a, set) for a in arms))
+    data = tuple((jnp.asarray(u), jnp.asarray(d), _side(rig, robot, a, set))
+                 for a, (u, d) in ((a, rig.chain_rows(a, set)) for a in arms))
+    key = (arms, tuple(side is not None for *_, side in data))
     cache = robot.__dict__.setdefault("_compiled_fits", {})
-    if arms not in cache:
+    if key not in cache:
         def residuals(x, data):
-            return jnp.concatenate([(robot.marker_points(x, a, u) - d).ravel()
-                                    for a, (u, d) in zip(arms, data, strict=True)])
+            return jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
+                                    for a, (u, d, side) in zip(arms, data, strict=True)])
 
         def jacobian(x, data):
-            return jnp.concatenate([robot.marker_jacobian(x, a, u).reshape(-1, x.shape[0])
-                                    for a, (u, _) in zip(arms, data, strict=True)])
-        cache[arms] = (jax.jit(residuals), jax.jit(jacobian))
-    res, jac = cache[arms]
-    return (lambda x: res(x, data)), (lambda x: jac(x, data)), sum(int(d.size) for _, d in data)
+            return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
+                -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
+        cache[key] = (jax.jit(residuals), jax.jit(jacobian))
+    res, jac = cache[key]
+    n_res = sum(int(d.size) for _, d, _ in data)
+    return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res
 
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None

@@ -132,6 +132,17 @@ class Rig:
         cols = [meas.commands[c.name][m] for c in self.robot.path(arm)]
         return np.concatenate(cols, axis=1), meas.observed[m]
 
+    def chain_side_rows(self, arm: str, set: str) -> dict[str, np.ndarray] | None:
+        """The other measured arms' path columns in ``arm``'s rows of a set (the rest of each
+        pose, whose weight bends shared chains), or None unless every such row carries them."""
+        meas = self.measurements
+        m = meas.mask(arm, set)
+        side = {b: np.concatenate([meas.commands[c.name][m] for c in self.robot.path(b)],
+                                  axis=1) for b in self.robot.side_arms(arm)}
+        if not side or not m.any() or any(np.isnan(u).any() for u in side.values()):
+            return None
+        return side
+
     @property
     def configs(self) -> list[str]:
         """Configs in order of first appearance."""
@@ -642,8 +653,10 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                 if uses and len(members) > 1 and row[idx[col]].strip() == "":
                     raise RigError(f"{where}: a linked row for {cfg!r} is missing arm "
                                    f"{owner[c.name]!r}'s {col!r}")
-                v = parse_number(row[idx[col]], where, col, allow_empty=not uses)
-                commands[c.name][r, k] = v if uses else math.nan
+                # a chain off the row's path may carry the rest of the pose: the other arms'
+                # weight on the chains they share with this one
+                commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
+                                                      allow_empty=not uses)
         observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
         if has_target:
             target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]

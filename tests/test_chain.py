@@ -143,6 +143,29 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_deflections_second_orde
         assert rel.max() < 0.01, lay.names[int(rel.argmax())]
 
 
+def test_a_shared_torso_bends_under_both_arms_whichever_hand_is_measured():
+    """Given the other arm's pose, the torso joints' deflections are the same from either
+    hand's path (both arms weigh on them); without it, each hand sees only its own arm."""
+    robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"], gravity=np.array([0, 0, -1.0]))
+    lay = robot.layout
+    x = lay.nominal.copy()
+    x[[p.name.endswith(".compliance") for p in lay.params]] = 1e-7
+    rng = np.random.default_rng(2)
+    torso, right, left = (rng.uniform(-1, 1, (5, n)) for n in (3, 7, 7))
+    u = {"right": np.hstack([torso, right]), "left": np.hstack([torso, left])}
+    n_torso = robot.chains["torso"].n_joints
+    seen = {}
+    for arm, other in (("right", "left"), ("left", "right")):
+        alone = np.asarray(robot.deflections(x, arm, u[arm]))[:, :n_torso]
+        both = np.asarray(robot.deflections(x, arm, u[arm], {other: jnp.asarray(u[other])}))
+        seen[arm] = (alone, both[:, :n_torso])
+        # the arm's own joints carry only what hangs beyond them
+        np.testing.assert_allclose(both[:, n_torso + 1:],
+                                   np.asarray(robot.deflections(x, arm, u[arm]))[:, n_torso + 1:])
+    np.testing.assert_allclose(seen["right"][1], seen["left"][1], rtol=1e-9, atol=1e-15)
+    assert np.abs(seen["right"][0] - seen["left"][0]).max() > 1e-4
+
+
 def test_justin_tree_shares_the_torso_and_couples_its_fourth_joint():
     robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"])
     assert [c.name for c in robot.path("left")] == ["torso", "left"]
@@ -320,3 +343,27 @@ def test_compliance_group_recovers_an_arm_that_sags_under_gravity(tmp_path):
     assert g_err > 5 * floor  # sag is the dominant error left by geometry alone
     assert c_err <= 1.3 * floor, (c_err, floor)
     assert compliant.ident.free.sum() > geometric.ident.free.sum()
+
+
+def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
+    """A hand's row may also carry the other arm's columns (read as the rest of the pose);
+    side rows are given only when every row of the arm and set carries them."""
+    shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
+    cols = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
+            + [f"left_u{k}" for k in range(1, 8)])
+    pose = ",".join(["0.1"] * 17)
+    lines = ["config,set," + ",".join(cols) + ",x,y,z"]
+    lines += [f"right,train,{pose},1,2,3"] * 2 + [f"left,train,{pose},1,2,3"]
+    lines += ["left,train," + ",".join(["0.1"] * 3 + [""] * 7 + ["0.1"] * 7) + ",1,2,3"]
+    lines += ["right,train,0.1,0.1,0.1," + ",".join(["0.1"] * 7 + [""] * 7) + ",1,2,3"]
+    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
+    rig = load_rig(tmp_path, min_train_rows=0)
+    assert rig.chain_side_rows("right", "train") is None  # one right row lacks the left arm
+    assert rig.chain_side_rows("left", "train") is None  # and one left row the right arm
+    del lines[-2:]
+    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
+    rig = load_rig(tmp_path, min_train_rows=0)
+    side = rig.chain_side_rows("right", "train")
+    assert set(side) == {"left"} and side["left"].shape == (2, 10)
+    assert rig.chain_side_rows("left", "train")["right"].shape == (1, 10)
+    assert rig.chain_rows("right", "train")[0].shape == (2, 10)

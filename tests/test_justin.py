@@ -33,8 +33,10 @@ def test_justin_ladder_matches_the_published_one(tmp_path):
     assert val["frames,geometric"]["mean_mm"] == pytest.approx(10.97, abs=0.05)
     assert val["frames,offsets,geometric,servo"]["mean_mm"] == pytest.approx(10.20, abs=0.05)
     assert val["frames,offsets,geometric,servo"]["mean_mm"] <= 10.5
-    # joint compliance without masses (README: 7.34; published with CAD masses: 5.64). Its
-    # fit has ~130 parameters and a rank analysis between two rounds, so it is held to 0.1 mm.
-    assert val["frames,geometric,compliance"]["mean_mm"] == pytest.approx(7.34, abs=0.1)
+    # joint compliance without masses, both arms weighing on the torso (README: 4.34; the
+    # issue's target and the published step with CAD masses: 5.64). Its fit has ~130
+    # parameters and a rank analysis between two rounds, so it is held to 0.1 mm.
+    comp = val["frames,geometric,compliance"]
+    assert comp["mean_mm"] <= 5.64 and comp["mean_mm"] == pytest.approx(4.34, abs=0.1)
     # a torso shared by both hands: one calibration fits both markers
     assert rows["frames"]["n_free"] == 12  # base pose (6) + two markers (3 + 3)

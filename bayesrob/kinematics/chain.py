@@ -321,7 +321,35 @@ class Robot:
         _, (joints, links) = jax.lax.scan(step, t0, xs)
         return joints, links
 
-    def deflections(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+    def side_arms(self, arm: str) -> list[str]:
+        """Measured arms whose path leaves ``arm``'s: their links hang on the chains the two
+        share (a torso carries both hands), and weigh on those joints too."""
+        return [b for b in self.measured_arms() if b != arm]
+
+    def side_frames(self, x: jax.Array, arm: str, side: dict[str, jax.Array]
+                    ) -> tuple[tuple[int, int, jax.Array], ...]:
+        """For each chain off ``arm``'s path, its links' frames (E_c, N, 4, 4) in the pose of
+        ``side`` (columns of a side arm's path, per row), with where it hangs: (how many of
+        ``arm``'s path elements it hangs beyond, its first element on the side arm's path,
+        frames, that side arm)."""
+        on_path = {c.name for c in self.path(arm)}
+        done: set[str] = set()
+        out = []
+        for b, ub in side.items():
+            _, links = self.element_frames(x, b, ub)
+            start, shared = 0, 0
+            for c in self.path(b):
+                n = c.n_joints + 1
+                if c.name in on_path:
+                    shared = start + n
+                elif c.name not in done:
+                    done.add(c.name)
+                    out.append((shared, start, links[start:start + n], b))
+                start += n
+        return tuple(out)
+
+    def deflections(self, x: jax.Array, arm: str, u: jax.Array,
+                    side: dict[str, jax.Array] | None = None) -> jax.Array:
         """How far each joint on the path gives way under gravity, (N, E) rad (mm if prismatic).
 
         Joint e turns by its compliance times the gravity torque about its axis of the links
@@ -333,25 +361,40 @@ class Robot:
         mrad changes the torques by a few parts in a thousand, far below what the data resolve.
         """
         x = jnp.asarray(x)
-        return self._deflections_at(x, arm, *self.element_frames(x, arm, u))
+        frames = self.element_frames(x, arm, u)
+        hanging = self.side_frames(x, arm, side) if side else ()
+        return self._deflections_at(x, arm, *frames, hanging)
 
-    def _deflections_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array
-                        ) -> jax.Array:
+    def _weights(self, xz: jax.Array, link_idx: np.ndarray, links: jax.Array
+                 ) -> tuple[jax.Array, jax.Array]:
+        # each element's first moment about the instrument origin, (E, N, 3), and its mass
+        link = xz[link_idx]  # (E, 4): mass, first moment in the link's frame
+        mass, moment = link[:, 0], link[:, 1:]
+        weight = mass[:, None, None] * links[:, :, :3, 3] + jnp.einsum(
+            "enij,ej->eni", links[:, :, :3, :3], moment)
+        return weight, mass
+
+    def _deflections_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
+                        hanging: tuple = ()) -> jax.Array:
         # the torques of deflections() in frames already computed: linear in the masses and
         # first moments, the deflections linear in the compliances
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         s = xz[el["compliance_idx"]]  # (E,)
-        link = xz[el["link_idx"]]  # (E, 4): mass, first moment
-        mass, moment = link[:, 0], link[:, 1:]
-        weight = mass[:, None, None] * links[:, :, :3, 3] + jnp.einsum(
-            "enij,ej->eni", links[:, :, :3, :3], moment)  # (E, N, 3)
+        weight, mass = self._weights(xz, el["link_idx"], links)
         beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
-        mass_beyond = jnp.cumsum(mass[::-1])[::-1]
+        mass_beyond = jnp.cumsum(mass[::-1], axis=0)[::-1][:, None]
+        for shared, start, frames, b in hanging:
+            # a chain off the path weighs on the path's elements before where it hangs
+            idx = self._elements(b)["link_idx"][start:start + frames.shape[0]]
+            w, m = self._weights(xz, idx, frames)
+            on = (jnp.arange(beyond.shape[0]) < shared)[:, None]
+            beyond = beyond + jnp.where(on[..., None], w.sum(axis=0)[None], 0.0)
+            mass_beyond = mass_beyond + jnp.where(on, m.sum(), 0.0)
         g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
         origin = joints[:, :, :3, 3]
         axis = jnp.einsum("enij,ej->eni", joints[:, :, :3, :3], jnp.asarray(el["axes"]))
-        lever = beyond - mass_beyond[:, None, None] * origin
+        lever = beyond - mass_beyond[:, :, None] * origin
         tau = jnp.sum(axis * jnp.cross(lever, g), axis=-1)  # (E, N)
         return (s[:, None] * tau).T
 
@@ -360,11 +403,13 @@ class Robot:
         return sum(c.n_joints for c in self.path(arm))
 
     def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array,
-                       joint_errors: jax.Array | None = None) -> jax.Array:
+                       joint_errors: jax.Array | None = None,
+                       side: dict[str, jax.Array] | None = None) -> jax.Array:
         """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns).
 
         ``joint_errors`` (N, n_path_joints) are added to the path's joint values, base first
-        (what a joint-error model draws).
+        (what a joint-error model draws). ``side``: the other arms' path columns in the same
+        rows (:meth:`side_arms`), whose weight then bends the chains they share with ``arm``.
         """
         u = jnp.atleast_2d(jnp.asarray(u))
         deflection = None
@@ -373,11 +418,12 @@ class Robot:
             err = jnp.concatenate([jnp.asarray(joint_errors), jnp.zeros((u.shape[0], 1))], axis=1)
             deflection = err[:, self._elements(arm)["q_idx"]]
         if self.gravity is not None:
-            sag = self.deflections(x, arm, u)
+            sag = self.deflections(x, arm, u, side)
             deflection = sag if deflection is None else deflection + sag
         return self.element_frames(x, arm, u, deflection)[1][-1]
 
-    def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
+    def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array,
+                        side: dict[str, jax.Array] | None = None) -> jax.Array:
         """d marker_points / d x, (N, dim, P), from prefix and suffix products.
 
         Every parameter enters as one factor of the product of transforms, so each derivative
@@ -393,7 +439,8 @@ class Robot:
         el = self._elements(arm)
         q = self._element_values(x, arm, u).T  # (E, N)
         if self.gravity is not None:
-            frames = self.element_frames(x, arm, u)
+            frames = (*self.element_frames(x, arm, u),
+                      self.side_frames(x, arm, side) if side else ())
             q = q + self._deflections_at(x, arm, *frames).T
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
@@ -466,10 +513,11 @@ class Robot:
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
-                      joint_errors: jax.Array | None = None) -> jax.Array:
-        """Where the instrument sees ``arm``'s marker: (N, dim) in mm (with ``joint_errors``
-        added to the path's joints, as :meth:`tip_transforms`)."""
-        t = self.tip_transforms(x, arm, u, joint_errors)
+                      joint_errors: jax.Array | None = None,
+                      side: dict[str, jax.Array] | None = None) -> jax.Array:
+        """Where the instrument sees ``arm``'s marker: (N, dim) in mm (``joint_errors`` and
+        ``side`` as :meth:`tip_transforms`)."""
+        t = self.tip_transforms(x, arm, u, joint_errors, side)
         m = jnp.asarray(x)[self.layout.slices[(arm, "marker")]]
         p = t[:, :3, :3] @ m + t[:, :3, 3]
         return p[:, : self.dim]
@@ -478,7 +526,8 @@ class Robot:
         """A jitted ``(x, u) -> marker points`` for one arm, built once per robot and arm."""
         cache = self.__dict__.setdefault("_compiled", {})
         if arm not in cache:
-            cache[arm] = jax.jit(lambda x, u: self.marker_points(x, arm, u))
+            cache[arm] = jax.jit(lambda x, u, side=None: self.marker_points(x, arm, u,
+                                                                            side=side))
         return cache[arm]
 
     def with_values(self, x: np.ndarray) -> Robot:

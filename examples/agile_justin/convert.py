@@ -6,9 +6,10 @@ SRC_CSV is the authors' ``measurements.csv`` (500 rows: an index, ``joints``, a 
 array of 19 joint angles in rad, and ``markers``, a 2 x 3 array in metres: right hand, left
 hand). Rows keep the file's order (the authors shuffled it): the first ``--split`` poses are
 ``train``, the rest ``validation``, as in the authors' scripts. Each pose becomes two rows, one
-per hand marker (config ``right`` / ``left``), in mm, with the torso's three joint columns and
-the arm's seven; rig.toml (this directory's, from the published nominal values) is copied
-beside it. The data carries no license: it is read from where the user keeps it, never shipped.
+per hand marker (config ``right`` / ``left``), in mm, each with the whole pose (the torso's
+three joint columns and both arms' seven: the other arm's weight bends the torso); rig.toml
+(this directory's, from the published nominal values) is copied beside it. The data carries
+no license: it is read from where the user keeps it, never shipped.
 """
 
 from __future__ import annotations
@@ -50,11 +51,9 @@ def convert(src: Path, out: Path, split: int = 300) -> int:
         q = _array(row[1], (19,), where + ": joints")
         markers = _array(row[2], (2, 3), where + ": markers") * 1000.0  # m -> mm
         st = "train" if i < split else "validation"
-        for arm, sl, m in (("right", RIGHT, markers[0]), ("left", LEFT, markers[1])):
-            u = [""] * 17
-            u[0:3] = [f"{v:.10g}" for v in q[TORSO]]
-            off = 3 if arm == "right" else 10
-            u[off:off + 7] = [f"{v:.10g}" for v in q[sl]]
+        # every row carries the whole pose: the other arm's weight bends the shared torso
+        u = [f"{v:.10g}" for v in (*q[TORSO], *q[RIGHT], *q[LEFT])]
+        for arm, m in (("right", markers[0]), ("left", markers[1])):
             lines.append([arm, st, *u, *(f"{v:.4f}" for v in m), row[0]])
     with open(out / "measurements.csv", "w", newline="") as f:
         csv.writer(f).writerows(lines)
