@@ -251,7 +251,7 @@ def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str,
 # Groups are tried in this order when the rank analysis decides which of two redundant
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
 # general correction of a joint's origin.
-PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance")
+PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral")
 # A column is identifiable when the part of it no earlier column explains is at least this
 # fraction of its length (column-scaled to each parameter's typical size). Exact
 # redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would
@@ -408,7 +408,8 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
                          f"{', '.join(kin.ALL_GROUPS)}")
     groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
     robot = rig.robot
-    if "compliance" in groups:
+    sags = bool({"compliance", "lateral"} & set(groups))
+    if sags:
         gravity = np.zeros(3)
         gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
         robot = replace(robot, gravity=gravity)
@@ -445,7 +446,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     if groups != ("frames",):
         x, n = fit(ident.free, x)
         nfev += n
-    if "compliance" in groups:
+    if sags:
         # Masses are seen only through non-zero compliances: at the start (compliance 0) the
         # rank analysis frees the compliances alone; a second round frees the masses and
         # first moments the fitted compliances make visible.

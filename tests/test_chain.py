@@ -119,27 +119,36 @@ def test_analytic_marker_jacobian_equals_autodiff(which):
         np.testing.assert_allclose(mine, auto, atol=1e-8 * float(jnp.abs(auto).max()))
 
 
-def test_compliant_marker_jacobian_is_autodiff_up_to_the_deflections_second_order():
-    """With joints giving way under gravity, the analytic Jacobian takes the deflections'
-    derivative in the commanded frames only. The compliance and mass columns are then exact;
-    the others leave out how the geometry moves a deflection of a few mrad: within 1% of each
-    column's largest entry at up to 3 mrad (measured 0.5%; 2% at 10 mrad)."""
+@pytest.mark.parametrize("lateral", [False, True])
+def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(lateral):
+    """With joints giving way under gravity, the analytic Jacobian takes the sag's derivative
+    in the commanded frames only (and a bend's at zero bend). Without lateral bending the
+    compliance and mass columns are then exact; every column leaves out how the geometry
+    moves a sag of a few mrad: within 1% of each column's largest entry at up to 3 mrad
+    (measured 0.5%; 2% at 10 mrad)."""
     robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"], gravity=np.array([0, 0, -1.0]))
     lay = robot.layout
-    comp = lay.group_mask(("compliance",))
+    sags = lay.group_mask(("compliance", "lateral"))
     rng = np.random.default_rng(5)
-    x = lay.nominal + rng.normal(0, 3, len(lay.params)) * lay.scales * ~comp
+    x = lay.nominal + rng.normal(0, 3, len(lay.params)) * lay.scales * ~sags
     joint = np.array([p.name.endswith(".compliance") for p in lay.params])
     x[joint] = rng.uniform(0, 5e-8, joint.sum())  # rad per N mm
+    if lateral:
+        bending = lay.group_mask(("lateral",))
+        x[bending] = rng.uniform(0, 2e-8, bending.sum())
     u = rng.normal(0, 1, (9, 10))
     for arm in ("right", "left"):
-        assert 5e-4 < float(jnp.abs(robot.deflections(jnp.asarray(x), arm, u)).max()) < 3e-3
+        defl, bend = robot.sag(jnp.asarray(x), arm, u)
+        assert 5e-4 < float(jnp.abs(defl).max()) < 3e-3
+        assert (float(jnp.abs(bend).max()) > 5e-4) == lateral, float(jnp.abs(bend).max())
+        assert float(jnp.abs(bend).max()) < 3e-3
         auto = np.asarray(jax.jacfwd(lambda v, a=arm: robot.marker_points(v, a, u))(
             jnp.asarray(x)))
         mine = np.asarray(robot.marker_jacobian(jnp.asarray(x), arm, u))
         scale = np.abs(auto).max(axis=(0, 1)) + 1e-300
         rel = np.abs(mine - auto).max(axis=(0, 1)) / scale
-        assert rel[comp].max() < 1e-6
+        if not lateral:
+            assert rel[sags].max() < 1e-6
         assert rel.max() < 0.01, lay.names[int(rel.argmax())]
 
 

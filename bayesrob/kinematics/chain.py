@@ -33,7 +33,7 @@ import bayesrob.kinematics.transforms as tf
 JOINT_KINDS = ("revolute", "prismatic")
 GROUPS = ("frames", "offsets", "geometric", "servo")
 # Fitted only when asked for: joints that give way under gravity (see Robot.deflections).
-OPTIONAL_GROUPS = ("compliance",)
+OPTIONAL_GROUPS = ("compliance", "lateral")
 ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
@@ -183,6 +183,12 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
         add((c.name, "compliance"), [f"{c.name}.{j}.compliance" for j in c.joint_names],
             "compliance", np.zeros(c.n_joints), [1e-7] * c.n_joints)
     for c in chains.values():
+        # bending of each joint's bearing and link about the two axes across its own (rad per
+        # N mm), under the same gravity torques
+        add((c.name, "lateral"), [f"{c.name}.{j}.lateral.{k}" for j in c.joint_names
+                                  for k in (1, 2)],
+            "lateral", np.zeros(2 * c.n_joints), [1e-7] * (2 * c.n_joints))
+    for c in chains.values():
         half = 0.5 * c.origins[1:, :3]  # each link's middle: half way to the next origin
         names, nominal, scale = [], [], []
         for j, h in zip(c.joint_names, half, strict=True):
@@ -191,6 +197,19 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
             scale += [1.0, 100.0, 100.0, 100.0]
         add((c.name, "links"), names, "compliance", nominal, scale)
     return ParamLayout(tuple(params), slices)
+
+
+def _across(axis: np.ndarray) -> np.ndarray:
+    """Two unit vectors (2, 3) across a joint axis, completing it to a right-handed frame."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    b1 = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(a, b1)])
+
+
+def _bend(phi: jax.Array) -> jax.Array:
+    # a small rotation (..., 3) about a joint's own axes, as a 4x4 transform
+    return tf.perturbation(jnp.concatenate([jnp.zeros_like(phi), phi], axis=-1))
 
 
 def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
@@ -257,11 +276,12 @@ class Robot:
         sl = self.layout.slices
         zero = len(self.layout.params)  # index of a zero appended to x: tools have no mass
         nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
-        compliance_idx, link_idx = [], []
+        compliance_idx, link_idx, lateral_idx, across = [], [], [], []
         n_q = 0
         for chain in self.path(arm):
             start = sl[(chain.name, "origins")].start
             c0, l0 = sl[(chain.name, "compliance")].start, sl[(chain.name, "links")].start
+            b0 = sl[(chain.name, "lateral")].start
             for i in range(chain.n_joints + 1):
                 nominal.append(tf.np_pose_matrix(chain.origins[i]))
                 delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
@@ -271,12 +291,15 @@ class Robot:
                 q_idx.append(-1 if last else n_q + i)
                 compliance_idx.append(zero if last else c0 + i)
                 link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
+                lateral_idx.append([zero] * 2 if last else [b0 + 2 * i, b0 + 2 * i + 1])
+                across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
             n_q += chain.n_joints
         q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
         out = {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
                "axes": np.stack(axes), "prismatic": np.array(prismatic),
                "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
-               "link_idx": np.array(link_idx)}
+               "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
+               "across": np.stack(across)}
         cache[arm] = out
         return out
 
@@ -296,28 +319,31 @@ class Robot:
             x[self.layout.slices[(root.name, "instrument")]])
 
     def element_frames(self, x: jax.Array, arm: str, u: jax.Array,
-                       deflection: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+                       deflection: jax.Array | None = None, bend: jax.Array | None = None
+                       ) -> tuple[jax.Array, jax.Array]:
         """Frames along the path to ``arm`` (instrument frame), each (E, N, 4, 4): ``joints``,
         where each element's motion happens (its axis passes through the origin), and
         ``links``, the frame after the motion (the child link's). ``deflection`` (N, E) is
-        added to the elements' joint values (zero on tools)."""
+        added to the elements' joint values (zero on tools); ``bend`` (N, E, 3), a small rotation
+        about each joint's own axes before its motion (lateral compliance)."""
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
         el = self._elements(arm)
         t0 = jnp.broadcast_to(self.instrument_pose(x, arm), (u.shape[0], 4, 4))
 
         def step(t, e):
-            nominal, delta, axis, prismatic, qe = e
+            nominal, delta, axis, prismatic, qe, phi = e
             turn = tf.rot_axis(axis, qe * (1.0 - prismatic))
-            motion = tf.homogeneous(turn, (qe * prismatic)[:, None] * axis)
+            motion = _bend(phi) @ tf.homogeneous(turn, (qe * prismatic)[:, None] * axis)
             joint = t @ (nominal @ tf.perturbation(delta))
             return joint @ motion, (joint, joint @ motion)
 
         qe = self._element_values(x, arm, u)
         if deflection is not None:
             qe = qe + deflection
+        phi = (jnp.zeros(qe.shape + (3,)) if bend is None else bend)
         xs = (jnp.asarray(el["nominal"]), x[el["delta_idx"]], jnp.asarray(el["axes"]),
-              jnp.asarray(el["prismatic"]), qe.T)
+              jnp.asarray(el["prismatic"]), qe.T, jnp.swapaxes(phi, 0, 1))
         _, (joints, links) = jax.lax.scan(step, t0, xs)
         return joints, links
 
@@ -360,10 +386,17 @@ class Robot:
         rank analysis drops the rest). One step at the commanded pose: a deflection of a few
         mrad changes the torques by a few parts in a thousand, far below what the data resolve.
         """
+        return self.sag(x, arm, u, side)[0]
+
+    def sag(self, x: jax.Array, arm: str, u: jax.Array,
+            side: dict[str, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
+        """The joints' deflections (N, E) of :meth:`deflections` and the bending (N, E, 3):
+        each joint's lateral compliances times the gravity torque about the two axes across
+        its own, a small rotation in the joint's frame (bearing and link bending)."""
         x = jnp.asarray(x)
         frames = self.element_frames(x, arm, u)
         hanging = self.side_frames(x, arm, side) if side else ()
-        return self._deflections_at(x, arm, *frames, hanging)
+        return self._sag_at(x, arm, *frames, hanging)
 
     def _weights(self, xz: jax.Array, link_idx: np.ndarray, links: jax.Array
                  ) -> tuple[jax.Array, jax.Array]:
@@ -374,10 +407,10 @@ class Robot:
             "enij,ej->eni", links[:, :, :3, :3], moment)
         return weight, mass
 
-    def _deflections_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
-                        hanging: tuple = ()) -> jax.Array:
-        # the torques of deflections() in frames already computed: linear in the masses and
-        # first moments, the deflections linear in the compliances
+    def _sag_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
+                hanging: tuple = ()) -> tuple[jax.Array, jax.Array]:
+        # the torques of sag() in frames already computed: linear in the masses and first
+        # moments, the deflections and bending linear in the compliances
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         s = xz[el["compliance_idx"]]  # (E,)
@@ -393,10 +426,15 @@ class Robot:
             mass_beyond = mass_beyond + jnp.where(on, m.sum(), 0.0)
         g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
         origin = joints[:, :, :3, 3]
-        axis = jnp.einsum("enij,ej->eni", joints[:, :, :3, :3], jnp.asarray(el["axes"]))
+        rot = joints[:, :, :3, :3]
         lever = beyond - mass_beyond[:, :, None] * origin
-        tau = jnp.sum(axis * jnp.cross(lever, g), axis=-1)  # (E, N)
-        return (s[:, None] * tau).T
+        torque = jnp.einsum("enji,enj->eni", rot, jnp.cross(lever, g))  # in the joint's frame
+        tau = jnp.sum(torque * jnp.asarray(el["axes"])[:, None, :], axis=-1)  # (E, N)
+        across = jnp.asarray(el["across"])  # (E, 2, 3)
+        lateral = xz[el["lateral_idx"]]  # (E, 2)
+        bend = jnp.einsum("ek,enk,ekj->enj", lateral,
+                          jnp.einsum("enj,ekj->enk", torque, across), across)
+        return (s[:, None] * tau).T, jnp.swapaxes(bend, 0, 1)
 
     def n_path_joints(self, arm: str) -> int:
         """How many joints the path to ``arm`` has (its mounts' and its own)."""
@@ -417,10 +455,11 @@ class Robot:
             # elements index the joints, tools the zero column appended after them
             err = jnp.concatenate([jnp.asarray(joint_errors), jnp.zeros((u.shape[0], 1))], axis=1)
             deflection = err[:, self._elements(arm)["q_idx"]]
+        bend = None
         if self.gravity is not None:
-            sag = self.deflections(x, arm, u, side)
+            sag, bend = self.sag(x, arm, u, side)
             deflection = sag if deflection is None else deflection + sag
-        return self.element_frames(x, arm, u, deflection)[1][-1]
+        return self.element_frames(x, arm, u, deflection, bend)[1][-1]
 
     def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array,
                         side: dict[str, jax.Array] | None = None) -> jax.Array:
@@ -441,13 +480,16 @@ class Robot:
         if self.gravity is not None:
             frames = (*self.element_frames(x, arm, u),
                       self.side_frames(x, arm, side) if side else ())
-            q = q + self._deflections_at(x, arm, *frames).T
+            defl, bend = self._sag_at(x, arm, *frames)
+            q = q + defl.T
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
         prismatic = jnp.asarray(el["prismatic"])
         factors = jnp.asarray(el["nominal"]) @ tf.perturbation(deltas)  # (E, 4, 4)
         turn = tf.rot_axis_batch(axes, q * (1.0 - prismatic)[:, None])  # (E, N, 3, 3)
         motions = tf.homogeneous(turn, (q * prismatic[:, None])[..., None] * axes[:, None, :])
+        if self.gravity is not None:
+            motions = _bend(jnp.swapaxes(bend, 0, 1)) @ motions
         inst_nominal = tf.np_pose_matrix(path[0].instrument)
         inst_delta = x[sl[(path[0].name, "instrument")]]
         t0 = jnp.broadcast_to(self.instrument_pose(x, arm), (n_rows, 4, 4))
@@ -498,18 +540,25 @@ class Robot:
             start += k + 1
             col += chain.n_columns
         if self.gravity is not None:
-            # The compliance parameters move the marker through the joints they deflect:
-            # d p / d c = sum_e (d p / d q_e)(d defl_e / d c), the deflections' own derivative
-            # taken in the commanded frames. Their dependence on the geometry, offsets and
-            # gains is left out: a relative change of order 1e-3 in a deflection of a few mrad,
-            # far below what the fit resolves (tests/test_chain.py compares with jax.jacfwd).
-            idx = np.flatnonzero(self.layout.group_mask(("compliance",)))
+            # The compliance parameters move the marker through the joints they deflect and
+            # bend: d p / d c = sum_e (d p / d q_e)(d defl_e / d c) + (d p / d phi_e)
+            # (d phi_e / d c), the sag's own derivative taken in the commanded frames. Its
+            # dependence on the geometry, offsets and gains is left out, and a bend's
+            # derivative is taken at zero bend: relative changes of order 1e-3 in a sag of a
+            # few mrad, far below what the fit resolves (tests/test_chain.py: jax.jacfwd).
+            idx = np.flatnonzero(self.layout.group_mask(("compliance", "lateral")))
 
             def deflect(v):
-                return self._deflections_at(x.at[idx].set(v), arm, *frames)
+                return self._sag_at(x.at[idx].set(v), arm, *frames)
 
-            d_defl = jax.jacfwd(deflect)(x[idx])  # (N, E, C)
-            jac = jac.at[:, :, idx].add(jnp.einsum("eni,nec->nic", j_q[:, :, :3], d_defl))
+            d_defl, d_bend = jax.jacfwd(deflect)(x[idx])  # (N, E, C), (N, E, 3, C)
+            gens = jnp.stack([jnp.zeros((4, 4)).at[:3, :3].set(jnp.cross(jnp.eye(3), e))
+                              for e in jnp.eye(3)])  # about the joint's own x, y, z
+            before = jnp.einsum("enij,ejk->enik", prefix, factors)
+            j_phi = jnp.einsum("enij,kjl,enl->enki", before, gens, inner)  # (E, N, 3, 4)
+            jac = jac.at[:, :, idx].add(jnp.einsum("eni,nec->nic", j_q[:, :, :3], d_defl)
+                                        + jnp.einsum("enki,nekc->nic", j_phi[..., :3],
+                                                     d_bend))
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
