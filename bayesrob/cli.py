@@ -92,9 +92,10 @@ def _load_rig_arg(path: str | None, chains: bool = False):
 
     rig = load_rig(path if path is not None else default_rig_dir())
     if rig.is_chain and not chains:
-        raise UsageError(f"{rig.path}: arms described by URDF or DH tables can be calibrated "
-                         "and predicted ('bayesrob calibrate', 'bayesrob predict') but not yet "
-                         "sampled, compared or diagnosed by this version")
+        raise UsageError(f"{rig.path}: arms described by URDF or DH tables can be "
+                         "calibrated, predicted and diagnosed ('bayesrob calibrate', 'bayesrob "
+                         "predict', 'bayesrob diagnose') but not yet sampled or compared by "
+                         "this version")
     return rig
 
 
@@ -578,15 +579,17 @@ def _sim_device(args: argparse.Namespace) -> int:
 
 
 def _candidate_effects(text: str) -> tuple[str, ...]:
+    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
     from bayesrob.effects import effect_names
 
+    known = list(dict.fromkeys([*effect_names(), *CHAIN_EFFECTS]))
     items = tuple(e.strip() for e in text.split(",") if e.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one effect")
     for e in items:
-        if e not in effect_names():
+        if e not in known:
             raise argparse.ArgumentTypeError(
-                f"unknown effect {e!r} (choose from {', '.join(effect_names())})")
+                f"unknown effect {e!r} (choose from {', '.join(known)})")
     return items
 
 
@@ -596,7 +599,8 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", metavar="DIR", help="write the figures (PNG) into DIR")
     p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
                    help="comma-separated candidate effects to try (default: all registered: "
-                        "gravity_sag,backlash,servo_nonlinearity)")
+                        "gravity_sag,backlash,servo_nonlinearity for planar rigs; "
+                        "joint_compliance,lateral_compliance for URDF/DH chains)")
     p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
 
 
@@ -606,7 +610,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     from bayesrob.diagnosis import diagnose, format_diagnosis
     from bayesrob.outputs import write_diagnosis_report
 
-    rig = _load_rig_arg(args.rig)
+    rig = _load_rig_arg(args.rig, chains=True)
+    if rig.is_chain:
+        return _diagnose_chain(rig, args)
     diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
@@ -614,6 +620,31 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.report:
         for path in write_diagnosis_report(diag, args.report):
             _wrote(path, args.json)
+    _write_json(doc, args.json)
+    return 0
+
+
+def _diagnose_chain(rig, args: argparse.Namespace) -> int:
+    from bayesrob.chain_diagnosis import (
+        ChainDiagnosisError,
+        diagnose_chain,
+        format_chain_diagnosis,
+        ladder_figure,
+    )
+
+    try:
+        doc = diagnose_chain(rig, args.effects, seed=args.seed,
+                             progress=_progress(args)).to_json()
+    except ChainDiagnosisError as e:
+        raise UsageError(str(e)) from None
+    if args.json != "-":
+        print(format_chain_diagnosis(doc))
+    if args.report:
+        out = Path(args.report)
+        out.mkdir(parents=True, exist_ok=True)
+        fig = ladder_figure(doc)
+        fig.savefig(out / "ladder.png", dpi=120)
+        _wrote(out / "ladder.png", args.json)
     _write_json(doc, args.json)
     return 0
 

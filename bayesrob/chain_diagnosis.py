@@ -1,0 +1,228 @@
+"""Diagnosis of any robot (URDF/DH chains and trees): which physical effects does the
+geometric calibration miss?
+
+Starting from the geometric calibration (``frames,geometric``), each candidate effect is a
+calibration group of :mod:`bayesrob.kinematics.chain` (``joint_compliance`` is the
+``compliance`` group: joints giving way under gravity, masses unknown; ``lateral_compliance``
+is ``lateral``: the same torques bending each joint across its axis). Effects are named
+greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
+it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
+same side). A candidate passes when its paired per-row error drop on the selection poses is
+more than ``Z_MIN`` standard errors; of those that pass, the one adding the fewest parameters
+is named (the simplest explanation first: bending across an axis refines a joint giving way
+about it, and on Agile Justin both pass in the first round). The ``validation`` rows are
+never looked at while deciding: the ladder (mean / sd / max error after each named effect,
+refitted on every train row) is reported on them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_distances
+from bayesrob.rig import Rig
+
+# effect name -> the calibration group that models it
+CHAIN_EFFECTS = {"joint_compliance": "compliance", "lateral_compliance": "lateral"}
+ALIASES = {"gravity_sag": "joint_compliance"}  # the planar name of joint compliance
+BASE_GROUPS = ("frames", "geometric")
+SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
+# A paired z on the selection rows: the drop must be twice its standard error. Not tuned on
+# any rig: the usual two-sided 5% level, so that noise alone rarely names an effect.
+Z_MIN = 2.0
+
+
+class ChainDiagnosisError(ValueError):
+    """A chain rig cannot be diagnosed as asked; the message is one line."""
+
+
+@dataclass
+class ChainDiagnosis:
+    rig: str
+    effects: list[str]
+    rounds: list[list[dict]]
+    steps: list[dict]
+    baseline: dict
+    seconds: float
+    selection_rows: int
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        last = self.steps[-1] if self.steps else self.baseline
+        return {
+            "rig": self.rig, "robot": "chain", "effects": self.effects,
+            "rule": (f"of the candidates whose paired error drop on the selection poses "
+                     f"({self.selection_rows} train rows held back) exceeds {Z_MIN:g} "
+                     "standard errors, name the one adding the fewest parameters; "
+                     "validation rows only report"),
+            "steps": self.steps, "rounds": self.rounds,
+            "baseline": self.baseline,
+            "baseline_heldout_error_mm": self.baseline["heldout_error_mm"],
+            "final_heldout_error_mm": last["heldout_error_mm"],
+            "seconds": self.seconds, "notes": self.notes,
+        }
+
+
+def resolve_effects(names: Sequence[str] | None) -> list[str]:
+    """Candidate effect names for a chain rig (aliases resolved), or a one-line error."""
+    if names is None:
+        return list(CHAIN_EFFECTS)
+    out = []
+    for n in names:
+        n = ALIASES.get(n, n)
+        if n not in CHAIN_EFFECTS:
+            raise ChainDiagnosisError(
+                f"effect {n!r} is not modelled for URDF/DH chains (choose from "
+                f"{', '.join([*CHAIN_EFFECTS, *ALIASES])})")
+        if n not in out:
+            out.append(n)
+    return out
+
+
+def _split(rig: Rig, seed: int) -> Rig:
+    """The rig with a share of its train poses relabelled ``selection``."""
+    meas = rig.measurements
+    train = np.flatnonzero(meas.set == "train")
+    pose = meas.extra.get("pose")
+    keys = np.array([pose[i] for i in train]) if pose else train.astype(str)
+    poses = np.unique(keys)
+    rng = np.random.default_rng(seed)
+    chosen = set(rng.choice(poses, size=max(1, round(SELECTION_SHARE * len(poses))),
+                            replace=False))
+    sets = meas.set.copy()
+    sets[train[np.isin(keys, list(chosen))]] = "selection"
+    return replace(rig, measurements=replace(meas, set=sets))
+
+
+def _row_errors(rig: Rig, cal: ChainCalibration, set: str) -> np.ndarray:
+    dist = chain_distances(rig, cal.robot, cal.x, set)
+    return np.concatenate([dist[a] for a in sorted(dist)]) if dist else np.zeros(0)
+
+
+def _stats(e: np.ndarray) -> dict:
+    if not len(e):
+        return {"heldout_error_mm": None, "heldout_error_sd_mm": None,
+                "heldout_error_max_mm": None, "n": 0}
+    return {"heldout_error_mm": float(e.mean()), "heldout_error_sd_mm": float(e.std(ddof=1))
+            if len(e) > 1 else 0.0, "heldout_error_max_mm": float(e.max()), "n": int(len(e))}
+
+
+def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
+                   progress: bool = False) -> ChainDiagnosis:
+    """Name the effects the geometric calibration of a chain rig misses (module docstring)."""
+    import time
+
+    from bayesrob.progress import progress as make_progress
+
+    t0 = time.perf_counter()
+    candidates = resolve_effects(effects)
+    if not len(rig.chain_rows(rig.robot.measured_arms()[0], "validation")[0]):
+        raise ChainDiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
+                                  "ladder on")
+    split = _split(rig, seed)
+    n_sel = int((split.measurements.set == "selection").sum())
+    groups = BASE_GROUPS
+    named: list[str] = []
+    rounds: list[list[dict]] = []
+    total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
+    with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
+        cal = calibrate_chain(split, groups)
+        before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
+        bar.update(1)
+        while len(named) < len(candidates):
+            scores = []
+            for eff in (c for c in candidates if c not in named):
+                cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]))
+                after = _row_errors(split, cal, "selection")
+                bar.update(1)
+                d = before - after
+                z = float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 else 0.0
+                scores.append({"effect": eff,
+                               "parameters": int(cal.ident.free.sum()) - n_before,
+                               "selection_error_before_mm": float(before.mean()),
+                               "selection_error_after_mm": float(after.mean()), "z": z,
+                               "passes": z > Z_MIN, "_after": after})
+            rounds.append([{k: v for k, v in s.items() if k != "_after"} for s in scores])
+            passing = [s for s in scores if s["passes"]]
+            if not passing:
+                break
+            # the simplest explanation first: of the candidates that pass, the one adding
+            # the fewest parameters (the larger z among equals)
+            best = min(passing, key=lambda s: (s["parameters"], -s["z"]))
+            named.append(best["effect"])
+            groups = (*groups, CHAIN_EFFECTS[best["effect"]])
+            before, n_before = best["_after"], n_before + best["parameters"]
+        # the ladder: every step refitted on all train rows, reported on the validation rows
+        steps, ladder = [], [BASE_GROUPS]
+        for eff in named:
+            ladder.append((*ladder[-1], CHAIN_EFFECTS[eff]))
+        baseline: dict = {}
+        for k, g in enumerate(ladder):
+            cal = calibrate_chain(rig, g)
+            bar.update(1)
+            row = {"groups": list(g), "n_free": int(cal.ident.free.sum()),
+                   "train_error_mm": cal.errors["train"]["all"]["mean_mm"],
+                   **_stats(_row_errors(rig, cal, "validation"))}
+            holdout = _row_errors(rig, cal, "holdout")
+            if len(holdout):
+                row["holdout_error_mm"] = float(holdout.mean())
+            if k == 0:
+                baseline = row
+            else:
+                steps.append({"effect": named[k - 1], **row})
+    return ChainDiagnosis(rig.name, named, rounds, steps, baseline,
+                          time.perf_counter() - t0, n_sel)
+
+
+def format_chain_diagnosis(doc: dict) -> str:
+    """The terminal report: each round's candidates, then the ladder on the validation rows."""
+    from bayesrob.report import format_table
+
+    out = [f"diagnosis of rig {doc['rig']!r} (chains)", f"decision rule: {doc['rule']}"]
+    for r, scores in enumerate(doc["rounds"], start=1):
+        out += ["", f"round {r}: each candidate added to the model named so far"]
+        out.append(format_table(
+            ["candidate", "added parameters", "selection mm", "z", "passes"],
+            [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
+              f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
+              "yes" if s["passes"] else "no"] for s in scores]))
+    rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
+             *_ladder_cells(doc["baseline"])]]
+    rows += [[f"+ {s['effect']}", str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
+    out += ["", "ladder on the validation rows (never used to decide):",
+            format_table(["step", "fitted", "mean mm", "sd mm", "max mm"], rows), "",
+            f"named effects: {', '.join(doc['effects']) or 'none'} ({doc['seconds']:.0f} s)"]
+    return "\n".join(out)
+
+
+def _ladder_cells(row: dict) -> list[str]:
+    return [f"{row[k]:.2f}" for k in ("heldout_error_mm", "heldout_error_sd_mm",
+                                       "heldout_error_max_mm")]
+
+
+def ladder_figure(doc: dict, published: dict[str, float] | None = None):
+    """Mean validation error (bars: sd) after each step; ``published`` (step label -> mean mm)
+    drawn beside it when given."""
+    import matplotlib.pyplot as plt
+
+    rows = [("geometric", doc["baseline"])] + [(f"+{s['effect']}", s) for s in doc["steps"]]
+    fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2.5, 3.6), layout="constrained")
+    xs = np.arange(len(rows))
+    ax.bar(xs, [r["heldout_error_mm"] for _, r in rows],
+           yerr=[r["heldout_error_sd_mm"] for _, r in rows], color="tab:blue", capsize=4,
+           label="ours (validation mean, sd)", width=0.55)
+    for x, (_, r) in zip(xs, rows, strict=True):
+        ax.plot(x, r["heldout_error_max_mm"], "v", color="tab:blue")
+    if published:
+        for x, (label, _) in zip(xs, rows, strict=True):
+            if label in published:
+                ax.plot(x, published[label], "D", color="tab:red", ms=8)
+        ax.plot([], [], "D", color="tab:red", label="published")
+    ax.set_xticks(xs, [label for label, _ in rows])
+    ax.set_ylabel("marker error (mm)")
+    ax.set_title(f"{doc['rig']}: error after each named effect (v: max)", fontsize=10)
+    ax.legend(fontsize=8)
+    return fig
