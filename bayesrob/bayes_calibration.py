@@ -613,7 +613,7 @@ def calibrate_chain_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
     t0 = time.perf_counter()
     ls = calibrate_chain(rig, groups, progress=progress)
     robot, free = ls.robot, ls.ident.free
-    full_res, full_jac, _ = _residual_function(rig, robot, "train")
+    full_res, full_jac, *_ = _residual_function(rig, robot, "train")
     jac = np.asarray(full_jac(jnp.asarray(ls.x)))[:, free]
     r = np.asarray(full_res(jnp.asarray(ls.x)))
     s2 = float(r @ r) / max(r.size - int(free.sum()), 1)

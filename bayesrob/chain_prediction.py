@@ -200,30 +200,41 @@ def _parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
     return jnp.asarray(mods.x) + z @ jnp.asarray(root).T
 
 
-def _free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array
-                ) -> np.ndarray:
+def _free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
+                side: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
-    vector of xs (S, P) per draw."""
+    vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs)."""
     n = xs.shape[0]
     e, noise = mods.errors[arm].draw(key, (n, len(u)))
-    pts = _points_with_errors(mods.robot, arm)(xs, jnp.asarray(u), e)
+    if side is not None and mods.robot.gravity is not None:
+        rest = {b: jnp.asarray(v) for b, v in side.items()}
+        pts = _points_with_errors(mods.robot, arm, True)(xs, jnp.asarray(u), e, rest)
+    else:
+        pts = _points_with_errors(mods.robot, arm)(xs, jnp.asarray(u), e)
     eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
     return np.asarray(pts + eps)
 
 
-def _points_with_errors(robot: kin.Robot, arm: str):
-    """A jitted (xs (S, P), u (T, c), e (S, T, n)) -> points (S, T, dim)."""
+def _points_with_errors(robot: kin.Robot, arm: str, with_side: bool = False):
+    """A jitted (xs (S, P), u (T, c), e (S, T, n)[, side]) -> points (S, T, dim)."""
     cache = robot.__dict__.setdefault("_points_with_errors", {})
-    if arm not in cache:
-        cache[arm] = jax.jit(jax.vmap(
-            lambda x, u, e: robot.marker_points(x, arm, u, e), in_axes=(0, None, 0)))
-    return cache[arm]
+    if (arm, with_side) not in cache:
+        if with_side:
+            cache[arm, True] = jax.jit(jax.vmap(
+                lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
+                in_axes=(0, None, 0, None)))
+        else:
+            cache[arm, False] = jax.jit(jax.vmap(
+                lambda x, u, e: robot.marker_points(x, arm, u, e), in_axes=(0, None, 0)))
+    return cache[arm, with_side]
 
 
 def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],
-                fusion: str = "equilibrium", num_samples: int = DRAWS, seed: int = 0
-                ) -> np.ndarray:
-    """Draws (S, T, dim) of one arm's end point or of linked arms' shared point."""
+                fusion: str = "equilibrium", num_samples: int = DRAWS, seed: int = 0,
+                side: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """Draws (S, T, dim) of one arm's end point or of linked arms' shared point. ``side``
+    (one arm only): the other arms' path columns in the same rows, whose weight bends the
+    chains they share when the model has gravity in it."""
     if fusion not in FUSIONS:
         raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
     key = jax.random.PRNGKey(seed)
@@ -231,7 +242,8 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     if fusion == "product" and len(arms) > 1:
         return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
     xs = _parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
-    free = [_free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1))
+    free = [_free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
+                        side if len(arms) == 1 else None)
             for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
     if len(arms) == 1:
         return free[0]

@@ -34,6 +34,7 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
 from bayesrob import kinematics as kin
+from bayesrob.calibration import side_rows
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",
@@ -62,15 +63,19 @@ def joint_names(robot: kin.Robot, arm: str) -> list[str]:
     return [f"{c.name}.{j}" for c in robot.path(arm) for j in c.joint_names]
 
 
-def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
-    """d marker / d joint errors at zero error, (N, dim, n)."""
+def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array,
+                   side: dict[str, jax.Array] | None = None) -> jax.Array:
+    """d marker / d joint errors at zero error, (N, dim, n) (``side``: the rest of each
+    pose, as :meth:`Robot.tip_transforms`)."""
     u = jnp.atleast_2d(jnp.asarray(u))
     n = robot.n_path_joints(arm)
 
-    def per_row(row):
-        return jax.jacfwd(lambda e: robot.marker_points(x, arm, row[None], e[None])[0])(
-            jnp.zeros(n))
-    return jax.vmap(per_row)(u)
+    def per_row(row, srow):
+        rest = None if srow is None else {b: v[None] for b, v in srow.items()}
+        return jax.jacfwd(lambda e: robot.marker_points(x, arm, row[None], e[None],
+                                                        side=rest)[0])(jnp.zeros(n))
+    return jax.vmap(per_row)(u, side)
+
 
 
 def _model(jac: jax.Array, res: jax.Array, structure: str) -> None:
@@ -152,10 +157,11 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
     t0 = time.perf_counter()
     u, d = rig.chain_rows(arm, "train")
     xj, uj = jnp.asarray(x), jnp.asarray(u)
-    res = d - np.asarray(robot.compiled_points(arm)(xj, uj))
+    side = side_rows(rig, robot, arm, "train")
+    res = d - np.asarray(robot.compiled_points(arm)(xj, uj, side))
     n_coords = sum(rig.chain_rows(a, "train")[1].size for a in robot.measured_arms())
     scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
-    jac = joint_jacobian(robot, xj, arm, uj)
+    jac = joint_jacobian(robot, xj, arm, uj, side)
     mcmc = MCMC(NUTS(_model, target_accept_prob=0.9), num_warmup=warmup, num_samples=samples,
                 num_chains=chains, chain_method="sequential", progress_bar=False)
     mcmc.run(jax.random.PRNGKey(seed), jac, jnp.asarray(res * scale), model)

@@ -197,7 +197,10 @@ def test_nuts_product_agrees_with_the_gaussian_product(linked_modules):
     Gaussian joint errors through a linearised arm; errors of a few mrad make the arm linear
     to parts in a thousand). Means within 0.1 mm (the sampling check's tolerance) and within
     0.25 of the product's sd (1000 correlated draws, effective size about 200: three Monte
-    Carlo errors), the covariance's diagonal within 20% (its Monte Carlo error about 10%)."""
+    Carlo errors), the covariance's diagonal within 20% (its Monte Carlo error about 10%).
+    Measured: the largest mean gap is 0.22 sd, the same with 4000 draws, so most of it is the
+    reference's linearisation rather than Monte Carlo error: the tolerance is near its edge
+    (0.29 sd when the compliance fit stopped short of its optimum)."""
     _, _, mods, rows = linked_modules
     cmds = [u[:3] for u in rows["commands"]]
     nuts = chain_draws(mods, ["left", "right"], cmds, "product", num_samples=1000, seed=4)

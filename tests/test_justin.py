@@ -38,8 +38,8 @@ def test_justin_ladder_matches_the_published_one(tmp_path):
     # parameters and a rank analysis between two rounds, so it is held to 0.1 mm.
     comp = val["frames,geometric,compliance"]
     assert comp["mean_mm"] <= 5.64 and comp["mean_mm"] == pytest.approx(4.34, abs=0.1)
-    # with bending across the axes (README: 3.33; their full calibration 3.12, not reached)
+    # with bending across the axes (README: 3.26; their full calibration 3.12, not reached)
     lateral = val["frames,geometric,compliance,lateral"]["mean_mm"]
-    assert lateral < comp["mean_mm"] and lateral == pytest.approx(3.33, abs=0.1)
+    assert lateral < comp["mean_mm"] and lateral == pytest.approx(3.26, abs=0.1)
     # a torso shared by both hands: one calibration fits both markers
     assert rows["frames"]["n_free"] == 12  # base pose (6) + two markers (3 + 3)

@@ -4,7 +4,7 @@
 
 Converts the authors' file into a rig directory (``--out``, default ``justin-rig/``), then
 calibrates with ``--params frames``, ``frames,offsets``, ``frames,geometric``, the four rigid
-groups, ``frames,geometric,compliance`` and ``...,lateral`` (about a minute each), each on
+groups, ``frames,geometric,compliance`` and ``...,lateral`` (one to two minutes each), each on
 the 300 train poses, and prints the marker error on the 200 validation poses (400 marker
 positions) as a markdown table next to the published figures. Equivalent commands:
 ``bayesrob calibrate justin-rig --params frames,geometric``.
