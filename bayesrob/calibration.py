@@ -399,10 +399,12 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
 POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way under gravity
 
 
-def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None
-                    ) -> ChainCalibration:
+def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
+                    polish: bool = True) -> ChainCalibration:
     """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
-    ``train`` rows, after the rank analysis; frames (instrument poses, markers) always."""
+    ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
+    ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
+    (off: faster, a little short of the optimum; the diagnosis's comparisons use that)."""
     import time
 
     t0 = time.perf_counter()
@@ -464,10 +466,11 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         # The analytic Jacobian leaves out how the geometry moves the sag, so its fit stops a
         # little short (on the linked arm6 rig, train error 0.168 against 0.163 mm): a few
         # steps with the exact, slower Jacobian finish it.
-        if progress:
-            progress("polishing with the exact Jacobian")
-        x, n = fit(ident.free, x, jac=exact_jac, max_nfev=POLISH_NFEV)
-        nfev += n
+        if polish:
+            if progress:
+                progress("polishing with the exact Jacobian")
+            x, n = fit(ident.free, x, jac=exact_jac, max_nfev=POLISH_NFEV)
+            nfev += n
     se = _chain_standard_errors(full_res, full_jac, x, ident.free)
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
                             time.perf_counter() - t0)

@@ -129,13 +129,14 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     rounds: list[list[dict]] = []
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
-        cal = calibrate_chain(split, groups)
+        cal = calibrate_chain(split, groups, polish=False)
         before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
         bar.update(1)
         while len(named) < len(candidates):
             scores = []
             for eff in (c for c in candidates if c not in named):
-                cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]))
+                # compared with each other, not reported: the fast fit is enough to decide
+                cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]), polish=False)
                 after = _row_errors(split, cal, "selection")
                 bar.update(1)
                 d = before - after
