@@ -394,9 +394,14 @@ class Robot:
         each joint's lateral compliances times the gravity torque about the two axes across
         its own, a small rotation in the joint's frame (bearing and link bending)."""
         x = jnp.asarray(x)
-        frames = self.element_frames(x, arm, u)
-        hanging = self.side_frames(x, arm, side) if side else ()
-        return self._sag_at(x, arm, *frames, hanging)
+        return self._sag_at(x, arm, *self._sag_frames(x, arm, u, side))
+
+    def _sag_frames(self, x: jax.Array, arm: str, u: jax.Array,
+                    side: dict[str, jax.Array] | None) -> tuple:
+        # the commanded frames the sag's torques are taken in: the path's joints and links,
+        # and what hangs off it
+        return (*self.element_frames(x, arm, u),
+                self.side_frames(x, arm, side) if side else ())
 
     def _weights(self, xz: jax.Array, link_idx: np.ndarray, links: jax.Array
                  ) -> tuple[jax.Array, jax.Array]:
@@ -478,8 +483,7 @@ class Robot:
         el = self._elements(arm)
         q = self._element_values(x, arm, u).T  # (E, N)
         if self.gravity is not None:
-            frames = (*self.element_frames(x, arm, u),
-                      self.side_frames(x, arm, side) if side else ())
+            frames = self._sag_frames(x, arm, u, side)
             defl, bend = self._sag_at(x, arm, *frames)
             q = q + defl.T
         deltas = x[el["delta_idx"]]  # (E, 6)
