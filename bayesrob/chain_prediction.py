@@ -206,27 +206,22 @@ def _free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key:
     vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs)."""
     n = xs.shape[0]
     e, noise = mods.errors[arm].draw(key, (n, len(u)))
-    if side is not None and mods.robot.gravity is not None:
-        rest = {b: jnp.asarray(v) for b, v in side.items()}
-        pts = _points_with_errors(mods.robot, arm, True)(xs, jnp.asarray(u), e, rest)
-    else:
-        pts = _points_with_errors(mods.robot, arm)(xs, jnp.asarray(u), e)
+    # the rest of the pose weighs only where the model has gravity in it
+    rest = (None if side is None or mods.robot.gravity is None
+            else {b: jnp.asarray(v) for b, v in side.items()})
+    pts = _points_with_errors(mods.robot, arm)(xs, jnp.asarray(u), e, rest)
     eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
     return np.asarray(pts + eps)
 
 
-def _points_with_errors(robot: kin.Robot, arm: str, with_side: bool = False):
-    """A jitted (xs (S, P), u (T, c), e (S, T, n)[, side]) -> points (S, T, dim)."""
+def _points_with_errors(robot: kin.Robot, arm: str):
+    """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim)."""
     cache = robot.__dict__.setdefault("_points_with_errors", {})
-    if (arm, with_side) not in cache:
-        if with_side:
-            cache[arm, True] = jax.jit(jax.vmap(
-                lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
-                in_axes=(0, None, 0, None)))
-        else:
-            cache[arm, False] = jax.jit(jax.vmap(
-                lambda x, u, e: robot.marker_points(x, arm, u, e), in_axes=(0, None, 0)))
-    return cache[arm, with_side]
+    if arm not in cache:
+        cache[arm] = jax.jit(jax.vmap(
+            lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
+            in_axes=(0, None, 0, None)))
+    return cache[arm]
 
 
 def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],

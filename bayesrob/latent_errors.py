@@ -77,7 +77,6 @@ def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array,
     return jax.vmap(per_row)(u, side)
 
 
-
 def _model(jac: jax.Array, res: jax.Array, structure: str) -> None:
     n = jac.shape[-1]
     # The joints of one arm share a scale: a joint the residuals hardly see (its lever to the

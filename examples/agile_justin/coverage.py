@@ -24,14 +24,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from convert import convert  # noqa: E402
+from convert import converted_rig, source_arguments  # noqa: E402
 
 HANDS = ("right", "left")
 
 
 def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: int = 0
              ) -> list[dict]:
-    from bayesrob.calibration import calibrate_chain, side_rows
+    from bayesrob.calibration import calibrate_chain
     from bayesrob.chain_prediction import chain_draws, fit_chain_modules, hdr_levels
     from bayesrob.rig import load_rig
 
@@ -41,10 +41,8 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     out = []
     for k, hand in enumerate(HANDS):
         u, obs = rig.chain_rows(hand, "validation")
-        side = side_rows(rig, cal.robot, hand, "validation")
         draws = chain_draws(mods, [hand], [u], seed=seed + k,
-                            side=None if side is None else {b: np.asarray(v)
-                                                           for b, v in side.items()})
+                            side=rig.chain_side_rows(hand, "validation"))
         level = hdr_levels(draws, obs)
         mean = draws.mean(axis=0)
         predicted = float(np.linalg.norm(draws - mean[None], axis=-1).mean())
@@ -59,17 +57,15 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("src", type=Path, help="the authors' measurements.csv")
-    p.add_argument("--out", type=Path, default=Path("justin-rig"), help="rig directory")
+    source_arguments(p)
     p.add_argument("--groups", default="frames,geometric,compliance,lateral")
     p.add_argument("--model", default="ind", choices=["ind", "corr"])
     p.add_argument("--json", type=Path, help="also write the rows as JSON here")
     args = p.parse_args(argv)
-    if not args.src.is_file():
-        print(f"{args.src}: file not found", file=sys.stderr)
+    rig = converted_rig(args.src, args.out)
+    if rig is None:
         return 2
-    convert(args.src, args.out)
-    rows = coverage(args.out, tuple(args.groups.split(",")), args.model)
+    rows = coverage(rig, tuple(args.groups.split(",")), args.model)
     print("| hand | groups | model | 50% / 90% coverage | predicted / observed error (mm) |")
     print("|---|---|---|---|---|")
     for r in rows:
