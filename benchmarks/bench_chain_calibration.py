@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = ROOT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
+from justin_rig import DEFAULT_DATA, justin_or_simulated
+
 WARM_TARGET_S, FRESH_TARGET_S = 10.0, 30.0
 
 FRESH = """
@@ -45,18 +45,12 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
+        from bayesrob.chain_simulator import ChainTruth
+
         rig = Path(tmp) / "rig"
-        if args.data.is_file():
-            sys.path.insert(0, str(ROOT / "examples" / "agile_justin"))
-            from convert import convert
-
-            convert(args.data, rig)
-            case = "agile_justin_frames_geometric"
-        else:
-            from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
-
-            simulate_chain_rig(rig, ChainTruth(seed=0, n_train=300))
-            case = "simulated_arm6_frames_geometric (Justin data not found)"
+        case = ("agile_justin_frames_geometric"
+                if justin_or_simulated(args.data, rig, ChainTruth(seed=0, n_train=300))
+                else "simulated_arm6_frames_geometric (Justin data not found)")
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-c", FRESH, str(rig)], capture_output=True,
                            text=True)

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = ROOT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
+from justin_rig import DEFAULT_DATA, justin_or_simulated
+
 TARGET_S = 300.0
 
 
@@ -28,21 +27,14 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = p.parse_args()
     from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.chain_simulator import ChainTruth
     from bayesrob.rig import load_rig
 
     with tempfile.TemporaryDirectory() as tmp:
         rig_dir = Path(tmp) / "rig"
-        if args.data.is_file():
-            sys.path.insert(0, str(ROOT / "examples" / "agile_justin"))
-            from convert import convert
-
-            convert(args.data, rig_dir)
-            case = "agile_justin"
-        else:
-            from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
-
-            simulate_chain_rig(rig_dir, ChainTruth(seed=11, compliance=True))
-            case = "simulated_arm6_compliant (Justin data not found)"
+        case = ("agile_justin"
+                if justin_or_simulated(args.data, rig_dir, ChainTruth(seed=11, compliance=True))
+                else "simulated_arm6_compliant (Justin data not found)")
         t0 = time.perf_counter()
         doc = diagnose_chain(load_rig(rig_dir)).to_json()
         seconds = time.perf_counter() - t0
