@@ -17,7 +17,8 @@ pytestmark = [pytest.mark.slow,
 
 def test_justin_ladder_matches_the_published_one(tmp_path):
     sys.path.insert(0, str(ROOT / "examples" / "agile_justin"))
-    from ladder import convert, ladder
+    from convert import convert
+    from ladder import ladder
 
     convert(DATA, tmp_path / "rig")
     rows = {r["params"]: r for r in ladder(tmp_path / "rig")}

@@ -61,6 +61,23 @@ def convert(src: Path, out: Path, split: int = 300) -> int:
     return len(rows) - 1
 
 
+def source_arguments(p: argparse.ArgumentParser) -> None:
+    """What the examples built on this converter take: the authors' file and the rig it
+    becomes."""
+    p.add_argument("src", type=Path, help="the authors' measurements.csv")
+    p.add_argument("--out", type=Path, default=Path("justin-rig"), help="rig directory")
+
+
+def converted_rig(src: Path, out: Path) -> Path | None:
+    """``out`` with the rig converted from ``src``; None, after a one-line error on stderr,
+    when ``src`` is not a file."""
+    if not src.is_file():
+        print(f"{src}: file not found", file=sys.stderr)
+        return None
+    convert(src, out)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("src", type=Path, help="the authors' measurements.csv")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from convert import convert  # noqa: E402
+from convert import converted_rig, source_arguments  # noqa: E402
 
 PUBLISHED = {  # mean / sd / max, mm (the authors' table)
     "frames": (21.33, 9.71, 63.41),
@@ -61,15 +61,13 @@ def table(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("src", type=Path, help="the authors' measurements.csv")
-    p.add_argument("--out", type=Path, default=Path("justin-rig"), help="rig directory")
+    source_arguments(p)
     p.add_argument("--json", type=Path, help="also write the ladder as JSON here")
     args = p.parse_args(argv)
-    if not args.src.is_file():
-        print(f"{args.src}: file not found", file=sys.stderr)
+    rig = converted_rig(args.src, args.out)
+    if rig is None:
         return 2
-    convert(args.src, args.out)
-    rows = ladder(args.out)
+    rows = ladder(rig)
     print(table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")
