@@ -63,6 +63,7 @@ __all__ = [
     "kde_logpdf",
     "conditional_kde_logpdf",
     "kernel_conditional_weights",
+    "command_spacing",
     "histogram_lookup",
     "histogram_guide",
     "guided_histogram_lookup",
@@ -864,7 +865,8 @@ _MULTISTART_MAX_N = 500
 
 
 def _select_log_bw(
-    joint: np.ndarray, dx: int, conditional: bool, multistart: bool | None
+    joint: np.ndarray, dx: int, conditional: bool, multistart: bool | None,
+    floor: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """Bandwidths (original units) maximising the (conditional) LOO log-likelihood.
 
@@ -872,6 +874,10 @@ def _select_log_bw(
     every data set. The first start is statsmodels': the normal reference 1.06 sigma
     N^(-1/(4+q)) over all q columns (for the conditional, q counts x and z, as statsmodels
     computes it on the joint data).
+
+    ``floor``: least bandwidth per column (original units; 0 for none). A width that ends on
+    it is a choice the caller made, not a search that ran out of range, so it does not count
+    as ``on`` the bound.
     """
     n, q = joint.shape
     sigma = joint.std(axis=0)
@@ -881,6 +887,10 @@ def _select_log_bw(
     x0 = np.full(q, math.log(1.06 * n ** (-1.0 / (4 + q))))
     lo = np.full(q, math.log(_DIAG_RANGE[0]))
     hi = np.full(q, math.log(_DIAG_RANGE[1]))
+    search_lo = lo
+    if floor is not None:
+        with np.errstate(divide="ignore"):
+            search_lo = np.clip(np.log(np.asarray(floor, float) / sigma), lo, hi)
     if multistart is None:
         multistart = conditional and n <= _MULTISTART_MAX_N
     starts = _start_points(x0, dx if conditional else q) if multistart else [x0]
@@ -889,8 +899,8 @@ def _select_log_bw(
         for x_start in starts:
             theta, val = _lbfgs_log_bw(
                 lambda t: objective(t, y, n_traced),
-                x_start,
-                lo,
+                np.clip(x_start, search_lo, hi),
+                search_lo,
                 hi,
             )
             # Later starts must beat the first clearly, so ties keep statsmodels' start.
@@ -1058,6 +1068,17 @@ def _broadcast_pairs(x: Any, z: Any, dx: int, dz: int) -> tuple[jnp.ndarray, jnp
     return xp, zp, xs and zs
 
 
+def command_spacing(z: Any) -> float:
+    """The median distance from each distinct row of ``z`` to its nearest other row: how far
+    apart the conditioning values were sampled (0 with fewer than two distinct rows)."""
+    u = np.unique(np.asarray(z, float), axis=0)
+    if len(u) < 2:
+        return 0.0
+    d = np.linalg.norm(u[:, None, :] - u[None, :, :], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
 @dataclass(frozen=True, eq=False)
 class ConditionalKDE:
     """A conditional density p(x | z) from paired samples, by the paper's histogram or kernels.
@@ -1119,6 +1140,7 @@ class ConditionalKDE:
         n_grid: int = 41,
         warn_on_bound: bool = True,
         multistart: bool | None = None,
+        z_spacing_floor: float = 0.0,
     ) -> ConditionalKDE:
         """Fit p(x | z) to paired samples ``x`` (N, dx) and ``z`` (N, dz).
 
@@ -1132,6 +1154,11 @@ class ConditionalKDE:
         and uses the normal-reference start alone above that. Statsmodels' Nelder-Mead is a
         single local search, so where it stops in a worse local maximum the widths differ
         and ours have the higher likelihood.
+        ``z_spacing_floor``: every z width is at least this multiple of
+        :func:`command_spacing` (0: no floor). Leave-one-out scores each point by the others,
+        and on a regular grid of z a width far below the spacing can still win it: the
+        points of a grid line share a coordinate, so a tiny width along it conditions each
+        point on its line's neighbours alone, which do not exist at a z between the lines.
 
         Histogram method: ``bandwidth`` selects the joint KDE's bandwidth (default
         ``"paper"``). The grid has ``bins`` bins per dimension (x dims first, then z). Without
@@ -1146,7 +1173,11 @@ class ConditionalKDE:
         dx, dz = xa.shape[1], za.shape[1]
         if method == "kernel":
             if bandwidth is None or (isinstance(bandwidth, str) and bandwidth == "loo-ml-diag"):
-                bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, multistart)
+                floor = None
+                if z_spacing_floor > 0:
+                    floor = np.r_[np.zeros(dx),
+                                  np.full(dz, z_spacing_floor * command_spacing(za))]
+                bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, multistart, floor)
                 if on and warn_on_bound:
                     _warn_bound("kernel-conditional", bw.tolist(), _DIAG_RANGE)
                 return cls(

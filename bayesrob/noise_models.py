@@ -35,6 +35,13 @@ class ModelFileError(ValueError):
     """A model file is malformed; the message names the file and key."""
 
 
+def _non_negative(doc: dict, key: str, path: Path) -> float:
+    value = doc.get(key, 0.0)
+    if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
+        raise ModelFileError(f"{path}: {key} must be a number >= 0, got {value!r}")
+    return float(value)
+
+
 @dataclass(frozen=True)
 class ModelSpec:
     """One joint-error model variant, as declared in a ``models/*.toml`` file."""
@@ -48,6 +55,9 @@ class ModelSpec:
     bins: int = 10
     bin_widths: tuple[float, ...] | None = None
     bin_margin: float = 0.0
+    # COND kernel: least command-kernel width, in nearest-neighbour spacings of the train
+    # commands (kde.ConditionalKDE.fit's z_spacing_floor; 0: none)
+    command_bandwidth_floor: float = 0.0
     description: str = ""
     path: Path | None = field(default=None, compare=False)
 
@@ -64,7 +74,7 @@ class ModelSpec:
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise ModelFileError(f"{path}: cannot read model file: {exc}") from None
         known = {"name", "family", "bandwidth", "conditioning", "jacobian", "h_range", "bins",
-                 "bin_widths", "bin_margin", "description"}
+                 "bin_widths", "bin_margin", "command_bandwidth_floor", "description"}
         for key in doc:
             if key not in known:
                 raise ModelFileError(f"{path}: unknown key {key!r} (known: {sorted(known)})")
@@ -91,6 +101,7 @@ class ModelSpec:
             bins=int(doc.get("bins", 10)),
             bin_widths=tuple(float(w) for w in widths) if widths is not None else None,
             bin_margin=float(doc.get("bin_margin", 0.0)),
+            command_bandwidth_floor=_non_negative(doc, "command_bandwidth_floor", path),
             description=str(doc.get("description", "")),
             path=path,
         )
@@ -113,7 +124,8 @@ class ModelSpec:
                                       bin_widths=self._bin_widths(theta_err, u), **kw)
         else:
             bw = None if self.bandwidth == "loo-ml-diag" else self.bandwidth
-            cond = ConditionalKDE.fit(theta_err, u, "kernel", bw, warn_on_bound=False)
+            cond = ConditionalKDE.fit(theta_err, u, "kernel", bw, warn_on_bound=False,
+                                      z_spacing_floor=self.command_bandwidth_floor)
         return FittedNoiseModel(self, theta_err, u, conditional=cond)
 
 

@@ -44,6 +44,9 @@ def test_model_file_errors_name_file_and_key(tmp_path):
         ModelSpec.from_file(bad)
     with pytest.raises(ModelFileError, match="no model named 'nope'"):
         discover_models(names=["nope"])
+    bad.write_text('name = "x"\nfamily = "COND"\ncommand_bandwidth_floor = -1\n')
+    with pytest.raises(ModelFileError, match=r"bad\.toml: command_bandwidth_floor must be"):
+        ModelSpec.from_file(bad)
 
 
 def test_new_variant_is_a_file_not_code(tmp_path, default):
