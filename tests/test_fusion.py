@@ -255,7 +255,7 @@ def test_three_arms_predicted_from_single_arm_rows(three_rig, tmp_path, record_p
     compared with the simulator's measurements of the assembly (16 test points, ind and
     cond pooled: 32 levels). Coverage of the 50% / 90% regions: binomial at 0.01 (the
     sample is small); the mean predicted error within [0.7, 1.3] of the observed (measured
-    0.81 / 0.90 of it)."""
+    0.85 / 0.87 of it)."""
     single = _single_arm_copy(three_rig, tmp_path / "three_single")
     rig = load_rig(three_rig)
     rows = rig.config_rows("top+bottom+side", "test")
@@ -290,15 +290,16 @@ def report_levels(tmp_path_factory):
 
 
 REPORT_SHORT = {
-    "cond": "measured on the report rigs: the 50% / 90% regions hold 37.5% / 79.2% of the 96 "
-            "linked end points (the product: 21.9% / 58.3%); the kernel conditional's free "
-            "end points are too narrow between the training commands",
+    "cond": "measured on the report rigs: the 50% / 90% regions hold 65.6% / 94.8% of the 96 "
+            "linked end points (the product: 42.7% / 83.3%); with its command widths at least "
+            "the train commands' spacing the kernel conditional is no longer too narrow, and "
+            "like corr's the balance of independently drawn free points is too wide",
 }
 RATIO_SHORT = {
     "corr": "measured on the report rigs: mean predicted linked error 1.035 mm against 0.880 "
             "observed, ratio 1.18 (the product: 1.05)",
-    "cond": "measured on the report rigs: mean predicted linked error 1.039 mm against 0.880 "
-            "observed, ratio 1.18 (the product: 1.07)",
+    "cond": "measured on the report rigs: mean predicted linked error 1.056 mm against 0.880 "
+            "observed, ratio 1.20 (the product: 1.11)",
 }
 
 
@@ -309,11 +310,14 @@ def _xfails(short: dict) -> list:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("model", _xfails(RATIO_SHORT))
-def test_equilibrium_fusion_predicts_the_linked_error_on_report_rigs(report_levels, model):
+def test_equilibrium_fusion_predicts_the_linked_error_on_report_rigs(report_levels, model,
+                                                                     record_property):
     """Issue target: the mean predicted linked error within [0.85, 1.15] of the observed mean
     over the 96 linked end points (ind measured 0.972 / 0.880 mm = 1.11)."""
     _, predicted, observed = report_levels[model]
     ratio = predicted.mean() / observed.mean()
+    record_property(f"equilibrium_error_{model}",
+                    json.dumps([float(predicted.mean()), float(observed.mean())]))
     assert 0.85 <= ratio <= 1.15, ratio
 
 

@@ -213,17 +213,28 @@ def test_compare_reports_holdout_rows_beside_the_held_out_ones(clean_rig_dir, tm
 
 
 # The README's two tables for `bayesrob compare` on the default rig: model -> (elpd, se,
-# elpd_diff, dse) as printed (one decimal).
+# elpd_diff, dse) as printed (one decimal), in rank order. On this rig the kernel COND's
+# command widths end on their upper bound, so it is the product-kernel CORR to 1e-5 elpd:
+# their relative rank is a rounding tie and either order is accepted.
 README_HELDOUT = {
-    "cond": (-122.6, 21.6, 0.0, 0.0), "ind": (-128.5, 12.5, 5.9, 12.6),
-    "corr": (-129.4, 13.5, 6.7, 11.9), "ind_paper": (-145.0, 4.9, 22.3, 19.1),
-    "corr_paper": (-145.1, 4.7, 22.4, 19.2), "cond_paper": (-1520.6, 966.7, 1397.9, 953.0),
+    "ind": (-128.5, 12.5, 0.0, 0.0), "cond": (-129.4, 13.5, 0.9, 2.0),
+    "corr": (-129.4, 13.5, 0.9, 2.0), "ind_paper": (-145.0, 4.9, 16.4, 8.8),
+    "corr_paper": (-145.1, 4.7, 16.6, 8.9), "cond_paper": (-1520.6, 966.7, 1392.1, 957.0),
 }
 README_LOO = {
-    "cond": (-84.9, 10.1, 0.0, 0.0), "ind": (-98.2, 7.4, 13.3, 5.6),
-    "corr": (-101.6, 8.0, 16.8, 4.1), "ind_paper": (-107.8, 2.4, 22.9, 8.3),
-    "corr_paper": (-107.9, 2.4, 23.0, 8.4), "cond_paper": (-791.0, 687.6, 706.1, 682.2),
+    "ind": (-98.2, 7.4, 0.0, 0.0), "corr": (-101.6, 8.0, 3.5, 2.2),
+    "cond": (-101.6, 8.0, 3.5, 2.2), "ind_paper": (-107.8, 2.4, 9.6, 5.3),
+    "corr_paper": (-107.9, 2.4, 9.7, 5.3), "cond_paper": (-791.0, 687.6, 692.8, 683.6),
 }
+
+
+def _ranking_holds(ranked: list[dict], table: dict, tol: float) -> bool:
+    """The ranking is the table's, except that models whose elpds tie within ``tol`` may
+    stand in either order."""
+    order = [r["model"] for r in ranked]
+    want = list(table)
+    return all(order[i] == want[i] or abs(table[order[i]][0] - table[want[i]][0]) <= tol
+               for i in range(len(want))) and sorted(order) == sorted(want)
 
 
 @pytest.mark.slow
@@ -235,6 +246,6 @@ def test_the_readme_comparison_tables():
     tol = 0.05 + 1e-9
     for key, table in (("heldout_compare", README_HELDOUT), ("loo_compare", README_LOO)):
         got = {r["model"]: (r["elpd"], r["se"], r["elpd_diff"], r["dse"]) for r in doc[key]}
-        assert [r["model"] for r in doc[key]] == list(table), key  # the ranking
+        assert _ranking_holds(doc[key], table, 1e-3), (key, [r["model"] for r in doc[key]])
         for model, figures in table.items():
             assert got[model] == pytest.approx(figures, abs=tol), (key, model)
