@@ -361,17 +361,25 @@ def side_rows(rig: Rig, robot: kin.Robot, arm: str, set: str) -> dict[str, jax.A
     return None if side is None else {b: jnp.asarray(v) for b, v in side.items()}
 
 
-def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
-                    ) -> dict[str, np.ndarray]:
-    """Per measured arm, the distance (mm) between model and observed marker, row by row."""
+def chain_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
+                    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per measured arm with rows in ``set``: the observed markers (n, 3) and the residuals
+    observed - model (n, 3), row by row."""
     out = {}
     for arm in robot.measured_arms():
         u, d = rig.chain_rows(arm, set)
         if len(u):
             p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u),
                                                       side_rows(rig, robot, arm, set)))
-            out[arm] = np.linalg.norm(p - d, axis=1)
+            out[arm] = (np.asarray(d), np.asarray(d) - p)
     return out
+
+
+def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
+                    ) -> dict[str, np.ndarray]:
+    """Per measured arm, the distance (mm) between model and observed marker, row by row."""
+    return {a: np.linalg.norm(r, axis=1)
+            for a, (_, r) in chain_residuals(rig, robot, x, set).items()}
 
 
 def _residual_function(rig: Rig, robot: kin.Robot, set: str):

@@ -22,7 +22,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_distances
+from bayesrob.calibration import (
+    ChainCalibration,
+    calibrate_chain,
+    chain_distances,
+    chain_residuals,
+)
 from bayesrob.rig import Rig
 
 # effect name -> the calibration group that models it
@@ -49,6 +54,10 @@ class ChainDiagnosis:
     seconds: float
     selection_rows: int
     notes: list[str] = field(default_factory=list)
+    # step label -> {arm: (observed markers, residuals)} on the validation rows, for the
+    # geometric calibration and the final model (figures only; not in the JSON)
+    residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
+        default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
         last = self.steps[-1] if self.steps else self.baseline
@@ -153,6 +162,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
         for eff in named:
             ladder.append((*ladder[-1], CHAIN_EFFECTS[eff]))
         baseline: dict = {}
+        residuals = {}
         for k, g in enumerate(ladder):
             cal = calibrate_chain(rig, g)
             bar.update(1)
@@ -165,6 +175,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                    "heldout_error_max_mm": val["max_mm"], "n": val["n"]}
             if "holdout" in cal.errors:
                 row["holdout_error_mm"] = cal.errors["holdout"]["all"]["mean_mm"]
+            if k in (0, len(ladder) - 1):
+                label = "geometric" if k == 0 else "+ " + " + ".join(named)
+                residuals[label] = chain_residuals(rig, cal.robot, cal.x, "validation")
             if k == 0:
                 baseline = row
             else:
@@ -172,7 +185,30 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     notes = ["not modelled for chains yet, so not tried: backlash, encoder_error, "
              "servo_nonlinearity"]
     return ChainDiagnosis(rig.name, named, rounds, steps, baseline,
-                          time.perf_counter() - t0, n_sel, notes)
+                          time.perf_counter() - t0, n_sel, notes, residuals)
+
+
+def parse_published(text: str) -> dict[str, float]:
+    """``geometric=10.5,joint_compliance=5.64`` -> the ladder's labels and means (mm): a
+    published ladder to draw beside ours. Effect names may carry their leading ``+``."""
+    out: dict[str, float] = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        label, sep, value = item.partition("=")
+        label = label.strip().lstrip("+").strip()
+        label = ALIASES.get(label, label)
+        if not sep or label not in ("geometric", *CHAIN_EFFECTS):
+            raise ChainDiagnosisError(
+                f"--published: expected STEP=MM with STEP one of geometric, "
+                f"{', '.join(CHAIN_EFFECTS)}; got {item!r}")
+        try:
+            mm = float(value)
+        except ValueError:
+            raise ChainDiagnosisError(f"--published: {label}: expected a number of mm, got "
+                                      f"{value.strip()!r}") from None
+        if not mm >= 0:
+            raise ChainDiagnosisError(f"--published: {label}: a mean error is >= 0, got {mm}")
+        out["geometric" if label == "geometric" else f"+{label}"] = mm
+    return out
 
 
 def format_chain_diagnosis(doc: dict) -> str:

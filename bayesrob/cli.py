@@ -602,6 +602,9 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "gravity_sag,backlash,servo_nonlinearity for planar rigs; "
                         "joint_compliance,lateral_compliance for URDF/DH chains)")
     p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
+    p.add_argument("--published", default=None, metavar="STEP=MM,...",
+                   help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
+                        "ladder.png, e.g. geometric=10.5,joint_compliance=5.64")
 
 
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
@@ -613,6 +616,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig, chains=True)
     if rig.is_chain:
         return _diagnose_chain(rig, args)
+    if args.published:
+        raise UsageError("--published draws a published ladder for URDF/DH rigs; "
+                         f"{rig.name!r} is planar")
     diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
@@ -630,21 +636,25 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
         diagnose_chain,
         format_chain_diagnosis,
         ladder_figure,
+        parse_published,
     )
+    from bayesrob.plots.diagnosis import chain_residual_figure
 
     try:
-        doc = diagnose_chain(rig, args.effects, seed=args.seed,
-                             progress=_progress(args)).to_json()
+        published = parse_published(args.published) if args.published else None
+        diag = diagnose_chain(rig, args.effects, seed=args.seed, progress=_progress(args))
     except ChainDiagnosisError as e:
         raise UsageError(str(e)) from None
+    doc = diag.to_json()
     if args.json != "-":
         print(format_chain_diagnosis(doc))
     if args.report:
         out = Path(args.report)
         out.mkdir(parents=True, exist_ok=True)
-        fig = ladder_figure(doc)
-        fig.savefig(out / "ladder.png", dpi=120)
-        _wrote(out / "ladder.png", args.json)
+        for name, fig in (("ladder.png", ladder_figure(doc, published)),
+                          ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"]))):
+            fig.savefig(out / name, dpi=120)
+            _wrote(out / name, args.json)
     _write_json(doc, args.json)
     return 0
 

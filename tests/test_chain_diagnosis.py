@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from bayesrob.chain_diagnosis import ChainDiagnosisError, resolve_effects
+from bayesrob.chain_diagnosis import ChainDiagnosisError, parse_published, resolve_effects
 from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
 
@@ -21,10 +21,11 @@ def test_diagnose_names_joint_compliance_only_where_the_arm_has_it(tmp_path, cap
     rig = simulate_chain_rig(tmp_path / "r", ChainTruth(seed=11, compliance=compliance))
     out = tmp_path / "d.json"
     assert main(["diagnose", str(rig), "--json", str(out), "--report", str(tmp_path / "rep"),
-                 "--no-progress"]) == 0
+                 "--no-progress", "--published", "geometric=3.0,+joint_compliance=0.3"]) == 0
     doc = json.loads(out.read_text())
     assert doc["effects"] == named
     assert (tmp_path / "rep" / "ladder.png").stat().st_size > 5_000
+    assert (tmp_path / "rep" / "residuals.png").stat().st_size > 20_000
     for key in ("steps", "baseline_heldout_error_mm", "final_heldout_error_mm"):
         assert key in doc
     if named:
@@ -40,3 +41,40 @@ def test_planar_only_effects_are_refused_for_chains_in_one_line():
     assert resolve_effects(["gravity_sag"]) == ["joint_compliance"]  # the planar alias
     with pytest.raises(ChainDiagnosisError, match="'backlash' is not modelled"):
         resolve_effects(["backlash"])
+
+
+def test_published_ladder_is_parsed_or_refused_in_one_line():
+    assert parse_published("geometric=10.5, +joint_compliance=5.64,gravity_sag=5") == {
+        "geometric": 10.5, "+joint_compliance": 5.0}
+    for bad, message in (("geometric", "expected STEP=MM"), ("wobble=1", "expected STEP=MM"),
+                         ("geometric=ten", "expected a number"), ("geometric=-1", ">= 0")):
+        with pytest.raises(ChainDiagnosisError, match=message):
+            parse_published(bad)
+
+
+def test_residual_figure_draws_every_validation_marker_on_two_planes(tmp_path):
+    """The report's residual arrows: one arrow per validation row, in the x-y and x-z
+    planes, for the geometric and the final model, all on one magnification."""
+    import numpy as np
+
+    from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.plots.diagnosis import chain_residual_figure
+    from bayesrob.rig import load_rig
+
+    rig = load_rig(simulate_chain_rig(tmp_path / "r", ChainTruth(seed=11, compliance=True)))
+    diag = diagnose_chain(rig)
+    assert list(diag.residuals) == ["geometric", "+ joint_compliance"]
+    n = len(rig.chain_rows(rig.robot.measured_arms()[0], "validation")[0])
+    res = [r for by_arm in diag.residuals.values() for _, r in by_arm.values()]
+    assert [r.shape for r in res] == [(n, 3), (n, 3)]
+    # the final model's residuals are the ones its ladder step reports
+    assert np.linalg.norm(res[1], axis=1).mean() == pytest.approx(
+        diag.steps[-1]["heldout_error_mm"], rel=1e-9)
+    fig = chain_residual_figure(diag.residuals, rig.name)
+    quivers = [c for ax in fig.axes for c in ax.collections if hasattr(c, "U")]
+    assert len(quivers) == 4 and all(len(q.U) == n for q in quivers)
+    # panels in reading order: (geometric x-y, x-z), (final x-y, x-z)
+    planes = [(0, 1), (0, 2)] * 2
+    gains = [np.hypot(q.U, q.V).max() / np.linalg.norm(r[:, list(p)], axis=1).max()
+             for q, r, p in zip(quivers, [res[0], res[0], res[1], res[1]], planes, strict=True)]
+    assert np.ptp(gains) < 1e-9 * max(gains)

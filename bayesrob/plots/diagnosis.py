@@ -121,3 +121,50 @@ def _noise_floor(diag: Diagnosis) -> float | None:
     if not sig:
         return None
     return float(np.sqrt(np.mean(np.square(sig))) * math.sqrt(math.pi / 2))
+
+
+PLANES = ((0, 1), (0, 2))  # the x-y and x-z planes of a 3-D rig
+
+
+def chain_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
+                          rig: str) -> Figure:
+    """Residual arrows of a chain rig's markers, projected on the x-y and x-z planes: a row
+    per model (the geometric calibration, then the final one), a colour per marker arm.
+
+    ``residuals``: label -> {arm: (observed markers (n, 3), observed - model (n, 3))}. One
+    magnification serves every panel, so the shrinking gap is seen, not read.
+    """
+    from matplotlib.figure import Figure
+
+    names = "xyz"
+    pts = np.concatenate([o for by_arm in residuals.values() for o, _ in by_arm.values()])
+    longest = max(float(np.max(np.linalg.norm(r, axis=1)))
+                  for by_arm in residuals.values() for _, r in by_arm.values())
+    span = float(np.max(np.ptp(pts, axis=0)))
+    # the longest arrow is a tenth of the markers' spread
+    mag = 0.1 * span / max(longest, 1e-9)
+    key = _nice(longest / 2)
+    fig = Figure(figsize=(10, 4.4 * len(residuals)), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(len(residuals), len(PLANES), squeeze=False))
+    arms = sorted({a for by_arm in residuals.values() for a in by_arm})
+    for row, (label, by_arm) in zip(axes, residuals.items(), strict=True):
+        mean = float(np.mean(np.concatenate([np.linalg.norm(r, axis=1)
+                                             for _, r in by_arm.values()])))
+        for ax, (i, j) in zip(row, PLANES, strict=True):
+            for a, (o, r) in sorted(by_arm.items()):
+                c = f"C{arms.index(a)}"
+                ax.plot(o[:, i], o[:, j], ".", color=c, ms=2)
+                q = ax.quiver(o[:, i], o[:, j], r[:, i] * mag, r[:, j] * mag, color=c,
+                              angles="xy", scale_units="xy", scale=1, width=0.003,
+                              label=f"marker of {a}")
+            ax.set_aspect("equal")
+            ax.set_xlabel(f"{names[i]} (mm)")
+            ax.set_ylabel(f"{names[j]} (mm)")
+            ax.set_title(f"{label}: {names[i]}-{names[j]} plane, mean {mean:.2f} mm",
+                         fontsize=10)
+        row[-1].quiverkey(q, 0.80, 0.04, key * mag, f"{key:g} mm", labelpos="E",
+                          coordinates="axes")
+    axes[0][0].legend(fontsize=8, loc="upper left")
+    fig.suptitle(f"{rig}: validation residuals, observed - model (arrows x{mag:.0f})",
+                 fontsize=11)
+    return fig
