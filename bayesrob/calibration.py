@@ -251,7 +251,7 @@ def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str,
 # Groups are tried in this order when the rank analysis decides which of two redundant
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
 # general correction of a joint's origin.
-PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral")
+PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral", "encoder")
 # A column is identifiable when the part of it no earlier column explains is at least this
 # fraction of its length (column-scaled to each parameter's typical size). Exact
 # redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would
@@ -407,12 +407,26 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
 POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way under gravity
 
 
+def _with_gravity(rig: Rig) -> kin.Robot:
+    """The rig's robot with its gravity model on, one object per robot and gravity: the
+    compiled residuals and Jacobians are cached on the robot object, so every calibration of
+    a diagnosis (and of a rig that shares the robot) reuses them instead of compiling anew."""
+    gravity = np.zeros(3)
+    gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
+    cache = rig.robot.__dict__.setdefault("_with_gravity", {})
+    key = tuple(gravity.tolist())
+    if key not in cache:
+        cache[key] = replace(rig.robot, gravity=gravity)
+    return cache[key]
+
+
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
-                    polish: bool = True) -> ChainCalibration:
+                    polish: bool = True, max_nfev: int = 300) -> ChainCalibration:
     """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
     ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
     ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
-    (off: faster, a little short of the optimum; the diagnosis's comparisons use that)."""
+    (off: faster, a little short of the optimum; the diagnosis's comparisons use that).
+    ``max_nfev``: residual evaluations allowed to each of the fit's least-squares stages."""
     import time
 
     t0 = time.perf_counter()
@@ -421,18 +435,16 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
                          f"{', '.join(kin.ALL_GROUPS)}")
     groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
-    robot = rig.robot
     sags = bool({"compliance", "lateral"} & set(groups))
-    if sags:
-        gravity = np.zeros(3)
-        gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
-        robot = replace(robot, gravity=gravity)
+    robot = _with_gravity(rig) if sags else rig.robot
     layout = robot.layout
     full_res, full_jac, n_res, exact_jac = _residual_function(rig, robot, "train")
     x = layout.nominal.copy()
     nfev = 0
 
-    def fit(mask: np.ndarray, x0: np.ndarray, jac=full_jac, max_nfev: int = 300
+    stage_nfev = max_nfev
+
+    def fit(mask: np.ndarray, x0: np.ndarray, jac=full_jac, max_nfev: int = stage_nfev
             ) -> tuple[np.ndarray, int]:
         idx = np.flatnonzero(mask)
 

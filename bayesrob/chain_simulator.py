@@ -65,6 +65,11 @@ class ChainTruth(_ArmErrors):
     instrument_nominal: tuple[float, ...] = (1200.0, -300.0, 150.0, 0.0, 0.0, 0.4)
     compliance: bool = False
     stiffness_nmm_per_rad: tuple[float, ...] = (4e6, 4e6, 2e6, 6e5, 6e5, 6e5)
+    # each joint's encoder disk sits off its axis by this fraction of its radius (0: none),
+    # at a phase drawn per joint: the angle read is off by atan2(e sin, 1 + e cos), a
+    # sinusoid once per revolution and its harmonics
+    encoder_eccentricity: float = 0.0
+    encoder_phase_rad: tuple[float, ...] = ()  # filled by simulate_chain_rig
     true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
 
 
@@ -93,6 +98,18 @@ def _true_vector(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -> n
         elif ".instrument." in p.name:
             x[i] += rng.normal(0, truth.instrument_sd[1] if rot else truth.instrument_sd[0])
     return x
+
+
+ENCODER_STREAM = 7  # the encoder phases' own random stream: other draws stay as they were
+
+
+def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) -> np.ndarray:
+    """How far each joint really is from the angle its eccentric encoder reads (rad): a disk
+    of radius 1 whose centre sits ``eccentricity`` off the axis at ``phase``, read by a fixed
+    head, puts the read angle ahead of the true one by atan2(e sin(q - phase), 1 + e cos(q -
+    phase))."""
+    d = np.asarray(q_read) - np.asarray(phase)
+    return -np.arctan2(eccentricity * np.sin(d), 1.0 + eccentricity * np.cos(d))
 
 
 def _frames_program(robot: Robot, arm: str):
@@ -150,6 +167,9 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
     base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")}, 3)
     x_base = x_true.copy()
     x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
+    phase = np.random.default_rng([truth.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, 6)
+    if truth.encoder_eccentricity:
+        truth.encoder_phase_rad = tuple(float(v) for v in phase)
     rows = []
     for set_name, n in (("train", truth.n_train), ("validation", truth.n_validation),
                         ("holdout", truth.n_holdout)):
@@ -157,6 +177,8 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
             continue
         q_cmd = _poses(rng, n)
         q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
+        if truth.encoder_eccentricity:
+            q = q + encoder_error(q_cmd, truth.encoder_eccentricity, phase)
         if truth.compliance:
             q = q + gravity_deflection(base_robot, x_base, "arm", q,
                                        np.asarray(truth.masses_kg),

@@ -277,7 +277,7 @@ def _param_groups(text: str) -> tuple[str, ...]:
 
 def _calibrate_chain(args: argparse.Namespace, rig) -> int:
     from bayesrob.calibration import calibrate_chain, calibrated_rig_document
-    from bayesrob.kinematics import GROUPS, write_urdf
+    from bayesrob.kinematics import GROUPS, OPTIONAL_GROUPS, write_urdf
     from bayesrob.progress import progress
     from bayesrob.report import format_chain_calibration
     from bayesrob.rig import dump_toml
@@ -305,6 +305,11 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
         toml_path.write_text(dump_toml(calibrated_rig_document(rig, cal, out.name)))
         doc["urdf_out"] = str(out)
         doc["rig_toml_out"] = str(toml_path)
+        beyond = [g for g in cal.groups if g in OPTIONAL_GROUPS]
+        if beyond:
+            doc.setdefault("notes", []).append(
+                f"the URDF and rig.toml hold the calibrated geometry; the fitted "
+                f"{', '.join(beyond)} values are in this document's parameters, not in them")
     if args.json != "-":
         print(format_chain_calibration(doc))
     for key in ("urdf_out", "rig_toml_out"):

@@ -72,6 +72,7 @@ def format_chain_calibration(doc: dict) -> str:
                          str(e["n"])])
     parts.append("\nmarker error (mm)")
     parts.append(format_table(["set", "arm", "mean", "sd", "max", "n"], rows))
+    parts += [f"note: {n}" for n in doc.get("notes", [])]
     return "\n".join(parts)
 
 

@@ -32,8 +32,9 @@ import bayesrob.kinematics.transforms as tf
 
 JOINT_KINDS = ("revolute", "prismatic")
 GROUPS = ("frames", "offsets", "geometric", "servo")
-# Fitted only when asked for: joints that give way under gravity (see Robot.deflections).
-OPTIONAL_GROUPS = ("compliance", "lateral")
+# Fitted only when asked for: joints that give way under gravity (see Robot.deflections),
+# and revolute joints read through an eccentric encoder (see Robot.joint_values).
+OPTIONAL_GROUPS = ("compliance", "lateral", "encoder")
 ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
@@ -196,6 +197,12 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
             nominal += [LINK_MASS_GUESS_KG, *(LINK_MASS_GUESS_KG * h)]
             scale += [1.0, 100.0, 100.0, 100.0]
         add((c.name, "links"), names, "compliance", nominal, scale)
+    for c in chains.values():
+        # an eccentric encoder: a once-per-revolution error a sin q + b cos q in each revolute
+        # joint's angle (the prismatic joints' pairs stay zero: the rank analysis drops them)
+        add((c.name, "encoder"), [f"{c.name}.{j}.encoder.{k}" for j in c.joint_names
+                                  for k in ("sin", "cos")],
+            "encoder", np.zeros(2 * c.n_joints), [1e-3] * (2 * c.n_joints))
     return ParamLayout(tuple(params), slices)
 
 
@@ -260,11 +267,24 @@ class Robot:
         return [f"{c.name}_u{k + 1}" for c in self.path(arm) for k in range(c.n_columns)]
 
     def joint_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
-        """Joint values (N, n) of ``chain`` for its columns u (N, m) under parameters x."""
+        """Joint values (N, n) of ``chain`` for its columns u (N, m) under parameters x: the
+        commanded value q = C (gain u + offset) + zero offset, then, for a revolute joint,
+        its encoder's eccentricity, q + a sin q + b cos q (zero unless ``encoder`` is fitted)."""
+        q = self._commanded_values(x, chain, u)
+        a, b = self._encoder(x, chain)
+        return q + a * jnp.sin(q) + b * jnp.cos(q)
+
+    def _commanded_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
         sl = self.layout.slices
         gain = x[sl[(chain.name, "gain")]]
         q_act = gain * u + jnp.asarray(chain.offset)
         return q_act @ jnp.asarray(chain.coupling).T + x[sl[(chain.name, "offset")]]
+
+    def _encoder(self, x: jax.Array, chain: Chain) -> tuple[jax.Array, jax.Array]:
+        """Each joint's eccentricity coefficients (a, b), zero for a prismatic joint."""
+        ab = x[self.layout.slices[(chain.name, "encoder")]].reshape(chain.n_joints, 2)
+        revolute = jnp.asarray([k == "revolute" for k in chain.kinds], dtype=ab.dtype)
+        return ab[:, 0] * revolute, ab[:, 1] * revolute
 
     def _elements(self, arm: str) -> dict[str, np.ndarray]:
         """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
@@ -532,13 +552,21 @@ class Robot:
                            jnp.einsum("ij,nj->ni", factors[0], inner[0]))
         jac = jac.at[:, :, sl[(path[0].name, "instrument")]].set(first[:, :3, :])
         jac = jac.at[:, :, sl[(arm, "marker")]].set(tip[:, :3, :3])
-        # joint values -> zero offsets and gains, chain by chain (q = C (gain u + offset) + off)
+        # joint values -> zero offsets, gains and encoder terms, chain by chain
+        # (q = C (gain u + offset) + off, then q + a sin q + b cos q)
         start, col = 0, 0
         for chain in path:
             k = chain.n_joints
             dq = jnp.transpose(j_q[start:start + k, :, :3], (1, 2, 0))  # (N, 3, k)
-            jac = jac.at[:, :, sl[(chain.name, "offset")]].set(dq)
             uc = u[:, col:col + chain.n_columns]
+            q0 = self._commanded_values(x, chain, uc)  # (N, k)
+            a, b = self._encoder(x, chain)
+            revolute = jnp.asarray([kd == "revolute" for kd in chain.kinds], dtype=q0.dtype)
+            ecc = jnp.stack([jnp.sin(q0), jnp.cos(q0)], axis=-1) * revolute[:, None]  # (N, k, 2)
+            jac = jac.at[:, :, sl[(chain.name, "encoder")]].set(
+                jnp.einsum("nik,nkj->nikj", dq, ecc).reshape(n_rows, 3, 2 * k))
+            dq = dq * (1.0 + a * jnp.cos(q0) - b * jnp.sin(q0))[:, None, :]  # d q / d q0
+            jac = jac.at[:, :, sl[(chain.name, "offset")]].set(dq)
             d_gain = jnp.einsum("nik,kc,nc->nic", dq, jnp.asarray(chain.coupling), uc)
             jac = jac.at[:, :, sl[(chain.name, "gain")]].set(d_gain)
             start += k + 1
