@@ -605,7 +605,7 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
                    help="comma-separated candidate effects to try (default: all registered: "
                         "gravity_sag,backlash,servo_nonlinearity for planar rigs; "
-                        "joint_compliance,lateral_compliance for URDF/DH chains)")
+                        "joint_compliance,lateral_compliance,encoder_error for URDF/DH chains)")
     p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
