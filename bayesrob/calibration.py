@@ -442,9 +442,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     x = layout.nominal.copy()
     nfev = 0
 
-    stage_nfev = max_nfev
-
-    def fit(mask: np.ndarray, x0: np.ndarray, jac=full_jac, max_nfev: int = stage_nfev
+    def fit(mask: np.ndarray, x0: np.ndarray, jac=full_jac, max_nfev: int = max_nfev
             ) -> tuple[np.ndarray, int]:
         idx = np.flatnonzero(mask)
 
