@@ -219,6 +219,11 @@ def _bend(phi: jax.Array) -> jax.Array:
     return tf.perturbation(jnp.concatenate([jnp.zeros_like(phi), phi], axis=-1))
 
 
+def _revolute(chain: Chain) -> np.ndarray:
+    """1.0 for each revolute joint of the chain, 0.0 for each prismatic one."""
+    return np.array([k == "revolute" for k in chain.kinds], dtype=float)
+
+
 def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
     if kind == "revolute":
         rot = tf.rot_axis(axis, q)
@@ -283,7 +288,7 @@ class Robot:
     def _encoder(self, x: jax.Array, chain: Chain) -> tuple[jax.Array, jax.Array]:
         """Each joint's eccentricity coefficients (a, b), zero for a prismatic joint."""
         ab = x[self.layout.slices[(chain.name, "encoder")]].reshape(chain.n_joints, 2)
-        revolute = jnp.asarray([k == "revolute" for k in chain.kinds], dtype=ab.dtype)
+        revolute = _revolute(chain)
         return ab[:, 0] * revolute, ab[:, 1] * revolute
 
     def _elements(self, arm: str) -> dict[str, np.ndarray]:
@@ -561,8 +566,7 @@ class Robot:
             uc = u[:, col:col + chain.n_columns]
             q0 = self._commanded_values(x, chain, uc)  # (N, k)
             a, b = self._encoder(x, chain)
-            revolute = jnp.asarray([kd == "revolute" for kd in chain.kinds], dtype=q0.dtype)
-            ecc = jnp.stack([jnp.sin(q0), jnp.cos(q0)], axis=-1) * revolute[:, None]  # (N, k, 2)
+            ecc = jnp.stack([jnp.sin(q0), jnp.cos(q0)], axis=-1) * _revolute(chain)[:, None]
             jac = jac.at[:, :, sl[(chain.name, "encoder")]].set(
                 jnp.einsum("nik,nkj->nikj", dq, ecc).reshape(n_rows, 3, 2 * k))
             dq = dq * (1.0 + a * jnp.cos(q0) - b * jnp.sin(q0))[:, None, :]  # d q / d q0

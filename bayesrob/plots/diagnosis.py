@@ -145,7 +145,7 @@ def chain_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.nd
     mag = 0.1 * span / max(longest, 1e-9)
     key = _nice(longest / 2)
     fig = Figure(figsize=(10, 4.4 * len(residuals)), layout="constrained")
-    axes = np.atleast_2d(fig.subplots(len(residuals), len(PLANES), squeeze=False))
+    axes = fig.subplots(len(residuals), len(PLANES), squeeze=False)
     arms = sorted({a for by_arm in residuals.values() for a in by_arm})
     for row, (label, by_arm) in zip(axes, residuals.items(), strict=True):
         mean = float(np.mean(np.concatenate([np.linalg.norm(r, axis=1)
