@@ -398,10 +398,18 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
         def jacobian(x, data):
             return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
                 -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
-        cache[key] = (jax.jit(residuals), jax.jit(jacobian), jax.jit(jax.jacfwd(residuals)))
+        def exact(v, x, idx, data):
+            # forward mode over the fitted columns only: its cost grows with the number of
+            # tangents, and a fit frees part of the layout (Justin: 127-192 of 335 columns)
+            return jax.jacfwd(lambda v: residuals(x.at[idx].set(v), data))(v)
+        cache[key] = (jax.jit(residuals), jax.jit(jacobian), jax.jit(exact))
     res, jac, exact = cache[key]
     n_res = sum(int(d.size) for _, d, _ in data)
-    return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res, (lambda x: exact(x, data))
+
+    def exact_columns(x, idx):
+        idx = jnp.asarray(idx)
+        return exact(x[idx], x, idx, data)
+    return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res, exact_columns
 
 
 POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way under gravity
@@ -442,15 +450,19 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     x = layout.nominal.copy()
     nfev = 0
 
-    def fit(mask: np.ndarray, x0: np.ndarray, jac=full_jac, max_nfev: int = max_nfev
+    def fit(mask: np.ndarray, x0: np.ndarray, exact: bool = False, max_nfev: int = max_nfev
             ) -> tuple[np.ndarray, int]:
         idx = np.flatnonzero(mask)
 
         def put(v):
             return jnp.asarray(x0).at[idx].set(jnp.asarray(v))
+
+        def jac(v):
+            return (np.asarray(exact_jac(put(v), idx)) if exact
+                    else np.asarray(full_jac(put(v)))[:, idx])
         out = scipy.optimize.least_squares(
             lambda v: np.asarray(full_res(put(v))),
-            x0[idx], jac=lambda v: np.asarray(jac(put(v)))[:, idx],
+            x0[idx], jac=jac,
             x_scale=layout.scales[idx], method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10,
             max_nfev=max_nfev)
         return np.asarray(put(out.x)), int(out.nfev)
@@ -487,7 +499,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         if polish:
             if progress:
                 progress("polishing with the exact Jacobian")
-            x, n = fit(ident.free, x, jac=exact_jac, max_nfev=POLISH_NFEV)
+            x, n = fit(ident.free, x, exact=True, max_nfev=POLISH_NFEV)
             nfev += n
     se = _chain_standard_errors(full_res, full_jac, x, ident.free)
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
