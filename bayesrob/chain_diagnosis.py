@@ -158,12 +158,12 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                 after = _row_errors(split, cal, "selection")
                 bar.update(1)
                 z = _paired_z(before, after)
-                scores.append({"effect": eff,
-                               "parameters": int(cal.ident.free.sum()) - n_before,
+                added = int(cal.ident.free.sum()) - n_before
+                scores.append({"effect": eff, "parameters": added,
                                "selection_error_before_mm": float(before.mean()),
                                "selection_error_after_mm": float(after.mean()), "z": z,
                                "drop_per_parameter_mm": float(before.mean() - after.mean())
-                               / max(int(cal.ident.free.sum()) - n_before, 1),
+                               / max(added, 1),
                                "passes": z > Z_MIN, "_after": after})
             rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
                            for s in scores])
