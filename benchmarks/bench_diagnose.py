@@ -1,14 +1,22 @@
 """Benchmarks of ``bayesrob diagnose``: its speed, and how often it names the right effects.
 
     python benchmarks/bench_diagnose.py                 # wall time on a 4x4 two-arm rig
-    python benchmarks/bench_diagnose.py --confusion     # 40-rig sweep -> markdown table
+    python benchmarks/bench_diagnose.py --confusion     # the report rigs -> markdown tables
+    python benchmarks/bench_diagnose.py --tuning        # the tuning rigs, the same tables
     python benchmarks/bench_diagnose.py --sensitivity   # effect size x noise at 4x4
 
 The default run times the command as a person runs it (a fresh process, so JAX compiles
 everything) on the embedded default rig (4x4 grid, two arms, gravity sag and backlash) and
 prints one JSON line. The sweeps build each rig from ``tests/generators.py`` (this project's
 simulator and the deliberately different generators), diagnose it from its files alone and
-compare what was named with what was hidden.
+compare what was named with what was hidden. The rigs are split before anything is chosen:
+``--tuning`` runs the rigs the decision rule was chosen on (seeds 21-35), ``--confusion`` the
+report rigs (seeds 501-534), which only report. Rigs are diagnosed as Dask tasks on a
+LocalCluster of ``--workers`` processes (``--scheduler`` for a running cluster).
+
+Each rig's *strength* is how much its hidden effects raise the base model's mean error at new
+poses (the holdout rows) over the same rig, seed and noise without them: 2 means the effects
+double the gap that noise alone leaves.
 """
 
 from __future__ import annotations
@@ -22,15 +30,21 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict
-from multiprocessing import get_context
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-from generators import TRUTHS, Case, confusion_cases, make_rig  # noqa: E402
+from generators import (  # noqa: E402
+    STRONG,
+    TRUTHS,
+    Case,
+    effects_key,
+    exactly_right,
+    report_cases,
+    targets,
+    tuning_cases,
+)
 
 LIMIT_S = 60.0
 
@@ -58,78 +72,103 @@ def time_command(rig: str | None) -> dict:
 
 
 def run_case(case: Case) -> dict:
-    """Make the rig, diagnose it from its files, report what was named."""
-    import bayesrob  # noqa: F401  (x64 before any JAX work)
-    from bayesrob.diagnosis import diagnose
-    from bayesrob.rig import load_rig
+    """One rig's sweep record (a Dask task: it finds ``tests/`` itself)."""
+    if str(ROOT / "tests") not in sys.path:  # a Dask worker starts without it
+        sys.path.insert(0, str(ROOT / "tests"))
+    from generators import diagnose_case
 
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        rig = load_rig(make_rig(case, tmp))
-        doc = diagnose(rig).to_json()
-    return {"case": asdict(case), "truth": case.label,
-            "named": "+".join(sorted(doc["effects"])) or "none",
-            "order": doc["effects"], "seconds": round(time.perf_counter() - t0, 1),
-            "baseline_heldout_error_mm": doc["baseline_heldout_error_mm"],
-            "final_heldout_error_mm": doc["final_heldout_error_mm"],
-            "rounds": [[{k: s[k] for k in ("effect", "arms", "elpd_diff", "elpd_diff_se",
-                                             "heldout_error_before_mm", "heldout_error_after_mm",
-                                             "cv_error_before_mm", "cv_error_after_mm",
-                                             "passes")} for s in r] for r in doc["rounds"]]}
+    return diagnose_case(case)
 
 
-def run_all(cases: list[Case], jobs: int, log: Path | None) -> list[dict]:
-    results = []
-    ctx = get_context("spawn")  # JAX's threads do not survive fork
-    with ProcessPoolExecutor(jobs, mp_context=ctx) as pool:
-        for res in pool.map(run_case, cases):
-            results.append(res)
-            print(f"  {res['case']['source']:9s} {res['case']['geometry']:10s} "
-                  f"{res['case']['grid']}x{res['case']['grid']} scale {res['case']['scale']:<5g} "
-                  f"truth {res['truth']:28s} named {res['named']:28s} {res['seconds']:5.1f} s",
+def run_all(cases: list[Case], workers: int, log: Path | None,
+            scheduler: str | None = None) -> list[dict]:
+    """Diagnose every case as a Dask task; results in the cases' order."""
+    from distributed import as_completed
+
+    from bayesrob.design import dask_client
+
+    results: dict[int, dict] = {}
+    with dask_client(scheduler, workers) as client:
+        futures = {client.submit(run_case, c, pure=False): i for i, c in enumerate(cases)}
+        for fut in as_completed(futures):
+            res = fut.result()
+            results[futures[fut]] = res
+            c = res["case"]
+            print(f"  [{len(results)}/{len(cases)}] {c['source']:9s} {c['geometry']:10s} "
+                  f"{c['grid']}x{c['grid']} sag {c['sag']:6s} scale {c['scale']:<4g} "
+                  f"seed {c['seed']} truth {res['truth']:28s} named {res['named']:28s} "
+                  f"strength {res['strength']:4.1f} {res['seconds']:5.1f} s",
                   file=sys.stderr, flush=True)
             if log:
                 with log.open("a") as fh:
                     fh.write(json.dumps(res) + "\n")
-    return results
-
-
-def _key(label: str) -> str:
-    return "+".join(sorted(label.split("+"))) if label != "none" else "none"
+    return [results[i] for i in range(len(cases))]
 
 
 def confusion_table(results: list[dict]) -> str:
     """Markdown: hidden effects (rows) against named effects (columns)."""
-    truths = [_key("+".join(t) or "none") for t in TRUTHS]
+    truths = [effects_key("+".join(t) or "none") for t in TRUTHS]
     named = sorted({r["named"] for r in results}, key=lambda k: (k not in truths,
                    truths.index(k) if k in truths else 0, k))
-    count = Counter((_key(r["truth"]), r["named"]) for r in results)
+    count = Counter((effects_key(r["truth"]), r["named"]) for r in results)
     lines = ["| hidden \\ named | " + " | ".join(named) + " | correct |",
              "|---" * (len(named) + 2) + "|"]
     for t in truths:
-        row = [str(count[(t, n)]) for n in named]
         total = sum(count[(t, x)] for x in named)
-        lines.append(f"| {t} | " + " | ".join(row) + f" | {count[(t, t)]}/{total} |")
-    ok = sum(count[(t, t)] for t in truths)
-    lines.append(f"\n{ok}/{len(results)} rigs named exactly the hidden effects.")
-    shrink = [r for r in results if r["truth"] != "none" and r["named"] != "none"]
-    if shrink:
-        ratio = [r["final_heldout_error_mm"] / r["baseline_heldout_error_mm"] for r in shrink]
-        lines.append(f"Where effects were named, the held-out error fell to "
-                     f"{100 * sum(ratio) / len(ratio):.0f}% of the base model's on average.")
+        if total:
+            row = [str(count[(t, n)]) for n in named]
+            lines.append(f"| {t} | " + " | ".join(row) + f" | {count[(t, t)]}/{total} |")
+    return "\n".join(lines)
+
+
+def summary(results: list[dict]) -> str:
+    t = targets(results)
+    lines = [f"{t['exactly_right']}/{t['rigs']} rigs named exactly the hidden effects; "
+             f"{t['strong_right']}/{t['strong']} of those whose effects at least double the "
+             f"base model's error at new poses (strength >= {STRONG:g}); "
+             f"{t['false_alarms']} false alarms on {t['clean']} clean rigs."]
+    if t["holdout_ratio"] is not None:
+        lines.append(f"Where effects were named ({t['named']} rigs), the error at new poses "
+                     f"fell to {100 * t['holdout_ratio']:.0f}% of the base model's on average, "
+                     f"and the gap the effects opened (error above the clean twin's) to "
+                     f"{100 * t['gap_ratio']:.0f}% (pooled).")
     return "\n".join(lines)
 
 
 def breakdown(results: list[dict]) -> str:
-    rows = ["| source | geometry | grid | rigs | correct |", "|---|---|---|---|---|"]
+    rows = ["| source | geometry | sag in | grid | rigs | correct |", "|---|---|---|---|---|---|"]
     groups: dict = {}
     for r in results:
         c = r["case"]
-        groups.setdefault((c["source"], c["geometry"], c["grid"]), []).append(
-            _key(r["truth"]) == r["named"])
-    for (src, geo, grid), oks in sorted(groups.items()):
-        rows.append(f"| {src} | {geo} | {grid}x{grid} | {len(oks)} | {sum(oks)} |")
+        sag = c["sag"] if c["source"] == "generator" else "joints"
+        groups.setdefault((c["source"], c["geometry"], sag, c["grid"]), []).append(
+            exactly_right(r))
+    for (src, geo, sag, grid), oks in sorted(groups.items()):
+        rows.append(f"| {src} | {geo} | {sag} | {grid}x{grid} | {len(oks)} | {sum(oks)} |")
     return "\n".join(rows)
+
+
+STRENGTH_BINS = ((0.0, 1.25), (1.25, 1.5), (1.5, 2.0), (2.0, 3.0), (3.0, float("inf")))
+
+
+def by_strength(results: list[dict]) -> str:
+    rows = ["| strength | rigs | correct |", "|---|---|---|"]
+    for lo, hi in STRENGTH_BINS:
+        rs = [r for r in results if r["truth"] != "none" and lo <= r["strength"] < hi]
+        if rs:
+            label = f"{lo:g}-{hi:g}" if hi != float("inf") else f">= {lo:g}"
+            rows.append(f"| {label} | {len(rs)} | {sum(map(exactly_right, rs))} |")
+    return "\n".join(rows)
+
+
+def sweep_report(results: list[dict]) -> str:
+    parts = [confusion_table(results), "", summary(results), ""]
+    for src in ("simulator", "generator"):
+        rs = [r for r in results if r["case"]["source"] == src]
+        if rs:
+            parts += [f"{src}:", "", confusion_table(rs), ""]
+    parts += [breakdown(results), "", by_strength(results)]
+    return "\n".join(parts)
 
 
 def sensitivity_cases() -> list[Case]:
@@ -174,20 +213,29 @@ def sensitivity_table(results: list[dict]) -> str:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--rig", help="rig to time (default: the embedded default rig)")
-    p.add_argument("--confusion", action="store_true", help="run the 40-rig sweep")
+    p.add_argument("--confusion", action="store_true",
+                   help="run the report rigs (seeds 501-534; nothing was chosen on them)")
+    p.add_argument("--tuning", action="store_true",
+                   help="run the tuning rigs (seeds 21-35; the rule was chosen on them)")
     p.add_argument("--sensitivity", action="store_true", help="effect size x noise at 4x4")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--scheduler", help="address of a running Dask scheduler")
     p.add_argument("--log", type=Path, help="append each rig's result as a JSON line")
+    p.add_argument("--json", type=Path, help="write the sweep's results and figures")
     args = p.parse_args()
-    if args.confusion or args.sensitivity:
-        if args.confusion:
-            res = run_all(confusion_cases(), args.jobs, args.log)
-            print(confusion_table(res))
+    sweeps = [(name, make) for name, make, on in (
+        ("report", report_cases, args.confusion), ("tuning", tuning_cases, args.tuning),
+        ("sensitivity", sensitivity_cases, args.sensitivity)) if on]
+    if sweeps:
+        out = {}
+        for name, make in sweeps:
+            res = run_all(make(), args.workers, args.log, args.scheduler)
+            print(f"## {name} rigs\n")
+            print(sensitivity_table(res) if name == "sensitivity" else sweep_report(res))
             print()
-            print(breakdown(res))
-        if args.sensitivity:
-            res = run_all(sensitivity_cases(), args.jobs, args.log)
-            print(sensitivity_table(res))
+            out[name] = {"results": res, "targets": targets(res)}
+        if args.json:
+            args.json.write_text(json.dumps(out, indent=1))
         return 0
     print(json.dumps(time_command(args.rig)))
     return 0

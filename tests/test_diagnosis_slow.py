@@ -1,10 +1,12 @@
-"""The sweep behind the confusion matrix (``pytest -m slow``): 40 rigs, two kinds of physics.
+"""The proof on hidden effects (``pytest -m slow``): the report rigs, which nothing was chosen on.
 
-Rigs come from ``tests/generators.py``: this project's simulator (paper geometry, 4x4 and
-6x6 grids) and the deliberately different generators (hardening springs and bending links,
-play with hysteresis, a tanh servo map; two geometries, one on a tilted plane). Each is
-diagnosed from its files alone. ``benchmarks/bench_diagnose.py --confusion`` prints the same
-sweep as a markdown table.
+Rigs come from ``tests/generators.py``: this project"s simulator (paper geometry, 4x4 and 6x6
+grids) and the deliberately different generators (hardening springs and a bending link, or
+bending links on stiff joints, for sag; play with approach-direction hysteresis; a tanh servo
+map; two geometries, one on a tilted plane). The decision rule was chosen on the tuning rigs
+(seeds 21-35); these are the report rigs (seeds 501-534), fixed before any diagnosis ran on
+them. Each is diagnosed from its files alone. ``benchmarks/bench_diagnose.py --confusion``
+prints the same sweep as markdown tables (docs/diagnose.md).
 """
 
 from __future__ import annotations
@@ -12,89 +14,85 @@ from __future__ import annotations
 from collections import Counter
 
 import pytest
-from generators import confusion_cases, make_rig
+from generators import diagnose_case, effects_key, exactly_right, report_cases, targets
 
 import bayesrob  # noqa: F401
-from bayesrob.diagnosis import diagnose
-from bayesrob.rig import load_rig
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def sweep(tmp_path_factory) -> list[tuple]:
-    out = []
-    for i, case in enumerate(confusion_cases()):
-        rig = load_rig(make_rig(case, tmp_path_factory.mktemp(f"case{i}")))
-        doc = diagnose(rig).to_json()
-        out.append((case, sorted(doc["effects"]), doc))
-    return out
+def sweep() -> list[dict]:
+    return [diagnose_case(case) for case in report_cases()]
 
 
-def _key(effects) -> str:
-    return "+".join(sorted(effects)) or "none"
-
-
-# The README's confusion matrix ("Proof on hidden effects"): hidden (rows) x named (columns).
-# The sweep is seeded and diagnose is deterministic, so the published counts are asserted
-# exactly; a change that moves any of them must update the README with it.
-README_CONFUSION = {
-    "none": {"none": 8},
-    "gravity_sag": {"gravity_sag": 8},
-    "backlash": {"none": 3, "backlash": 5},
-    "servo_nonlinearity": {"servo_nonlinearity": 8},
-    "backlash+gravity_sag": {"none": 1, "servo_nonlinearity": 2, "backlash+gravity_sag": 5},
+# The confusion matrix of docs/diagnose.md: hidden (rows) x named (columns). The sweep is
+# seeded and diagnose is deterministic, so the published counts are asserted exactly; a
+# change that moves any of them must update the docs with it.
+PUBLISHED_CONFUSION: dict[str, dict[str, int]] = {
+    "none": {"none": 11},
+    "gravity_sag": {"gravity_sag": 4, "none": 4, "backlash": 1, "servo_nonlinearity": 2,
+                    "gravity_sag+servo_nonlinearity": 1},
+    "backlash": {"backlash": 6, "none": 4},
+    "servo_nonlinearity": {"servo_nonlinearity": 10},
+    "backlash+gravity_sag": {"backlash+gravity_sag": 5, "backlash": 2,
+                             "gravity_sag+servo_nonlinearity": 1, "none": 1},
 }
-# The README's breakdown: (source, geometry, grid) -> (rigs, correct).
-README_BREAKDOWN = {
-    ("simulator", "paper", 4): (10, 10),
-    ("simulator", "paper", 6): (5, 5),
-    ("generator", "paper_like", 4): (5, 5),
-    ("generator", "paper_like", 6): (5, 5),
-    ("generator", "tilted", 4): (10, 6),
-    ("generator", "tilted", 6): (5, 3),
+# docs/diagnose.md"s breakdown: (source, geometry, sag in, grid) -> (rigs, correct).
+PUBLISHED_BREAKDOWN: dict[tuple, tuple[int, int]] = {
+    ("simulator", "paper", "joints", 4): (14, 11),
+    ("simulator", "paper", "joints", 6): (5, 5),
+    ("generator", "paper_like", "joints", 4): (8, 6),
+    ("generator", "paper_like", "joints", 6): (6, 4),
+    ("generator", "tilted", "joints", 4): (9, 5),
+    ("generator", "tilted", "joints", 6): (6, 3),
+    ("generator", "paper_like", "links", 4): (2, 2),
+    ("generator", "tilted", "links", 4): (2, 0),
 }
 
 
-def test_the_readme_confusion_matrix(sweep):
-    assert len(sweep) == 40
+def test_the_published_confusion_matrix(sweep):
+    assert len(sweep) == len(report_cases())
     counts: dict[str, Counter] = {}
-    for case, effects, _ in sweep:
-        counts.setdefault(_key(case.effects), Counter())[_key(effects)] += 1
-    assert {k: dict(v) for k, v in counts.items()} == README_CONFUSION
+    for r in sweep:
+        counts.setdefault(effects_key(r["truth"]), Counter())[r["named"]] += 1
+    assert {k: dict(v) for k, v in counts.items()} == PUBLISHED_CONFUSION
 
 
-def test_the_readme_breakdown_by_source_and_geometry(sweep):
+def test_the_published_breakdown_by_source_and_geometry(sweep):
     groups: dict[tuple, list[bool]] = {}
-    for case, effects, _ in sweep:
-        groups.setdefault((case.source, case.geometry, case.grid), []).append(
-            effects == sorted(case.effects))
-    assert {k: (len(v), sum(v)) for k, v in groups.items()} == README_BREAKDOWN
+    for r in sweep:
+        c = r["case"]
+        sag = c["sag"] if c["source"] == "generator" else "joints"
+        groups.setdefault((c["source"], c["geometry"], sag, c["grid"]), []).append(
+            exactly_right(r))
+    assert {k: (len(v), sum(v)) for k, v in groups.items()} == PUBLISHED_BREAKDOWN
 
 
-def test_clean_rigs_name_nothing(sweep):
-    """No false alarm on any of the 8 clean rigs (each has its own seed)."""
-    named = [(c, e) for c, e, _ in sweep if not c.effects and e]
-    assert not named
+def test_no_false_alarm_on_any_clean_rig(sweep):
+    """11 clean rigs (each its own seed and geometry): nothing named on any."""
+    t = targets(sweep)
+    assert t["clean"] == 11 and t["false_alarms"] == 0
 
 
-def test_simulator_rigs_name_exactly_the_hidden_effects(sweep):
-    wrong = [(c, e) for c, e, _ in sweep if c.source == "simulator" and e != sorted(c.effects)]
-    assert not wrong
+def test_naming_closes_most_of_the_gap_at_new_poses(sweep):
+    """Where effects were named, the error at new poses (holdout rows, which decide nothing)
+    above the clean twin"s falls to at most 0.6 of what it was, pooled over those rigs (the
+    issue"s target; published: 30%). The plain error ratio keeps noise"s share, which no
+    model removes (published: 72%). Both as docs/diagnose.md rounds them, to half a per cent."""
+    t = targets(sweep)
+    assert t["named"] == 32
+    assert t["gap_ratio"] <= 0.6
+    assert abs(t["gap_ratio"] - 0.30) <= 0.005
+    assert abs(t["holdout_ratio"] - 0.72) <= 0.005
 
 
-def test_paper_like_generator_rigs_name_exactly_the_hidden_effects(sweep):
-    """Physics unlike the candidates' forms, paper-like geometry: every rig right."""
-    wrong = [(c.label, c.grid, e) for c, e, _ in sweep
-             if c.geometry == "paper_like" and e != sorted(c.effects)]
-    assert not wrong
-
-
-def test_the_readme_held_out_error_reduction(sweep):
-    """"Where effects were named, the held-out error fell to 58% of the base model's on
-    average" (rigs with a hidden effect and something named). The README rounds to a whole
-    per cent, so the mean ratio is asserted within half a per cent of 0.58."""
-    ratios = [doc["final_heldout_error_mm"] / doc["baseline_heldout_error_mm"]
-              for case, effects, doc in sweep if case.effects and effects]
-    assert len(ratios) == 28  # 40 rigs - 8 clean - 4 that named nothing
-    assert abs(sum(ratios) / len(ratios) - 0.58) <= 0.005
+@pytest.mark.xfail(strict=True, reason="target missed on the report rigs: 10 of 13 strong rigs "
+                   "named exactly (two sag+backlash rigs name backlash only, the tilted plane's "
+                   "play at twice its size names nothing)")
+def test_strong_effects_are_named_exactly_in_nine_of_ten_rigs(sweep):
+    """The issue"s target: at least 90% exactly right where the hidden effects at least double
+    the base model"s error at new poses over noise alone (strength >= 2)."""
+    t = targets(sweep)
+    assert t["strong"] == 13
+    assert t["strong_right"] >= 0.9 * t["strong"]
