@@ -35,6 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
+from chain_generators import CHAIN_TRUTHS, REPORT_SEEDS, TUNING_SEEDS, chain_cases  # noqa: E402
 from generators import (  # noqa: E402
     STRONG,
     TRUTHS,
@@ -71,16 +72,26 @@ def time_command(rig: str | None) -> dict:
                                  doc["final_heldout_error_mm"]]}
 
 
-def run_case(case: Case) -> dict:
-    """One rig's sweep record (a Dask task: it finds ``tests/`` itself)."""
+def run_case(case) -> dict:
+    """One rig's sweep record, planar or chain (a Dask task: it finds ``tests/`` itself)."""
     if str(ROOT / "tests") not in sys.path:  # a Dask worker starts without it
         sys.path.insert(0, str(ROOT / "tests"))
+    from chain_generators import ChainCase, diagnose_chain_case
     from generators import diagnose_case
 
-    return diagnose_case(case)
+    return (diagnose_chain_case if isinstance(case, ChainCase) else diagnose_case)(case)
 
 
-def run_all(cases: list[Case], workers: int, log: Path | None,
+def _line(res: dict) -> str:
+    c = res["case"]
+    where = (f"{c['geometry']:10s} {c['grid']}x{c['grid']} sag {c['sag']:6s}" if "grid" in c
+             else f"{c['geometry']:10s}")
+    return (f"{c['source']:9s} {where} scale {c['scale']:<4g} seed {c['seed']} truth "
+            f"{res['truth']:28s} named {res['named']:28s} strength {res['strength']:4.1f} "
+            f"{res['seconds']:5.1f} s")
+
+
+def run_all(cases: list, workers: int, log: Path | None,
             scheduler: str | None = None) -> list[dict]:
     """Diagnose every case as a Dask task; results in the cases' order."""
     from distributed import as_completed
@@ -93,21 +104,16 @@ def run_all(cases: list[Case], workers: int, log: Path | None,
         for fut in as_completed(futures):
             res = fut.result()
             results[futures[fut]] = res
-            c = res["case"]
-            print(f"  [{len(results)}/{len(cases)}] {c['source']:9s} {c['geometry']:10s} "
-                  f"{c['grid']}x{c['grid']} sag {c['sag']:6s} scale {c['scale']:<4g} "
-                  f"seed {c['seed']} truth {res['truth']:28s} named {res['named']:28s} "
-                  f"strength {res['strength']:4.1f} {res['seconds']:5.1f} s",
-                  file=sys.stderr, flush=True)
+            print(f"  [{len(results)}/{len(cases)}] {_line(res)}", file=sys.stderr, flush=True)
             if log:
                 with log.open("a") as fh:
                     fh.write(json.dumps(res) + "\n")
     return [results[i] for i in range(len(cases))]
 
 
-def confusion_table(results: list[dict]) -> str:
+def confusion_table(results: list[dict], truths_: list | None = None) -> str:
     """Markdown: hidden effects (rows) against named effects (columns)."""
-    truths = [effects_key("+".join(t) or "none") for t in TRUTHS]
+    truths = [effects_key("+".join(t) or "none") for t in (truths_ or TRUTHS)]
     named = sorted({r["named"] for r in results}, key=lambda k: (k not in truths,
                    truths.index(k) if k in truths else 0, k))
     count = Counter((effects_key(r["truth"]), r["named"]) for r in results)
@@ -140,11 +146,12 @@ def breakdown(results: list[dict]) -> str:
     groups: dict = {}
     for r in results:
         c = r["case"]
-        sag = c["sag"] if c["source"] == "generator" else "joints"
-        groups.setdefault((c["source"], c["geometry"], sag, c["grid"]), []).append(
+        sag = c.get("sag", "joints") if c["source"] == "generator" else "joints"
+        grid = f"{c['grid']}x{c['grid']}" if "grid" in c else "-"
+        groups.setdefault((c["source"], c["geometry"], sag, grid), []).append(
             exactly_right(r))
     for (src, geo, sag, grid), oks in sorted(groups.items()):
-        rows.append(f"| {src} | {geo} | {sag} | {grid}x{grid} | {len(oks)} | {sum(oks)} |")
+        rows.append(f"| {src} | {geo} | {sag} | {grid} | {len(oks)} | {sum(oks)} |")
     return "\n".join(rows)
 
 
@@ -161,12 +168,12 @@ def by_strength(results: list[dict]) -> str:
     return "\n".join(rows)
 
 
-def sweep_report(results: list[dict]) -> str:
-    parts = [confusion_table(results), "", summary(results), ""]
+def sweep_report(results: list[dict], truths: list | None = None) -> str:
+    parts = [confusion_table(results, truths), "", summary(results), ""]
     for src in ("simulator", "generator"):
         rs = [r for r in results if r["case"]["source"] == src]
         if rs:
-            parts += [f"{src}:", "", confusion_table(rs), ""]
+            parts += [f"{src}:", "", confusion_table(rs, truths), ""]
     parts += [breakdown(results), "", by_strength(results)]
     return "\n".join(parts)
 
@@ -217,21 +224,28 @@ def main() -> int:
                    help="run the report rigs (seeds 501-534; nothing was chosen on them)")
     p.add_argument("--tuning", action="store_true",
                    help="run the tuning rigs (seeds 21-35; the rule was chosen on them)")
+    p.add_argument("--chain", action="store_true",
+                   help="with --confusion / --tuning: the 6-joint 3-D arms instead "
+                        "(report seeds 71-73, tuning seeds 61-62)")
     p.add_argument("--sensitivity", action="store_true", help="effect size x noise at 4x4")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--scheduler", help="address of a running Dask scheduler")
     p.add_argument("--log", type=Path, help="append each rig's result as a JSON line")
     p.add_argument("--json", type=Path, help="write the sweep's results and figures")
     args = p.parse_args()
+    report, tuning = report_cases, tuning_cases
+    if args.chain:
+        report, tuning = (lambda: chain_cases(REPORT_SEEDS)), (lambda: chain_cases(TUNING_SEEDS))
     sweeps = [(name, make) for name, make, on in (
-        ("report", report_cases, args.confusion), ("tuning", tuning_cases, args.tuning),
+        ("report", report, args.confusion), ("tuning", tuning, args.tuning),
         ("sensitivity", sensitivity_cases, args.sensitivity)) if on]
     if sweeps:
         out = {}
         for name, make in sweeps:
             res = run_all(make(), args.workers, args.log, args.scheduler)
             print(f"## {name} rigs\n")
-            print(sensitivity_table(res) if name == "sensitivity" else sweep_report(res))
+            print(sensitivity_table(res) if name == "sensitivity" else
+                  sweep_report(res, CHAIN_TRUTHS if args.chain else None))
             print()
             out[name] = {"results": res, "targets": targets(res)}
         if args.json:

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections import Counter
 
 import pytest
+from chain_generators import REPORT_SEEDS, chain_cases, diagnose_chain_case
 from generators import diagnose_case, effects_key, exactly_right, report_cases, targets
 
 import bayesrob  # noqa: F401
@@ -95,4 +96,49 @@ def test_strong_effects_are_named_exactly_in_nine_of_ten_rigs(sweep):
     the base model"s error at new poses over noise alone (strength >= 2)."""
     t = targets(sweep)
     assert t["strong"] == 13
+    assert t["strong_right"] >= 0.9 * t["strong"]
+
+
+# ------------------------------------------------------------------ 6-joint 3-D arms
+# tests/chain_generators.py: hardening joint springs with rods and motors, bearings tilting
+# across their axes, encoder errors once and twice per revolution; and the simulator's own
+# arm6 physics. Tuning seeds 61-62, report seeds 71-73 (fixed before any run).
+
+
+@pytest.fixture(scope="module")
+def chain_sweep() -> list[dict]:
+    return [diagnose_chain_case(case) for case in chain_cases(REPORT_SEEDS)]
+
+
+CHAIN_PUBLISHED_CONFUSION: dict[str, dict[str, int]] = {
+    "none": {"none": 6},
+    "joint_compliance": {"joint_compliance": 5, "encoder_error+joint_compliance": 1},
+    "lateral_compliance": {"joint_compliance": 3},
+    "encoder_error": {"encoder_error": 6},
+    "encoder_error+joint_compliance": {"encoder_error+joint_compliance": 2, "joint_compliance": 1},
+}
+
+
+def test_the_published_chain_confusion_matrix(chain_sweep):
+    counts: dict[str, Counter] = {}
+    for r in chain_sweep:
+        counts.setdefault(effects_key(r["truth"]), Counter())[r["named"]] += 1
+    assert {k: dict(v) for k, v in counts.items()} == CHAIN_PUBLISHED_CONFUSION
+
+
+def test_chain_clean_rigs_name_nothing_and_named_effects_close_the_gap(chain_sweep):
+    """No false alarm on the 6 clean arms; where effects were named, the error at new poses
+    above the clean twin's falls to at most 0.6 of what it was (published: 4%)."""
+    t = targets(chain_sweep)
+    assert t["clean"] == 6 and t["false_alarms"] == 0
+    assert t["gap_ratio"] <= 0.6
+    assert abs(t["gap_ratio"] - 0.04) <= 0.005
+
+
+@pytest.mark.xfail(strict=True, reason="target missed on the report arms: 13 of 18 strong rigs "
+                   "named exactly (bearings tilting across their axes are named joint "
+                   "compliance in 3 of 3)")
+def test_strong_chain_effects_are_named_exactly_in_nine_of_ten_rigs(chain_sweep):
+    t = targets(chain_sweep)
+    assert t["strong"] == 18
     assert t["strong_right"] >= 0.9 * t["strong"]

@@ -1,0 +1,235 @@
+"""6-joint 3-D rig generators whose physics deliberately differs from the chain diagnosis's
+candidates (:mod:`bayesrob.chain_diagnosis`), for the proof on hidden effects.
+
+The candidates are calibration groups of :mod:`bayesrob.kinematics.chain`: ``compliance``
+(each joint gives way by its gravity torque over a *linear* stiffness, the torque from the
+links' first moments), ``lateral`` (the same torques bend each joint across its axis,
+linearly) and ``encoder`` (q + a sin q + b cos q per revolute joint). The rigs here are made
+by other physics, with numpy code of their own (bayesrob's kinematics only gives the rigid
+frames of the perturbed true arm):
+
+- ``joint_compliance``: *hardening* joint springs (k d + k3 d^3 = tau, stiffness doubling by
+  20 mrad), the mass spread along each link as a rod plus a motor at the next joint (five
+  points per rod), the torque taken at the deflected pose (fixed point to convergence).
+- ``lateral_compliance``: the bearings tilt across their axes under the torque about the two
+  perpendicular axes, through hardening springs five times stiffer than the joint's.
+- ``encoder_error``: a once- *and* twice-per-revolution error in every joint's reading
+  (1 and 0.5 mrad, phases drawn per joint); the candidate has the first harmonic only.
+
+Everything else is the simulator's arm6 (:mod:`bayesrob.chain_simulator`): the same nominal
+URDF, perturbed joint origins, offsets, marker and instrument pose, joint and measurement
+noise, and ``train`` / ``validation`` / ``holdout`` rows at different random poses. No truth
+file is written.
+
+Sweeps keep their rigs apart: :data:`TUNING_SEEDS` may be used while choosing anything;
+:data:`REPORT_SEEDS` (fixed before any diagnosis ran on them) only report.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob.chain_simulator import (
+    ARM6_URDF,
+    ChainTruth,
+    _poses,
+    _true_vector,
+    arm6_urdf_path,
+    simulate_chain_rig,
+)
+from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.rig import dump_toml
+
+ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
+MOTOR_KG = np.array([2.5, 1.2, 0.6, 0.5, 0.1])  # at joints 2-6, carried by links 1-5
+STIFFNESS = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])  # N mm / rad, as the simulator's
+DOUBLING_RAD = 0.02  # deflection at which a hardening spring is twice as stiff
+LATERAL_FACTOR = 5.0  # bearings across the axis, against the joint about it
+ENCODER_RAD = (1e-3, 0.5e-3)  # once and twice per revolution
+ENCODER_STREAM = 11  # the encoder phases' own random stream
+ROD_POINTS = 5
+
+TUNING_SEEDS = (61, 62)
+REPORT_SEEDS = (71, 72, 73)
+EFFECTS = ("joint_compliance", "lateral_compliance", "encoder_error")
+CHAIN_TRUTHS = [(), ("joint_compliance",), ("lateral_compliance",), ("encoder_error",),
+                ("joint_compliance", "encoder_error")]
+
+
+@dataclass(frozen=True)
+class ChainCase:
+    """One chain rig of a sweep: which physics made it and with what."""
+
+    effects: tuple[str, ...]
+    seed: int
+    scale: float = 1.0  # multiplies every effect's size (compliances and encoder errors)
+    source: str = "generator"  # or "simulator" (bayesrob.chain_simulator's own physics)
+    geometry: str = "arm6"
+
+    @property
+    def label(self) -> str:
+        return "+".join(sorted(self.effects)) or "none"
+
+
+def _spring(k: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """d with k d + (k / DOUBLING^2) d^3 = tau, elementwise, by Newton."""
+    k3 = k / DOUBLING_RAD**2
+    d = tau / k
+    for _ in range(30):
+        d = d - (k * d + k3 * d**3 - tau) / (k + 3 * k3 * d**2)
+    return d
+
+
+def _mass_points(joints: np.ndarray, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Point masses (kg) and their positions (N, M, 3): rods between consecutive joint origins
+    (the last to the tool frame) and motors at joints 2-6."""
+    origins = joints[:, :, :3, 3]  # (E, N, 3)
+    ends = np.concatenate([origins[1:6], links[-1:, :, :3, 3]], axis=0)  # (6, N, 3)
+    t = (np.arange(ROD_POINTS) + 0.5) / ROD_POINTS
+    rods = origins[:6, None] + t[None, :, None, None] * (ends - origins[:6])[:, None]
+    pos = np.concatenate([rods.reshape(-1, *rods.shape[2:]), origins[1:6]], axis=0)
+    kg = np.concatenate([np.repeat(ROD_KG / ROD_POINTS, ROD_POINTS), MOTOR_KG])
+    # which link each point rides on: rod points on their link, motor i+1 on link i
+    link = np.concatenate([np.repeat(np.arange(6), ROD_POINTS), np.arange(5)])
+    return kg, np.swapaxes(pos, 0, 1), link
+
+
+def _torques(joints: np.ndarray, links: np.ndarray) -> np.ndarray:
+    """Gravity torque vectors (N, 6, 3) about each joint's origin, of everything beyond it
+    (N mm, instrument frame with gravity along -z)."""
+    kg, pos, link = _mass_points(joints, links)  # pos (N, M, 3)
+    force = kg[:, None] * 9.81 * np.array([0.0, 0.0, -1.0])  # (M, 3) N
+    out = np.zeros((pos.shape[0], 6, 3))
+    for j in range(6):
+        beyond = link >= j
+        lever = pos[:, beyond] - joints[j, :, None, :3, 3]
+        out[:, j] = np.cross(lever, force[beyond]).sum(axis=1)
+    return out
+
+
+def _true_points(robot: Robot, x: np.ndarray, q: np.ndarray, effects: tuple[str, ...],
+                 scale: float, frames, points) -> np.ndarray:
+    """Marker points of the true arm at true joint angles ``q`` with the case's compliances."""
+    defl = np.zeros((q.shape[0], 7))
+    bend = np.zeros((q.shape[0], 7, 3))
+    axes = np.asarray(robot.chains["arm"].axes)
+    k = STIFFNESS / scale
+    if "joint_compliance" in effects or "lateral_compliance" in effects:
+        for _ in range(40):
+            joints, links = (np.asarray(a) for a in frames(x, q + defl[:, :6], bend))
+            tau = _torques(joints, links)  # (N, 6, 3) instrument frame
+            local = np.einsum("jnba,njb->nja", joints[:6, :, :3, :3], tau)  # joint frames
+            about = np.einsum("nja,ja->nj", local, axes)
+            new_defl, new_bend = np.zeros_like(defl), np.zeros_like(bend)
+            if "joint_compliance" in effects:
+                new_defl[:, :6] = _spring(k, about)
+            if "lateral_compliance" in effects:
+                across = local - about[..., None] * axes[None]
+                size = np.linalg.norm(across, axis=-1)
+                turn = _spring(LATERAL_FACTOR * k, size)
+                new_bend[:, :6] = across * (turn / np.maximum(size, 1e-12))[..., None]
+            done = (np.abs(new_defl - defl).max() < 1e-12 and
+                    np.abs(new_bend - bend).max() < 1e-12)
+            defl, bend = new_defl, new_bend
+            if done:
+                break
+    return np.asarray(points(x, q + defl[:, :6], bend))
+
+
+def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
+    """Write the case's rig directory (rig.toml, arm6.urdf, measurements.csv; no truth)."""
+    out = Path(out_dir)
+    if case.source == "simulator":
+        physics = {"compliance": "joint_compliance" in case.effects,
+                   "encoder_eccentricity": 1e-3 * case.scale * ("encoder_error" in case.effects)}
+        if "lateral_compliance" in case.effects:
+            raise ValueError("the simulator has no lateral compliance")
+        path = simulate_chain_rig(out, ChainTruth(seed=case.seed, **physics))
+        (path / "truth.toml").unlink()  # the diagnosis must not need it
+        return path
+    out.mkdir(parents=True, exist_ok=True)
+    errors = ChainTruth(seed=case.seed)
+    rng = np.random.default_rng([case.seed, 61])
+    nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
+                         marker=errors.marker_nominal_mm, instrument=errors.instrument_nominal)
+    robot = Robot({"arm": nominal}, 3)
+    x = jnp.asarray(_true_vector(robot, errors, rng))
+    frames = jax.jit(lambda x, q, b: robot.element_frames(
+        x, "arm", q, bend=jnp.asarray(b)))
+
+    def points(x, q, bend):
+        joints, links = robot.element_frames(x, "arm", q, bend=bend)
+        marker = x[robot.layout.slices[("arm", "marker")]]
+        return links[-1, :, :3, :3] @ marker + links[-1, :, :3, 3]
+
+    points = jax.jit(points)
+    phase = np.random.default_rng([case.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, (2, 6))
+    lines = [",".join(["config", "set", *[f"arm_u{k + 1}" for k in range(6)], "x", "y", "z"])]
+    for set_name, n in (("train", errors.n_train), ("validation", errors.n_validation),
+                        ("holdout", errors.n_holdout)):
+        q_read = _poses(rng, n)
+        q = q_read + rng.normal(0, errors.joint_noise_rad, q_read.shape)
+        if "encoder_error" in case.effects:
+            q = q + case.scale * (ENCODER_RAD[0] * np.sin(q_read + phase[0]) +
+                                  ENCODER_RAD[1] * np.sin(2 * q_read + phase[1]))
+        p = _true_points(robot, x, q, case.effects, case.scale, frames, points)
+        p = p + rng.normal(0, errors.measurement_noise_mm, p.shape)
+        lines += [",".join(["arm", set_name, *(f"{v:.10g}" for v in qr),
+                            *(f"{v:.4f}" for v in pc)]) for qr, pc in zip(q_read, p,
+                                                                           strict=True)]
+    (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+    shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
+    rig = {"name": f"arm6-generated-seed{case.seed}", "gravity": [0.0, 0.0, -1.0],
+           "arms": {"arm": {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0",
+                            "marker": list(errors.marker_nominal_mm),
+                            "instrument": list(errors.instrument_nominal)}}}
+    (out / "rig.toml").write_text(dump_toml(rig))
+    return out
+
+
+def chain_cases(seeds) -> list[ChainCase]:
+    """Every generator truth at each seed, and the simulator's own physics (sag, encoder,
+    none) at each seed."""
+    cases = [ChainCase(eff, s) for s in seeds for eff in CHAIN_TRUTHS]
+    cases += [ChainCase(eff, s, source="simulator") for s in seeds
+              for eff in ((), ("joint_compliance",), ("encoder_error",))]
+    return cases
+
+
+def diagnose_chain_case(case: ChainCase) -> dict:
+    """Make the case's rig (and its clean twin), diagnose it from its files alone, and say
+    what was named and how strong the hidden effects are (the geometric calibration's mean
+    validation error over the clean twin's)."""
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.rig import load_rig
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        doc = diagnose_chain(load_rig(make_chain_rig(case, Path(tmp) / "rig"))).to_json()
+        base = doc["baseline_heldout_error_mm"]
+        twin = base
+        if case.effects:
+            clean = load_rig(make_chain_rig(replace(case, effects=()), Path(tmp) / "twin"))
+            twin = calibrate_chain(clean, ("frames", "geometric")).errors[
+                "validation"]["all"]["mean_mm"]
+    return {"case": asdict(case), "truth": case.label,
+            "named": "+".join(sorted(doc["effects"])) or "none", "order": doc["effects"],
+            "seconds": round(time.perf_counter() - t0, 1),
+            "baseline_heldout_error_mm": base,
+            "final_heldout_error_mm": doc["final_heldout_error_mm"],
+            "clean_heldout_error_mm": twin, "strength": base / twin,
+            # a chain rig's validation rows are new random poses that decide nothing: they
+            # play the planar holdout rows' part in the sweep's figures
+            "baseline_holdout_error_mm": base,
+            "final_holdout_error_mm": doc["final_heldout_error_mm"],
+            "clean_holdout_error_mm": twin,
+            "rounds": doc["rounds"]}
