@@ -12,13 +12,16 @@ says which effect is missing, how big it is and how much the model gains from it
 3. Fit every candidate effect (:mod:`bayesrob.effects`) added to the current model, arm by
    arm (scipy least squares, JAX Jacobian), and score it on data it was not fitted on: the
    ``validation`` rows and leave-one-out refits over ``train`` (exact LOO up to 40 points,
-   10-fold beyond). The pointwise log predictive densities of a Gaussian measurement model
-   with a fitted scale (widened by the parameters' uncertainty) are compared with
-   ``arviz.compare``: elpd difference and its standard error. Where the rig has
-   ``holdout`` rows (new poses, not the repeated training commands ``validation`` holds),
-   the models are scored on them too, and reported beside validation; they decide nothing.
+   10-fold beyond; each refit profiles the structural settings again without its rows).
+   The pointwise log predictive densities of a Gaussian measurement model with a fitted
+   scale (widened by the parameters' uncertainty) are compared with ``arviz.compare``:
+   elpd difference and its standard error. Where the rig has ``holdout`` rows (new poses,
+   not the repeated training commands ``validation`` holds), the models are scored on them
+   too, and reported beside validation; they decide nothing.
 4. Name the best candidate that passes :class:`DecisionRule`, add it, repeat until none
-   passes (see the rule for pairs of effects that only pay together).
+   passes (see the rule for pairs of effects that only pay together). The arms an effect is
+   added to are chosen on one half of the train rows and scored on the other (cross-fitting),
+   so the choice does not flatter the score.
 
 Why refits and not PSIS-LOO from one fit: with 16 points and 8-14 parameters, leaving a
 point out moves the posterior too far for importance sampling (Pareto k > 1 on most points
