@@ -790,8 +790,8 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     The named arms are chosen on every train row; the score (elpd and cross-validated error)
     is cross-fitted (:func:`_crossfit`), so the choice of arms does not flatter it.
     """
-    everything = {a: np.ones(len(current[a].cv_lpd), bool) for a in cand}
-    arms = [a for a in cand if _takes(current[a], cand[a], everything[a])]
+    arms = [a for a in cand
+            if _takes(current[a], cand[a], np.ones(len(current[a].cv_lpd), bool))]
     after = {a: (cand[a] if a in arms else current[a]) for a in current}
     cv, tr, cv_err = _crossfit(current, cand, seed)
     diff, dse = _elpd_diff(_pooled_lpd(current), (cv, tr))
