@@ -187,6 +187,18 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
         p = np.asarray(robot.marker_points(jnp.asarray(x_true), "arm", jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
+    write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
+    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
+                                                            strict=True)}
+    doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
+    (out / "truth.toml").write_text(dump_toml({"chain_truth": doc}))
+    return out
+
+
+def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],
+                   errors: _ArmErrors) -> None:
+    """rig.toml, the nominal arm6.urdf and measurements.csv of a single arm6: ``rows`` are
+    (set, joint readings (6,), marker point (3,) in mm)."""
     header = ["config", "set", *[f"arm_u{k + 1}" for k in range(6)], "x", "y", "z"]
     lines = [",".join(header)]
     for set_name, qc, pc in rows:
@@ -194,16 +206,11 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
                                *(f"{v:.4f}" for v in pc)]))
     (out / "measurements.csv").write_text("\n".join(lines) + "\n")
     shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
-    rig = {"name": f"arm6-seed{truth.seed}", "gravity": [0.0, 0.0, -1.0],
+    rig = {"name": name, "gravity": [0.0, 0.0, -1.0],
            "arms": {"arm": {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0",
-                            "marker": list(truth.marker_nominal_mm),
-                            "instrument": list(truth.instrument_nominal)}}}
+                            "marker": list(errors.marker_nominal_mm),
+                            "instrument": list(errors.instrument_nominal)}}}
     (out / "rig.toml").write_text(dump_toml(rig))
-    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
-                                                            strict=True)}
-    doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
-    (out / "truth.toml").write_text(dump_toml({"chain_truth": doc}))
-    return out
 
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:

@@ -27,7 +27,6 @@ Sweeps keep their rigs apart: :data:`TUNING_SEEDS` may be used while choosing an
 
 from __future__ import annotations
 
-import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
@@ -38,15 +37,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob.chain_simulator import (
-    ARM6_URDF,
     ChainTruth,
     _poses,
     _true_vector,
     arm6_urdf_path,
     simulate_chain_rig,
+    write_arm6_rig,
 )
 from bayesrob.kinematics import Robot, urdf_chain
-from bayesrob.rig import dump_toml
 
 ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
 MOTOR_KG = np.array([2.5, 1.2, 0.6, 0.5, 0.1])  # at joints 2-6, carried by links 1-5
@@ -172,7 +170,7 @@ def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
 
     points = jax.jit(points)
     phase = np.random.default_rng([case.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, (2, 6))
-    lines = [",".join(["config", "set", *[f"arm_u{k + 1}" for k in range(6)], "x", "y", "z"])]
+    rows = []
     for set_name, n in (("train", errors.n_train), ("validation", errors.n_validation),
                         ("holdout", errors.n_holdout)):
         q_read = _poses(rng, n)
@@ -182,16 +180,8 @@ def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
                                   ENCODER_RAD[1] * np.sin(2 * q_read + phase[1]))
         p = _true_points(robot, x, q, case.effects, case.scale, frames, points)
         p = p + rng.normal(0, errors.measurement_noise_mm, p.shape)
-        lines += [",".join(["arm", set_name, *(f"{v:.10g}" for v in qr),
-                            *(f"{v:.4f}" for v in pc)]) for qr, pc in zip(q_read, p,
-                                                                           strict=True)]
-    (out / "measurements.csv").write_text("\n".join(lines) + "\n")
-    shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
-    rig = {"name": f"arm6-generated-seed{case.seed}", "gravity": [0.0, 0.0, -1.0],
-           "arms": {"arm": {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0",
-                            "marker": list(errors.marker_nominal_mm),
-                            "instrument": list(errors.instrument_nominal)}}}
-    (out / "rig.toml").write_text(dump_toml(rig))
+        rows += [(set_name, qr, pc) for qr, pc in zip(q_read, p, strict=True)]
+    write_arm6_rig(out, f"arm6-generated-seed{case.seed}", rows, errors)
     return out
 
 
