@@ -549,19 +549,25 @@ def calibrated_rig_document(rig: Rig, cal: ChainCalibration, urdf_name: str) -> 
     positions and instrument poses (not part of a URDF) here."""
     calibrated = cal.robot.with_values(cal.x)
     keys = kin.urdf.generated_arm_keys(calibrated)
-    arms = {}
-    for name, c in calibrated.chains.items():
-        table: dict = {"urdf": urdf_name, **keys[name]}
-        if c.mount is not None:
-            table["mount"] = c.mount
-        else:
-            table["instrument"] = [float(v) for v in c.instrument]
-        if name in calibrated.measured_arms():
-            table["marker"] = [float(v) for v in c.marker]
-        if c.coupling.shape[0] != c.coupling.shape[1] or not np.allclose(
-                c.coupling, np.eye(c.coupling.shape[0])):
-            table["coupling"] = [[float(v) for v in row] for row in c.coupling]
-        table["gain"] = [float(v) for v in c.gain]
-        table["offset"] = [float(v) for v in c.offset]
-        arms[name] = table
+    measured = calibrated.measured_arms()
+    arms = {name: chain_arm_table(c, urdf_name, keys[name], name in measured)
+            for name, c in calibrated.chains.items()}
     return {"name": f"{rig.name}-calibrated", "gravity": list(rig.gravity), "arms": arms}
+
+
+def chain_arm_table(c: kin.Chain, urdf_name: str, keys: dict, measured: bool) -> dict:
+    """One calibrated chain as a rig.toml arm read from ``urdf_name`` (``keys``: its root and
+    tip there): the instrument pose (or mount), the marker, coupling, gains and offsets."""
+    table: dict = {"urdf": urdf_name, **keys}
+    if c.mount is not None:
+        table["mount"] = c.mount
+    else:
+        table["instrument"] = [float(v) for v in c.instrument]
+    if measured:
+        table["marker"] = [float(v) for v in c.marker]
+    if c.coupling.shape[0] != c.coupling.shape[1] or not np.allclose(
+            c.coupling, np.eye(c.coupling.shape[0])):
+        table["coupling"] = [[float(v) for v in row] for row in c.coupling]
+    table["gain"] = [float(v) for v in c.gain]
+    table["offset"] = [float(v) for v in c.offset]
+    return table

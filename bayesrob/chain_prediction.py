@@ -49,7 +49,8 @@ from bayesrob.latent_errors import (
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "chain_equilibrium",
-           "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
+           "free_draws", "parameter_draws", "hdr_levels", "hdr_sizes", "product_draws_nuts",
+           "predict_chain_points"]
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
@@ -179,28 +180,51 @@ def _log_stiffness_prior(priors: Sequence[tuple[np.ndarray, np.ndarray]]) -> Non
 
 
 def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
-                      log_k: Sequence[jax.Array]) -> jax.Array:
+                      log_k: Sequence[jax.Array], tracker_noise_mm: float = 0.0,
+                      key: jax.Array | None = None) -> jax.Array:
     """The balance (S, T, dim) of free points (each (S, T, dim)) held by arms with joint
-    Jacobians (T, dim, n_a) and log joint stiffnesses (S, n_a)."""
+    Jacobians (T, dim, n_a) and log joint stiffnesses (S, n_a).
+
+    ``tracker_noise_mm`` (with ``key``): the tracker's noise, sd per axis. Each free point
+    carries it (the joint-error populations were fitted to measured points) and the balance
+    averages it down to sum_a W_a W_a^T sigma^2 (W_a = (sum K)^-1 K_a), but the linked point
+    is measured once, with all of it: sigma^2 (I - sum_a W_a W_a^T) is added back, as
+    :func:`bayesrob.fusion.equilibrium_program` does in the plane.
+    """
     springs = [jnp.linalg.inv(jnp.einsum("tik,sk,tjk->stij", j, jnp.exp(-lk), j))
                for j, lk in zip(jacs, log_k, strict=True)]
     k = jnp.stack(springs)
     pull = jnp.einsum("astij,astj->sti", k, jnp.stack([jnp.asarray(f) for f in free]))
-    return jnp.linalg.solve(k.sum(0), pull[..., None])[..., 0]
+    d = jnp.linalg.solve(k.sum(0), pull[..., None])[..., 0]
+    if tracker_noise_mm <= 0:
+        return d
+    if key is None:
+        raise ValueError("tracker noise needs a random key")
+    w = jnp.linalg.solve(k.sum(0)[None], k)  # (A, S, T, dim, dim)
+    dim = d.shape[-1]
+    cov = tracker_noise_mm**2 * (jnp.eye(dim) - jnp.einsum("astij,astkj->stik", w, w))
+    vals, vecs = jnp.linalg.eigh(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))
+    # a sum of W W^T can poke past I by rounding: its negative eigenvalues are clipped
+    root = jnp.einsum("...ij,...j,...kj->...ik", vecs, jnp.sqrt(jnp.clip(vals, 0.0)), vecs)
+    return d + jnp.einsum("stij,stj->sti", root, jax.random.normal(key, d.shape))
 
 
-def _parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
+def parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
     """Parameter vectors (S, P) from the calibration's Gaussian approximation: one per draw,
     shared by every arm (the arms of a tree share links and the instrument)."""
     if mods.param_cov is None:
         return jnp.broadcast_to(jnp.asarray(mods.x), (n, len(mods.x)))
     w, v = np.linalg.eigh(mods.param_cov)
+    # An eigenvector's sign is arbitrary and LAPACK builds and thread counts pick differently:
+    # each is turned so its largest entry is positive, so a key gives the same draws in every
+    # process (a Dask worker and the client alike).
+    v = v * np.sign(v[np.argmax(np.abs(v), axis=0), np.arange(v.shape[1])])
     root = v * np.sqrt(np.clip(w, 0.0, None))
     z = jax.random.normal(key, (n, len(w)))
     return jnp.asarray(mods.x) + z @ jnp.asarray(root).T
 
 
-def _free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
+def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
                 side: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
     vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs)."""
@@ -236,8 +260,8 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     if fusion == "product" and len(arms) > 1:
         return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
-    xs = _parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
-    free = [_free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
+    xs = parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
+    free = [free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
                         side if len(arms) == 1 else None)
             for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
     if len(arms) == 1:

@@ -76,6 +76,7 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from bayesrob import kinematics as kin
+from bayesrob.chain_design import ChainModule, chain_candidate_draws, chain_reach_table
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, equilibrium_program, fused_posterior
 from bayesrob.inference import error_arrays, error_kind, is_sampleable
 from bayesrob.noise_models import FittedNoiseModel
@@ -121,6 +122,8 @@ class ModuleSpec:
     rig: Path
     arm: str
     model: str = DEFAULT_MODEL
+    # a chain module's calibration groups (None: the chain default; planar modules: unused)
+    params: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -129,8 +132,10 @@ class DesignSpec:
 
     path: Path
     modules: dict[str, ModuleSpec]
-    mounts: np.ndarray  # (P, 2) mm
-    region: np.ndarray  # (V, 2) polygon vertices, counter-clockwise or not (a box: 4 corners)
+    mounts: np.ndarray  # (P, dim) mm
+    # (V, 2) polygon vertices, counter-clockwise or not (a box: 4 corners); in 3-D the
+    # box's 8 corners
+    region: np.ndarray
     n_targets: int
     error_mm: float
     quantile: float
@@ -148,6 +153,11 @@ class DesignSpec:
         return {"error_mm": self.error_mm, "quantile": self.quantile,
                 "confidence": self.confidence}
 
+    @property
+    def dim(self) -> int:
+        """2 for the plane, 3 for space: the mounts' and the task's coordinates."""
+        return int(self.mounts.shape[1])
+
 
 def _table(doc: dict, key: str, where: str) -> dict:
     value = doc.get(key)
@@ -162,13 +172,16 @@ def _unknown(table: dict, known: Sequence[str], where: str) -> None:
             raise DesignError(f"{where}: unknown key {k!r} (known: {', '.join(known)})")
 
 
-def _points(value: Any, where: str, min_rows: int = 1) -> np.ndarray:
+def _points(value: Any, where: str, min_rows: int = 1, dims: tuple[int, ...] = (2,)
+            ) -> np.ndarray:
     try:
         arr = np.asarray(value, float)
     except (TypeError, ValueError):
         arr = np.zeros((0, 0))
-    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < min_rows or not np.isfinite(arr).all():
-        raise DesignError(f"{where}: expected a list of at least {min_rows} [x, y] points in "
+    if (arr.ndim != 2 or arr.shape[1] not in dims or len(arr) < min_rows
+            or not np.isfinite(arr).all()):
+        what = " or ".join("[x, y]" if d == 2 else "[x, y, z]" for d in dims)
+        raise DesignError(f"{where}: expected a list of at least {min_rows} {what} points in "
                           f"mm, got {value!r}")
     return arr
 
@@ -192,10 +205,11 @@ def _number(table: dict, key: str, where: str, kind: type = float, default: Any 
 
 
 def _mount_grid(grid: Any, where: str) -> np.ndarray:
-    if not isinstance(grid, dict) or set(grid) != {"x", "y"}:
-        raise DesignError(f"{where}: grid must be {{ x = [lo, hi, n], y = [lo, hi, n] }}")
+    if not isinstance(grid, dict) or set(grid) not in ({"x", "y"}, {"x", "y", "z"}):
+        raise DesignError(f"{where}: grid must be {{ x = [lo, hi, n], y = [lo, hi, n] }} "
+                          "(and z = [lo, hi, n] in 3-D)")
     axes = []
-    for k in ("x", "y"):
+    for k in sorted(grid):
         v = grid[k]
         if (not isinstance(v, list) or len(v) != 3 or not all(isinstance(t, int | float)
                                                                for t in v)
@@ -203,8 +217,8 @@ def _mount_grid(grid: Any, where: str) -> np.ndarray:
             raise DesignError(f"{where}: grid.{k} must be [lo, hi, n] with n a positive "
                               f"integer, got {v!r}")
         axes.append(np.linspace(float(v[0]), float(v[1]), int(v[2])))
-    xx, yy = np.meshgrid(*axes, indexing="xy")
-    return np.column_stack([xx.ravel(), yy.ravel()])
+    # x runs fastest, then y (then z)
+    return np.array([p[::-1] for p in itertools.product(*axes[::-1])])
 
 
 def load_design(path: str | Path) -> DesignSpec:
@@ -228,29 +242,29 @@ def load_design(path: str | Path) -> DesignSpec:
         where = f"{path}: [modules.{name}]"
         if not isinstance(t, dict):
             raise DesignError(f"{where}: must be a table with rig, arm, model")
-        _unknown(t, ("rig", "arm", "model"), where)
+        _unknown(t, ("rig", "arm", "model", "params"), where)
         if not isinstance(t.get("rig"), str):
             raise DesignError(f"{where}: needs rig = \"DIR\" (a rig directory)")
         rig = (path.parent / t["rig"]).resolve()
         modules[name] = ModuleSpec(name, rig, str(t.get("arm", name)),
-                                   str(t.get("model", DEFAULT_MODEL)))
+                                   str(t.get("model", DEFAULT_MODEL)),
+                                   _groups(t["params"], where) if "params" in t else None)
     mt = _table(doc, "mounts", str(path))
     _unknown(mt, ("points", "grid"), f"{path}: [mounts]")
     if ("points" in mt) == ("grid" in mt):
         raise DesignError(f"{path}: [mounts] needs exactly one of points or grid")
-    mounts = (_points(mt["points"], f"{path}: [mounts] points") if "points" in mt
+    mounts = (_points(mt["points"], f"{path}: [mounts] points", dims=(2, 3)) if "points" in mt
               else _mount_grid(mt["grid"], f"{path}: [mounts] grid"))
     task = _table(doc, "task", str(path))
     _unknown(task, ("box", "polygon", "targets"), f"{path}: [task]")
     if ("box" in task) == ("polygon" in task):
         raise DesignError(f"{path}: [task] needs exactly one of box or polygon")
+    dim = mounts.shape[1]
     if "box" in task:
-        box = _points(task["box"], f"{path}: [task] box = [[x0, x1], [y0, y1]]", 2)
-        if len(box) != 2 or not (box[:, 0] < box[:, 1]).all():
-            raise DesignError(f"{path}: [task] box must be [[x0, x1], [y0, y1]] with x0 < x1 "
-                              f"and y0 < y1, got {task['box']!r}")
-        (x0, x1), (y0, y1) = box
-        region = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+        region = _box(task["box"], dim, f"{path}: [task] box")
+    elif dim == 3:
+        raise DesignError(f"{path}: [task] polygon is a region of the plane but the mounts are "
+                          "3-D points; give box = [[x0, x1], [y0, y1], [z0, z1]]")
     else:
         region = _points(task["polygon"], f"{path}: [task] polygon", 3)
     req = _table(doc, "requirement", str(path))
@@ -272,6 +286,33 @@ def load_design(path: str | Path) -> DesignSpec:
         seed=_number(doc, "seed", str(path), int, 0, lo=-1),
         draws=_number(doc, "draws", str(path), int, DRAWS, lo=99),
         tracker_noise_mm=_tracker_noise(doc, str(path)))
+
+
+def _groups(value: Any, where: str) -> tuple[str, ...]:
+    """A chain module's calibration groups: "frames,geometric" or a list of names."""
+    names = value.split(",") if isinstance(value, str) else value
+    if not isinstance(names, list | tuple) or not names or not all(
+            isinstance(n, str) and n.strip() in kin.ALL_GROUPS for n in names):
+        raise DesignError(f"{where}: params = {value!r} must name calibration groups among "
+                          f"{', '.join(kin.ALL_GROUPS)}")
+    return tuple(dict.fromkeys(["frames", *(n.strip() for n in names)]))
+
+
+def _box(value: Any, dim: int, where: str) -> np.ndarray:
+    """A task box's corners: (4, 2) counter-clockwise in the plane, (8, 3) in space."""
+    shape = "[[x0, x1], [y0, y1]]" if dim == 2 else "[[x0, x1], [y0, y1], [z0, z1]]"
+    try:
+        box = np.asarray(value, float)
+    except (TypeError, ValueError):
+        box = np.zeros((0, 0))
+    if box.shape != (dim, 2) or not np.isfinite(box).all() or not (box[:, 0] < box[:, 1]).all():
+        raise DesignError(f"{where} must be {shape} with each low below its high (the mounts "
+                          f"are {dim}-D), got {value!r}")
+    if dim == 2:
+        (x0, x1), (y0, y1) = box
+        return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    return np.array([[box[0, i], box[1, j], box[2, k]]
+                     for k in range(2) for j in range(2) for i in range(2)])
 
 
 def _tracker_noise(doc: dict, where: str) -> float:
@@ -307,27 +348,47 @@ class Module:
                        params=self.arm.params._replace(base=jnp.asarray(base, jnp.float64)))
 
 
-def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module]:
-    """Calibrate each module's arm on its rig's train rows and fit its joint-error model."""
+def load_modules(design: DesignSpec, models_dir: Any = None
+                 ) -> dict[str, Module] | dict[str, ChainModule]:
+    """Calibrate each module's arm on its rig's train rows and fit its joint-error model:
+    planar arms (:class:`Module`) or URDF/DH arms (:class:`~bayesrob.chain_design.ChainModule`),
+    one kind per design."""
+    from bayesrob.chain_design import load_chain_modules
+    from bayesrob.rig import load_rig
+
+    by_rig: dict[Path, list[ModuleSpec]] = {}
+    for m in design.modules.values():
+        by_rig.setdefault(m.rig, []).append(m)
+    rigs = {}
+    for rig_dir, mods in by_rig.items():
+        try:
+            rigs[rig_dir] = load_rig(rig_dir)
+        except RigError as e:
+            raise DesignError(f"{design.path}: [modules.{mods[0].name}]: {e}") from None
+    kinds = {n: rigs[m.rig].is_chain for n, m in design.modules.items()}
+    if len(set(kinds.values())) > 1:
+        chain = next(n for n, c in kinds.items() if c)
+        flat = next(n for n, c in kinds.items() if not c)
+        raise DesignError(f"{design.path}: module {chain!r} is a URDF/DH arm and {flat!r} a "
+                          "planar arm; a design places one kind")
+    if any(kinds.values()):
+        return load_chain_modules(design, rigs)
+    if design.dim != 2:
+        raise DesignError(f"{design.path}: the mounts are 3-D points but the modules are "
+                          "planar arms; give [x, y] mounts and a box of the plane")
+    return _load_planar_modules(design, rigs, by_rig, models_dir)
+
+
+def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list[ModuleSpec]],
+                         models_dir: Any) -> dict[str, Module]:
     from bayesrob.calibration import calibrate, parameter_covariance
     from bayesrob.noise_models import ModelFileError, discover_models, fit_noise_models
-    from bayesrob.rig import load_rig
     from bayesrob.simulator import TRUTH_FILE, Truth
 
     out: dict[str, Module] = {}
     specs: dict[str, list] = {}  # model name -> its discovered file, read once
-    by_rig: dict[Path, list[ModuleSpec]] = {}
-    for m in design.modules.values():
-        by_rig.setdefault(m.rig, []).append(m)
     for rig_dir, mods in by_rig.items():
-        where = f"{design.path}: [modules.{mods[0].name}]"
-        try:
-            rig = load_rig(rig_dir)
-        except RigError as e:
-            raise DesignError(f"{where}: {e}") from None
-        if rig.is_chain:
-            raise DesignError(f"{where}: {rig_dir} is a URDF/DH rig; the designer places "
-                              "planar arms so far")
+        rig = rigs[rig_dir]
         for m in mods:
             if m.arm not in rig.arms:
                 raise DesignError(f"{design.path}: [modules.{m.name}]: unknown module arm "
@@ -360,11 +421,14 @@ def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module
 
 def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """``n`` targets inside the polygon ``region``: a scrambled Halton sequence over its
-    bounding box, keeping the points inside (even spread, reproducible from ``seed``)."""
+    bounding box, keeping the points inside (even spread, reproducible from ``seed``). A 3-D
+    region is a box: the sequence fills it."""
     from matplotlib.path import Path as Polygon
     from scipy.stats import qmc
 
     lo, hi = region.min(axis=0), region.max(axis=0)
+    if region.shape[1] == 3:
+        return qmc.scale(qmc.Halton(3, scramble=True, seed=seed).random(n), lo, hi)
     poly = Polygon(region)
     sampler = qmc.Halton(2, scramble=True, seed=seed)
     out = np.zeros((0, 2))
@@ -385,7 +449,7 @@ class Candidate:
 
     arms: tuple[str, ...]
     mounts: tuple[int, ...]
-    bases: tuple[tuple[float, float], ...]
+    bases: tuple[tuple[float, ...], ...]
 
     @property
     def linking(self) -> str:
@@ -408,9 +472,12 @@ def _aims(arm: kin.Arm, targets: np.ndarray) -> np.ndarray | None:
     return u
 
 
-def reach_table(modules: dict[str, Module], mounts: np.ndarray, targets: np.ndarray
-                ) -> dict[tuple[str, int], np.ndarray]:
-    """{(module, mount index): pulses (T, 2)} for every placement that reaches every target."""
+def reach_table(modules: dict[str, Module] | dict[str, ChainModule], mounts: np.ndarray,
+                targets: np.ndarray) -> dict[tuple[str, int], np.ndarray]:
+    """{(module, mount index): commands (T, c)} for every placement that reaches every
+    target: planar pulses, or a chain module's joint columns."""
+    if _is_chain(modules):
+        return chain_reach_table(modules, mounts, targets)
     out = {}
     for name, m in modules.items():
         for j, base in enumerate(mounts):
@@ -434,7 +501,7 @@ def enumerate_candidates(design: DesignSpec, reach: dict[tuple[str, int], np.nda
                 if len(set(mounts)) < k:
                     continue
                 out.append(Candidate(group, mounts, tuple(
-                    (float(design.mounts[j][0]), float(design.mounts[j][1])) for j in mounts)))
+                    tuple(float(v) for v in design.mounts[j]) for j in mounts)))
                 if len(out) > MAX_CANDIDATES:
                     raise DesignError(f"{design.path}: more than {MAX_CANDIDATES} candidate "
                                       "assemblies; use fewer mounts, modules or max_arms")
@@ -458,6 +525,9 @@ class _Job:
     draws: int
     seed: int
     tracker_noise_mm: float = 0.0
+    mounts: np.ndarray | None = None  # (P, dim): where chain placements' draws are moved to
+    # each worker's draws per chain placement, reused by every candidate using it
+    cache: dict = field(default_factory=dict, compare=False)
 
 
 @partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm"))
@@ -486,7 +556,32 @@ def _quantiles(dist: np.ndarray, weights: np.ndarray | None, q: float) -> np.nda
     return d[np.arange(len(d)), idx]
 
 
+def _is_chain(modules: dict) -> bool:
+    return any(isinstance(m, ChainModule) for m in modules.values())
+
+
+def _draw_scores(job: _Job, d: np.ndarray) -> tuple:
+    """Distances (T, S), mean point, and the build statistics of draws (S, T, dim), each draw
+    one possible built assembly."""
+    dist = np.linalg.norm(d - job.targets[None], axis=-1).T  # (T, S)
+    # each draw is one possible built assembly: its own quantile over the targets
+    own = np.quantile(dist, job.quantile, axis=0)
+    confidence = float(np.mean(own <= job.error_mm))
+    # the error this assembly keeps within in `confidence` of the builds: any requirement
+    # can be checked against it without predicting again
+    # (the inverted CDF makes "meets" exactly "assured <= error_mm")
+    assured = float(np.quantile(own, job.confidence, method="inverted_cdf"))
+    # ... and the error it exceeds in `confidence` of them: beyond error_mm, a sure miss
+    optimistic = float(np.quantile(own, 1.0 - job.confidence, method="inverted_cdf"))
+    return dist, d.mean(axis=0), confidence, assured, optimistic
+
+
 def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
+    if _is_chain(job.modules):
+        d = chain_candidate_draws(job, cand.arms, cand.mounts, index)
+        dist, mean, confidence, assured, optimistic = _draw_scores(job, d)
+        return _result(job, cand, [job.modules[a].model for a in cand.arms], dist, None, mean,
+                       confidence, assured, optimistic)
     mods = [job.modules[a] for a in cand.arms]
     arms = [m.at(b) for m, b in zip(mods, cand.bases, strict=True)]
     commands = [job.reach[a, j] for a, j in zip(cand.arms, cand.mounts, strict=True)]
@@ -502,18 +597,8 @@ def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
             tuple(jnp.asarray(m.param_cov) for m in mods),
             kinds=tuple(error_kind(m.fitted) for m in mods), stiffness=stiffness,
             num_samples=job.draws, tracker_noise_mm=job.tracker_noise_mm))
-        dist = np.linalg.norm(d - t[None], axis=-1).T  # (T, S)
         weights = None
-        mean = d.mean(axis=0)
-        # each draw is one possible built assembly: its own quantile over the targets
-        own = np.quantile(dist, job.quantile, axis=0)
-        confidence = float(np.mean(own <= job.error_mm))
-        # the error this assembly keeps within in `confidence` of the builds: any requirement
-        # can be checked against it without predicting again
-        # (the inverted CDF makes "meets" exactly "assured <= error_mm")
-        assured = float(np.quantile(own, job.confidence, method="inverted_cdf"))
-        # ... and the error it exceeds in `confidence` of them: beyond error_mm, a sure miss
-        optimistic = float(np.quantile(own, 1.0 - job.confidence, method="inverted_cdf"))
+        dist, mean, confidence, assured, optimistic = _draw_scores(job, d)
     else:  # the product of likelihoods (or the paper's histogram COND): the grid
         post, _ = fused_posterior([m.fitted for m in mods], arms, commands, t, job.fusion,
                                   seed=job.seed + index)
@@ -522,6 +607,14 @@ def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
         mean = post.mean
         confidence = None
         assured = optimistic = None
+    return _result(job, cand, [m.fitted.spec.name for m in mods], dist, weights, mean,
+                   confidence, assured, optimistic)
+
+
+def _result(job: _Job, cand: Candidate, models: list[str], dist: np.ndarray,
+            weights: np.ndarray | None, mean: np.ndarray, confidence: float | None,
+            assured: float | None, optimistic: float | None) -> dict:
+    t = job.targets
     per = _quantiles(dist, weights, job.quantile)
     pooled = _quantiles(dist.reshape(1, -1), None if weights is None
                         else weights.reshape(1, -1) / len(t), job.quantile)[0]
@@ -529,7 +622,7 @@ def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
     return {
         "arms": list(cand.arms), "bases": [list(b) for b in cand.bases],
         "mounts": list(cand.mounts), "linking": cand.linking,
-        "models": [m.fitted.spec.name for m in mods], "fusion": job.fusion,
+        "models": models, "fusion": job.fusion,
         "error_quantile_mm": [float(v) for v in per],
         "expected_error_mm": [float(v) for v in expected],
         "expected_point": [[float(v) for v in p] for p in mean],
@@ -566,6 +659,8 @@ class DesignResult:
     scheduler: str
     seconds: float
     notes: list[str] = field(default_factory=list)
+    # {(module, mount index): commands (T, c)}: how each placement aims at the targets
+    reach: dict = field(default_factory=dict)
 
     @property
     def best(self) -> dict | None:
@@ -597,7 +692,7 @@ class DesignResult:
         d = self.design
         q = f"q{round(100 * d.quantile)}"
         rows = [[str(c["rank"]), c["config"],
-                 "; ".join(f"({b[0]:.0f}, {b[1]:.0f})" for b in c["bases"]),
+                 _bases_text(c["bases"]),
                  f"{c['overall']['error_quantile_mm']:.3f}",
                  f"{c['overall']['worst_target_quantile_mm']:.3f}",
                  f"{c['overall']['expected_error_mm']:.3f}",
@@ -613,14 +708,17 @@ class DesignResult:
         if best is None:
             tail = "no candidate"
         elif best["meets"]:
-            tail = (f"best: {best['config']} at "
-                    + "; ".join(f"({b[0]:.0f}, {b[1]:.0f})" for b in best["bases"])
+            tail = (f"best: {best['config']} at " + _bases_text(best["bases"])
                     + f", predicted {q} {best['overall']['error_quantile_mm']:.3f} mm")
         else:
             tail = (f"no candidate meets {d.error_mm:g} mm at {d.quantile:g} in "
                     f"{d.confidence:.0%} of builds; the closest is {best['config']}, within "
                     f"{best['overall']['assured_error_mm']:.3f} mm in {d.confidence:.0%}")
         return "\n".join([head, table, *self.notes, tail])
+
+
+def _bases_text(bases: Sequence[Sequence[float]]) -> str:
+    return "; ".join("(" + ", ".join(f"{v:.0f}" for v in b) + ")" for b in bases)
 
 
 def _rank_key(c: dict) -> tuple:
@@ -707,6 +805,11 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
 
     t0 = time.perf_counter()
     modules = modules if modules is not None else load_modules(design)
+    if _is_chain(modules) and design.fusion != "equilibrium" and design.max_arms > 1 \
+            and design.linked:
+        raise DesignError(f"{design.path}: fusion = {design.fusion!r} samples every linked "
+                          "chain assembly with NUTS, minutes each; chain modules are designed "
+                          "with fusion = \"equilibrium\"")
     targets = task_targets(design.region, design.n_targets, design.seed)
     reach = reach_table(modules, design.mounts, targets)
     placements = len(modules) * len(design.mounts)
@@ -719,7 +822,8 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
         cands = cands[:limit]
     notes = [f"module {n!r} reaches the task from no mount point" for n in unreachable]
     job = _Job(modules, targets, reach, design.fusion, design.quantile, design.error_mm,
-               design.confidence, design.draws, design.seed, design.tracker_noise_mm)
+               design.confidence, design.draws, design.seed, design.tracker_noise_mm,
+               design.mounts)
     indexed = list(enumerate(cands))
     batches = [indexed[i:i + batch] for i in range(0, len(indexed), batch)]
     results: dict[int, dict] = {}
@@ -739,16 +843,18 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
         r["rank"] = k
     return DesignResult(design, targets, ranked, placements, len(reach), n_workers,
                         scheduler or f"LocalCluster({workers} workers)",
-                        time.perf_counter() - t0, notes=notes)
+                        time.perf_counter() - t0, notes=notes, reach=reach)
 
 
 # ------------------------------------------------------------------------------ outputs
 
 
-def design_figure(result: DesignResult, modules: dict[str, Module], top: int = 4) -> Figure:
+def design_figure(result: DesignResult, modules: dict[str, Module] | dict[str, ChainModule],
+                  top: int = 4) -> Figure:
     """The top candidates side by side: bases, links (posed at the region's first target) and
     a map over the region of the predicted error quantile, interpolated between the targets
-    (white dots)."""
+    (white dots). Chain modules are seen from above (x-y): each target a dot coloured by its
+    error quantile, each arm a dashed line from its base to the first target."""
     import matplotlib.pyplot as plt
 
     cands = result.candidates[:top]
@@ -762,7 +868,24 @@ def design_figure(result: DesignResult, modules: dict[str, Module], top: int = 4
     d = result.design
     q = f"q{round(100 * d.quantile)}"
     sc = None
+    chain = _is_chain(modules)
     for ax, c in zip(axs[0], cands, strict=False):
+        if chain:
+            lo, hi = d.region.min(axis=0), d.region.max(axis=0)
+            ax.fill([lo[0], hi[0], hi[0], lo[0]], [lo[1], lo[1], hi[1], hi[1]], color="0.93",
+                    zorder=0)
+            sc = ax.scatter(t[:, 0], t[:, 1], c=c["error_quantile_mm"], cmap="viridis",
+                            vmin=vmin, vmax=vmax, s=30, edgecolors="white", zorder=3)
+            for a, b in zip(c["arms"], c["bases"], strict=True):
+                ax.plot([b[0], t[0, 0]], [b[1], t[0, 1]], "--", color="0.35", zorder=2)
+                ax.plot(b[0], b[1], "k^", ms=9)
+                ax.annotate(a, b[:2], textcoords="offset points", xytext=(5, 5), fontsize=8)
+            ax.set_aspect("equal")
+            ax.set_title(f"#{c['rank']} {c['config']}\n{q} "
+                         f"{c['overall']['error_quantile_mm']:.2f} mm, "
+                         f"{'meets' if c['meets'] else 'misses'} {d.error_mm:g}", fontsize=9)
+            ax.set_xlabel("x (mm), seen from above")
+            continue
         ax.fill(*d.region.T, color="0.93", zorder=0)
         sc = ax.tricontourf(t[:, 0], t[:, 1], c["error_quantile_mm"], levels=levels,
                             cmap="viridis", zorder=1)
@@ -802,6 +925,7 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
     ``bayesrob simulate DIR --planned`` can measure it; ``bayesrob collect`` on hardware."""
     import csv
 
+    from bayesrob.chain_design import write_chain_candidate_rig
     from bayesrob.rig import (
         MEASUREMENTS_FILE,
         RIG_FILE,
@@ -814,6 +938,11 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if _is_chain(modules):
+        write_chain_candidate_rig(candidate, result.targets, modules, result.design.mounts,
+                                  result.reach, out)
+        _write_candidate_json(candidate, result, out)
+        return out
     names = candidate["arms"]
     specs = {a: replace(modules[a].spec, base=tuple(b))
              for a, b in zip(names, candidate["bases"], strict=True)}
@@ -838,6 +967,10 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
                                                             strict=True)},
             workspace=workspace)
         (out / TRUTH_FILE).write_text(truth.to_toml())
+    _write_candidate_json(candidate, result, out)
+    return out
+
+
+def _write_candidate_json(candidate: dict, result: DesignResult, out: Path) -> None:
     (out / "design.json").write_text(json.dumps(
         {"candidate": candidate, "requirement": result.design.requirement}, indent=1))
-    return out

@@ -657,6 +657,9 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                 # weight on the chains they share with this one
                 commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
                                                       allow_empty=not uses)
+        if is_planned(row, idx) and (dim == 2 or not row[idx["z"]].strip()):
+            keep[r] = False  # planned by ``bayesrob design``, not measured yet
+            continue
         observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
         if has_target:
             target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]

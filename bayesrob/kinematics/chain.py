@@ -258,6 +258,11 @@ class Robot:
     def layout(self) -> ParamLayout:
         return _layout(self.chains)
 
+    def __getstate__(self) -> dict:
+        # The caches of compiled programs ("_compiled", ...) hold jitted closures over this
+        # robot: they are rebuilt wherever it is unpickled (a Dask worker), not shipped.
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
     def path(self, arm: str) -> list[Chain]:
         """The chains from the robot base to ``arm``'s tip, base first."""
         out = []
