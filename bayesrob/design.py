@@ -49,6 +49,9 @@ calibration's covariance). So an assembly whose pooled quantile just meets the r
 misses it about half the time once built. The requirement is therefore met when the share of
 draws whose own quantile over the targets is within ``error_mm`` reaches ``confidence``.
 
+Modules may instead be URDF/DH arms placed in space (``[x, y, z]`` mounts, a 3-D task box):
+:mod:`bayesrob.chain_design` loads, aims and draws them; ranking and outputs are shared.
+
 Candidates are evaluated as Dask tasks (``dask.distributed``): batches of candidates per task,
 so each worker compiles its JAX program once per kind of assembly and reuses it (the
 modules' arrays and the bases are traced arguments, not constants). The modules are
