@@ -36,6 +36,7 @@ from bayesrob.chain_prediction import (
     chain_equilibrium,
     free_draws,
     parameter_draws,
+    stiffness_draws,
 )
 from bayesrob.latent_errors import joint_jacobian
 from bayesrob.rig import Rig, RigError
@@ -153,10 +154,9 @@ def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
 def _log_stiffness(job: Any, name: str) -> jax.Array:
     """One module's joint log stiffnesses (S, n), the same in every candidate it is in."""
     m: ChainModule = job.modules[name]
-    loc, sd = m.mods.stiffness[m.arm]
     order = list(job.modules).index(name)
-    z = jax.random.normal(jax.random.PRNGKey(job.seed * 104729 + order), (job.draws, len(loc)))
-    return jnp.asarray(loc) + jnp.asarray(sd) * z
+    return stiffness_draws([m.mods.stiffness[m.arm]],
+                           jax.random.PRNGKey(job.seed * 104729 + order), job.draws)[0]
 
 
 def chain_candidate_draws(job: Any, arms: Sequence[str], mounts: Sequence[int],

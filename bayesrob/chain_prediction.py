@@ -58,6 +58,12 @@ VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Prior sd of each joint's log stiffness when the rig does not give it: chosen among 0.05, 0.25,
 # 0.5 and 0.75 on the linked tuning rigs (arm6 --linked seeds 201, 202) only.
 CHAIN_STIFFNESS_LOG_SD = 0.5
+# Prior sd of the log stiffness an arm's joints share (an arm stiffer or softer as a whole)
+CHAIN_STIFFNESS_ARM_LOG_SD = 0.0
+# Where the prior is centred: "effort", each joint's stiffness in proportion to its URDF torque
+# limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
+# "equal" joints
+CHAIN_STIFFNESS_CENTRE = "equal"
 
 
 @dataclass
@@ -116,11 +122,15 @@ def _stiffness_prior(rig: Rig, arm: str) -> tuple[np.ndarray, np.ndarray]:
         k = np.concatenate(parts)
         return np.log(k), np.zeros_like(k)
     n = rig.robot.n_path_joints(arm)
+    efforts = [c.source.get("efforts") for c in rig.robot.path(arm)]
+    centre = (np.log(np.concatenate(efforts))
+              if CHAIN_STIFFNESS_CENTRE == "effort" and all(e is not None for e in efforts)
+              else np.zeros(n))
     # Not from a fitted compliance: without masses only compliance x first moment is
     # identified, so each arm's compliances carry its own unknown mass scale. Read as
     # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
     # overflowed on another (seed 1), though they helped on the tuning rigs.
-    return np.zeros(n), np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    return centre, np.full(n, CHAIN_STIFFNESS_LOG_SD)
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -171,12 +181,27 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return u
 
 
-def _log_stiffness_prior(priors: Sequence[tuple[np.ndarray, np.ndarray]]) -> None:
-    """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known)."""
+def _log_stiffness_prior(priors: Sequence[tuple[np.ndarray, np.ndarray]],
+                         arm_sd: float) -> None:
+    """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
+    where they are not known, a Normal(0, arm_sd) term the arm's joints share: an arm as a
+    whole is stiffer or softer than another."""
     for i, (loc, scale) in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(loc)]).to_event(1))
-        numpyro.deterministic(f"log_stiffness_{i}", jnp.asarray(loc) + jnp.asarray(scale) * z)
+        whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
+        shared = jnp.where(jnp.asarray(scale) > 0, arm_sd, 0.0) * whole
+        numpyro.deterministic(f"log_stiffness_{i}",
+                              jnp.asarray(loc) + jnp.asarray(scale) * z + shared)
+
+
+def stiffness_draws(priors: Sequence[tuple[np.ndarray, np.ndarray]], key: jax.Array,
+                    num_samples: int) -> list[jax.Array]:
+    """Draws (S, n_a) of each arm's joint log stiffnesses from their prior (centre, sd)."""
+    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
+        key, priors, CHAIN_STIFFNESS_ARM_LOG_SD)
+    return [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, len(p[0])))
+            for i, p in enumerate(priors)]
 
 
 def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
@@ -270,11 +295,8 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
             for a, u in zip(arms, commands, strict=True)]
     # The joint Jacobian at the commanded pose serves every draw: joint errors of a few mrad
     # change it by parts in a thousand.
-    n_joints = [j.shape[-1] for j in jacs]
-    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
-        jax.random.fold_in(key, 0), [mods.stiffness[a] for a in arms])
-    log_k = [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, n))
-             for i, n in enumerate(n_joints)]
+    log_k = stiffness_draws([mods.stiffness[a] for a in arms], jax.random.fold_in(key, 0),
+                            num_samples)
     return np.asarray(chain_equilibrium(free, jacs, log_k))
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from importlib.resources import files
 from pathlib import Path
 
@@ -260,6 +260,11 @@ class LinkedChainTruth(_ArmErrors):
     # settles between the arms depends on the ratio.
     stiffness_nmm_per_rad: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
         "left": _left_stiffness(), "right": tuple(0.6 * k for k in _left_stiffness())})
+    # Two arms of one model are not equally stiff, nor are two rigs' arms: each seed draws its
+    # arms' stiffnesses about the profile above, log k = log(profile) + N(0, sd) per arm +
+    # N(0, sd) per joint, from a stream of its own (the rest of the rig is what the seed always
+    # gave); truth.toml records what was drawn. 0: the profile as it is, on every seed.
+    stiffness_log_sd: float = 0.3
     # Linked targets are drawn uniformly in this box (instrument frame, mm): between the bases,
     # 300-600 mm in front of each, within both arms' reach at their working joint ranges.
     target_box_mm: tuple[tuple[float, float], ...] = ((300.0, 600.0), (-150.0, 150.0),
@@ -583,6 +588,19 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
     return targets, commands, u0, eq
 
 
+def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
+    """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
+    scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
+    rng = np.random.default_rng([truth.seed, 17])
+    sd = truth.stiffness_log_sd
+    out = {}
+    for a in LINKED_ARMS:
+        k = np.asarray(truth.stiffness_nmm_per_rad[a], float)
+        out[a] = tuple(float(v) for v in k * np.exp(sd * rng.normal() + sd * rng.normal(
+            size=k.shape)))
+    return out
+
+
 def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
     """Write a rig of two arm6 arms, ``left`` and ``right``, into out_dir: rig.toml, arm6.urdf
     (nominal), measurements.csv and truth.toml.
@@ -603,6 +621,8 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
     robot = Robot(chains, 3)
     x_true = _true_vector(robot, truth, rng)
     masses = np.asarray(truth.masses_kg, float)
+    # a copy: the caller's truth stays the profile, so simulating it again draws the same
+    truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth))
     stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS}
     lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
                        *[f"{a}_u{k + 1}" for a in LINKED_ARMS for k in range(6)],

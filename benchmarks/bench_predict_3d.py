@@ -2,11 +2,21 @@
 --robot arm6 --linked``, seed 0) linked at their tool points, equilibrium fusion.
 
     python benchmarks/bench_predict_3d.py [--repeats 2]
+    python benchmarks/bench_predict_3d.py --coverage tuning|report [--variants]
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
 (aiming, draws and regions from fitted modules). Target (2 cores): the whole prediction under
 60 s warm; the single-arm prediction's time in the same run is printed beside it.
+
+Coverage (a line per rig, then the pooled figures): two arm6 arms with gravity sag, each
+seed's stiffnesses drawn about the simulator's profile (``LinkedChainTruth.stiffness_log_sd``),
+calibrated with joint compliance on their single-arm rows, predicted at the rig's 24 linked
+targets and commands with the stiffness prior (the rig gives no stiffness) and compared with the
+simulated measurements of the linked assembly: the share inside the predicted 50% / 90%
+regions and predicted / observed mean error. ``tuning`` (seeds TUNING_SEEDS) with
+``--variants`` tries every prior in VARIANTS (centre, per-joint sd, shared per-arm sd); ``report``
+(seeds REPORT_SEEDS, fixed before any run) runs the chosen prior once.
 """
 
 from __future__ import annotations
@@ -20,12 +30,87 @@ from pathlib import Path
 import numpy as np
 
 WARM_TARGET_S = 60.0
+TUNING_SEEDS = (201, 202, 203, 204, 205, 206)
+REPORT_SEEDS = (211, 212, 213, 214)
+GROUPS = ("frames", "offsets", "geometric", "compliance")
+VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
+            for a in (0.0, 0.25, 0.5)]
+
+
+def _fitted(seed: int, where: Path):
+    """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
+    second sweep of priors skips the fits (the fits do not depend on the prior)."""
+    import pickle
+
+    import bayesrob.chain_prediction as cp
+    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.rig import load_rig
+
+    rig_dir, kept = where / f"rig-{seed}", where / f"modules-{seed}.pkl"
+    if kept.is_file():
+        return load_rig(rig_dir), pickle.loads(kept.read_bytes())
+    rig = load_rig(simulate_linked_chain_rig(rig_dir, LinkedChainTruth(seed=seed)))
+    mods = cp.fit_chain_modules(rig, ["left", "right"], "ind", groups=GROUPS, seed=seed)
+    kept.write_bytes(pickle.dumps(mods))
+    return rig, mods
+
+
+def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
+             cache: Path | None = None) -> dict:
+    import bayesrob.chain_prediction as cp
+
+    pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
+    with tempfile.TemporaryDirectory() as tmp:
+        where = cache if cache is not None else Path(tmp)
+        where.mkdir(parents=True, exist_ok=True)
+        for seed in seeds:
+            rig, mods = _fitted(seed, where)
+            m = rig.measurements.mask("left+right", "test")
+            commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
+            seen, target = rig.measurements.observed[m], rig.measurements.target[m]
+            row: dict = {"seed": seed}
+            for centre, joint_sd, arm_sd in variants:
+                cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
+                cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_sd
+                mods.stiffness = {a: cp._stiffness_prior(rig, a) for a in ("left", "right")}
+                draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
+                level = cp.hdr_levels(draws, seen)
+                pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
+                obs = np.linalg.norm(seen - target, axis=1)
+                p = pooled[centre, joint_sd, arm_sd]
+                p["in50"] += (level < 0.5).tolist()
+                p["in90"] += (level < 0.9).tolist()
+                p["pred"] += pred.tolist()
+                p["obs"] += obs.tolist()
+                row[f"{centre}/{joint_sd}/{arm_sd}"] = [
+                    float(np.mean(level < 0.5)), float(np.mean(level < 0.9)),
+                    float(pred.mean() / obs.mean())]
+            print(json.dumps(row), flush=True)
+    return {f"{c}/{j}/{a}": {"points": len(p["in50"]), "coverage50": float(np.mean(p["in50"])),
+                             "coverage90": float(np.mean(p["in90"])),
+                             "error_ratio": float(np.mean(p["pred"]) / np.mean(p["obs"]))}
+            for (c, j, a), p in pooled.items()}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--coverage", choices=("tuning", "report"),
+                   help="the linked coverage study instead of the timing")
+    p.add_argument("--variants", action="store_true",
+                   help="with --coverage: every prior in VARIANTS, not only the chosen one")
+    p.add_argument("--cache", metavar="DIR",
+                   help="with --coverage: keep the rigs and fitted modules here for a rerun")
     args = p.parse_args()
+    if args.coverage:
+        import bayesrob.chain_prediction as cp
+
+        chosen = [(cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
+                   cp.CHAIN_STIFFNESS_ARM_LOG_SD)]
+        seeds = TUNING_SEEDS if args.coverage == "tuning" else REPORT_SEEDS
+        print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
+                                  Path(args.cache) if args.cache else None)))
+        return
 
     from bayesrob.assembly import predict_assembly
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points

@@ -84,6 +84,19 @@ def test_urdf_chain_follows_the_joint_origins_axes_and_folds_fixed_joints(tmp_pa
         np.testing.assert_allclose(got[n], t, atol=1e-9)
 
 
+def test_urdf_torque_limits_are_kept_where_every_joint_gives_one(tmp_path):
+    """The stiffness prior may centre on the drives' torque limits: each movable joint's
+    <limit effort>, in path order; None when any joint lacks one."""
+    chain = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
+    assert chain.source["efforts"] == [150.0, 150.0, 150.0, 28.0, 28.0, 28.0]
+    text = arm6_urdf_path().read_text()
+    start = text.index('<joint name="wrist_3"')
+    limit = text.index("<limit", start)
+    path = tmp_path / "no-effort.urdf"
+    path.write_text(text[:limit] + text[text.index("/>", limit) + 2:])
+    assert kin.urdf_chain(path, "base_link", "tool0", "arm").source["efforts"] is None
+
+
 def test_mimic_joint_is_a_coupling(tmp_path):
     text = arm6_urdf_path().read_text().replace(
         '<joint name="wrist_3" type="revolute">',

@@ -247,3 +247,24 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
                                                'tip = "tool0"\nstiffness = [1, 1, 1, 1, 1, -1]'))
     with pytest.raises(RigError, match=r"arms\.arm\.stiffness: must be positive"):
         load_rig(bad)
+
+
+def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
+    """With a shared per-arm sd a and a per-joint sd j, two joints of one arm have log
+    stiffnesses correlated a^2 / (a^2 + j^2) (0.5 at a = j = 0.5), joints of different arms
+    are independent, and a known stiffness (sd 0) stays exactly as given. 20,000 draws give
+    each correlation within about 0.01 (sd (1 - r^2) / sqrt(n)); tolerance 0.03."""
+    import jax
+
+    import bayesrob.chain_prediction as cp
+
+    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
+    unknown = (np.zeros(3), np.full(3, 0.5))
+    known = (np.log([4e6, 2e6, 6e5]), np.zeros(3))
+    a, b, c = cp.stiffness_draws([unknown, unknown, known], jax.random.PRNGKey(0), 20_000)
+    a, b, c = (np.asarray(v) for v in (a, b, c))
+    r = np.corrcoef(np.hstack([a, b]).T)
+    assert abs(r[0, 1] - 0.5) < 0.03 and abs(r[1, 2] - 0.5) < 0.03
+    assert abs(r[0, 3]) < 0.03 and abs(r[2, 5]) < 0.03
+    np.testing.assert_allclose(a.std(axis=0), np.sqrt(0.5**2 + 0.5**2), rtol=0.03)
+    np.testing.assert_array_equal(c, np.broadcast_to(known[0], c.shape))

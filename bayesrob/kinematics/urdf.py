@@ -86,6 +86,7 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
     fixed = np.eye(4)
     prefix: list[str] = []  # fixed joints folded into the next movable joint's origin
     movable, origins, axes, kinds, mimics, prefixes = [], [], [], [], [], []
+    efforts: list[float | None] = []  # each joint's <limit effort>, where the file gives it
     for j in joints:
         jname = j.get("name") or "?"
         where = f"{path}: joint {jname!r}"
@@ -124,6 +125,12 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
         movable.append(jname)
         axes.append(axis)
         kinds.append(kind)
+        lim = j.find("limit")
+        try:
+            effort = float(lim.get("effort", "")) if lim is not None else None
+        except ValueError:
+            effort = None
+        efforts.append(effort if effort is not None and effort > 0 else None)
     if not movable:
         raise KinematicsError(f"{path}: no movable joint between {root!r} and {tip!r}")
     origins.append(tf.matrix_to_pose(fixed))
@@ -138,6 +145,7 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
                                       f"actuated joint between {root!r} and {tip!r}")
             coupling[i, actuated.index(mim[0])] = mim[1]
     source = {"kind": "urdf", "path": str(path), "root": root, "tip": tip,
+              "efforts": None if None in efforts else efforts,
               "joints": movable, "prefixes": prefixes, "tail": prefix}
     return Chain.build(name, movable, kinds, np.array(axes), np.array(origins),
                        coupling=coupling, source=source, **chain_kwargs)
