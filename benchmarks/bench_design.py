@@ -14,7 +14,8 @@ Proof (prints a line per design and a JSON summary): ten inventories of three si
 worked example's design file, the requirement loosened to PROOF_ERROR_MM. Tuning: the worked
 example's mounts and 1.2 mm were chosen on seed 5; PROOF_ERROR_MM on seeds 1-4, as the tightest
 of 1.2, 1.3, ..., 1.8 mm at which every tuning inventory had a candidate meeting it (seed 2's
-best three arms were assured only within 1.53 mm). The report seeds were not used to choose
+best was assured within 1.45 mm; 1.8 mm before the parameter covariance's jitter was made
+relative, which had widened every prediction). The report seeds were not used to choose
 anything. The best candidate and the best-ranked candidate predicted to miss (its
 ``optimistic_error_mm`` beyond the requirement: a miss in 90% of builds) are then built in the
 simulator (their modules moved to the chosen mounts, measured five times at every target); the
@@ -55,7 +56,7 @@ REPEATS = 5
 SCALE_CANDIDATES = 1000
 TARGET_S = 600.0
 TARGET_SPEEDUP = 1.7
-PROOF_ERROR_MM = 1.8  # chosen on the tuning seeds 1-4 (see above)
+PROOF_ERROR_MM = 1.5  # chosen on the tuning seeds 1-4 (see above)
 EXAMPLE_ERROR_MM = 1.2
 CHAIN_SEEDS = (301, 302, 303)
 CHAIN_PARAMS = "frames,offsets,geometric,compliance"
