@@ -14,7 +14,8 @@ Linked arms share one point:
   C_a = J_a diag(1 / k_a) J_a^T (J_a: 3 x n, k_a its joint stiffnesses), its stiffness
   K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
   J^-T diag(k) J^-1. Stiffnesses: the rig's ``stiffness`` when given, else a log-normal prior
-  centred on equal joints (CHAIN_STIFFNESS_LOG_SD).
+  centred on the joints' URDF torque limits, with a term per arm and one per joint
+  (CHAIN_STIFFNESS_*).
   Forward draws (``numpyro.infer.Predictive``), no sampler needed.
 - ``product`` (the paper's rule): the density of the shared point is the product of the arms'
   end-point densities. Every arm's joint errors and the shared point are latent and sampled
@@ -55,15 +56,18 @@ __all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "cha
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
-# Prior sd of each joint's log stiffness when the rig does not give it: chosen among 0.05, 0.25,
-# 0.5 and 0.75 on the linked tuning rigs (arm6 --linked seeds 201, 202) only.
-CHAIN_STIFFNESS_LOG_SD = 0.5
-# Prior sd of the log stiffness an arm's joints share (an arm stiffer or softer as a whole)
-CHAIN_STIFFNESS_ARM_LOG_SD = 0.0
+# The joint stiffness prior when the rig does not give them. Chosen on the linked tuning rigs
+# (arm6 --linked seeds 201-206, each drawing its own arms' stiffnesses; 144 linked points;
+# `bench_predict_3d.py --coverage tuning --variants`) as the prior whose pooled 50% / 90%
+# coverage came closest to nominal: 0.53 / 0.98, error ratio 1.04 (centred on equal joints
+# with no arm term, as before: 0.24 / 0.71). Tried: per-joint sd 0.25 / 0.5 / 0.75, arm sd
+# 0 / 0.25 / 0.5, centred on equal joints or on the torque limits.
+CHAIN_STIFFNESS_LOG_SD = 0.5  # each joint's own
+CHAIN_STIFFNESS_ARM_LOG_SD = 0.5  # shared by an arm's joints: an arm stiffer or softer as a whole
 # Where the prior is centred: "effort", each joint's stiffness in proportion to its URDF torque
 # limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
 # "equal" joints
-CHAIN_STIFFNESS_CENTRE = "equal"
+CHAIN_STIFFNESS_CENTRE = "effort"
 
 
 @dataclass

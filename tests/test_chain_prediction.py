@@ -223,8 +223,8 @@ def test_nuts_product_agrees_with_the_gaussian_product(linked_modules):
 
 def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp_path):
     """A rig's ``stiffness`` is taken as known (sd 0); without it every joint gets the
-    default prior; a non-positive stiffness is refused
-    naming the key."""
+    default prior, centred on its URDF torque limit (arm6: 150 N m on the first three joints,
+    28 on the wrist); a non-positive stiffness is refused naming the key."""
     import dataclasses
     import shutil
 
@@ -232,7 +232,7 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
 
     rig, _ = arm6_modules
     loc, sd = _stiffness_prior(rig, "arm")
-    np.testing.assert_array_equal(loc, 0.0)
+    np.testing.assert_allclose(np.exp(loc), [150, 150, 150, 28, 28, 28])
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
