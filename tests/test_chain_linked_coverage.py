@@ -1,0 +1,52 @@
+"""Two 6-joint 3-D arms linked at their tool points, predicted before the assembly is built
+(``pytest -m slow``, about 10 minutes on two cores): the report rigs 211-214 of
+``benchmarks/bench_predict_3d.py --coverage report`` (96 linked points, each rig its own pair
+of arms with their own stiffnesses, fixed before any run), with the stiffness prior chosen on
+tuning rigs 201-206. Targets (issue "linked predictions"): 50% / 90% regions within binomial
+error of nominal at 96 points (0.40-0.60, 0.84-0.96) and predicted / observed mean error
+within 0.85-1.15. The sweep is seeded, so the published figures (docs/fusion.md) are asserted
+to 0.001: a change that moves them must update the docs with it.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+PUBLISHED = {"points": 96, "coverage50": 0.625, "coverage90": 0.948, "error_ratio": 1.034}
+
+
+@pytest.fixture(scope="module")
+def report() -> dict:
+    import bench_predict_3d as bench
+
+    import bayesrob.chain_prediction as cp
+
+    chosen = (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
+              cp.CHAIN_STIFFNESS_ARM_LOG_SD)
+    (figures,) = bench.coverage(bench.REPORT_SEEDS, [chosen]).values()
+    return figures
+
+
+def test_the_published_report_figures(report):
+    assert report["points"] == PUBLISHED["points"]
+    for key in ("coverage50", "coverage90", "error_ratio"):
+        assert report[key] == pytest.approx(PUBLISHED[key], abs=1e-3), key
+
+
+def test_linked_90_percent_regions_and_error_ratio_hold(report):
+    assert 0.84 <= report["coverage90"] <= 0.96
+    assert 0.85 <= report["error_ratio"] <= 1.15
+
+
+@pytest.mark.xfail(strict=True, reason="target missed on the report rigs: the 50% regions "
+                   "hold 0.625 of 96 linked points (0.40-0.60 asked); per rig 0.25-0.92, as "
+                   "each rig's pair of arms has one stiffness ratio the prior only brackets")
+def test_linked_50_percent_regions_hold(report):
+    assert 0.40 <= report["coverage50"] <= 0.60
