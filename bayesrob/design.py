@@ -383,6 +383,10 @@ def load_modules(design: DesignSpec, models_dir: Any = None
     if design.dim != 2:
         raise DesignError(f"{design.path}: the mounts are 3-D points but the modules are "
                           "planar arms; give [x, y] mounts and a box of the plane")
+    for m in design.modules.values():
+        if m.params is not None:  # a planar arm's eight parameters are always fitted
+            raise DesignError(f"{design.path}: [modules.{m.name}]: params names calibration "
+                              "groups of URDF/DH arms; a planar arm fits its eight parameters")
     return _load_planar_modules(design, rigs, by_rig, models_dir)
 
 

@@ -141,6 +141,16 @@ def test_planar_and_chain_modules_do_not_mix(rig_dir, tmp_path, capsys):
     assert rc == 2 and "is a URDF/DH arm and 'top' a planar arm" in err, err
 
 
+def test_planar_modules_take_no_params(tmp_path, capsys):
+    planar = Path(__file__).resolve().parents[1] / "examples" / "design" / "modules"
+    text = _design_text(planar, [[20.0, 440.0]], [[80.0, 260.0], [100.0, 280.0]]).replace(
+        "[modules.left]", '[modules.top]\nparams = "geometric"').replace(
+        "[modules.right]", "[modules.bottom]")
+    rc = main(["design", str(_write(tmp_path, text)), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "params names calibration groups of URDF/DH arms" in err, err
+
+
 def test_planar_modules_refuse_3d_mounts(tmp_path, capsys):
     planar = Path(__file__).resolve().parents[1] / "examples" / "design" / "modules"
     text = _design_text(planar, MOUNTS, BOX).replace("[modules.left]", "[modules.top]").replace(
