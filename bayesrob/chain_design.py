@@ -42,7 +42,7 @@ from bayesrob.latent_errors import joint_jacobian
 from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
-    from bayesrob.design import DesignSpec
+    from bayesrob.design import DesignSpec, ModuleSpec
 
 __all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "chain_candidate_draws",
            "write_chain_candidate_rig"]
@@ -69,17 +69,18 @@ class ChainModule:
         return np.asarray(points, float) - np.asarray(mount, float) + self.base
 
 
-def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig]) -> dict[str, ChainModule]:
+def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
+                       by_rig: dict[Path, list[ModuleSpec]]) -> dict[str, ChainModule]:
     """Calibrate each chain rig once (the groups its modules name) and fit each module's
-    joint-error population on its own train rows."""
+    joint-error population on its own train rows (``by_rig``: the modules of each rig)."""
     from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
     from bayesrob.chain_prediction import _stiffness_prior
     from bayesrob.design import DesignError
     from bayesrob.latent_errors import check_latent_model, fit_latent_errors
 
     out: dict[str, ChainModule] = {}
-    for index, (rig_dir, rig) in enumerate(rigs.items()):
-        specs = [m for m in design.modules.values() if m.rig == rig_dir]
+    for index, (rig_dir, specs) in enumerate(by_rig.items()):
+        rig = rigs[rig_dir]
         groups = {m.params for m in specs}
         if len(groups) > 1:
             raise DesignError(f"{design.path}: modules {', '.join(m.name for m in specs)} "
@@ -141,13 +142,22 @@ def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
         m: ChainModule = job.modules[name]
         order = list(job.modules).index(name)
         u = job.reach[name, mount]
-        xs = parameter_draws(m.mods, jax.random.PRNGKey(job.seed * 7919 + m.rig_index),
-                             job.draws)
+        xs = _rig_parameters(job, m)
         k = jax.random.fold_in(jax.random.PRNGKey(job.seed), 1000 * order + mount)
         local = free_draws(m.mods, m.arm, u, xs, k)
         jac = joint_jacobian(m.mods.robot, jnp.asarray(m.mods.x), m.arm, jnp.asarray(u))
         world = local - m.base + np.asarray(job.mounts[mount], float)
         job.cache[key] = (world, jac)
+    return job.cache[key]
+
+
+def _rig_parameters(job: Any, m: ChainModule) -> jax.Array:
+    """Parameter draws (S, P) of a module's rig, once per worker: every placement of every
+    module of that rig builds on the same calibration errors."""
+    key = ("parameters", m.rig_index)
+    if key not in job.cache:
+        job.cache[key] = parameter_draws(
+            m.mods, jax.random.PRNGKey(job.seed * 7919 + m.rig_index), job.draws)
     return job.cache[key]
 
 
@@ -175,11 +185,11 @@ def chain_candidate_draws(job: Any, arms: Sequence[str], mounts: Sequence[int],
 
 def write_chain_candidate_rig(candidate: dict, targets: np.ndarray,
                               modules: dict[str, ChainModule], mounts: np.ndarray,
-                              reach: dict[tuple[str, int], np.ndarray], out: Path) -> dict:
+                              reach: dict[tuple[str, int], np.ndarray], out: Path) -> None:
     """The candidate as a chain rig directory: each module's calibrated URDF
     (``<module>.urdf``), rig.toml with its instrument pose at the mount (orientation kept),
     and measurements.csv with the planned linked rows (targets and joint columns, x, y, z
-    empty) for ``bayesrob collect`` or a simulator to fill. Returns the rig.toml document."""
+    empty) for ``bayesrob collect`` or a simulator to fill."""
     import csv
 
     from bayesrob.calibration import chain_arm_table
@@ -216,4 +226,3 @@ def write_chain_candidate_rig(candidate: dict, targets: np.ndarray,
                  for v in reach[a, j][i]]
             w.writerow(["+".join(names), "test", *(f"{v:.4f}" for v in t), *u,
                         *([""] * len(axes))])
-    return doc

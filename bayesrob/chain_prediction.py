@@ -50,8 +50,8 @@ from bayesrob.latent_errors import (
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "chain_equilibrium",
-           "free_draws", "parameter_draws", "hdr_levels", "hdr_sizes", "product_draws_nuts",
-           "predict_chain_points"]
+           "free_draws", "parameter_draws", "stiffness_draws", "hdr_levels", "hdr_sizes",
+           "product_draws_nuts", "predict_chain_points"]
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
@@ -223,13 +223,14 @@ def chain_equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
     springs = [jnp.linalg.inv(jnp.einsum("tik,sk,tjk->stij", j, jnp.exp(-lk), j))
                for j, lk in zip(jacs, log_k, strict=True)]
     k = jnp.stack(springs)
+    total = k.sum(0)
     pull = jnp.einsum("astij,astj->sti", k, jnp.stack([jnp.asarray(f) for f in free]))
-    d = jnp.linalg.solve(k.sum(0), pull[..., None])[..., 0]
+    d = jnp.linalg.solve(total, pull[..., None])[..., 0]
     if tracker_noise_mm <= 0:
         return d
     if key is None:
         raise ValueError("tracker noise needs a random key")
-    w = jnp.linalg.solve(k.sum(0)[None], k)  # (A, S, T, dim, dim)
+    w = jnp.linalg.solve(total[None], k)  # (A, S, T, dim, dim)
     dim = d.shape[-1]
     cov = tracker_noise_mm**2 * (jnp.eye(dim) - jnp.einsum("astij,astkj->stik", w, w))
     vals, vecs = jnp.linalg.eigh(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))

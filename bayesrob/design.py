@@ -129,7 +129,7 @@ class ModuleSpec:
     rig: Path
     arm: str
     model: str = DEFAULT_MODEL
-    # a chain module's calibration groups (None: the chain default; planar modules: unused)
+    # a chain module's calibration groups (None: the chain default; a planar module: refused)
     params: tuple[str, ...] | None = None
 
 
@@ -379,7 +379,7 @@ def load_modules(design: DesignSpec, models_dir: Any = None
         raise DesignError(f"{design.path}: module {chain!r} is a URDF/DH arm and {flat!r} a "
                           "planar arm; a design places one kind")
     if any(kinds.values()):
-        return load_chain_modules(design, rigs)
+        return load_chain_modules(design, rigs, by_rig)
     if design.dim != 2:
         raise DesignError(f"{design.path}: the mounts are 3-D points but the modules are "
                           "planar arms; give [x, y] mounts and a box of the plane")

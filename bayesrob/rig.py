@@ -501,9 +501,10 @@ def _set_of(row: list[str], idx: dict, where: str) -> str:
 
 
 def is_planned(row: list[str], idx: dict[str, int]) -> bool:
-    """A row with commands but x and y both empty: planned, not measured yet (``bayesrob
-    design`` writes such rows; ``simulate --planned`` fills them; loading skips them)."""
-    return not row[idx["x"]].strip() and not row[idx["y"]].strip()
+    """A row with commands but every coordinate (x, y and, where the file has it, z) empty:
+    planned, not measured yet (``bayesrob design`` writes such rows; ``simulate --planned``
+    fills them; loading skips them)."""
+    return all(not row[idx[a]].strip() for a in "xyz" if a in idx)
 
 
 def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
@@ -657,7 +658,7 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                 # weight on the chains they share with this one
                 commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
                                                       allow_empty=not uses)
-        if is_planned(row, idx) and (dim == 2 or not row[idx["z"]].strip()):
+        if is_planned(row, idx):
             keep[r] = False  # planned by ``bayesrob design``, not measured yet
             continue
         observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
