@@ -43,6 +43,7 @@ Commands = Mapping[str, Sequence[float]]
 
 DEFAULT_TIMEOUT_S = 0.5
 DEFAULT_RETRIES = 5
+STUCK_STOPS = 3  # identical wrong stops before outputs count as held (see move_and_settle)
 DEFAULT_SPEED_US_PER_S = 500.0
 # How long read-back positions must stay unchanged, short of the target, to count as stopped.
 # A Maestro steps its outputs once per 20 ms servo period, so this spans many steps.
@@ -354,7 +355,7 @@ class ServoController(ABC):
 
         A controller that stops somewhere else (a command lost or garbled on the wire) gets the
         move again; outputs that leave their earlier targets and stop at the same wrong pulses
-        twice are :meth:`stuck_error`, and after ``retries`` moves any mismatch is an error,
+        three times are :meth:`stuck_error`, and after ``retries`` moves any mismatch is an error,
         never a recorded row.
         """
         checked = self.check(commands)
@@ -369,13 +370,17 @@ class ServoController(ABC):
                 return pos
             stops.append(pos)
             # A lost command leaves an output at its earlier target; outputs that left it and
-            # stopped short at the very same pulses twice are held there by the controller. An
+            # stopped short at the very same pulses three times are held there by the
+            # controller. Twice is not enough: a move damaged on the wire can leave an output
+            # at a wrong target and the re-sent move be lost too (a 20-row collection with 3%
+            # of the received bytes damaged was stopped that way in the test suite). An
             # output never commanded before has no known earlier target (it sits wherever the
             # controller started it), so only the tries running out can tell that apart from
             # commands lost on a noisy line. Nor can a range hold an output outside the rig's
             # pulse_limits (a clamp pulls a target inside the limits' span): such an output got
             # a target damaged on the wire, and the resent move puts it right.
-            if len(stops) >= 2 and stops[-1] == stops[-2] and all(
+            same = len(stops) >= STUCK_STOPS and all(s == pos for s in stops[-STUCK_STOPS:])
+            if same and all(
                     before.get(ch) is not None and p != before[ch]
                     and self.limits[a][j - 1][0] <= p <= self.limits[a][j - 1][1]
                     for a, j, ch, _, p in self._short(pos, checked)):
