@@ -251,7 +251,8 @@ def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str,
 # Groups are tried in this order when the rank analysis decides which of two redundant
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
 # general correction of a joint's origin.
-PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral", "encoder")
+PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral", "encoder",
+            "backlash")
 # A column is identifiable when the part of it no earlier column explains is at least this
 # fraction of its length (column-scaled to each parameter's typical size). Exact
 # redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would
@@ -429,12 +430,15 @@ def _with_gravity(rig: Rig) -> kin.Robot:
 
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
-                    polish: bool = True, max_nfev: int = 300) -> ChainCalibration:
+                    polish: bool = True, max_nfev: int = 300,
+                    start: np.ndarray | None = None) -> ChainCalibration:
     """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
     ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
     ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
     (off: faster, a little short of the optimum; the diagnosis's comparisons use that).
-    ``max_nfev``: residual evaluations allowed to each of the fit's least-squares stages."""
+    ``max_nfev``: residual evaluations allowed to each of the fit's least-squares stages.
+    ``start``: the parameter vector to start from (a fit of fewer groups on the same rig, its
+    frames fitted), instead of the nominal one."""
     import time
 
     t0 = time.perf_counter()
@@ -443,11 +447,13 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
                          f"{', '.join(kin.ALL_GROUPS)}")
     groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
-    sags = bool({"compliance", "lateral"} & set(groups))
+    sags = bool({"compliance", "lateral", "backlash"} & set(groups))
     robot = _with_gravity(rig) if sags else rig.robot
     layout = robot.layout
     full_res, full_jac, n_res, exact_jac = _residual_function(rig, robot, "train")
-    x = layout.nominal.copy()
+    x = layout.nominal.copy() if start is None else np.array(start, float)
+    if x.shape != layout.nominal.shape:
+        raise ValueError(f"start has {x.size} parameters; the robot has {layout.nominal.size}")
     nfev = 0
 
     def fit(mask: np.ndarray, x0: np.ndarray, exact: bool = False, max_nfev: int = max_nfev
@@ -469,24 +475,29 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
 
     # The frames first (a rough instrument pose is a large, nonlinear correction), then the
     # rank analysis at that point and the fit of everything it keeps.
-    frames = layout.group_mask(("frames",))
-    frames_ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, frames)
-    x, n = fit(frames_ident.free, x)
-    nfev += n
-    if progress:
-        progress("frames fitted")
+    if start is None:
+        frames = layout.group_mask(("frames",))
+        frames_ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, frames)
+        x, n = fit(frames_ident.free, x)
+        nfev += n
+        if progress:
+            progress("frames fitted")
     ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,
                             layout.group_mask(groups))
     if int(ident.free.sum()) >= n_res:
         raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
                          "measured coordinates in the train rows")
-    if groups != ("frames",):
+    # a start with compliances fitted already shows the masses: the second round alone
+    seen = start is not None and any(np.any(x[sl] != 0) for key, sl in layout.slices.items()
+                                     if key[1] == "compliance")
+    if groups != ("frames",) and not (sags and seen):
         x, n = fit(ident.free, x)
         nfev += n
     if sags:
         # Masses are seen only through non-zero compliances: at the start (compliance 0) the
         # rank analysis frees the compliances alone; a second round frees the masses and
-        # first moments the fitted compliances make visible.
+        # first moments the fitted compliances make visible, and the play, whose side is the
+        # fitted deflection's.
         if progress:
             progress("compliances fitted; freeing link masses")
         ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,

@@ -70,6 +70,11 @@ class ChainTruth(_ArmErrors):
     # sinusoid once per revolution and its harmonics
     encoder_eccentricity: float = 0.0
     encoder_phase_rad: tuple[float, ...] = ()  # filled by simulate_chain_rig
+    # each joint's play (rad, whole width; 0: none): the joint rests against the side its
+    # gravity torque pushes it to; where that torque is weaker than the friction that holds
+    # it (play_stick_nmm), on the side it was approached from, drawn per row
+    joint_play_rad: float = 0.0
+    play_stick_nmm: float = 2000.0
     true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
 
 
@@ -121,36 +126,56 @@ def _frames_program(robot: Robot, arm: str):
     return cache[arm]
 
 
+def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
+                    masses_kg: np.ndarray, gravity: np.ndarray) -> np.ndarray:
+    """The gravity torque (N, n) about each joint's axis at joint values q (N mm).
+
+    Each link's mass sits halfway along the next origin's translation (its centre); the
+    torque about a joint is that of the masses beyond it about its axis.
+    """
+    chain = robot.chains[arm]
+    half = np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]])  # (n, 4)
+    g = np.asarray(gravity, float) * G_N_PER_KG
+    joints, links = _frames_program(robot, arm)(jnp.asarray(x), jnp.asarray(q))
+    joints, links = np.asarray(joints), np.asarray(links)
+    n = chain.n_joints
+    centres = np.einsum("enij,ej->eni", links[:n], half)[..., :3]  # (n, N, 3)
+    forces = masses_kg[:, None, None] * g  # (n, 1, 3)
+    tau = np.zeros_like(q)
+    for i in range(n):
+        axis = joints[i, :, :3, :3] @ chain.axes[i]
+        origin = joints[i, :, :3, 3]
+        moment = np.cross(centres[i:] - origin[None], np.broadcast_to(
+            forces[i:], centres[i:].shape)).sum(axis=0)
+        tau[:, i] = np.sum(moment * axis, axis=1)
+    return tau
+
+
 def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                        masses_kg: np.ndarray, stiffness: np.ndarray,
                        gravity: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Joint deflections (N, n) at equilibrium: dq = tau(q + dq) / k, by fixed-point steps.
-
-    Each link's mass sits halfway along the next origin's translation (its centre); the
-    torque about a joint is that of the masses beyond it about its axis. Deflections are a few
-    mrad, so the step contracts fast: at the default masses and stiffnesses four steps leave
-    about 1e-6 rad, eight about 1e-12 rad (more for softer joints).
+    """Joint deflections (N, n) at equilibrium: dq = tau(q + dq) / k, by fixed-point steps
+    (torques of :func:`gravity_torques`). Deflections are a few mrad, so the step contracts
+    fast: at the default masses and stiffnesses four steps leave about 1e-6 rad, eight about
+    1e-12 rad (more for softer joints).
     """
-    chain = robot.chains[arm]
-    frames = _frames_program(robot, arm)
-    half = np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]])  # (n, 4)
-    g = np.asarray(gravity, float) * G_N_PER_KG
     dq = np.zeros_like(q)
     for _ in range(iterations):
-        joints, links = frames(jnp.asarray(x), jnp.asarray(q + dq))
-        joints, links = np.asarray(joints), np.asarray(links)
-        n = chain.n_joints
-        centres = np.einsum("enij,ej->eni", links[:n], half)[..., :3]  # (n, N, 3)
-        forces = masses_kg[:, None, None] * g  # (n, 1, 3)
-        tau = np.zeros_like(q)
-        for i in range(n):
-            axis = joints[i, :, :3, :3] @ chain.axes[i]
-            origin = joints[i, :, :3, 3]
-            moment = np.cross(centres[i:] - origin[None], np.broadcast_to(
-                forces[i:], centres[i:].shape)).sum(axis=0)
-            tau[:, i] = np.sum(moment * axis, axis=1)
-        dq = tau / stiffness
+        dq = gravity_torques(robot, x, arm, q + dq, masses_kg, gravity) / stiffness
     return dq
+
+
+PLAY_STREAM = 8  # the approach sides' own random stream: other draws stay as they were
+
+
+def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Where each joint rests in its play (N, n) rad: half the play towards its gravity torque
+    ``tau`` (N mm), or, where the torque is weaker than ``stick_nmm``, towards the side it
+    was approached from (drawn from ``rng``)."""
+    approach = rng.choice([-1.0, 1.0], size=tau.shape)
+    side = np.where(np.abs(tau) > stick_nmm, np.sign(tau), approach)
+    return 0.5 * play * side
 
 
 def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
@@ -170,6 +195,9 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
     phase = np.random.default_rng([truth.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, 6)
     if truth.encoder_eccentricity:
         truth.encoder_phase_rad = tuple(float(v) for v in phase)
+    approach = np.random.default_rng([truth.seed, PLAY_STREAM])
+    masses = np.asarray(truth.masses_kg)
+    down = np.array([0.0, 0.0, -1.0])
     rows = []
     for set_name, n in (("train", truth.n_train), ("validation", truth.n_validation),
                         ("holdout", truth.n_holdout)):
@@ -179,11 +207,12 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
         q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
         if truth.encoder_eccentricity:
             q = q + encoder_error(q_cmd, truth.encoder_eccentricity, phase)
+        if truth.joint_play_rad:
+            q = q + play_offsets(gravity_torques(base_robot, x_base, "arm", q, masses, down),
+                                 truth.joint_play_rad, truth.play_stick_nmm, approach)
         if truth.compliance:
-            q = q + gravity_deflection(base_robot, x_base, "arm", q,
-                                       np.asarray(truth.masses_kg),
-                                       np.asarray(truth.stiffness_nmm_per_rad),
-                                       np.array([0.0, 0.0, -1.0]))
+            q = q + gravity_deflection(base_robot, x_base, "arm", q, masses,
+                                       np.asarray(truth.stiffness_nmm_per_rad), down)
         p = np.asarray(robot.marker_points(jnp.asarray(x_true), "arm", jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]

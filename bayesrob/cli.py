@@ -82,6 +82,16 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return v
+
+
 def _load_rig_arg(path: str | None, chains: bool = False):
     """Load the rig a command was given, or the embedded default rig.
 
@@ -126,6 +136,9 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compliance", action=argparse.BooleanOptionalAction, default=None,
                    help="arm6: joints give way under gravity (point masses, joint stiffness); "
                         "off by default, on by default with --linked")
+    p.add_argument("--play-mrad", type=_non_negative_float, default=None, metavar="MRAD",
+                   help="arm6: play in every joint (whole width, mrad), taken up on the side "
+                        "gravity pushes the joint to (approach side where the torque is weak)")
     p.add_argument("--poses", type=_positive_int, nargs=3, default=None,
                    metavar=("TRAIN", "VALIDATION", "HOLDOUT"),
                    help="arm6: random poses per set (80 40 40), each set at its own poses")
@@ -163,13 +176,17 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
         raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
                          "--compliance and --poses")
     if args.linked:
+        if args.play_mrad is not None:
+            raise UsageError("--play-mrad is for a single arm6 (the linked arms have none)")
         return _simulate_linked_chain(args, out_dir, existing)
-    truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance)), args)
+    truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance),
+                                      joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
     out = simulate_chain_rig(out_dir, truth)
     _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
-          f"seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml")
+          f"play {args.play_mrad or 0:g} mrad, seed {args.seed}): measurements.csv, rig.toml, "
+          "arm6.urdf, truth.toml")
     return 0
 
 
@@ -227,8 +244,8 @@ def _simulate(args: argparse.Namespace) -> int:
                          "--force to overwrite, or choose another directory)")
     if args.robot == "arm6":
         return _simulate_chain(args, out_dir, existing)
-    if args.compliance is not None or args.poses or args.linked:
-        raise UsageError("--compliance, --poses and --linked are for --robot arm6")
+    if args.compliance is not None or args.poses or args.linked or args.play_mrad is not None:
+        raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6")
     make = three_arm_truth if args.robot == "three-arm" else paper_truth
     truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid), args)
     out = simulate_rig(args.out_dir, truth, progress=_progress(args))
@@ -605,7 +622,8 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
                    help="comma-separated candidate effects to try (default: all registered: "
                         "gravity_sag,backlash,servo_nonlinearity for planar rigs; "
-                        "joint_compliance,lateral_compliance,encoder_error for URDF/DH chains)")
+                        "joint_compliance,lateral_compliance,encoder_error,backlash for URDF/DH "
+                        "chains, backlash tried once joint_compliance is named)")
     p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "

@@ -143,10 +143,11 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(later
     lay = robot.layout
     sags = lay.group_mask(("compliance", "lateral"))
     rng = np.random.default_rng(5)
-    # the encoder terms stay zero (their columns are exact: the test above) and take no draw,
-    # so the parameters drawn are those this tolerance was measured on
+    # the encoder terms and the play stay zero (the encoder's columns are exact: the test
+    # above; the play's: the test below) and take no draw, so the parameters drawn are those
+    # this tolerance was measured on
     x = lay.nominal.copy()
-    drawn = ~lay.group_mask(("encoder",))
+    drawn = ~lay.group_mask(("encoder", "backlash"))
     x[drawn] += rng.normal(0, 3, drawn.sum()) * lay.scales[drawn] * ~sags[drawn]
     joint = np.array([p.name.endswith(".compliance") for p in lay.params])
     x[joint] = rng.uniform(0, 5e-8, joint.sum())  # rad per N mm
@@ -167,6 +168,40 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(later
         if not lateral:
             assert rel[sags].max() < 1e-6
         assert rel.max() < 0.01, lay.names[int(rel.argmax())]
+
+
+def test_play_is_taken_on_the_side_each_joint_gives_way_to():
+    """With ``backlash`` each joint moves by its half play towards its gravity deflection:
+    nothing while no compliance is fitted (the side is unknown), p tanh(defl / 0.1 mrad)
+    with one; its Jacobian columns are exact where the compliance's are (no lateral bending:
+    the test above), to 1e-6 of each column's largest entry."""
+    robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"], gravity=np.array([0, 0, -1.0]))
+    lay = robot.layout
+    rng = np.random.default_rng(8)
+    u = rng.normal(0, 1, (9, 10))
+    play = lay.group_mask(("backlash",))
+    x = lay.nominal.copy()
+    x[play] = rng.uniform(5e-4, 2e-3, play.sum())
+    stiff, _ = robot.sag(jnp.asarray(x), "right", u)
+    assert float(jnp.abs(stiff).max()) == 0.0  # no compliance: no side, no play
+    joint = np.array([p.name.endswith(".compliance") for p in lay.params])
+    x[joint] = rng.uniform(0, 5e-8, joint.sum())
+    with_play, _ = robot.sag(jnp.asarray(x), "right", u)
+    x0 = x.copy()
+    x0[play] = 0.0
+    without, _ = robot.sag(jnp.asarray(x0), "right", u)
+    # each element's half play (the tools' index points past x: no play)
+    half = np.append(x, 0.0)[robot._elements("right")["play_idx"]]
+    without = np.asarray(without)
+    extra = np.asarray(with_play) - without
+    np.testing.assert_allclose(extra, half * np.tanh(without / kin.PLAY_SIDE_RAD), atol=1e-12)
+    clear = np.abs(without) > 3e-4
+    assert clear.sum() > 20 and np.all(np.sign(extra[clear]) == np.sign(without[clear]))
+    auto = np.asarray(jax.jacfwd(lambda v: robot.marker_points(v, "right", u))(jnp.asarray(x)))
+    mine = np.asarray(robot.marker_jacobian(jnp.asarray(x), "right", u))
+    cols = lay.group_mask(("backlash", "compliance"))
+    scale = np.abs(auto).max(axis=(0, 1)) + 1e-300
+    assert (np.abs(mine - auto).max(axis=(0, 1)) / scale)[cols].max() < 1e-6
 
 
 def test_a_shared_torso_bends_under_both_arms_whichever_hand_is_measured():
@@ -270,9 +305,10 @@ def test_dh_tree_writes_a_urdf_that_loads_back(tmp_path):
     chains = load_rig_toml(JUSTIN_TOML)["chains"]
     robot = kin.Robot(chains)
     rng = np.random.default_rng(6)
-    # a URDF holds geometry: an encoder's eccentricity has no place in it (calibrate says so)
+    # a URDF holds geometry: an encoder's eccentricity or a joint's play has no place in it
+    # (calibrate says so)
     x = robot.layout.nominal + rng.normal(0, 2, len(robot.layout.params)) * robot.layout.scales \
-        * ~robot.layout.group_mask(("encoder",))
+        * ~robot.layout.group_mask(("encoder", "backlash"))
     calibrated = kin.write_urdf(robot, x, tmp_path / "j.urdf")
     keys = kin.urdf.generated_arm_keys(calibrated)
     rebuilt = {}

@@ -10,6 +10,7 @@ from bayesrob.kinematics.chain import (
     ALL_GROUPS,
     GROUPS,
     OPTIONAL_GROUPS,
+    PLAY_SIDE_RAD,
     Chain,
     KinematicsError,
     ParamLayout,
@@ -35,8 +36,8 @@ from bayesrob.kinematics.planar import (
 from bayesrob.kinematics.urdf import urdf_chain, write_urdf
 
 __all__ = [
-    "ALL_GROUPS", "GROUPS", "OPTIONAL_GROUPS", "PARAM_NAMES", "Arm", "ArmParams", "Chain",
-    "KinematicsError", "ParamLayout",
+    "ALL_GROUPS", "GROUPS", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD", "Arm", "ArmParams",
+    "Chain", "KinematicsError", "ParamLayout",
     "Robot", "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",

@@ -33,12 +33,20 @@ import bayesrob.kinematics.transforms as tf
 JOINT_KINDS = ("revolute", "prismatic")
 GROUPS = ("frames", "offsets", "geometric", "servo")
 # Fitted only when asked for: joints that give way under gravity (see Robot.deflections),
-# and revolute joints read through an eccentric encoder (see Robot.joint_values).
-OPTIONAL_GROUPS = ("compliance", "lateral", "encoder")
+# revolute joints read through an eccentric encoder (see Robot.joint_values), and play in
+# the joints that gravity takes up (see Robot.sag).
+OPTIONAL_GROUPS = ("compliance", "lateral", "encoder", "backlash")
 ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
+# A joint's play is taken on the side its gravity deflection points to, as
+# tanh(deflection / PLAY_SIDE_RAD): a deflection of 0.1 mrad, the joints' repeatability on the
+# arms this package has seen, already puts three quarters of the play on that side. Smaller
+# deflections (a vertical axis, a torque passing through zero) leave the joint in the middle
+# of its play: which side it rests on there depends on how it was approached, which the rows
+# do not record.
+PLAY_SIDE_RAD = 1e-4
 
 
 class KinematicsError(ValueError):
@@ -203,6 +211,11 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
         add((c.name, "encoder"), [f"{c.name}.{j}.encoder.{k}" for j in c.joint_names
                                   for k in ("sin", "cos")],
             "encoder", np.zeros(2 * c.n_joints), [1e-3] * (2 * c.n_joints))
+    for c in chains.values():
+        # half the play of each joint (rad, mm if prismatic): how far gravity moves it to one
+        # side of the middle (last in the vector, so earlier groups keep their indices)
+        add((c.name, "backlash"), [f"{c.name}.{j}.play" for j in c.joint_names], "backlash",
+            np.zeros(c.n_joints), [1e-3 if k == "revolute" else 1.0 for k in c.kinds])
     return ParamLayout(tuple(params), slices)
 
 
@@ -306,12 +319,13 @@ class Robot:
         sl = self.layout.slices
         zero = len(self.layout.params)  # index of a zero appended to x: tools have no mass
         nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
-        compliance_idx, link_idx, lateral_idx, across = [], [], [], []
+        compliance_idx, link_idx, lateral_idx, across, play_idx = [], [], [], [], []
         n_q = 0
         for chain in self.path(arm):
             start = sl[(chain.name, "origins")].start
             c0, l0 = sl[(chain.name, "compliance")].start, sl[(chain.name, "links")].start
             b0 = sl[(chain.name, "lateral")].start
+            p0 = sl[(chain.name, "backlash")].start
             for i in range(chain.n_joints + 1):
                 nominal.append(tf.np_pose_matrix(chain.origins[i]))
                 delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
@@ -320,6 +334,7 @@ class Robot:
                 prismatic.append(0.0 if last else float(chain.kinds[i] == "prismatic"))
                 q_idx.append(-1 if last else n_q + i)
                 compliance_idx.append(zero if last else c0 + i)
+                play_idx.append(zero if last else p0 + i)
                 link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
                 lateral_idx.append([zero] * 2 if last else [b0 + 2 * i, b0 + 2 * i + 1])
                 across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
@@ -329,7 +344,7 @@ class Robot:
                "axes": np.stack(axes), "prismatic": np.array(prismatic),
                "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
                "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
-               "across": np.stack(across)}
+               "across": np.stack(across), "play_idx": np.array(play_idx)}
         cache[arm] = out
         return out
 
@@ -415,6 +430,8 @@ class Robot:
         calibration fits them with the compliances (only their products are identifiable; the
         rank analysis drops the rest). One step at the commanded pose: a deflection of a few
         mrad changes the torques by a few parts in a thousand, far below what the data resolve.
+        With ``backlash`` fitted, each joint also moves by its half play p_e towards the side it
+        gives way to: + p_e tanh(deflection_e / PLAY_SIDE_RAD).
         """
         return self.sag(x, arm, u, side)[0]
 
@@ -445,7 +462,7 @@ class Robot:
     def _sag_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
                 hanging: tuple = ()) -> tuple[jax.Array, jax.Array]:
         # the torques of sag() in frames already computed: linear in the masses and first
-        # moments, the deflections and bending linear in the compliances
+        # moments, the deflections and bending linear in the compliances (plus the play)
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         s = xz[el["compliance_idx"]]  # (E,)
@@ -469,7 +486,12 @@ class Robot:
         lateral = xz[el["lateral_idx"]]  # (E, 2)
         bend = jnp.einsum("ek,enk,ekj->enj", lateral,
                           jnp.einsum("enj,ekj->enk", torque, across), across)
-        return (s[:, None] * tau).T, jnp.swapaxes(bend, 0, 1)
+        defl = s[:, None] * tau
+        # play taken on the side the joint gives way to: the deflection's sign is identified
+        # where the torque itself is not (only compliance x mass is), and it is zero, so is
+        # the play's effect, until a compliance is fitted
+        play = xz[el["play_idx"]][:, None] * jnp.tanh(defl / PLAY_SIDE_RAD)
+        return (defl + play).T, jnp.swapaxes(bend, 0, 1)
 
     def n_path_joints(self, arm: str) -> int:
         """How many joints the path to ``arm`` has (its mounts' and its own)."""
@@ -587,7 +609,7 @@ class Robot:
             # dependence on the geometry, offsets and gains is left out, and a bend's
             # derivative is taken at zero bend: relative changes of order 1e-3 in a sag of a
             # few mrad, far below what the fit resolves (tests/test_chain.py: jax.jacfwd).
-            idx = np.flatnonzero(self.layout.group_mask(("compliance", "lateral")))
+            idx = np.flatnonzero(self.layout.group_mask(("compliance", "lateral", "backlash")))
 
             def deflect(v):
                 return self._sag_at(x.at[idx].set(v), arm, *frames)
