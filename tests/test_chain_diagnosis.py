@@ -117,3 +117,20 @@ def test_residual_figure_draws_every_validation_marker_on_two_planes(tmp_path):
     gains = [np.hypot(q.U, q.V).max() / np.linalg.norm(r[:, list(p)], axis=1).max()
              for q, r, p in zip(quivers, [res[0], res[0], res[1], res[1]], planes, strict=True)]
     assert np.ptp(gains) < 1e-9 * max(gains)
+
+
+def test_play_is_simulated_for_a_single_arm6_only(tmp_path, capsys):
+    for argv, message in (([], "--play-mrad, --poses and --linked are for --robot arm6"),
+                          (["--robot", "arm6", "--linked"], "--play-mrad is for a single arm6")):
+        assert main(["simulate", str(tmp_path / "r"), "--play-mrad", "2", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err, err
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", str(tmp_path / "r"), "--robot", "arm6", "--play-mrad", "-1"])
+    assert exc.value.code == 2 and "must be 0 or more" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+    assert main(["simulate", str(tmp_path / "r"), "--robot", "arm6", "--compliance",
+                 "--play-mrad", "2", "--poses", "4", "2", "2"]) == 0
+    assert "play 2 mrad" in capsys.readouterr().out
+    truth = (tmp_path / "r" / "truth.toml").read_text()
+    assert "joint_play_rad = 0.002" in truth
