@@ -226,7 +226,7 @@ def main() -> int:
                    help="run the tuning rigs (seeds 21-35; the rule was chosen on them)")
     p.add_argument("--chain", action="store_true",
                    help="with --confusion / --tuning: the 6-joint 3-D arms instead "
-                        "(report seeds 71-73, tuning seeds 61-62)")
+                        "(report seeds 74-76, tuning seeds 61-62)")
     p.add_argument("--sensitivity", action="store_true", help="effect size x noise at 4x4")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--scheduler", help="address of a running Dask scheduler")

@@ -101,8 +101,9 @@ def test_strong_effects_are_named_exactly_in_nine_of_ten_rigs(sweep):
 
 # ------------------------------------------------------------------ 6-joint 3-D arms
 # tests/chain_generators.py: hardening joint springs with rods and motors, bearings tilting
-# across their axes, encoder errors once and twice per revolution; and the simulator's own
-# arm6 physics. Tuning seeds 61-62, report seeds 71-73 (fixed before any run).
+# across their axes, encoder errors once and twice per revolution, play with
+# approach-direction hysteresis; and the simulator's own arm6 physics. Tuning seeds 61-62;
+# report seeds 74-76, fixed before any run (71-73 reported the candidates before backlash).
 
 
 @pytest.fixture(scope="module")
@@ -112,10 +113,11 @@ def chain_sweep() -> list[dict]:
 
 CHAIN_PUBLISHED_CONFUSION: dict[str, dict[str, int]] = {
     "none": {"none": 6},
-    "joint_compliance": {"joint_compliance": 5, "encoder_error+joint_compliance": 1},
+    "joint_compliance": {"joint_compliance": 6},
     "lateral_compliance": {"joint_compliance": 3},
     "encoder_error": {"encoder_error": 6},
     "encoder_error+joint_compliance": {"encoder_error+joint_compliance": 2, "joint_compliance": 1},
+    "backlash+joint_compliance": {"backlash+joint_compliance": 2, "joint_compliance": 4},
 }
 
 
@@ -128,17 +130,19 @@ def test_the_published_chain_confusion_matrix(chain_sweep):
 
 def test_chain_clean_rigs_name_nothing_and_named_effects_close_the_gap(chain_sweep):
     """No false alarm on the 6 clean arms; where effects were named, the error at new poses
-    above the clean twin's falls to at most 0.6 of what it was (published: 4%)."""
+    above the clean twin's falls to at most 0.6 of what it was (published: 7.5%)."""
     t = targets(chain_sweep)
     assert t["clean"] == 6 and t["false_alarms"] == 0
     assert t["gap_ratio"] <= 0.6
-    assert abs(t["gap_ratio"] - 0.04) <= 0.005
+    assert abs(t["gap_ratio"] - 0.075) <= 0.005
 
 
-@pytest.mark.xfail(strict=True, reason="target missed on the report arms: 13 of 18 strong rigs "
+@pytest.mark.xfail(strict=True, reason="target missed on the report arms: 15 of 23 strong rigs "
                    "named exactly (bearings tilting across their axes are named joint "
-                   "compliance in 3 of 3)")
+                   "compliance in 3 of 3; play with compliance is named joint compliance only "
+                   "in 4 of 6: its sides in the vertical axis and under weak torques are not in "
+                   "the rows)")
 def test_strong_chain_effects_are_named_exactly_in_nine_of_ten_rigs(chain_sweep):
     t = targets(chain_sweep)
-    assert t["strong"] == 18
+    assert t["strong"] == 23
     assert t["strong_right"] >= 0.9 * t["strong"]
