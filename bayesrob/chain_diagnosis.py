@@ -45,6 +45,14 @@ CHAIN_EFFECTS = {"joint_compliance": "compliance", "lateral_compliance": "latera
 # per parameter than joint compliance alone, and on the arm with play and stiff joints it
 # did not pass (z 1.6).
 NEEDS = {"backlash": "joint_compliance"}
+# Once an effect is named, the selection fits of backlash and the encoder terms start from
+# the named model's fit (each corrects the angles of joints that fit already holds) with
+# fewer evaluations: on Justin each such fit from the nominal robot took 23-32 s of the
+# diagnosis's time. The compliance groups start from the nominal robot: started from the
+# named fit, lateral compliance after joint compliance stopped at 4.05 mm on Justin's
+# selection poses against 3.48 from the nominal robot.
+WARM_STARTED = ("encoder_error", "backlash")
+WARM_NFEV = 40
 ALIASES = {"gravity_sag": "joint_compliance"}  # the planar name of joint compliance
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
@@ -157,11 +165,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         cal = calibrate_chain(split, groups, polish=False, max_nfev=SELECTION_NFEV)
         before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
-        # Once an effect is named, each candidate's fit starts from the named model's (on
-        # Justin the round-3 fits took 3 s instead of 25-29, the whole diagnosis 277 s instead
-        # of 314); before, from the nominal robot, which was the faster start for round 1's
-        # fits (joint compliance 27 s against 42 s from the geometric fit).
-        current = None
+        current = None  # the named model's fit (WARM_STARTED candidates start from it)
         bar.update(1)
         while len(named) < len(candidates):
             scores = []
@@ -169,7 +173,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                         if c not in named and NEEDS.get(c, c) in (*named, c)):
                 # compared with each other, not reported: the fast fit is enough to decide
                 cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]), polish=False,
-                                      max_nfev=SELECTION_NFEV, start=current)
+                                      **({"max_nfev": WARM_NFEV, "start": current}
+                                         if eff in WARM_STARTED and current is not None
+                                         else {"max_nfev": SELECTION_NFEV}))
                 after = _row_errors(split, cal, "selection")
                 bar.update(1)
                 z = _paired_z(before, after)

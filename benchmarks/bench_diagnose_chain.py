@@ -6,7 +6,7 @@ train and 200 validation poses) when its data is at hand, else the simulator's c
 
 Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from
 after the imports), the effects named and the validation ladder. Target (2 cores): under 5
-minutes on Justin. Measured: 255 s with four candidates (backlash among them; 314 s while
+minutes on Justin. Measured: 218 s with four candidates (backlash among them; 314 s while
 every selection fit started from the nominal robot, 284 s with three candidates); joint then
 lateral compliance, 10.97 -> 4.34 -> 3.26 mm.
 """
