@@ -92,7 +92,7 @@ class ChainDiagnosis:
             "rule": (f"of the candidates whose paired error drop on the selection poses "
                      f"({self.selection_rows} train rows held back) exceeds {Z_MIN:g} "
                      "standard errors, name the one with the largest drop per added "
-                     "parameter; "
+                     "parameter (backlash is tried once joint_compliance is named); "
                      "validation rows only report"),
             "steps": self.steps, "rounds": self.rounds,
             "baseline": self.baseline,
