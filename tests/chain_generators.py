@@ -123,12 +123,19 @@ def _torques(joints: np.ndarray, links: np.ndarray) -> np.ndarray:
     return out
 
 
+def _joint_torques(robot: Robot, joints: np.ndarray, links: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The gravity torques of :func:`_torques` in each joint's frame (N, 6, 3), and their
+    component about its axis (N, 6)."""
+    local = np.einsum("jnba,njb->nja", joints[:6, :, :3, :3], _torques(joints, links))
+    return local, np.einsum("nja,ja->nj", local, np.asarray(robot.chains["arm"].axes))
+
+
 def _play(robot: Robot, x: np.ndarray, q: np.ndarray, scale: float, frames) -> np.ndarray:
     """Where each joint rests in its play (N, 6) rad: towards its gravity torque where that
     beats the friction, else towards where it came from (the previous row's pose)."""
     joints, links = (np.asarray(a) for a in frames(x, q, np.zeros((q.shape[0], 7, 3))))
-    local = np.einsum("jnba,njb->nja", joints[:6, :, :3, :3], _torques(joints, links))
-    about = np.einsum("nja,ja->nj", local, np.asarray(robot.chains["arm"].axes))
+    _, about = _joint_torques(robot, joints, links)
     moved = np.sign(np.diff(q, axis=0, prepend=q[:1] - 1.0))
     side = np.where(np.abs(about) > STICK_NMM, np.sign(about), moved)
     return 0.5 * PLAY_RAD * scale * side
@@ -144,9 +151,7 @@ def _true_points(robot: Robot, x: np.ndarray, q: np.ndarray, effects: tuple[str,
     if "joint_compliance" in effects or "lateral_compliance" in effects:
         for _ in range(40):
             joints, links = (np.asarray(a) for a in frames(x, q + defl[:, :6], bend))
-            tau = _torques(joints, links)  # (N, 6, 3) instrument frame
-            local = np.einsum("jnba,njb->nja", joints[:6, :, :3, :3], tau)  # joint frames
-            about = np.einsum("nja,ja->nj", local, axes)
+            local, about = _joint_torques(robot, joints, links)
             new_defl, new_bend = np.zeros_like(defl), np.zeros_like(bend)
             if "joint_compliance" in effects:
                 new_defl[:, :6] = _spring(k, about)
