@@ -38,8 +38,11 @@ only (as ``bayesrob predict`` does), and ranked: requirement met first, then few
 then the smaller predicted error quantile over the region.
 
 The error of a candidate is the distance from the target of the predicted end point as the
-tracker would measure it (the joint-error models are fitted to measured end points, and
-``tracker_noise_mm`` puts back the tracker noise that linking averages away in them). Its
+tracker would measure it. The joint-error models are fitted to measured end points; with
+``tracker_noise_mm`` known (and equilibrium fusion) the tracker's noise is first taken out of
+each train row's joint errors (:func:`bayesrob.noise_models.without_tracker_noise`), so a
+module's density is of its joints' own errors at any mount, and each predicted point gets the
+tracker's noise once. Its
 quantile "over the region" pools every target's predicted distribution, one target as likely
 as another: the accuracy at a target drawn at random from the task.
 
@@ -343,6 +346,8 @@ class Module:
     gravity: tuple[float, float]
     param_cov: np.ndarray  # (8, 8) the calibration's parameter covariance
     truth_rig: Truth | None = None  # simulated modules: their rig's physics, for the proof
+    # the joint-error model was fitted with the tracker's noise taken out of its rows
+    tracker_removed: bool = False
 
     @property
     def truth(self) -> ArmTruth | None:
@@ -393,7 +398,12 @@ def load_modules(design: DesignSpec, models_dir: Any = None
 def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list[ModuleSpec]],
                          models_dir: Any) -> dict[str, Module]:
     from bayesrob.calibration import calibrate, parameter_covariance
-    from bayesrob.noise_models import ModelFileError, discover_models, fit_noise_models
+    from bayesrob.noise_models import (
+        ModelFileError,
+        discover_models,
+        joint_errors,
+        without_tracker_noise,
+    )
     from bayesrob.simulator import TRUTH_FILE, Truth
 
     out: dict[str, Module] = {}
@@ -417,16 +427,24 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
                 raise DesignError(f"{design.path}: [modules.{m.name}]: unknown model "
                                   f"{m.model!r}")
             arm = cal[m.arm].arm
-            fitted = fit_noise_models(rig, {m.arm: arm}, specs[m.model])[m.model][m.arm]
+            u, d = rig.arm_rows(m.arm, "train")
+            errors = joint_errors(arm, u, d)
+            fitted = specs[m.model][0].fit(errors, u)
+            # equilibrium draws add the tracker's noise to the measured point: the density
+            # is then of the joints' own errors (the grid's product keeps the paper's rows)
+            removed = (design.tracker_noise_mm > 0 and design.fusion == "equilibrium"
+                       and is_sampleable(fitted))
+            if removed:
+                fitted = specs[m.model][0].fit(without_tracker_noise(
+                    arm, u, errors, design.tracker_noise_mm), u)
             p = arm.params
             orig = rig.arms[m.arm]
             cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
                                       for x in (p.base, p.links, p.gain, p.offset)),
                             orig.elbow, orig.pulse_limits, orig.stiffness)
-            u, d = rig.arm_rows(m.arm, "train")
             cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
             out[m.name] = Module(m.name, arm, fitted, cspec, tuple(rig.gravity),
-                                 cov + COV_JITTER * np.diag(np.diag(cov)), truth)
+                                 cov + COV_JITTER * np.diag(np.diag(cov)), truth, removed)
     return out
 
 
@@ -541,10 +559,11 @@ class _Job:
     cache: dict = field(default_factory=dict, compare=False)
 
 
-@partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm"))
+@partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm",
+                                   "densities_hold_tracker"))
 def _draws(key: jax.Array, commands: tuple, arrays: tuple, params: tuple, param_cov: tuple, *,
            kinds: tuple[str, ...], stiffness: tuple | None, num_samples: int,
-           tracker_noise_mm: float) -> jax.Array:
+           tracker_noise_mm: float, densities_hold_tracker: bool) -> jax.Array:
     # One compiled program per kind of assembly (model kinds, stiffness knowledge, shapes):
     # which modules and where they stand are traced arguments.
     from numpyro.infer import Predictive
@@ -552,7 +571,8 @@ def _draws(key: jax.Array, commands: tuple, arrays: tuple, params: tuple, param_
     names = tuple(f"arm{i}" for i in range(len(kinds)))
     out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
         key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
-        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm)
+        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm,
+        densities_hold_tracker=densities_hold_tracker)
     return out["d"]
 
 
@@ -607,7 +627,8 @@ def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
             tuple(error_arrays(m.fitted) for m in mods), tuple(a.params for a in arms),
             tuple(jnp.asarray(m.param_cov) for m in mods),
             kinds=tuple(error_kind(m.fitted) for m in mods), stiffness=stiffness,
-            num_samples=job.draws, tracker_noise_mm=job.tracker_noise_mm))
+            num_samples=job.draws, tracker_noise_mm=job.tracker_noise_mm,
+            densities_hold_tracker=not all(m.tracker_removed for m in mods)))
         weights = None
         dist, mean, confidence, assured, optimistic = _draw_scores(job, d)
     else:  # the product of likelihoods (or the paper's histogram COND): the grid

@@ -141,7 +141,8 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
                         params: Sequence[kin.ArmParams], names: tuple[str, ...],
                         stiffness: Sequence[Any] | None = None,
                         param_cov: Sequence[jax.Array] | None = None,
-                        tracker_noise_mm: float = 0.0) -> None:
+                        tracker_noise_mm: float = 0.0,
+                        densities_hold_tracker: bool = True) -> None:
     """:func:`equilibrium_model` on the models' arrays and the arms' parameters, so a compiled
     caller (the configuration designer) traces them rather than baking them in: one program
     serves every placement of the same modules.
@@ -154,6 +155,9 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     fitted to measured points, so each arm's carries the tracker's noise, and the balance
     averages it down (to sum_a W_a W_a^T sigma^2, W_a = (sum K)^-1 K_a); but the linked point
     is measured once, with all of it. The missing sigma^2 (I - sum_a W_a W_a^T) is added back.
+    ``densities_hold_tracker`` False: the densities were fitted with the tracker's noise taken
+    out (:func:`bayesrob.noise_models.without_tracker_noise`), so all of it is added, to a
+    single arm's point as to a linked one.
     """
     frees, springs = [], []
     log_k = _log_stiffness(len(kinds), stiffness)
@@ -170,7 +174,11 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
         frees.append(numpyro.deterministic(f"free_{names[i]}", kin.forward(p, theta)))
         springs.append(cartesian_stiffness(p, theta, jnp.exp(log_k[i])))
     d = equilibrium_point(jnp.stack(frees), jnp.stack(springs))
-    if tracker_noise_mm > 0 and len(kinds) > 1:
+    if tracker_noise_mm > 0 and not densities_hold_tracker:
+        with numpyro.plate("targets", d.shape[-2]):
+            z = numpyro.sample("tracker", dist.Normal(0.0, 1.0).expand([2]).to_event(1))
+        d = d + tracker_noise_mm * z
+    elif tracker_noise_mm > 0 and len(kinds) > 1:
         k = jnp.stack(springs)
         w = jnp.einsum("...ij,a...jk->a...ik", inv2(k.sum(axis=0)), k)  # (A, ..., 2, 2)
         cov = tracker_noise_mm**2 * (jnp.eye(2) - jnp.einsum("a...ij,a...kj->...ik", w, w))

@@ -191,6 +191,42 @@ def joint_errors(arm: kin.Arm, u: np.ndarray, d_obs: np.ndarray) -> np.ndarray:
     return np.asarray(kin.wrap_angle(theta - kin.servo(arm.params, jnp.asarray(u))))
 
 
+def without_tracker_noise(arm: kin.Arm, u: np.ndarray, theta_err: np.ndarray,
+                          tracker_noise_mm: float) -> np.ndarray:
+    """Joint errors (N, 2) with the tracker's noise taken out of them.
+
+    A row's joint error read off its measured point carries the tracker's noise eps through
+    the inverse Jacobian at that pose: theta_err_i = e_i + J_i^-1 eps_i, eps_i ~ N(0, s^2 I).
+    Near a stretched or folded pose J_i^-1 is large, so a density of these errors is wider than
+    the joints' own, and mapped through another pose's Jacobian it predicts errors the joints
+    never make (the tracker's noise belongs to the measured point, not to the joints). With
+    Sigma the joints' own covariance (the errors' covariance less the mean of the noise's,
+    C_i = s^2 J_i^-1 J_i^-T), each row is mapped by Sigma^1/2 (Sigma + C_i)^-1/2 about the
+    mean: rows whose noise is small barely move, and each mapped row has covariance Sigma
+    (for Gaussian errors). Predictions then add the tracker's noise to the measured point.
+    """
+    theta_err = np.asarray(theta_err, float)
+    if tracker_noise_mm <= 0 or len(theta_err) < 3:
+        return theta_err
+    theta = np.asarray(kin.servo(arm.params, jnp.asarray(u))) + theta_err
+    jinv = np.linalg.inv(np.asarray(kin.jacobian(arm.params, jnp.asarray(theta))))
+    c = tracker_noise_mm**2 * np.einsum("nij,nkj->nik", jinv, jinv)
+    mean = theta_err.mean(axis=0)
+    total = np.cov(theta_err.T)
+    w, v = np.linalg.eigh(total - c.mean(axis=0))
+    # what the noise does not explain, kept at least a tenth of the errors' spread per axis:
+    # a rig whose errors are all tracker noise still gets a proper (narrow) density
+    w = np.maximum(w, 0.01 * np.linalg.eigvalsh(total).min())
+    sigma = (v * w) @ v.T
+
+    def root(m: np.ndarray, power: float) -> np.ndarray:
+        ew, ev = np.linalg.eigh(m)
+        return np.einsum("...ij,...j,...kj->...ik", ev, ew**power, ev)
+
+    a = np.einsum("ij,njk->nik", root(sigma, 0.5), root(sigma[None] + c, -0.5))
+    return mean + np.einsum("nij,nj->ni", a, theta_err - mean)
+
+
 def _source_models_dir() -> Path | None:
     # In a source checkout models/ sits beside the package; prefer it so edits show at once.
     here = Path(__file__).resolve().parent.parent / "models"
