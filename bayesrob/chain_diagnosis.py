@@ -161,6 +161,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     groups = BASE_GROUPS
     named: list[str] = []
     rounds: list[list[dict]] = []
+    # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         cal = calibrate_chain(split, groups, polish=False, max_nfev=SELECTION_NFEV)
@@ -198,6 +199,8 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
             before, n_before = best["_after"], n_before + best["parameters"]
             current = best["_x"]
+        # the selection is over: what is left is known, a ladder fit per step and the base
+        bar.total = bar.n + len(named) + 1
         # the ladder: every step refitted on all train rows, reported on the validation rows
         steps, ladder = [], [BASE_GROUPS]
         for eff in named:
