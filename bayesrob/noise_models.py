@@ -209,7 +209,8 @@ def without_tracker_noise(arm: kin.Arm, u: np.ndarray, theta_err: np.ndarray,
     if tracker_noise_mm <= 0 or len(theta_err) < 3:
         return theta_err
     theta = np.asarray(kin.servo(arm.params, jnp.asarray(u))) + theta_err
-    jinv = np.linalg.inv(np.asarray(kin.jacobian(arm.params, jnp.asarray(theta))))
+    # pinv: at a straight elbow J has no inverse; the directions it has are kept
+    jinv = np.linalg.pinv(np.asarray(kin.jacobian(arm.params, jnp.asarray(theta))))
     c = tracker_noise_mm**2 * np.einsum("nij,nkj->nik", jinv, jinv)
     mean = theta_err.mean(axis=0)
     total = np.cov(theta_err.T)
