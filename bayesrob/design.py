@@ -429,14 +429,16 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
             arm = cal[m.arm].arm
             u, d = rig.arm_rows(m.arm, "train")
             errors = joint_errors(arm, u, d)
-            fitted = specs[m.model][0].fit(errors, u)
+            spec = specs[m.model][0]
             # equilibrium draws add the tracker's noise to the measured point: the density
-            # is then of the joints' own errors (the grid's product keeps the paper's rows)
-            removed = (design.tracker_noise_mm > 0 and design.fusion == "equilibrium"
-                       and is_sampleable(fitted))
-            if removed:
-                fitted = specs[m.model][0].fit(without_tracker_noise(
-                    arm, u, errors, design.tracker_noise_mm), u)
+            # is then of the joints' own errors (the grid's product, and a model that cannot
+            # draw, which goes to the grid, keep the paper's rows)
+            removed = design.tracker_noise_mm > 0 and design.fusion == "equilibrium"
+            fitted = spec.fit(without_tracker_noise(arm, u, errors, design.tracker_noise_mm)
+                              if removed else errors, u)
+            if removed and not is_sampleable(fitted):
+                removed = False
+                fitted = spec.fit(errors, u)
             p = arm.params
             orig = rig.arms[m.arm]
             cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))

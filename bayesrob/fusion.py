@@ -174,17 +174,16 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
         frees.append(numpyro.deterministic(f"free_{names[i]}", kin.forward(p, theta)))
         springs.append(cartesian_stiffness(p, theta, jnp.exp(log_k[i])))
     d = equilibrium_point(jnp.stack(frees), jnp.stack(springs))
-    if tracker_noise_mm > 0 and not densities_hold_tracker:
+    if tracker_noise_mm > 0 and (len(kinds) > 1 or not densities_hold_tracker):
         with numpyro.plate("targets", d.shape[-2]):
             z = numpyro.sample("tracker", dist.Normal(0.0, 1.0).expand([2]).to_event(1))
-        d = d + tracker_noise_mm * z
-    elif tracker_noise_mm > 0 and len(kinds) > 1:
-        k = jnp.stack(springs)
-        w = jnp.einsum("...ij,a...jk->a...ik", inv2(k.sum(axis=0)), k)  # (A, ..., 2, 2)
-        cov = tracker_noise_mm**2 * (jnp.eye(2) - jnp.einsum("a...ij,a...kj->...ik", w, w))
-        with numpyro.plate("targets", d.shape[-2]):
-            z = numpyro.sample("tracker", dist.Normal(0.0, 1.0).expand([2]).to_event(1))
-        d = d + jnp.einsum("...ij,...j->...i", _sqrt_psd2(cov), z)
+        if densities_hold_tracker:
+            k = jnp.stack(springs)
+            w = jnp.einsum("...ij,a...jk->a...ik", inv2(k.sum(axis=0)), k)  # (A, ..., 2, 2)
+            cov = tracker_noise_mm**2 * (jnp.eye(2) - jnp.einsum("a...ij,a...kj->...ik", w, w))
+            d = d + jnp.einsum("...ij,...j->...i", _sqrt_psd2(cov), z)
+        else:
+            d = d + tracker_noise_mm * z
     numpyro.deterministic("d", d)
 
 
