@@ -146,6 +146,11 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="arm6: two arms (left, right) facing each other, single-arm rows for "
                         "each (--poses per arm) and 24 left+right test rows with their markers "
                         "joined at one point")
+    p.add_argument("--stiffness-spread", type=_non_negative_float, default=None,
+                   metavar="LOG_SD",
+                   help="draw each arm's joint stiffnesses for the seed: log k = log(profile) "
+                        "+ N(0, LOG_SD) per arm + N(0, LOG_SD) per joint (planar rigs: 0, "
+                        "every arm alike, by default; arm6 --linked: 0.3)")
 
 
 def _truth_options(truth: T, args: argparse.Namespace) -> T:
@@ -179,6 +184,9 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
         if args.play_mrad is not None:
             raise UsageError("--play-mrad is for a single arm6 (the linked arms have none)")
         return _simulate_linked_chain(args, out_dir, existing)
+    if args.stiffness_spread is not None:
+        raise UsageError("--stiffness-spread is for planar rigs and arm6 --linked (a single "
+                         "arm6 has one stiffness profile)")
     truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance),
                                       joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
     out = simulate_chain_rig(out_dir, truth)
@@ -200,6 +208,8 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     )
 
     truth = LinkedChainTruth(seed=args.seed)
+    if args.stiffness_spread is not None:
+        truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
     truth = _truth_options(truth, args)
@@ -247,7 +257,8 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.compliance is not None or args.poses or args.linked or args.play_mrad is not None:
         raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6")
     make = three_arm_truth if args.robot == "three-arm" else paper_truth
-    truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid), args)
+    truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid,
+                                stiffness_log_sd=args.stiffness_spread or 0.0), args)
     out = simulate_rig(args.out_dir, truth, progress=_progress(args))
     effects = ",".join(truth.effects) or "none"
     _say_replaced(existing)

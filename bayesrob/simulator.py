@@ -165,12 +165,16 @@ def _offsets_for(base, links, gain, elbow, limits, workspace) -> tuple[float, fl
                                                                 strict=True))
 
 
-def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Truth:
+def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
+                stiffness_log_sd: float = 0.0) -> Truth:
     """The paper's setup: a top arm hung from a strut, a bottom arm standing on the base.
 
     The bottom arm carries most of its mobile mass in the elbow servo and bends its elbow to
     the left, so across the workspace the gravity torque on its shoulder changes sign and the
     shoulder's backlash makes the end point jump, as the paper saw.
+
+    ``stiffness_log_sd`` > 0 draws each arm's joint stiffnesses for this seed
+    (:func:`with_drawn_stiffness`); 0 keeps every arm at the same (2500, 1800) N mm/rad.
     """
     workspace = ((80.0, 260.0), (100.0, 280.0))
     limits = ((600.0, 2400.0), (600.0, 2400.0))
@@ -183,11 +187,35 @@ def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Tr
     ):
         offset = _offsets_for(base, links, gain, elbow, limits, workspace)
         arms[name] = ArmTruth(name, base, links, gain, offset, elbow, limits, **masses)
-    return Truth("paper-rig", arms, seed=seed, grid=grid, workspace=workspace).with_effects(
+    truth = Truth("paper-rig", arms, seed=seed, grid=grid, workspace=workspace).with_effects(
         effects)
+    return with_drawn_stiffness(truth, stiffness_log_sd)
 
 
-def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -> Truth:
+def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
+    """The truth with each arm's joint stiffnesses drawn for its seed: the arm's own ones
+    scaled by exp(N(0, sd) per arm + N(0, sd) per joint), as the 3-D simulator draws them.
+
+    Two servos of one model are not equally stiff, and neither are two arms' mountings and
+    links. With one stiffness for every arm, a prior that linked arms are alike is right by
+    construction, so predictions judged on such rigs flatter it. The draws come from a stream
+    of their own: the rest of the rig is what the seed always gave. 0 leaves the truth as is.
+    """
+    if log_sd < 0:
+        raise ValueError(f"stiffness_log_sd must be >= 0, got {log_sd}")
+    if log_sd == 0:
+        return truth
+    rng = np.random.default_rng([truth.seed, 17])
+    arms = {}
+    for name, arm in truth.arms.items():
+        k = np.asarray(arm.stiffness_nmm_per_rad, float)
+        k = k * np.exp(log_sd * rng.normal() + log_sd * rng.normal(size=k.shape))
+        arms[name] = replace(arm, stiffness_nmm_per_rad=tuple(float(round(v, 1)) for v in k))
+    return replace(truth, arms=arms)
+
+
+def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
+                    stiffness_log_sd: float = 0.0) -> Truth:
     """The paper's two arms and a third standing to the left of the workspace (``side``):
     three arms linked at one end point, for predictions of assemblies of more than two."""
     pair = paper_truth(effects, seed, grid)
@@ -196,7 +224,8 @@ def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4) -
     offset = _offsets_for(base, links, gain, -1, limits, pair.workspace)
     side = ArmTruth("side", base, links, gain, offset, -1, limits, link_mass_kg=(0.045, 0.035),
                     elbow_mass_kg=0.07, end_mass_kg=0.015)
-    return replace(pair, name="three-arm-rig", arms={**pair.arms, "side": side})
+    truth = replace(pair, name="three-arm-rig", arms={**pair.arms, "side": side})
+    return with_drawn_stiffness(truth, stiffness_log_sd)
 
 
 # ------------------------------------------------------------------------------ physics

@@ -170,3 +170,44 @@ def test_the_default_rig_regenerates_byte_for_byte(tmp_path):
     out = sim.simulate_rig(tmp_path / "rig", truth)
     for f in ("rig.toml", "measurements.csv", "truth.toml"):
         assert (out / f).read_bytes() == (default_rig_dir() / f).read_bytes(), f
+
+
+def test_drawn_stiffness_differs_per_arm_and_seed_and_leaves_the_rest_of_the_rig(tmp_path):
+    """Per-seed stiffness draws: reproducible for a seed, different between arms and seeds,
+    recorded in truth.toml, and nothing but the stiffnesses changes (the draws have a stream of
+    their own, so the rest of a rig is what the seed always gave)."""
+    plain = sim.paper_truth(("gravity_sag",), seed=7)
+    drawn = sim.paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
+    assert drawn == sim.paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
+    k = {n: np.asarray(a.stiffness_nmm_per_rad) for n, a in drawn.arms.items()}
+    assert not np.allclose(k["top"], k["bottom"])
+    assert not np.allclose(k["top"], plain.arms["top"].stiffness_nmm_per_rad)
+    other = sim.paper_truth(("gravity_sag",), seed=8, stiffness_log_sd=0.3)
+    assert not np.allclose(k["top"], other.arms["top"].stiffness_nmm_per_rad)
+    for n, a in drawn.arms.items():
+        assert replace(a, stiffness_nmm_per_rad=plain.arms[n].stiffness_nmm_per_rad) == \
+            plain.arms[n]
+    # a factor e^(2 x 0.3 x 4) = 11 would be a four-sigma draw on both terms
+    ratio = np.concatenate([k[n] / np.asarray(plain.arms[n].stiffness_nmm_per_rad) for n in k])
+    assert np.all((ratio > 1 / 11) & (ratio < 11)), ratio
+    sim.simulate_rig(tmp_path, drawn, holdout=False)
+    assert sim.Truth.from_toml(tmp_path / sim.TRUTH_FILE).arms == drawn.arms
+    three = sim.three_arm_truth(seed=7, stiffness_log_sd=0.3)
+    assert len({a.stiffness_nmm_per_rad for a in three.arms.values()}) == 3
+    with pytest.raises(ValueError, match="stiffness_log_sd"):
+        sim.paper_truth(seed=7, stiffness_log_sd=-0.1)
+
+
+def test_simulate_command_draws_stiffness_for_planar_rigs_only(tmp_path, capsys):
+    from bayesrob.cli import main
+
+    out = tmp_path / "r"
+    assert main(["simulate", str(out), "--grid", "2", "--seed", "3",
+                 "--stiffness-spread", "0.3"]) == 0
+    assert sim.Truth.from_toml(out / sim.TRUTH_FILE).arms == \
+        sim.paper_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
+    capsys.readouterr()
+    assert main(["simulate", str(tmp_path / "c"), "--robot", "arm6",
+                 "--stiffness-spread", "0.3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--stiffness-spread" in err[0], err
