@@ -1,8 +1,10 @@
 """Equilibrium fusion of linked arms (bayesrob.fusion) and predictions of assemblies before they
 are built (bayesrob.assembly, ``bayesrob predict``).
 
-Rigs: the simulator at seeds 1-6 (gravity sag and backlash) are the report rigs of the
-coverage figures; the stiffness prior was chosen on seeds 101-106, which no test uses.
+Rigs: the simulator at seeds 601-606 (gravity sag and backlash, each arm's stiffnesses drawn
+per seed with log sd 0.3) are the report rigs of the linked coverage figures, fixed before they
+were first run; the stiffness prior was chosen on seeds 101-106 (drawn the same way), which no
+test uses.
 """
 
 from __future__ import annotations
@@ -27,6 +29,10 @@ from bayesrob.simulator import PhysicalRig, paper_truth, simulate_rig, three_arm
 
 ALPHA = 0.01
 IMPROVED = ("ind", "corr", "cond")
+REPORT_SEEDS = range(601, 607)
+# Two arms are not equally stiff: with one stiffness for every arm a prior that linked arms are
+# alike would be right by construction (docs/fusion.md, "a trap")
+REPORT_STIFFNESS_LOG_SD = 0.3
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +44,8 @@ def sag_rig(tmp_path_factory):
 @pytest.fixture(scope="module")
 def three_rig(tmp_path_factory):
     d = tmp_path_factory.mktemp("three")
-    return simulate_rig(d, three_arm_truth(("gravity_sag", "backlash"), seed=1))
+    return simulate_rig(d, three_arm_truth(("gravity_sag", "backlash"), seed=1,
+                                           stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
 
 
 def _fitted(rig, name):
@@ -255,7 +262,8 @@ def test_three_arms_predicted_from_single_arm_rows(three_rig, tmp_path, record_p
     compared with the simulator's measurements of the assembly (16 test points, ind and
     cond pooled: 32 levels). Coverage of the 50% / 90% regions: binomial at 0.01 (the
     sample is small); the mean predicted error within [0.7, 1.3] of the observed (measured
-    0.85 / 0.87 of it)."""
+    0.72 / 0.77 of it on this rig, whose arms' stiffnesses are drawn: three arms are predicted
+    somewhat too accurate, see docs/fusion.md)."""
     single = _single_arm_copy(three_rig, tmp_path / "three_single")
     rig = load_rig(three_rig)
     rows = rig.config_rows("top+bottom+side", "test")
@@ -276,12 +284,14 @@ def test_three_arms_predicted_from_single_arm_rows(three_rig, tmp_path, record_p
 
 @pytest.fixture(scope="module")
 def report_levels(tmp_path_factory):
-    """Equilibrium fusion on the report rigs (seeds 1-6, sag and backlash): HDR levels and
-    predicted / observed linked errors of the 96 linked end points, per improved model."""
+    """Equilibrium fusion on the report rigs (seeds 601-606, sag and backlash, stiffnesses
+    drawn per seed): HDR levels and predicted / observed linked errors of the 96 linked end
+    points, per improved model."""
     out = {m: ([], [], []) for m in IMPROVED}
-    for seed in range(1, 7):
+    for seed in REPORT_SEEDS:
         d = simulate_rig(tmp_path_factory.mktemp(f"eq{seed}"),
-                         paper_truth(("gravity_sag", "backlash"), seed=seed))
+                         paper_truth(("gravity_sag", "backlash"), seed=seed,
+                                     stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
         for m in IMPROVED:
             for acc, x in zip(out[m], _levels_and_errors(d, "top+bottom", m, "equilibrium"),
                               strict=True):
@@ -290,16 +300,14 @@ def report_levels(tmp_path_factory):
 
 
 REPORT_SHORT = {
-    "cond": "measured on the report rigs: the 50% / 90% regions hold 65.6% / 94.8% of the 96 "
-            "linked end points (the product: 42.7% / 83.3%); with its command widths at least "
-            "the train commands' spacing the kernel conditional is no longer too narrow, and "
-            "like corr's the balance of independently drawn free points is too wide",
+    "corr": "measured on the report rigs: the 50% / 90% regions hold 60.4% / 92.7% of the 96 "
+            "linked end points, one point over the 50% range's 57 (the product: 43.8% / "
+            "89.6%)",
 }
 RATIO_SHORT = {
-    "corr": "measured on the report rigs: mean predicted linked error 1.035 mm against 0.880 "
-            "observed, ratio 1.18 (the product: 1.05)",
-    "cond": "measured on the report rigs: mean predicted linked error 1.056 mm against 0.880 "
-            "observed, ratio 1.20 (the product: 1.11)",
+    "cond": "measured on the report rigs: mean predicted linked error 0.972 mm against 0.841 "
+            "observed, ratio 1.156 (the product: 1.18); the balance of independently drawn "
+            "free points is a little too wide",
 }
 
 
@@ -313,7 +321,8 @@ def _xfails(short: dict) -> list:
 def test_equilibrium_fusion_predicts_the_linked_error_on_report_rigs(report_levels, model,
                                                                      record_property):
     """Issue target: the mean predicted linked error within [0.85, 1.15] of the observed mean
-    over the 96 linked end points (ind measured 0.972 / 0.880 mm = 1.11)."""
+    over the 96 linked end points (measured: ind 0.925 / 0.841 mm = 1.10, corr 0.962 / 0.841
+    = 1.14)."""
     _, predicted, observed = report_levels[model]
     ratio = predicted.mean() / observed.mean()
     record_property(f"equilibrium_error_{model}",
