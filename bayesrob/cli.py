@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -87,8 +88,8 @@ def _non_negative_float(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v >= 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number, 0 or more, got {text}")
     return v
 
 
@@ -245,6 +246,9 @@ def _simulate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
     if args.planned:
+        if args.stiffness_spread is not None:
+            raise UsageError("--planned measures with the stiffnesses of the rig's truth.toml; "
+                             "--stiffness-spread cannot change them")
         return _simulate_planned(args, out_dir)
     names = (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE)
     existing = [out_dir / n for n in names if (out_dir / n).exists()]
@@ -262,8 +266,10 @@ def _simulate(args: argparse.Namespace) -> int:
     out = simulate_rig(args.out_dir, truth, progress=_progress(args))
     effects = ",".join(truth.effects) or "none"
     _say_replaced(existing)
-    print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}): "
-          f"{', '.join(names)}")
+    spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
+              if args.stiffness_spread else "")
+    print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}"
+          f"{spread}): {', '.join(names)}")
     return 0
 
 

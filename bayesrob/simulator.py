@@ -201,8 +201,8 @@ def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
     construction, so predictions judged on such rigs flatter it. The draws come from a stream
     of their own: the rest of the rig is what the seed always gave. 0 leaves the truth as is.
     """
-    if log_sd < 0:
-        raise ValueError(f"stiffness_log_sd must be >= 0, got {log_sd}")
+    if not (np.isfinite(log_sd) and log_sd >= 0):
+        raise ValueError(f"stiffness_log_sd must be a finite number >= 0, got {log_sd}")
     if log_sd == 0:
         return truth
     rng = np.random.default_rng([truth.seed, 17])
@@ -217,7 +217,10 @@ def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
 def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
                     stiffness_log_sd: float = 0.0) -> Truth:
     """The paper's two arms and a third standing to the left of the workspace (``side``):
-    three arms linked at one end point, for predictions of assemblies of more than two."""
+    three arms linked at one end point, for predictions of assemblies of more than two.
+
+    With ``stiffness_log_sd`` the top and bottom arms get the stiffnesses :func:`paper_truth`
+    draws for the seed, and the side arm the next draws of the same stream."""
     pair = paper_truth(effects, seed, grid)
     base, links, gain = (-170.0, 190.0), (260.0, 240.0), (0.00151, 0.00149)
     limits = ((600.0, 2400.0), (600.0, 2400.0))

@@ -33,6 +33,7 @@ REPORT_SEEDS = range(601, 607)
 # Two arms are not equally stiff: with one stiffness for every arm a prior that linked arms are
 # alike would be right by construction (docs/fusion.md, "a trap")
 REPORT_STIFFNESS_LOG_SD = 0.3
+THREE_ARM_SEEDS = (1, 2, 3)
 
 
 @pytest.fixture(scope="module")
@@ -42,10 +43,13 @@ def sag_rig(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def three_rig(tmp_path_factory):
-    d = tmp_path_factory.mktemp("three")
-    return simulate_rig(d, three_arm_truth(("gravity_sag", "backlash"), seed=1,
-                                           stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
+def three_rigs(tmp_path_factory):
+    """Three-arm rigs (sag and backlash, stiffnesses drawn): seed 1, and seeds 2 and 3 added
+    (fixed before they were first run) once seed 1 alone proved a noisy check."""
+    return [simulate_rig(tmp_path_factory.mktemp(f"three{seed}"),
+                         three_arm_truth(("gravity_sag", "backlash"), seed=seed,
+                                         stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
+            for seed in THREE_ARM_SEEDS]
 
 
 def _fitted(rig, name):
@@ -256,30 +260,58 @@ def _levels_and_errors(rig_dir, config, model, fusion_rule):
     return scores.hdr_level, predicted, observed
 
 
+@pytest.fixture(scope="module")
+def three_arm_results(three_rigs, tmp_path_factory):
+    """Three arms linked at one point, predicted from the modules' single-arm rows only
+    (``predict_assembly`` on a copy without linked rows) and compared with the simulator's
+    measurements of the assembly on three rigs (48 test points): HDR levels of ind and cond
+    pooled (96), and each model's predicted / observed mean error."""
+    tmp = tmp_path_factory.mktemp("three_single")
+    levels, predicted, observed = [], {"ind": [], "cond": []}, {"ind": [], "cond": []}
+    for k, rig_dir in enumerate(three_rigs):
+        single = _single_arm_copy(rig_dir, tmp / f"rig{k}")
+        rows = load_rig(rig_dir).config_rows("top+bottom+side", "test")
+        for model in predicted:
+            pred = predict_assembly(load_rig(single), "top+bottom+side", rows["target"], model)
+            lvl, _, obs = _levels_and_errors(rig_dir, "top+bottom+side", model, "equilibrium")
+            levels.append(lvl)
+            predicted[model].append(pred.expected_error_mm)
+            observed[model].append(obs)
+    ratios = {m: float(np.concatenate(predicted[m]).mean() / np.concatenate(observed[m]).mean())
+              for m in predicted}
+    return np.concatenate(levels), ratios
+
+
+THREE_ARM_SHORT = (
+    "measured on three-arm rigs 1-3: the 50% / 90% regions hold 44.8% / 81.2% of the 96 "
+    "pooled levels; three arms are predicted a little too accurate there (six three-arm "
+    "tuning rigs: 0.51-0.59 / 0.88-0.92)")
+
+
 @pytest.mark.slow
-def test_three_arms_predicted_from_single_arm_rows(three_rig, tmp_path, record_property):
-    """Three arms linked at one point, predicted from the modules' single-arm rows only and
-    compared with the simulator's measurements of the assembly (16 test points, ind and
-    cond pooled: 32 levels). Coverage of the 50% / 90% regions: binomial at 0.01 (the
-    sample is small); the mean predicted error within [0.7, 1.3] of the observed (measured
-    0.72 / 0.77 of it on this rig, whose arms' stiffnesses are drawn; 0.95-1.01 pooled over
-    six three-arm tuning rigs, see docs/fusion.md)."""
-    single = _single_arm_copy(three_rig, tmp_path / "three_single")
-    rig = load_rig(three_rig)
-    rows = rig.config_rows("top+bottom+side", "test")
-    levels, ratios = [], {}
-    for model in ("ind", "cond"):
-        pred = predict_assembly(load_rig(single), "top+bottom+side", rows["target"], model)
-        lvl, _, obs = _levels_and_errors(three_rig, "top+bottom+side", model, "equilibrium")
-        levels.append(lvl)
-        ratios[model] = float(pred.expected_error_mm.mean() / obs.mean())
-    levels = np.concatenate(levels)
-    cov = {m: float(np.mean(levels <= m)) for m in (0.5, 0.9)}
-    record_property("three_arm", json.dumps({"coverage": cov, "error_ratio": ratios}))
-    for m in (0.5, 0.9):
-        k = int(np.sum(levels <= m))
-        assert scipy.stats.binomtest(k, levels.size, m).pvalue > ALPHA, cov
-    assert all(0.7 <= r <= 1.3 for r in ratios.values()), ratios
+@pytest.mark.xfail(strict=True, reason=THREE_ARM_SHORT)
+def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, record_property):
+    """Issue target, as for two arms: the 50% / 90% regions hold 0.40-0.60 / 0.84-0.96 of the
+    96 pooled levels (ind and cond at 48 points)."""
+    levels, _ = three_arm_results
+    cov = (float(np.mean(levels <= 0.5)), float(np.mean(levels <= 0.9)))
+    record_property("three_arm_coverage", json.dumps(cov))
+    assert levels.size == 96
+    assert 0.40 <= cov[0] <= 0.60 and 0.84 <= cov[1] <= 0.96, cov
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", [
+    pytest.param("ind", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured on three-arm rigs 1-3: predicted / observed mean error 0.846"))),
+    "cond"])
+def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, model,
+                                                         record_property):
+    """Issue target: each model's mean predicted error within [0.85, 1.15] of the observed
+    (cond measured 0.956; seed 1 alone had given 0.72 / 0.77)."""
+    _, ratios = three_arm_results
+    record_property(f"three_arm_error_ratio_{model}", json.dumps(ratios[model]))
+    assert 0.85 <= ratios[model] <= 1.15, ratios
 
 
 @pytest.fixture(scope="module")

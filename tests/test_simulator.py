@@ -198,16 +198,35 @@ def test_drawn_stiffness_differs_per_arm_and_seed_and_leaves_the_rest_of_the_rig
         sim.paper_truth(seed=7, stiffness_log_sd=-0.1)
 
 
-def test_simulate_command_draws_stiffness_for_planar_rigs_only(tmp_path, capsys):
+def test_simulate_command_draws_stiffness_and_refuses_it_where_it_cannot_apply(tmp_path,
+                                                                               capsys):
     from bayesrob.cli import main
 
     out = tmp_path / "r"
     assert main(["simulate", str(out), "--grid", "2", "--seed", "3",
                  "--stiffness-spread", "0.3"]) == 0
+    assert "log sd 0.3" in capsys.readouterr().out
     assert sim.Truth.from_toml(out / sim.TRUTH_FILE).arms == \
         sim.paper_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
+    three = tmp_path / "three"
+    assert main(["simulate", str(three), "--robot", "three-arm", "--grid", "2", "--seed", "3",
+                 "--stiffness-spread", "0.3"]) == 0
+    assert sim.Truth.from_toml(three / sim.TRUTH_FILE).arms == \
+        sim.three_arm_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
     capsys.readouterr()
-    assert main(["simulate", str(tmp_path / "c"), "--robot", "arm6",
-                 "--stiffness-spread", "0.3"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--stiffness-spread" in err[0], err
+    for argv, words in (
+            (["--robot", "arm6"], "--stiffness-spread"),  # one arm, one profile
+            (["--planned"], "truth.toml"),
+            (["--stiffness-spread", "nan"], "finite"),
+            (["--stiffness-spread", "inf"], "finite"),
+            (["--stiffness-spread", "-0.1"], "0 or more")):
+        if "--stiffness-spread" not in argv:
+            argv = [*argv, "--stiffness-spread", "0.3"]
+        try:
+            code = main(["simulate", str(tmp_path / "c"), *argv])
+        except SystemExit as exc:  # argparse's own refusals exit 2 after one usage line
+            code = exc.code
+        assert code == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert words in err[-1], (argv, err)
+    assert not (tmp_path / "c").exists()
