@@ -31,6 +31,7 @@ from bayesrob.hardware.tracker import (
     checksum,
     format_plain,
     format_pxyt,
+    number_layout,
     parse_line,
     parse_manual,
     reject_outliers,
@@ -369,6 +370,50 @@ def test_stream_tracker_drops_the_partial_line_and_rejects_bad_checksums(raw_pty
     assert samples.tolist() == [[10, 20], [11, 21], [12, 19], [100, 20.5], [9, 20]]
     assert (tracker.bad_checksum, tracker.malformed) == (1, 1)
     assert np.median(samples, axis=0).tolist() == [11.0, 20.0]  # the wild 100 does not count
+
+
+def test_stream_tracker_refuses_a_line_that_lost_two_equal_bytes(raw_pty) -> None:
+    """Two equal bytes lost from one line leave its XOR checksum valid: 256.044 arrives as
+    256.0, a reading 44 um off that the outlier rule cannot see when readings agree. A line
+    printed unlike the rest of the stream is refused and counted as malformed."""
+    master, link = raw_pty
+    tracker = StreamTracker(link, "pxyt", samples=5, timeout_s=2.0)
+    whole = format_pxyt(256.044, 285.253)
+    lost = whole.replace(b"44", b"", 1)
+    assert lost != whole and parse_line(lost) == (256.0, 285.253)  # the checksum holds
+    script = b"\r\n" + whole * 2 + lost + whole * 3
+
+    def stream() -> None:
+        time.sleep(0.1)
+        os.write(master, script)
+
+    t = threading.Thread(target=stream)
+    t.start()
+    d = tracker.measure()
+    t.join()
+    assert d.tolist() == pytest.approx([256.044, 285.253], abs=1e-9)
+    assert tracker.malformed == 1 and tracker.readings == 5
+    assert number_layout(whole) == (3, 3) and number_layout(lost) == (1, 3)
+
+
+def test_stream_tracker_takes_every_line_of_a_stream_without_a_fixed_layout(raw_pty) -> None:
+    """A tracker printing %g (decimals as the value needs) has no layout to hold lines to."""
+    master, link = raw_pty
+    tracker = StreamTracker(link, "plain", samples=6, timeout_s=2.0)
+    values = [(10.5, 20.25), (10.25, 20.5), (10.0, 20.0), (10.125, 20.125), (10.5, 20.0),
+              (10.25, 20.25)]
+    script = b"\r\n" + b"".join(f"{x:g},{y:g}\r\n".encode() for x, y in values)
+
+    def stream() -> None:
+        time.sleep(0.1)
+        os.write(master, script)
+
+    t = threading.Thread(target=stream)
+    t.start()
+    samples = tracker.read_samples()
+    t.join()
+    assert samples.tolist() == [list(v) for v in values]
+    assert tracker.malformed == 0
 
 
 def test_reject_outliers_uses_a_robust_scale_with_a_floor() -> None:

@@ -9,7 +9,11 @@ The streaming tracker sends lines continuously. Two formats:
 
 A reading is taken after the arm has settled: the input buffer (readings from while the arm
 moved) is discarded, the first, probably partial, line is dropped, and ``samples`` good lines
-are read. Readings far from their median (:func:`reject_outliers`: a robust scale from the
+are read. The XOR checksum cannot see two equal bytes lost from one line (``256.044`` arriving
+as ``256.0`` keeps its checksum), so a line must also print its numbers as the stream does:
+the same count of decimals in each field as most lines so far (:func:`number_layout`; not
+enforced while a stream's own lines disagree, as a tracker printing ``%g`` would).
+Readings far from their median (:func:`reject_outliers`: a robust scale from the
 median distance, with a floor) are rejected and counted; the mean of the rest is the
 measurement.
 
@@ -22,6 +26,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from typing import Literal, Protocol
 
@@ -64,6 +69,22 @@ def format_pxyt(x_mm: float, y_mm: float, decimals: int = 3) -> bytes:
 
 def format_plain(x_mm: float, y_mm: float, decimals: int = 3) -> bytes:
     return f"{x_mm:.{decimals}f},{y_mm:.{decimals}f}\r\n".encode("ascii")
+
+
+def number_layout(line: bytes) -> tuple[int, ...]:
+    """Decimals of each number in a tracker line (-1: no decimal point): what a device that
+    prints a fixed format keeps the same from line to line."""
+    text = line.decode("ascii", "replace").strip("\r\n").lstrip("$").partition("*")[0]
+    fields = text.split(",")
+    if fields and fields[0] == SENTENCE:
+        fields = fields[1:]
+    return tuple(len(f.partition(".")[2]) if "." in f else -1 for f in fields)
+
+
+# A stream counts as printing a fixed format once this many lines were seen and at least this
+# share of them had the most common layout; then lines of another layout are refused.
+LAYOUT_MIN_LINES = 5
+LAYOUT_SHARE = 0.75
 
 
 def _xy(fields: list[str], line: bytes) -> tuple[float, float]:
@@ -147,18 +168,32 @@ class StreamTracker:
         self.readings = 0
         self.outliers = 0  # good lines rejected as far from their median
         self.outlier_floor_mm = outlier_floor_mm
+        self.layouts: Counter[tuple[int, ...]] = Counter()  # of every line that parsed
+
+    def _fixed_layout(self) -> tuple[int, ...] | None:
+        """The stream's number layout, once its lines agree on one (else None)."""
+        total = sum(self.layouts.values())
+        if total < LAYOUT_MIN_LINES:
+            return None
+        layout, n = self.layouts.most_common(1)[0]
+        return layout if n >= LAYOUT_SHARE * total else None
 
     def read_samples(self) -> np.ndarray:
         """``samples`` good readings (samples, 2) taken from now on."""
         self.link.discard_input()
         # Whatever arrives first may be the tail of a line the tracker was half-way through.
         self.link.readline()
-        good: list[tuple[float, float]] = []
+        parsed: list[tuple[tuple[float, float], tuple[int, ...]]] = []
+
+        def good() -> list[tuple[float, float]]:
+            fixed = self._fixed_layout()
+            return [xy for xy, lay in parsed if fixed is None or lay == fixed]
+
         deadline = time.monotonic() + self.timeout_s
-        while len(good) < self.samples:
+        while len(good()) < self.samples:
             if time.monotonic() > deadline:
                 raise HardwareError(
-                    f"tracker port {self.link.name}: {len(good)} of {self.samples} good "
+                    f"tracker port {self.link.name}: {len(good())} of {self.samples} good "
                     f"readings within {self.timeout_s:g} s ({self.bad_checksum} bad checksums, "
                     f"{self.malformed} malformed lines so far); check the port, baud and "
                     f"--tracker-format")
@@ -166,14 +201,21 @@ class StreamTracker:
             if not line.endswith(b"\n"):
                 continue  # timed out mid-line: the deadline decides
             try:
-                good.append(parse_line(line, self.fmt))
+                xy = parse_line(line, self.fmt)
             except TrackerLineError as exc:
                 if exc.kind == "checksum":
                     self.bad_checksum += 1
                 else:
                     self.malformed += 1
-        self.readings += len(good)
-        return np.asarray(good)
+                continue
+            layout = number_layout(line)
+            self.layouts[layout] += 1
+            parsed.append((xy, layout))
+        kept = good()[:self.samples]
+        # lines of another layout than the stream's passed their checksum but lost bytes
+        self.malformed += len(parsed) - len(good())
+        self.readings += len(kept)
+        return np.asarray(kept)
 
     def measure(self, label: str = "") -> np.ndarray:
         # A checksum cannot catch a wild reading (a reflection, a marker seen twice); rejecting
