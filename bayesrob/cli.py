@@ -89,7 +89,7 @@ def _non_negative_float(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not (v >= 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be a finite number, 0 or more, got {text}")
+        raise argparse.ArgumentTypeError(f"must be 0 or more and finite, got {text}")
     return v
 
 
