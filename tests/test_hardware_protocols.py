@@ -350,6 +350,20 @@ def test_parse_tracker_lines() -> None:
             parse_line(bad, "plain")
 
 
+def _while_streaming(master: int, script: bytes, call):
+    """call() while the device side writes script a moment after it started listening."""
+    def stream() -> None:
+        time.sleep(0.1)
+        os.write(master, script)
+
+    t = threading.Thread(target=stream)
+    t.start()
+    try:
+        return call()
+    finally:
+        t.join()
+
+
 def test_stream_tracker_drops_the_partial_line_and_rejects_bad_checksums(raw_pty) -> None:
     master, link = raw_pty
     tracker = StreamTracker(link, "pxyt", samples=5, timeout_s=2.0)
@@ -359,14 +373,7 @@ def test_stream_tracker_drops_the_partial_line_and_rejects_bad_checksums(raw_pty
               + format_pxyt(12.0, 19.0) + format_pxyt(100.0, 20.5) + format_pxyt(9.0, 20.0)
               + format_pxyt(13.0, 22.0))
 
-    def stream() -> None:
-        time.sleep(0.1)
-        os.write(master, script)
-
-    t = threading.Thread(target=stream)
-    t.start()
-    samples = tracker.read_samples()
-    t.join()
+    samples = _while_streaming(master, script, tracker.read_samples)
     assert samples.tolist() == [[10, 20], [11, 21], [12, 19], [100, 20.5], [9, 20]]
     assert (tracker.bad_checksum, tracker.malformed) == (1, 1)
     assert np.median(samples, axis=0).tolist() == [11.0, 20.0]  # the wild 100 does not count
@@ -383,14 +390,7 @@ def test_stream_tracker_refuses_a_line_that_lost_two_equal_bytes(raw_pty) -> Non
     assert lost != whole and parse_line(lost) == (256.0, 285.253)  # the checksum holds
     script = b"\r\n" + whole * 2 + lost + whole * 3
 
-    def stream() -> None:
-        time.sleep(0.1)
-        os.write(master, script)
-
-    t = threading.Thread(target=stream)
-    t.start()
-    d = tracker.measure()
-    t.join()
+    d = _while_streaming(master, script, tracker.measure)
     assert d.tolist() == pytest.approx([256.044, 285.253], abs=1e-9)
     assert tracker.malformed == 1 and tracker.readings == 5
     assert number_layout(whole) == (3, 3) and number_layout(lost) == (1, 3)
@@ -404,14 +404,7 @@ def test_stream_tracker_takes_every_line_of_a_stream_without_a_fixed_layout(raw_
               (10.25, 20.25)]
     script = b"\r\n" + b"".join(f"{x:g},{y:g}\r\n".encode() for x, y in values)
 
-    def stream() -> None:
-        time.sleep(0.1)
-        os.write(master, script)
-
-    t = threading.Thread(target=stream)
-    t.start()
-    samples = tracker.read_samples()
-    t.join()
+    samples = _while_streaming(master, script, tracker.read_samples)
     assert samples.tolist() == [list(v) for v in values]
     assert tracker.malformed == 0
 
@@ -449,14 +442,7 @@ def test_stream_tracker_measure_rejects_counts_and_averages(raw_pty) -> None:
               + format_pxyt(60.0, 20.0)  # a reflection, with a good checksum
               + format_pxyt(9.98, 20.04) + format_pxyt(10.0, 19.96))
 
-    def stream() -> None:
-        time.sleep(0.1)
-        os.write(master, script)
-
-    t = threading.Thread(target=stream)
-    t.start()
-    d = tracker.measure()
-    t.join()
+    d = _while_streaming(master, script, tracker.measure)
     assert tracker.outliers == 1 and tracker.readings == 5
     assert d.tolist() == pytest.approx([10.0, 20.0])  # the mean of the four good readings
 
