@@ -211,11 +211,11 @@ class StreamTracker:
             layout = number_layout(line)
             self.layouts[layout] += 1
             parsed.append((xy, layout))
-        kept = good()[:self.samples]
+        kept = good()
         # lines of another layout than the stream's passed their checksum but lost bytes
-        self.malformed += len(parsed) - len(good())
-        self.readings += len(kept)
-        return np.asarray(kept)
+        self.malformed += len(parsed) - len(kept)
+        self.readings += self.samples
+        return np.asarray(kept[:self.samples])
 
     def measure(self, label: str = "") -> np.ndarray:
         # A checksum cannot catch a wild reading (a reflection, a marker seen twice); rejecting
