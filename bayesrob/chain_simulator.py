@@ -29,6 +29,7 @@ from threadpoolctl import threadpool_limits
 
 from bayesrob.kinematics import Robot, urdf_chain
 from bayesrob.rig import dump_toml
+from bayesrob.simulator import draw_stiffnesses
 
 ARM6_URDF = "arm6.urdf"
 G_N_PER_KG = 9.81  # weight per kg of mass: torques in N mm with lever arms in mm
@@ -620,14 +621,9 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
 def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
     """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
     scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
-    rng = np.random.default_rng([truth.seed, 17])
-    sd = truth.stiffness_log_sd
-    out = {}
-    for a in LINKED_ARMS:
-        k = np.asarray(truth.stiffness_nmm_per_rad[a], float)
-        out[a] = tuple(float(v) for v in k * np.exp(sd * rng.normal() + sd * rng.normal(
-            size=k.shape)))
-    return out
+    drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
+                                          for a in LINKED_ARMS}, truth.stiffness_log_sd)
+    return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
 
 
 def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:

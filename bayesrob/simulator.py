@@ -31,7 +31,7 @@ All randomness flows from one seed, so a rig is reproducible from its ``truth.to
 from __future__ import annotations
 
 import tomllib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -205,13 +205,24 @@ def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
         raise ValueError(f"stiffness_log_sd must be a finite number >= 0, got {log_sd}")
     if log_sd == 0:
         return truth
-    rng = np.random.default_rng([truth.seed, 17])
-    arms = {}
-    for name, arm in truth.arms.items():
-        k = np.asarray(arm.stiffness_nmm_per_rad, float)
-        k = k * np.exp(log_sd * rng.normal() + log_sd * rng.normal(size=k.shape))
-        arms[name] = replace(arm, stiffness_nmm_per_rad=tuple(float(round(v, 1)) for v in k))
-    return replace(truth, arms=arms)
+    drawn = draw_stiffnesses(truth.seed, {n: a.stiffness_nmm_per_rad
+                                          for n, a in truth.arms.items()}, log_sd)
+    return replace(truth, arms={
+        n: replace(a, stiffness_nmm_per_rad=tuple(float(round(v, 1)) for v in drawn[n]))
+        for n, a in truth.arms.items()})
+
+
+def draw_stiffnesses(seed: int, profiles: Mapping[str, Sequence[float]], log_sd: float
+                     ) -> dict[str, np.ndarray]:
+    """Each arm's joint stiffnesses for a seed: its profile times exp(N(0, sd) per arm +
+    N(0, sd) per joint), arms in the order given, from the seed's stream 17 (planar and 3-D
+    simulators alike)."""
+    rng = np.random.default_rng([seed, 17])
+    out = {}
+    for name, profile in profiles.items():
+        k = np.asarray(profile, float)
+        out[name] = k * np.exp(log_sd * rng.normal() + log_sd * rng.normal(size=k.shape))
+    return out
 
 
 def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
