@@ -33,7 +33,9 @@ REPORT_SEEDS = range(601, 607)
 # Two arms are not equally stiff: with one stiffness for every arm a prior that linked arms are
 # alike would be right by construction (docs/fusion.md, "a trap")
 REPORT_STIFFNESS_LOG_SD = 0.3
-THREE_ARM_SEEDS = (1, 2, 3)
+# Seed 1 was the check's first rig; 2 and 3 were added when one rig proved a noisy check, and
+# 4-6 to reach the issue's 96 linked points per model (each fixed before it was first run)
+THREE_ARM_SEEDS = (1, 2, 3, 4, 5, 6)
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +46,7 @@ def sag_rig(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def three_rigs(tmp_path_factory):
-    """Three-arm rigs (sag and backlash, stiffnesses drawn): seed 1, and seeds 2 and 3 added
-    (fixed before they were first run) once seed 1 alone proved a noisy check."""
+    """Three-arm rigs (sag and backlash, stiffnesses drawn), seeds ``THREE_ARM_SEEDS``."""
     return [simulate_rig(tmp_path_factory.mktemp(f"three{seed}"),
                          three_arm_truth(("gravity_sag", "backlash"), seed=seed,
                                          stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
@@ -264,38 +265,39 @@ def _levels_and_errors(rig_dir, config, model, fusion_rule):
 def three_arm_results(three_rigs, tmp_path_factory):
     """Three arms linked at one point, predicted from the modules' single-arm rows only
     (``predict_assembly`` on a copy without linked rows) and compared with the simulator's
-    measurements of the assembly on three rigs (48 test points): HDR levels of ind and cond
-    pooled (96), and each model's predicted / observed mean error."""
+    measurements of the assembly on six rigs (96 test points): per model, the points' HDR
+    levels and the predicted / observed mean error."""
     tmp = tmp_path_factory.mktemp("three_single")
-    levels, predicted, observed = [], {"ind": [], "cond": []}, {"ind": [], "cond": []}
+    levels = {"ind": [], "cond": []}
+    predicted, observed = {"ind": [], "cond": []}, {"ind": [], "cond": []}
     for k, rig_dir in enumerate(three_rigs):
         single = _single_arm_copy(rig_dir, tmp / f"rig{k}")
         rows = load_rig(rig_dir).config_rows("top+bottom+side", "test")
-        for model in predicted:
+        for model in levels:
             pred = predict_assembly(load_rig(single), "top+bottom+side", rows["target"], model)
             lvl, _, obs = _levels_and_errors(rig_dir, "top+bottom+side", model, "equilibrium")
-            levels.append(lvl)
+            levels[model].append(lvl)
             predicted[model].append(pred.expected_error_mm)
             observed[model].append(obs)
     ratios = {m: float(np.concatenate(predicted[m]).mean() / np.concatenate(observed[m]).mean())
-              for m in predicted}
-    return np.concatenate(levels), ratios
-
-
-THREE_ARM_SHORT = (
-    "measured on three-arm rigs 1-3: the 50% / 90% regions hold 44.8% / 81.2% of the 96 "
-    "pooled levels; three arms are predicted a little too accurate there (six three-arm "
-    "tuning rigs: 0.51-0.59 / 0.88-0.92)")
+              for m in levels}
+    return {m: np.concatenate(v) for m, v in levels.items()}, ratios
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=THREE_ARM_SHORT)
-def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, record_property):
+@pytest.mark.parametrize("model", [
+    "ind",
+    pytest.param("cond", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured on three-arm rigs 1-6: the 50% / 90% regions hold 0.49 / 0.80 of 96 points; "
+        "three arms are predicted a little too accurate there (six three-arm tuning rigs: "
+        "0.59 / 0.92)")))])
+def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, model,
+                                                         record_property):
     """Issue target, as for two arms: the 50% / 90% regions hold 0.40-0.60 / 0.84-0.96 of the
-    96 pooled levels (ind and cond at 48 points)."""
-    levels, _ = three_arm_results
+    96 linked points (ind measured 0.458 / 0.844)."""
+    levels = three_arm_results[0][model]
     cov = (float(np.mean(levels <= 0.5)), float(np.mean(levels <= 0.9)))
-    record_property("three_arm_coverage", json.dumps(cov))
+    record_property(f"three_arm_coverage_{model}", json.dumps(cov))
     assert levels.size == 96
     assert 0.40 <= cov[0] <= 0.60 and 0.84 <= cov[1] <= 0.96, cov
 
@@ -303,12 +305,12 @@ def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, reco
 @pytest.mark.slow
 @pytest.mark.parametrize("model", [
     pytest.param("ind", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured on three-arm rigs 1-3: predicted / observed mean error 0.846"))),
+        "measured on three-arm rigs 1-6: predicted / observed mean error 0.840"))),
     "cond"])
 def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, model,
                                                          record_property):
     """Issue target: each model's mean predicted error within [0.85, 1.15] of the observed
-    (cond measured 0.956; seed 1 alone had given 0.72 / 0.77)."""
+    (cond measured 0.926)."""
     _, ratios = three_arm_results
     record_property(f"three_arm_error_ratio_{model}", json.dumps(ratios[model]))
     assert 0.85 <= ratios[model] <= 1.15, ratios
