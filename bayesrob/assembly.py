@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = ["AssemblyPrediction", "predict_assembly", "grid_targets", "read_targets",
-           "assembly_figure"]
+           "assembly_figure", "beyond_train_range"]
 
 
 @dataclass
@@ -58,6 +58,10 @@ class AssemblyPrediction:
     posterior: GridPosterior | None  # planar arms: the grid
     seconds: float
     draws: np.ndarray | None = None  # (S, T, dim) chain arms: the draws the prediction is
+    # arm -> (T, c): how far each target's commands lie beyond the range of that arm's train
+    # commands, per column (0 inside; pulse us for planar arms, joint units for chains)
+    beyond_train: dict[str, np.ndarray] | None = None
+    columns: dict[str, list[str]] | None = None  # arm -> names of its command columns
 
     @property
     def size_key(self) -> str:
@@ -77,14 +81,51 @@ class AssemblyPrediction:
                  "commands": {a: [float(v) for v in u[i]] for a, u in self.commands.items()},
                  "expected_point": [float(x) for x in self.expected_point[i]],
                  "expected_error_mm": float(e[i]),
-                 f"hdr50_{u}": float(self.hdr50[i]), f"hdr90_{u}": float(self.hdr90[i])}
+                 f"hdr50_{u}": float(self.hdr50[i]), f"hdr90_{u}": float(self.hdr90[i]),
+                 "beyond_train_range": {a: [float(v) for v in b[i]]
+                                        for a, b in self.beyond.items()}}
                 for i, t in enumerate(self.targets)],
             "summary": {"n_targets": int(e.size), "mean_expected_error_mm": float(e.mean()),
                         "max_expected_error_mm": float(e.max()),
                         f"mean_hdr50_{u}": float(self.hdr50.mean()),
-                        f"mean_hdr90_{u}": float(self.hdr90.mean())},
+                        f"mean_hdr90_{u}": float(self.hdr90.mean()),
+                        "targets_beyond_train_range": int(self.extrapolated.sum())},
             "seconds": self.seconds,
         }
+
+    @property
+    def beyond(self) -> dict[str, np.ndarray]:
+        """:attr:`beyond_train`, zeros where it was not measured."""
+        if self.beyond_train is not None:
+            return self.beyond_train
+        return {a: np.zeros_like(c, dtype=float) for a, c in self.commands.items()}
+
+    @property
+    def extrapolated(self) -> np.ndarray:
+        """(T,) True where some arm's commands leave the range of its train rows."""
+        return np.any([np.any(b > 0, axis=1) for b in self.beyond.values()], axis=0)
+
+    def extrapolation_note(self) -> str | None:
+        """One line on the targets whose commands leave an arm's calibrated range, or None.
+
+        There the calibration extrapolates and a misfit the train rows did not show can grow:
+        on the simulator's three-arm rigs an arm that fits its rows poorly erred twice as much
+        at such targets, and the linked predictions came out too narrow (docs/fusion.md).
+        """
+        n = int(self.extrapolated.sum())
+        if not n:
+            return None
+        unit = "" if self.posterior is None else " us"
+        parts = []
+        for a, b in self.beyond.items():
+            hit = np.any(b > 0, axis=1)
+            if hit.any():
+                col = int(np.argmax(b.max(axis=0)))
+                name = self.columns[a][col] if self.columns else f"{a}_u{col + 1}"
+                parts.append(f"{a} at {int(hit.sum())}, by up to {b.max():.3g}{unit} in {name}")
+        return (f"note: {n} of {len(self.targets)} targets need commands beyond the range of "
+                f"the train rows ({'; '.join(parts)}): the calibration extrapolates there, and "
+                "the prediction may be too narrow")
 
     def format(self) -> str:
         from bayesrob.report import format_table
@@ -102,8 +143,10 @@ class AssemblyPrediction:
         tail = (f"mean expected error {s['mean_expected_error_mm']:.2f} mm (max "
                 f"{s['max_expected_error_mm']:.2f}); mean 50% / 90% region "
                 f"{s[f'mean_hdr50_{u}']:.3g} / {s[f'mean_hdr90_{u}']:.3g} {unit}")
+        note = self.extrapolation_note()
         return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
-                                              f"50% {unit}", f"90% {unit}"], rows), tail])
+                                              f"50% {unit}", f"90% {unit}"], rows), tail,
+                          *([note] if note else [])])
 
 
 def grid_targets(rig: Rig, n: int) -> np.ndarray:
@@ -152,6 +195,15 @@ def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
     return u
 
 
+def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
+    """(T, c): how far each row of ``commands`` lies beyond the range of ``arm``'s train
+    commands, per column (0 inside), in the columns' own units."""
+    u = rig.chain_rows(arm, "train")[0] if rig.is_chain else rig.arm_rows(arm, "train")[0]
+    lo, hi = u.min(axis=0), u.max(axis=0)
+    c = np.asarray(commands, float)
+    return np.maximum(lo - c, 0.0) + np.maximum(c - hi, 0.0)
+
+
 def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
                      fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0,
                      groups: tuple[str, ...] | None = None) -> AssemblyPrediction:
@@ -198,7 +250,8 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
         rig.name, config, model, fusion, targets, commands, post.mean,
         np.einsum("tm,tm->t", post.prob, dist),
         hdr_area(post.prob, 0.5, cell), hdr_area(post.prob, 0.9, cell),
-        post, time.perf_counter() - t0)
+        post, time.perf_counter() - t0,
+        beyond_train={a: beyond_train_range(rig, a, commands[a]) for a in members})
 
 
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
@@ -212,7 +265,9 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
     return AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
-        None, time.perf_counter() - t0, draws)
+        None, time.perf_counter() - t0, draws,
+        {a: beyond_train_range(rig, a, commands[a]) for a in members},
+        {a: rig.robot.columns(a) for a in members})
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:

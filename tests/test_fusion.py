@@ -221,6 +221,29 @@ def test_predict_grid_plot_and_product(tmp_path):
     assert png.stat().st_size > 10_000
 
 
+def test_predict_says_where_commands_leave_the_calibrated_range(tmp_path, capsys):
+    """A target inside the top arm's train commands gets no note and zeros; one whose elbow
+    command lies beyond them is counted, its excess matches the train rows' range, and the
+    terminal says which arm and column, once."""
+    rig = load_rig(default_rig_dir())
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y\n200,250\n120,320\n")
+    out = tmp_path / "p.json"
+    assert main(["predict", str(default_rig_dir()), "--config", "top", "--targets",
+                 str(targets), "--model", "ind", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    inside, outside = (t["beyond_train_range"]["top"] for t in doc["targets"])
+    assert inside == [0.0, 0.0]
+    u = rig.arm_rows("top", "train")[0]
+    elbow = doc["targets"][1]["commands"]["top"][1]
+    assert outside[0] == 0.0 and outside[1] == pytest.approx(elbow - u[:, 1].max())
+    assert outside[1] > 50  # tens of us beyond: not rounding at the range's edge
+    assert doc["summary"]["targets_beyond_train_range"] == 1
+    notes = [ln for ln in text.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 1 and "1 of 2 targets" in notes[0] and "in top_u2" in notes[0]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--config", "top+nope", "--grid", "2"], "no arm 'nope'"),
     (["--config", "top+top", "--grid", "2"], "appears twice"),
