@@ -109,8 +109,9 @@ class AssemblyPrediction:
         """One line on the targets whose commands leave an arm's calibrated range, or None.
 
         There the calibration extrapolates and a misfit the train rows did not show can grow:
-        on the simulator's three-arm rigs an arm that fits its rows poorly erred twice as much
-        at such targets, and the linked predictions came out too narrow (docs/fusion.md).
+        on the simulator's three-arm rigs an arm that fits its rows poorly erred two to four
+        times its train error at such targets, and the linked predictions came out too narrow
+        (docs/fusion.md).
         """
         n = int(self.extrapolated.sum())
         if not n:
