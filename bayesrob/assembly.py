@@ -62,6 +62,7 @@ class AssemblyPrediction:
     # commands, per column (0 inside; pulse us for planar arms, joint units for chains)
     beyond_train: dict[str, np.ndarray] | None = None
     columns: dict[str, list[str]] | None = None  # arm -> names of its command columns
+    command_unit: str = " us"  # of the command columns in the note ("" for joint values)
 
     @property
     def size_key(self) -> str:
@@ -116,14 +117,14 @@ class AssemblyPrediction:
         n = int(self.extrapolated.sum())
         if not n:
             return None
-        unit = "" if self.posterior is None else " us"
         parts = []
         for a, b in self.beyond.items():
             hit = np.any(b > 0, axis=1)
             if hit.any():
                 col = int(np.argmax(b.max(axis=0)))
                 name = self.columns[a][col] if self.columns else f"{a}_u{col + 1}"
-                parts.append(f"{a} at {int(hit.sum())}, by up to {b.max():.3g}{unit} in {name}")
+                parts.append(f"{a} at {int(hit.sum())}, by up to {b.max():.3g}"
+                             f"{self.command_unit} in {name}")
         return (f"note: {n} of {len(self.targets)} targets need commands beyond the range of "
                 f"the train rows ({'; '.join(parts)}): the calibration extrapolates there, and "
                 "the prediction may be too narrow")
@@ -252,7 +253,8 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
         np.einsum("tm,tm->t", post.prob, dist),
         hdr_area(post.prob, 0.5, cell), hdr_area(post.prob, 0.9, cell),
         post, time.perf_counter() - t0,
-        beyond_train={a: beyond_train_range(rig, a, commands[a]) for a in members})
+        beyond_train={a: beyond_train_range(rig, a, commands[a]) for a in members},
+        columns={a: rig.robot.columns(a) for a in members})
 
 
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
@@ -268,7 +270,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
         None, time.perf_counter() - t0, draws,
         {a: beyond_train_range(rig, a, commands[a]) for a in members},
-        {a: rig.robot.columns(a) for a in members})
+        {a: rig.robot.columns(a) for a in members}, command_unit="")
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:

@@ -113,6 +113,14 @@ def test_predict_command_on_a_chain_rig(arm6_rig, tmp_path, capsys):
     t0 = doc["targets"][0]
     assert 0 < t0["hdr50_mm3"] < t0["hdr90_mm3"]
     assert 0 < t0["expected_error_mm"] < 2.0
+    # how far each target's joint commands leave the train rows' range, column by column
+    u_train = rig.chain_rows("arm", "train")[0]
+    for t in doc["targets"]:
+        u = np.asarray(t["commands"]["arm"])
+        excess = np.maximum(u_train.min(0) - u, 0) + np.maximum(u - u_train.max(0), 0)
+        np.testing.assert_allclose(t["beyond_train_range"]["arm"], excess, atol=1e-12)
+    assert doc["summary"]["targets_beyond_train_range"] == sum(
+        any(v > 0 for v in t["beyond_train_range"]["arm"]) for t in doc["targets"])
     assert png.stat().st_size > 10_000
     capsys.readouterr()
     assert main(["predict", str(arm6_rig), "--config", "arm", "--targets", str(tfile),
