@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -59,9 +59,10 @@ class AssemblyPrediction:
     seconds: float
     draws: np.ndarray | None = None  # (S, T, dim) chain arms: the draws the prediction is
     # arm -> (T, c): how far each target's commands lie beyond the range of that arm's train
-    # commands, per column (0 inside; pulse us for planar arms, joint units for chains)
-    beyond_train: dict[str, np.ndarray] | None = None
-    columns: dict[str, list[str]] | None = None  # arm -> names of its command columns
+    # commands, per column (0 inside; pulse us for planar arms, joint units for chains); set
+    # with the two fields after it by :func:`_with_command_ranges`
+    beyond_train: dict[str, np.ndarray] = field(default_factory=dict)
+    columns: dict[str, list[str]] = field(default_factory=dict)  # arm -> its command columns
     command_unit: str = " us"  # of the command columns in the note ("" for joint values)
 
     @property
@@ -84,7 +85,7 @@ class AssemblyPrediction:
                  "expected_error_mm": float(e[i]),
                  f"hdr50_{u}": float(self.hdr50[i]), f"hdr90_{u}": float(self.hdr90[i]),
                  "beyond_train_range": {a: [float(v) for v in b[i]]
-                                        for a, b in self.beyond.items()}}
+                                        for a, b in self.beyond_train.items()}}
                 for i, t in enumerate(self.targets)],
             "summary": {"n_targets": int(e.size), "mean_expected_error_mm": float(e.mean()),
                         "max_expected_error_mm": float(e.max()),
@@ -95,16 +96,12 @@ class AssemblyPrediction:
         }
 
     @property
-    def beyond(self) -> dict[str, np.ndarray]:
-        """:attr:`beyond_train`, zeros where it was not measured."""
-        if self.beyond_train is not None:
-            return self.beyond_train
-        return {a: np.zeros_like(c, dtype=float) for a, c in self.commands.items()}
-
-    @property
     def extrapolated(self) -> np.ndarray:
         """(T,) True where some arm's commands leave the range of its train rows."""
-        return np.any([np.any(b > 0, axis=1) for b in self.beyond.values()], axis=0)
+        out = np.zeros(len(self.targets), bool)
+        for b in self.beyond_train.values():
+            out |= np.any(b > 0, axis=1)
+        return out
 
     def extrapolation_note(self) -> str | None:
         """One line on the targets whose commands leave an arm's calibrated range, or None.
@@ -118,13 +115,12 @@ class AssemblyPrediction:
         if not n:
             return None
         parts = []
-        for a, b in self.beyond.items():
+        for a, b in self.beyond_train.items():
             hit = np.any(b > 0, axis=1)
             if hit.any():
                 col = int(np.argmax(b.max(axis=0)))
-                name = self.columns[a][col] if self.columns else f"{a}_u{col + 1}"
                 parts.append(f"{a} at {int(hit.sum())}, by up to {b.max():.3g}"
-                             f"{self.command_unit} in {name}")
+                             f"{self.command_unit} in {self.columns[a][col]}")
         return (f"note: {n} of {len(self.targets)} targets need commands beyond the range of "
                 f"the train rows ({'; '.join(parts)}): the calibration extrapolates there, and "
                 "the prediction may be too narrow")
@@ -206,6 +202,15 @@ def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
     return np.maximum(lo - c, 0.0) + np.maximum(c - hi, 0.0)
 
 
+def _with_command_ranges(pred: AssemblyPrediction, rig: Rig) -> AssemblyPrediction:
+    """``pred`` with how far its commands leave each arm's train range, and the columns' names
+    and unit for the note."""
+    return replace(pred, beyond_train={a: beyond_train_range(rig, a, u)
+                                       for a, u in pred.commands.items()},
+                   columns={a: rig.robot.columns(a) for a in pred.commands},
+                   command_unit="" if rig.is_chain else " us")
+
+
 def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
                      fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0,
                      groups: tuple[str, ...] | None = None) -> AssemblyPrediction:
@@ -232,8 +237,9 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
         raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
                        f"{targets.shape[1]} coordinates")
     if rig.is_chain:
-        return _predict_chain(rig, config, members, targets, model or LATENT_MODELS[0], fusion,
-                              seed, t0, groups or kin.GROUPS)
+        return _with_command_ranges(_predict_chain(
+            rig, config, members, targets, model or LATENT_MODELS[0], fusion, seed, t0,
+            groups or kin.GROUPS), rig)
     model = model or "cond"
     spec = discover_models(models_dir, [model])
     cal = calibrate(rig)
@@ -248,13 +254,11 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     pts = post.points()
     dist = np.linalg.norm(pts - targets[:, None, :], axis=-1)
     cell = post.cell_mm[:, 0] * post.cell_mm[:, 1]
-    return AssemblyPrediction(
+    return _with_command_ranges(AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, post.mean,
         np.einsum("tm,tm->t", post.prob, dist),
         hdr_area(post.prob, 0.5, cell), hdr_area(post.prob, 0.9, cell),
-        post, time.perf_counter() - t0,
-        beyond_train={a: beyond_train_range(rig, a, commands[a]) for a in members},
-        columns={a: rig.robot.columns(a) for a in members})
+        post, time.perf_counter() - t0), rig)
 
 
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
@@ -268,9 +272,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
     return AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
-        None, time.perf_counter() - t0, draws,
-        {a: beyond_train_range(rig, a, commands[a]) for a in members},
-        {a: rig.robot.columns(a) for a in members}, command_unit="")
+        None, time.perf_counter() - t0, draws)
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
