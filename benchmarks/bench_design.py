@@ -2,6 +2,7 @@
 
     python benchmarks/bench_design.py            # scale: 1,000 candidates, 1 worker then 2
     python benchmarks/bench_design.py --proof    # 10 report inventories, designs simulated
+    python benchmarks/bench_design.py --proof --seeds 111-130   # the second report set
     python benchmarks/bench_design.py --chain-proof   # 6-joint 3-D modules, assemblies built
     python benchmarks/bench_design.py --tuning   # tuning inventories: predicted builds vs built
 
@@ -26,6 +27,14 @@ misses. Every other candidate predicted to miss is built too, and how many of th
 reported beside it (``every_predicted_miss``). The worked example's own 1.2 mm is read off the same
 runs (``assured_error_mm``): how many designs have a candidate meeting it, and whether that one
 holds once built.
+
+Second report set (``--seeds 111-130``): twenty more inventories, fixed on 2026-11-26 before
+their first run, because only one of the first ten designs had a candidate predicted to miss,
+so the first set could not say whether predicted misses miss. Nothing is chosen on them; the
+criterion was written down before they ran: the best holds in at least 90% of designs, and of
+the designs with a candidate predicted to miss, the best-ranked one (the most marginal: a miss
+in about 90% of its builds, by construction) misses in at least 80% (at a handful of designs,
+80% is within binomial error of the 90% claimed).
 
 Tuning (``--tuning``; a line per built candidate and a JSON summary): on the tuning
 inventories TUNING_SEEDS, every single arm and one multi-arm candidate in ten is built as in
@@ -141,12 +150,12 @@ def _observed(modules: dict, candidate: dict, targets: np.ndarray, seed: int,
     return float(np.quantile(built_errors(modules, candidate, targets, seed), quantile))
 
 
-def proof() -> dict:
+def proof(seeds: tuple[int, ...] = REPORT_SEEDS) -> dict:
     from bayesrob.design import dask_client, load_design, load_modules, run_design
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp, dask_client(None, 2) as client:
-        for seed in REPORT_SEEDS:
+        for seed in seeds:
             design = load_design(_design(Path(tmp), seed, {
                 f"error_mm = {EXAMPLE_ERROR_MM}": f"error_mm = {PROOF_ERROR_MM}"}))
             modules = load_modules(design)
@@ -192,7 +201,7 @@ def proof() -> dict:
             "example_requirement_mm": EXAMPLE_ERROR_MM, "example_with_winner": len(example),
             "example_winner_holds": sum(r["example_observed_mm"] <= EXAMPLE_ERROR_MM
                                         for r in example),
-            "met": bool(held >= 9 and missed == with_miss)}
+            "met": bool(held >= 0.9 * len(rows) and missed >= 0.8 * with_miss)}
 
 
 def tuning() -> dict:
@@ -324,8 +333,15 @@ def main() -> None:
                    help="6-joint 3-D modules: predictions against the built assembly")
     p.add_argument("--tuning", action="store_true",
                    help="tuning inventories: where built assemblies fall in their predictions")
+    p.add_argument("--seeds", default=f"{REPORT_SEEDS[0]}-{REPORT_SEEDS[-1]}",
+                   help="report inventories of the proof, FIRST-LAST (default %(default)s)")
     args = p.parse_args()
-    print(json.dumps(proof() if args.proof else chain_proof() if args.chain_proof
+    try:
+        first, last = (int(v) for v in args.seeds.split("-"))
+    except ValueError:
+        p.error(f"--seeds: expected FIRST-LAST, e.g. 111-130, got {args.seeds!r}")
+    seeds = tuple(range(first, last + 1))
+    print(json.dumps(proof(seeds) if args.proof else chain_proof() if args.chain_proof
                      else tuning() if args.tuning else scale()))
 
 
