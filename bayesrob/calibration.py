@@ -416,29 +416,31 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
 POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way under gravity
 
 
-def _with_gravity(rig: Rig) -> kin.Robot:
+def _with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
     """The rig's robot with its gravity model on, one object per robot and gravity: the
     compiled residuals and Jacobians are cached on the robot object, so every calibration of
     a diagnosis (and of a rig that shares the robot) reuses them instead of compiling anew."""
     gravity = np.zeros(3)
     gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
     cache = rig.robot.__dict__.setdefault("_with_gravity", {})
-    key = tuple(gravity.tolist())
+    key = (*gravity.tolist(), sag_steps)
     if key not in cache:
-        cache[key] = replace(rig.robot, gravity=gravity)
+        cache[key] = replace(rig.robot, gravity=gravity, sag_steps=sag_steps)
     return cache[key]
 
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
                     polish: bool = True, max_nfev: int = 300,
-                    start: np.ndarray | None = None) -> ChainCalibration:
+                    start: np.ndarray | None = None, sag_steps: int = 1) -> ChainCalibration:
     """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
     ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
     ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
     (off: faster, a little short of the optimum; the diagnosis's comparisons use that).
     ``max_nfev``: residual evaluations allowed to each of the fit's least-squares stages.
     ``start``: the parameter vector to start from (a fit of fewer groups on the same rig, its
-    frames fitted), instead of the nominal one."""
+    frames fitted), instead of the nominal one. ``sag_steps``: how many times the sag's
+    torques are taken, the first at the commanded pose, each next at the pose the last one
+    sagged into (:attr:`kinematics.Robot.sag_steps`)."""
     import time
 
     t0 = time.perf_counter()
@@ -448,7 +450,9 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
                          f"{', '.join(kin.ALL_GROUPS)}")
     groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
     sags = bool({"compliance", "lateral", "backlash"} & set(groups))
-    robot = _with_gravity(rig) if sags else rig.robot
+    if sag_steps < 1:
+        raise ValueError(f"sag_steps must be at least 1, not {sag_steps}")
+    robot = _with_gravity(rig, sag_steps) if sags else rig.robot
     layout = robot.layout
     full_res, full_jac, n_res, exact_jac = _residual_function(rig, robot, "train")
     x = layout.nominal.copy() if start is None else np.array(start, float)
@@ -513,8 +517,34 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
             x, n = fit(ident.free, x, exact=True, max_nfev=POLISH_NFEV)
             nfev += n
     se = _chain_standard_errors(full_res, full_jac, x, ident.free)
+    extra = sag_convergence(rig, robot, x) if sags and polish else {}
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
-                            time.perf_counter() - t0)
+                            time.perf_counter() - t0, extra=extra)
+
+
+SAG_CONVERGED_MM = 0.01  # a tenth of the markers' noise on the arms seen so far
+
+
+def sag_convergence(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
+    """How far one more step of the sag's torques (taken at the pose the fitted sag leaves)
+    moves the train markers: ``sag_next_step_mm`` (largest). One step is a first-order model
+    whose free masses and compliances absorb the rest (docs/robots.md); when more steps were
+    asked for and the last still moves a marker by more than SAG_CONVERGED_MM, a note says
+    that the iteration did not reach the torque equilibrium."""
+    now, *_ = _residual_function(rig, robot, "train")
+    # the rig's cached robot for one more step: its compiled residuals serve every fit
+    nxt, *_ = _residual_function(rig, _with_gravity(rig, robot.sag_steps + 1), "train")
+    moved = np.asarray(nxt(jnp.asarray(x)) - now(jnp.asarray(x))).reshape(-1, robot.dim)
+    change = float(np.linalg.norm(moved, axis=1).max())
+    out: dict = {"sag_steps": robot.sag_steps, "sag_next_step_mm": change}
+    if robot.sag_steps > 1 and change > SAG_CONVERGED_MM:
+        out["notes"] = [
+            f"the sag is not at equilibrium: its torques taken once more, at the pose the "
+            f"fitted sag leaves (sag_steps {robot.sag_steps + 1}), move a train marker by up to "
+            f"{change:.3g} mm; the fitted sag is a model with {robot.sag_steps} step(s) of "
+            "the torques, whose masses and compliances are fitted for that model "
+            "(docs/robots.md)"]
+    return out
 
 
 def _chain_covariance(full_res, full_jac, x: np.ndarray, free: np.ndarray) -> np.ndarray:

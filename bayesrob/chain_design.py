@@ -203,7 +203,8 @@ def write_chain_candidate_rig(candidate: dict, targets: np.ndarray,
         m = modules[a]
         calibrated = m.mods.robot.with_values(m.mods.x)
         chain = calibrated.chains[m.arm]
-        alone = kin.Robot({m.arm: chain}, calibrated.dim, calibrated.gravity)
+        alone = kin.Robot({m.arm: chain}, calibrated.dim, calibrated.gravity,
+                           calibrated.sag_steps)
         urdf = out / f"{a}.urdf"
         kin.write_urdf(alone, alone.layout.nominal, urdf, name=a)
         table = chain_arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],

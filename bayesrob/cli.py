@@ -83,6 +83,16 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _at_least_one(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
+
+
 def _non_negative_float(text: str) -> float:
     try:
         v = float(text)
@@ -294,6 +304,11 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--urdf-out", metavar="FILE",
                    help="write the calibrated robot as URDF to FILE, and FILE with suffix "
                         ".rig.toml: a rig.toml (instrument poses, markers) that loads it back")
+    p.add_argument("--sag-steps", type=_at_least_one, default=1, metavar="N",
+                   help="with compliance or lateral: take the gravity torques N times, first "
+                        "at the commanded pose, then each time at the pose the last step "
+                        "sagged into, towards torque equilibrium (default 1; 6 on Agile "
+                        "Justin, whose fitted sag is large: docs/robots.md)")
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
@@ -320,6 +335,9 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
         raise UsageError("--method hill-climb is the paper's eight-parameter planar fit; "
                          "URDF/DH rigs (and --params) use least-squares or bayes")
     groups = args.params or GROUPS
+    if args.sag_steps > 1 and args.method == "bayes":
+        raise UsageError("--sag-steps is for the least-squares fit; --method bayes takes the "
+                         "torques once")
     with progress(None, "calibrate", enabled=_progress(args),
                   postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
         try:
@@ -328,7 +346,8 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
 
                 cal = calibrate_chain_bayes(rig, groups, progress=bar.set_postfix)
             else:
-                cal = calibrate_chain(rig, groups, progress=bar.set_postfix)
+                cal = calibrate_chain(rig, groups, progress=bar.set_postfix,
+                                      sag_steps=args.sag_steps)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     doc = {"rig": rig.name, **cal.to_json()}
@@ -363,6 +382,9 @@ def _calibrate(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig, chains=True)
     if rig.is_chain or args.params is not None or args.urdf_out:
         return _calibrate_chain(args, rig)
+    if args.sag_steps != 1:
+        raise UsageError("--sag-steps is for URDF/DH rigs (and --params); the planar "
+                         "eight-parameter fit has no sag")
     # NUTS per arm compiles and samples for tens of seconds; the other methods take about one.
     with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
                   postfix=f"NUTS posterior of {len(rig.arms)} arms"):

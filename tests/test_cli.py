@@ -126,6 +126,9 @@ BAD_ARGUMENTS = {
                        "unknown effect 'wobble'"),
     "grid-1": (["simulate", "{out}", "--grid", "1"], "at least 2"),
     "unknown-method": (["calibrate", "{rig}", "--method", "newton"], "invalid choice: 'newton'"),
+    "sag-steps-0": (["calibrate", "{rig}", "--sag-steps", "0"], "must be at least 1, got 0"),
+    "sag-steps-planar": (["calibrate", "{rig}", "--sag-steps", "3"],
+                         "--sag-steps is for URDF/DH rigs"),
 }
 
 

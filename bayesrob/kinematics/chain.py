@@ -254,6 +254,13 @@ class Robot:
     # Unit gravity in the robot base frame: joints give way under it when the compliance
     # parameters are non-zero (None: no gravity model).
     gravity: np.ndarray | None = None
+    # How many times the sag's gravity torques are taken: once at the commanded pose (1),
+    # then each time at the pose the previous step sagged into, a fixed-point iteration
+    # towards torque equilibrium. Each step shrinks the change by the torques' sensitivity to
+    # the pose: about 1e-3 on a few mrad of sag (one step suffices), 0.1-0.25 on Agile
+    # Justin's fitted torso and arms, whose fitted deflections reach 0.2 rad (six steps leave
+    # 5 um; docs/robots.md).
+    sag_steps: int = 1
 
     def __post_init__(self) -> None:
         seen: set[str] = set()
@@ -428,8 +435,9 @@ class Robot:
         mass m_k and first moment h_k = m_k c_k (its centre of mass c_k in its own frame), so
         sum_k m_k p_k = sum_k (m_k t_k + R_k h_k). Masses are not known: the compliance
         calibration fits them with the compliances (only their products are identifiable; the
-        rank analysis drops the rest). One step at the commanded pose: a deflection of a few
-        mrad changes the torques by a few parts in a thousand, far below what the data resolve.
+        rank analysis drops the rest). The torques are taken at the commanded pose: a
+        deflection of a few mrad changes them by a few parts in a thousand, far below what the
+        data resolve; ``sag_steps`` takes them again at the sagged pose, towards equilibrium.
         With ``backlash`` fitted, each joint also moves by its half play p_e towards the side it
         gives way to: + p_e tanh(deflection_e / PLAY_SIDE_RAD).
         """
@@ -445,10 +453,18 @@ class Robot:
 
     def _sag_frames(self, x: jax.Array, arm: str, u: jax.Array,
                     side: dict[str, jax.Array] | None) -> tuple:
-        # the commanded frames the sag's torques are taken in: the path's joints and links,
-        # and what hangs off it
-        return (*self.element_frames(x, arm, u),
-                self.side_frames(x, arm, side) if side else ())
+        # the frames the sag's torques are taken in: the path's joints and links as commanded
+        # (or, with sag_steps > 1, as the previous step sagged them), and what hangs off it.
+        # What hangs off the path keeps its commanded frames: the path's sag turns it as a
+        # whole, which moves its torque on the shared joints only at second order.
+        hanging = self.side_frames(x, arm, side) if side else ()
+        frames = (*self.element_frames(x, arm, u), hanging)
+        # a loop unrolled into the program (not a while loop), so that reverse mode (NUTS
+        # through a chain with sag) still differentiates it
+        for _ in range(self.sag_steps - 1):
+            frames = (*self.element_frames(x, arm, u, *self._sag_at(x, arm, *frames)),
+                      hanging)
+        return frames
 
     def _weights(self, xz: jax.Array, link_idx: np.ndarray, links: jax.Array
                  ) -> tuple[jax.Array, jax.Array]:
@@ -605,10 +621,12 @@ class Robot:
         if self.gravity is not None:
             # The compliance parameters move the marker through the joints they deflect and
             # bend: d p / d c = sum_e (d p / d q_e)(d defl_e / d c) + (d p / d phi_e)
-            # (d phi_e / d c), the sag's own derivative taken in the commanded frames. Its
-            # dependence on the geometry, offsets and gains is left out, and a bend's
-            # derivative is taken at zero bend: relative changes of order 1e-3 in a sag of a
-            # few mrad, far below what the fit resolves (tests/test_chain.py: jax.jacfwd).
+            # (d phi_e / d c), the sag's own derivative taken in the frames its torques are
+            # taken in, held fixed. How those frames move with the sag (with sag_steps > 1),
+            # the sag's dependence on the geometry, offsets and gains are left out, and a
+            # bend's derivative is taken at zero bend: relative changes of order 1e-3 in a sag
+            # of a few mrad (tests/test_chain.py: jax.jacfwd). Where the sag is large (Agile
+            # Justin's fits) the calibration finishes with the exact Jacobian.
             idx = np.flatnonzero(self.layout.group_mask(("compliance", "lateral", "backlash")))
 
             def deflect(v):
@@ -673,7 +691,7 @@ class Robot:
                 x[sl[(c.name, "gain")]].copy(), c.offset.copy(),
                 x[sl[(c.name, "marker")]].copy() if (c.name, "marker") in sl else c.marker,
                 c.mount, instrument, c.source)
-        return Robot(chains, self.dim, self.gravity)
+        return Robot(chains, self.dim, self.gravity, self.sag_steps)
 
     def measured_arms(self) -> list[str]:
         """Chains that carry a marker (the leaves of the tree)."""
