@@ -73,24 +73,21 @@ def _effects_list(text: str) -> tuple[str, ...]:
     return items
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 2:
-        raise argparse.ArgumentTypeError(f"must be at least 2, got {v}")
-    return v
+def _int_at_least(low: int):
+    """An argparse type: a whole number no smaller than ``low``."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {v}")
+        return v
+    return parse
 
 
-def _at_least_one(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
+_positive_int = _int_at_least(2)  # grids, counts of workers and rows: 2 or more
+_at_least_one = _int_at_least(1)
 
 
 def _non_negative_float(text: str) -> float:
@@ -307,8 +304,8 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sag-steps", type=_at_least_one, default=1, metavar="N",
                    help="with compliance or lateral: take the gravity torques N times, first "
                         "at the commanded pose, then each time at the pose the last step "
-                        "sagged into, towards torque equilibrium (default 1; 6 on Agile "
-                        "Justin, whose fitted sag is large: docs/robots.md)")
+                        "sagged into, towards torque equilibrium (default 1; the fit reports "
+                        "how far one more step would move the markers: docs/robots.md)")
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
