@@ -257,9 +257,9 @@ class Robot:
     # How many times the sag's gravity torques are taken: once at the commanded pose (1),
     # then each time at the pose the previous step sagged into, a fixed-point iteration
     # towards torque equilibrium. Each step shrinks the change by the torques' sensitivity to
-    # the pose: about 1e-3 on a few mrad of sag (one step suffices), 0.1-0.25 on Agile
-    # Justin's fitted torso and arms, whose fitted deflections reach 0.2 rad (six steps leave
-    # 5 um; docs/robots.md).
+    # the pose where that is below one: about 1e-3 on a few mrad of sag. Fits of Agile
+    # Justin's free masses (fitted sag up to 0.2 rad) land where the iteration does not
+    # converge, so more steps are not the default there (docs/robots.md).
     sag_steps: int = 1
 
     def __post_init__(self) -> None:
