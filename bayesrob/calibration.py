@@ -349,6 +349,7 @@ class ChainCalibration:
             "errors": self.errors,
             "nfev": self.nfev,
             "seconds": self.seconds,
+            **({"lateral_prior_mm": LATERAL_PRIOR_MM} if "lateral" in self.groups else {}),
             **self.extra,
         }
 

@@ -6,9 +6,10 @@ train and 200 validation poses) when its data is at hand, else the simulator's c
 
 Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from
 after the imports), the effects named and the validation ladder. Target (2 cores): under 5
-minutes on Justin. Measured: 218 s with four candidates (backlash among them; 314 s while
+minutes on Justin. Measured: 276 s with four candidates and the lateral compliances' prior
+(273 s the same day without it; 218 s when first measured, on a quieter machine; 314 s while
 every selection fit started from the nominal robot, 284 s with three candidates); joint then
-lateral compliance, 10.97 -> 4.34 -> 3.26 mm.
+lateral compliance, 10.97 -> 4.34 -> 3.21 mm.
 """
 
 from __future__ import annotations

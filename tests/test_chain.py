@@ -501,6 +501,7 @@ def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
     assert not calibration.prior_penalty(layout, ("frames", "compliance")).any()
     groups = ("frames", "compliance", "lateral")
     with_prior = calibration.calibrate_chain(rig, groups, polish=False)
+    assert with_prior.to_json()["lateral_prior_mm"] == calibration.LATERAL_PRIOR_MM
     monkeypatch.setattr(calibration, "LATERAL_PRIOR_MM", 0.0)
     without = calibration.calibrate_chain(rig, groups, polish=False)
     size = [float(np.linalg.norm(c.x[lateral] / layout.scales[lateral]))
