@@ -469,7 +469,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
                          f"{', '.join(kin.ALL_GROUPS)}")
     groups = tuple(g for g in kin.ALL_GROUPS if g in set(groups) | {"frames"})
-    sags = bool({"compliance", "lateral", "backlash"} & set(groups))
+    sags = bool(set(kin.SAG_GROUPS) & set(groups))
     if sag_steps < 1:
         raise ValueError(f"sag_steps must be at least 1, not {sag_steps}")
     robot = _with_gravity(rig, sag_steps) if sags else rig.robot

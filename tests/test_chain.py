@@ -420,6 +420,24 @@ def test_bayesian_chain_calibration_covers_the_truth(tmp_path):
     assert np.mean(inside) >= 0.8
 
 
+def test_bayesian_chain_priors_are_proper_and_sag_groups_are_refused(arm6_rig):
+    """Every group NUTS samples has a proper prior (the encoder's sinusoids had sd 0 from a
+    nominal of 0, and the fit failed on numpyro's scale check); the groups gravity's torques
+    drive are refused with one line before any fitting, as NUTS did not mix over them."""
+    from bayesrob.bayes_calibration import ChainPriors, calibrate_chain_bayes
+
+    rig = load_rig(arm6_rig)
+    layout = rig.robot.layout
+    sd = ChainPriors().sd(layout)
+    sampled = ~layout.group_mask(kin.SAG_GROUPS)
+    assert np.all(np.isfinite(sd[sampled]) & (sd[sampled] > 0))
+    encoder = layout.group_mask(("encoder",))
+    assert np.allclose(sd[encoder], 10 * layout.scales[encoder])
+    for group in kin.SAG_GROUPS:
+        with pytest.raises(ValueError, match=f"does not sample {group} .*least-squares"):
+            calibrate_chain_bayes(rig, ("frames", "geometric", group))
+
+
 @pytest.mark.slow
 def test_compliance_group_recovers_an_arm_that_sags_under_gravity(tmp_path):
     """A 6-joint arm whose joints give way under gravity (the simulator's point masses and

@@ -37,6 +37,7 @@ GROUPS = ("frames", "offsets", "geometric", "servo")
 # the joints that gravity takes up (see Robot.sag).
 OPTIONAL_GROUPS = ("compliance", "lateral", "encoder", "backlash")
 ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
+SAG_GROUPS = ("compliance", "lateral", "backlash")  # the groups gravity's torques drive
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -627,7 +628,7 @@ class Robot:
             # bend's derivative is taken at zero bend: relative changes of order 1e-3 in a sag
             # of a few mrad (tests/test_chain.py: jax.jacfwd). Where the sag is large (Agile
             # Justin's fits) the calibration finishes with the exact Jacobian.
-            idx = np.flatnonzero(self.layout.group_mask(("compliance", "lateral", "backlash")))
+            idx = np.flatnonzero(self.layout.group_mask(SAG_GROUPS))
 
             def deflect(v):
                 return self._sag_at(x.at[idx].set(v), arm, *frames)
