@@ -488,16 +488,19 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         def put(v):
             return jnp.asarray(x0).at[idx].set(jnp.asarray(v))
 
+        # the prior's rows only in fits that free a penalised parameter: elsewhere they would
+        # be zeros that every trust-region step still factorises
         pen = penalty[idx]
+        prior = bool(pen.any())
 
         def jac(v):
             j = (np.asarray(exact_jac(put(v), idx)) if exact
                  else np.asarray(full_jac(put(v)))[:, idx])
-            return np.vstack([j, np.diag(pen)])
+            return np.vstack([j, np.diag(pen)]) if prior else j
 
         def res(v):
-            return np.concatenate([np.asarray(full_res(put(v))),
-                                   pen * (v - layout.nominal[idx])])
+            r = np.asarray(full_res(put(v)))
+            return np.concatenate([r, pen * (v - layout.nominal[idx])]) if prior else r
         out = scipy.optimize.least_squares(
             res, x0[idx], jac=jac,
             x_scale=layout.scales[idx], method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10,
