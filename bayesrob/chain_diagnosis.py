@@ -29,11 +29,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from bayesrob.calibration import (
+    SAG_CONVERGED_MM,
     ChainCalibration,
     calibrate_chain,
     chain_distances,
     chain_residuals,
 )
+from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
 
 # effect name -> the calibration group that models it
@@ -80,6 +82,7 @@ class ChainDiagnosis:
     seconds: float
     selection_rows: int
     notes: list[str] = field(default_factory=list)
+    sag_steps: int = 1  # torque steps asked of the ladder's fits with gravity
     # step label -> {arm: (observed markers, residuals)} on the validation rows, for the
     # geometric calibration and the final model (figures only; not in the JSON)
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
@@ -98,7 +101,7 @@ class ChainDiagnosis:
             "baseline": self.baseline,
             "baseline_heldout_error_mm": self.baseline["heldout_error_mm"],
             "final_heldout_error_mm": last["heldout_error_mm"],
-            "seconds": self.seconds, "notes": self.notes,
+            "seconds": self.seconds, "notes": self.notes, "sag_steps": self.sag_steps,
         }
 
 
@@ -144,14 +147,38 @@ def _row_errors(rig: Rig, cal: ChainCalibration, set: str) -> np.ndarray:
     return np.concatenate([dist[a] for a in sorted(dist)]) if dist else np.zeros(0)
 
 
+def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str]
+                ) -> ChainCalibration:
+    """A ladder step refitted on every train row: with joints giving way under gravity and
+    ``sag_steps`` > 1, its torques taken that many times (towards equilibrium); where that fit
+    has not reached its equilibrium (one more step moves a train marker by more than
+    SAG_CONVERGED_MM), what it fitted is an iteration, not a physical model, so the step is
+    refitted at one step (the stated first-order model) and a note says so."""
+    if sag_steps > 1 and set(SAG_GROUPS) & set(groups):
+        cal = calibrate_chain(rig, groups, sag_steps=sag_steps)
+        moved = cal.extra["sag_next_step_mm"]
+        if moved <= SAG_CONVERGED_MM:
+            return cal
+        notes.append(f"{','.join(groups)}: not at equilibrium after {sag_steps} steps of the "
+                     f"torques (one more moves a train marker by {moved:.3g} mm): reported "
+                     "with one step, the first-order model")
+    return calibrate_chain(rig, groups)
+
+
 def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
-                   progress: bool = False) -> ChainDiagnosis:
-    """Name the effects the geometric calibration of a chain rig misses (module docstring)."""
+                   progress: bool = False, sag_steps: int = 1) -> ChainDiagnosis:
+    """Name the effects the geometric calibration of a chain rig misses (module docstring).
+
+    ``sag_steps``: the ladder's fits with joints giving way take the gravity torques that many
+    times, each at the pose the last sagged into (:func:`_ladder_fit`); the selection of the
+    effects is made with one step either way, so the names do not depend on it."""
     import time
 
     from bayesrob.progress import progress as make_progress
 
     t0 = time.perf_counter()
+    if sag_steps < 1:
+        raise ChainDiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     candidates = resolve_effects(effects)
     if not len(rig.chain_rows(rig.robot.measured_arms()[0], "validation")[0]):
         raise ChainDiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
@@ -207,8 +234,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             ladder.append((*ladder[-1], CHAIN_EFFECTS[eff]))
         baseline: dict = {}
         residuals = {}
+        ladder_notes: list[str] = []
         for k, g in enumerate(ladder):
-            cal = calibrate_chain(rig, g)
+            cal = _ladder_fit(rig, g, sag_steps, ladder_notes)
             bar.update(1)
             # the calibration already scored every set: its validation statistics are the
             # ladder's (validation rows exist, checked above)
@@ -219,6 +247,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                    "heldout_error_max_mm": val["max_mm"], "n": val["n"]}
             if "holdout" in cal.errors:
                 row["holdout_error_mm"] = cal.errors["holdout"]["all"]["mean_mm"]
+            if "sag_steps" in cal.extra:
+                row["sag_steps"] = cal.extra["sag_steps"]
+                row["sag_next_step_mm"] = cal.extra["sag_next_step_mm"]
             if k in (0, len(ladder) - 1):
                 label = "geometric" if k == 0 else "+ " + " + ".join(named)
                 residuals[label] = chain_residuals(rig, cal.robot, cal.x, "validation")
@@ -230,8 +261,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
              "encoder_error takes its place)"]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
+    notes += ladder_notes
     return ChainDiagnosis(rig.name, named, rounds, steps, baseline,
-                          time.perf_counter() - t0, n_sel, notes, residuals)
+                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals)
 
 
 def parse_published(text: str) -> dict[str, float]:
@@ -271,7 +303,9 @@ def format_chain_diagnosis(doc: dict) -> str:
               "yes" if s["passes"] else "no"] for s in scores]))
     rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
              *_ladder_cells(doc["baseline"])]]
-    rows += [[f"+ {s['effect']}", str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
+    rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"
+                                     if s.get("sag_steps", 1) > 1 else ""),
+              str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
     out += ["", "ladder on the validation rows (never used to decide):",
             format_table(["step", "fitted", "mean mm", "sd mm", "max mm"], rows), "",
             f"named effects: {', '.join(doc['effects']) or 'none'} ({doc['seconds']:.0f} s)",

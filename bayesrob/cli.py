@@ -664,6 +664,11 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
                         "ladder.png, e.g. geometric=10.5,joint_compliance=5.64")
+    p.add_argument("--sag-steps", type=_at_least_one, default=1, metavar="N",
+                   help="URDF/DH rigs: fit the ladder's steps with joints giving way under "
+                        "gravity with their torques taken N times, towards equilibrium; a step "
+                        "that has not reached it is reported with one step, noted (default 1; "
+                        "the effects are chosen with one step either way)")
 
 
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
@@ -678,6 +683,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.published:
         raise UsageError("--published draws a published ladder for URDF/DH rigs; "
                          f"{rig.name!r} is planar")
+    if args.sag_steps != 1:
+        raise UsageError(f"--sag-steps is for URDF/DH rigs; {rig.name!r} is planar (its "
+                         "gravity_sag takes the torques at the pose it sags into already)")
     diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
@@ -701,7 +709,8 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
 
     try:
         published = parse_published(args.published) if args.published else None
-        diag = diagnose_chain(rig, args.effects, seed=args.seed, progress=_progress(args))
+        diag = diagnose_chain(rig, args.effects, seed=args.seed, progress=_progress(args),
+                              sag_steps=args.sag_steps)
     except ChainDiagnosisError as e:
         raise UsageError(str(e)) from None
     doc = diag.to_json()
