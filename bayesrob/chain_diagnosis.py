@@ -207,8 +207,9 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         cal = calibrate_chain(split, groups, polish=False, max_nfev=SELECTION_NFEV)
         before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
-        current = None  # the named model's fit (WARM_STARTED candidates start from it)
-        selected: dict[str, np.ndarray] = {}  # each named effect's selection fit
+        # each named effect's selection fit: the last one is the named model's, which the
+        # WARM_STARTED candidates start from; each is its ladder step's equilibrium check
+        selected: dict[str, np.ndarray] = {}
         bar.update(1)
         while len(named) < len(candidates):
             scores = []
@@ -216,8 +217,8 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                         if c not in named and NEEDS.get(c, c) in (*named, c)):
                 # compared with each other, not reported: the fast fit is enough to decide
                 cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]), polish=False,
-                                      **({"max_nfev": WARM_NFEV, "start": current}
-                                         if eff in WARM_STARTED and current is not None
+                                      **({"max_nfev": WARM_NFEV, "start": selected[named[-1]]}
+                                         if eff in WARM_STARTED and named
                                          else {"max_nfev": SELECTION_NFEV}))
                 after = _row_errors(split, cal, "selection")
                 bar.update(1)
@@ -241,7 +242,6 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             selected[best["effect"]] = best["_x"]
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
             before, n_before = best["_after"], n_before + best["parameters"]
-            current = best["_x"]
         # the selection is over: what is left is known, a ladder fit per step and the base
         bar.total = bar.n + len(named) + 1
         # the ladder: every step refitted on all train rows, reported on the validation rows
@@ -253,7 +253,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
         ladder_notes: list[str] = []
         for k, g in enumerate(ladder):
             cal = _ladder_fit(rig, g, sag_steps, ladder_notes,
-                              selected.get(named[k - 1]) if k else None)
+                              selected[named[k - 1]] if k else None)
             bar.update(1)
             # the calibration already scored every set: its validation statistics are the
             # ladder's (validation rows exist, checked above)
