@@ -547,7 +547,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
             x, n = fit(ident.free, x, exact=True, max_nfev=POLISH_NFEV)
             nfev += n
     se = _chain_standard_errors(full_res, full_jac, x, ident.free, penalty)
-    extra = sag_convergence(rig, robot, x) if sags and polish else {}
+    extra = sag_convergence(rig, x, sag_steps) if sags and polish else {}
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
                             time.perf_counter() - t0, extra=extra)
 
@@ -555,15 +555,17 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
 SAG_CONVERGED_MM = 0.01  # a tenth of the markers' noise on the arms seen so far
 
 
-def sag_convergence(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
+def sag_convergence(rig: Rig, x: np.ndarray, sag_steps: int = 1) -> dict:
     """How far one more step of the sag's torques (taken at the pose the fitted sag leaves)
-    moves the train markers: ``sag_next_step_mm`` (largest). One step is a first-order model
+    moves the train markers, for the parameters ``x`` of the rig's gravity model with
+    ``sag_steps`` steps: ``sag_next_step_mm`` (largest). One step is a first-order model
     whose free masses and compliances absorb the rest (docs/robots.md); when more steps were
     asked for and the last still moves a marker by more than SAG_CONVERGED_MM, a note says
     that the iteration did not reach the torque equilibrium."""
+    # the rig's cached gravity robots: their compiled residuals serve every fit
+    robot = _with_gravity(rig, sag_steps)
     now, *_ = _residual_function(rig, robot, "train")
-    # the rig's cached robot for one more step: its compiled residuals serve every fit
-    nxt, *_ = _residual_function(rig, _with_gravity(rig, robot.sag_steps + 1), "train")
+    nxt, *_ = _residual_function(rig, _with_gravity(rig, sag_steps + 1), "train")
     moved = np.asarray(nxt(jnp.asarray(x)) - now(jnp.asarray(x))).reshape(-1, robot.dim)
     change = float(np.linalg.norm(moved, axis=1).max())
     out: dict = {"sag_steps": robot.sag_steps, "sag_next_step_mm": change}

@@ -31,7 +31,6 @@ import numpy as np
 from bayesrob.calibration import (
     SAG_CONVERGED_MM,
     ChainCalibration,
-    _with_gravity,
     calibrate_chain,
     chain_distances,
     chain_residuals,
@@ -162,7 +161,7 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
     if sag_steps > 1 and set(SAG_GROUPS) & set(groups):
         label = ",".join(groups)
         moved = (None if selected is None else
-                 sag_convergence(rig, _with_gravity(rig, sag_steps), selected)["sag_next_step_mm"])
+                 sag_convergence(rig, selected, sag_steps)["sag_next_step_mm"])
         if moved is not None and moved > SAG_CONVERGED_MM:
             notes.append(f"{label}: the one-step selection fit's sag does not settle in "
                          f"{sag_steps} steps of the torques (one more moves a train marker by "

@@ -87,6 +87,29 @@ def test_latent_population_and_coverage_on_new_poses(arm6_modules):
     assert 0.8 <= predicted / observed <= 1.25, (predicted, observed)
 
 
+def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monkeypatch):
+    """Many draws at many rows are pushed through the chain in slices (memory: Justin's 200
+    validation poses with six sag steps took 23 GB in one call); the slices, one short, give
+    the same points as one call, to rounding (1e-9 mm: the same operations per draw)."""
+    import bayesrob.chain_prediction as cp
+
+    rig, mods = arm6_modules
+    u, _ = rig.chain_rows("arm", "validation")
+    whole = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
+    monkeypatch.setattr(cp, "POINTS_PER_CALL", 45 * len(u))  # 7 calls: 6 of 43 draws, 42
+    sizes = []
+    compiled = cp._points_with_errors
+
+    def counted(robot, arm):
+        push = compiled(robot, arm)
+        return lambda xs, *a: sizes.append(len(xs)) or push(xs, *a)
+    monkeypatch.setattr(cp, "_points_with_errors", counted)
+    sliced = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
+    assert sizes == [43] * 6 + [42]
+    assert sliced.shape == whole.shape == (300, len(u), 3)
+    np.testing.assert_allclose(sliced, whole, rtol=0, atol=1e-9)
+
+
 def test_aim_reaches_targets_and_refuses_what_it_cannot(arm6_modules):
     rig, mods = arm6_modules
     _, d = rig.chain_rows("arm", "holdout")

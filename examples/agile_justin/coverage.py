@@ -10,7 +10,8 @@ fits each hand's joint-error population (``--model``, default ind), and predicts
 its 200 validation poses (the other arm's pose given: its weight bends the torso). Prints,
 per hand, the share of validation points inside the predicted 50% and 90% regions and the
 predicted / observed mean error (observed: distance from the predicted mean point). Nothing
-here is tuned on the validation rows.
+here is tuned on the validation rows. ``--sag-steps 6`` calibrates with the gravity torques
+taken six times, the model of ``bayesrob diagnose --sag-steps 6`` (about 7 minutes).
 """
 
 from __future__ import annotations
@@ -29,14 +30,14 @@ from convert import converted_rig, source_arguments  # noqa: E402
 HANDS = ("right", "left")
 
 
-def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: int = 0
-             ) -> list[dict]:
+def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: int = 0,
+             sag_steps: int = 1) -> list[dict]:
     from bayesrob.calibration import calibrate_chain
     from bayesrob.chain_prediction import chain_draws, fit_chain_modules, hdr_levels
     from bayesrob.rig import load_rig
 
     rig = load_rig(rig_dir)
-    cal = calibrate_chain(rig, groups)
+    cal = calibrate_chain(rig, groups, sag_steps=sag_steps)
     mods = fit_chain_modules(rig, HANDS, model, groups, seed=seed, calibration=cal)
     out = []
     for k, hand in enumerate(HANDS):
@@ -47,7 +48,8 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
         mean = draws.mean(axis=0)
         predicted = float(np.linalg.norm(draws - mean[None], axis=-1).mean())
         observed = float(np.linalg.norm(obs - mean, axis=-1).mean())
-        out.append({"hand": hand, "groups": list(groups), "model": model, "n": len(obs),
+        out.append({"hand": hand, "groups": list(groups), "model": model,
+                    "sag_steps": sag_steps, "n": len(obs),
                     "coverage50": float(np.mean(level < 0.5)),
                     "coverage90": float(np.mean(level < 0.9)),
                     "predicted_error_mm": predicted, "observed_error_mm": observed,
@@ -60,12 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     source_arguments(p)
     p.add_argument("--groups", default="frames,geometric,compliance,lateral")
     p.add_argument("--model", default="ind", choices=["ind", "corr"])
+    p.add_argument("--sag-steps", type=int, default=1,
+                   help="take the gravity torques this many times, towards their equilibrium "
+                        "(6 as `bayesrob diagnose --sag-steps 6`)")
     p.add_argument("--json", type=Path, help="also write the rows as JSON here")
     args = p.parse_args(argv)
     rig = converted_rig(args.src, args.out)
     if rig is None:
         return 2
-    rows = coverage(rig, tuple(args.groups.split(",")), args.model)
+    if args.sag_steps < 1:
+        p.error(f"--sag-steps must be at least 1, not {args.sag_steps}")
+    rows = coverage(rig, tuple(args.groups.split(",")), args.model, sag_steps=args.sag_steps)
     print("| hand | groups | model | 50% / 90% coverage | predicted / observed error (mm) |")
     print("|---|---|---|---|---|")
     for r in rows:
