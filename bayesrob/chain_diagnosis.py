@@ -156,8 +156,8 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
     SAG_CONVERGED_MM), what it fitted is an iteration, not a physical model, so the step is
     refitted at one step (the stated first-order model) and a note says so. ``selected``: the
     step's one-step selection fit; where its own sag does not settle within ``sag_steps``
-    steps, no equilibrium fit is tried (on Justin that predicted both steps' outcomes and
-    saves a fit of two and a half minutes that would be thrown away)."""
+    steps, no equilibrium fit is tried (it saves a fit that would be thrown away; on Justin
+    both steps pass it, and joint compliance alone still ends off its fixed point)."""
     if sag_steps > 1 and set(SAG_GROUPS) & set(groups):
         label = ",".join(groups)
         moved = (None if selected is None else
