@@ -56,9 +56,10 @@ __all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "cha
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
-# Draws x rows pushed through a chain in one compiled call. One call holds every draw's
-# frames at once: Justin's 4000 draws at 200 validation poses, with the sag's torques taken
-# six times, took the process to 23 GB in one call; a rig's 16-24 targets stay one call.
+# Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
+# call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
+# the sag's torques taken six times, took the process to 23 GB in one call; a rig's 16-24
+# targets stay one call.
 POINTS_PER_CALL = 100_000
 # The joint stiffness prior when the rig does not give them. Chosen on the linked tuning rigs
 # (arm6 --linked seeds 201-206, each drawing its own arms' stiffnesses; 144 linked points;
@@ -268,11 +269,13 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
     rest = (None if side is None or mods.robot.gravity is None
             else {b: jnp.asarray(v) for b, v in side.items()})
     push = _points_with_errors(mods.robot, arm)
-    u = jnp.asarray(u)
-    calls = max(1, -(-n * len(u) // POINTS_PER_CALL))
-    size = -(-n // calls)  # equal slices: one compiled shape (and one more for a short last)
-    pts = jnp.concatenate([push(xs[i:i + size], u, e[i:i + size], rest)
-                           for i in range(0, n, size)])
+    rows = jnp.asarray(u)
+    per_call = max(1, POINTS_PER_CALL // max(1, len(u)))
+    # equal slices: one compiled shape (and one more for a short last slice)
+    size = max(1, -(-n // max(1, -(-n // per_call))))
+    pts = (push(xs, rows, e, rest) if n <= size else
+           jnp.concatenate([push(xs[i:i + size], rows, e[i:i + size], rest)
+                            for i in range(0, n, size)]))
     eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
     return np.asarray(pts + eps)
 

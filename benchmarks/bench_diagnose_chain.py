@@ -12,7 +12,8 @@ minutes on Justin. Measured: 276 s with four candidates and the lateral complian
 every selection fit started from the nominal robot, 284 s with three candidates); joint then
 lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With ``--sag-steps 6`` (the ladder's steps with
 gravity at torque equilibrium where one is reached; no target): 445 s, 1.98 times the
-default run's 224 s in the same session, 10.97 -> 4.34 (no equilibrium: one step) -> 3.08 mm.
+default run's 224 s in the same session (457 s again, 131 s of it joint compliance's six-step
+fit, thrown away as off its fixed point), 10.97 -> 4.34 (one step) -> 3.08 mm.
 """
 
 from __future__ import annotations

@@ -91,9 +91,12 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
     """Many draws at many rows are pushed through the chain in slices (memory: Justin's 200
     validation poses with six sag steps took 23 GB in one call); the slices, one short, give
     the same points as one call, to rounding (1e-9 mm: the same operations per draw)."""
+    import dataclasses
+
     import bayesrob.chain_prediction as cp
 
     rig, mods = arm6_modules
+    mods = dataclasses.replace(mods, param_cov=1e-8 * np.eye(len(mods.x)))
     u, _ = rig.chain_rows("arm", "validation")
     whole = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
     monkeypatch.setattr(cp, "POINTS_PER_CALL", 45 * len(u))  # 7 calls: 6 of 43 draws, 42
@@ -107,6 +110,8 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
     sliced = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
     assert sizes == [43] * 6 + [42]
     assert sliced.shape == whole.shape == (300, len(u), 3)
+    # the draws' parameters differ, so a slice given the wrong draws' parameters would show
+    assert np.ptp(np.asarray(cp.parameter_draws(mods, cp.jax.random.PRNGKey(0), 3)), 0).max() > 0
     np.testing.assert_allclose(sliced, whole, rtol=0, atol=1e-9)
 
 

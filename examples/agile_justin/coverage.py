@@ -38,6 +38,8 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
 
     rig = load_rig(rig_dir)
     cal = calibrate_chain(rig, groups, sag_steps=sag_steps)
+    for note in cal.extra.get("notes", []):  # e.g. the sag not at its equilibrium
+        print(f"note: {note}", file=sys.stderr)
     mods = fit_chain_modules(rig, HANDS, model, groups, seed=seed, calibration=cal)
     out = []
     for k, hand in enumerate(HANDS):
@@ -67,11 +69,11 @@ def main(argv: list[str] | None = None) -> int:
                         "(6 as `bayesrob diagnose --sag-steps 6`)")
     p.add_argument("--json", type=Path, help="also write the rows as JSON here")
     args = p.parse_args(argv)
+    if args.sag_steps < 1:
+        p.error(f"--sag-steps must be at least 1, not {args.sag_steps}")
     rig = converted_rig(args.src, args.out)
     if rig is None:
         return 2
-    if args.sag_steps < 1:
-        p.error(f"--sag-steps must be at least 1, not {args.sag_steps}")
     rows = coverage(rig, tuple(args.groups.split(",")), args.model, sag_steps=args.sag_steps)
     print("| hand | groups | model | 50% / 90% coverage | predicted / observed error (mm) |")
     print("|---|---|---|---|---|")
