@@ -273,9 +273,15 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
     per_call = max(1, POINTS_PER_CALL // max(1, len(u)))
     # equal slices: one compiled shape (and one more for a short last slice)
     size = max(1, -(-n // max(1, -(-n // per_call))))
-    pts = (push(xs, rows, e, rest) if n <= size else
-           jnp.concatenate([push(xs[i:i + size], rows, e[i:i + size], rest)
-                            for i in range(0, n, size)]))
+    if n <= size:
+        pts = push(xs, rows, e, rest)
+    else:
+        # sliced on the host and each slice finished before the next starts: slicing device
+        # arrays compiles a program per offset while earlier slices still run, and under the
+        # persistent compilation cache one such run ended in a crash inside XLA's serialiser
+        xs, e = np.asarray(xs), np.asarray(e)
+        pts = np.concatenate([np.asarray(push(xs[i:i + size], rows, e[i:i + size], rest))
+                              for i in range(0, n, size)])
     eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
     return np.asarray(pts + eps)
 
