@@ -271,9 +271,9 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
     push = _points_with_errors(mods.robot, arm)
     rows = jnp.asarray(u)
     per_call = max(1, POINTS_PER_CALL // max(1, len(u)))
-    # equal slices: one compiled shape (and one more for a short last slice)
-    size = max(1, -(-n // max(1, -(-n // per_call))))
-    if n <= size:
+    calls = max(1, -(-n // per_call))
+    size = -(-n // calls)  # equal slices: one compiled shape (one more for a short last one)
+    if calls == 1:
         pts = push(xs, rows, e, rest)
     else:
         # sliced on the host and each slice finished before the next starts: slicing device
