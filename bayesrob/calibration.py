@@ -400,17 +400,26 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
         def jacobian(x, data):
             return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
                 -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
-        def exact(v, x, idx, data):
-            # forward mode over the fitted columns only: its cost grows with the number of
-            # tangents, and a fit frees part of the layout (Justin: 127-192 of 335 columns)
-            return jax.jacfwd(lambda v: residuals(x.at[idx].set(v), data))(v)
+        def exact(x, data):
+            # Reverse mode, row by row: a row's marker depends on the parameters through its
+            # own pose alone, so each row costs a pull-back per measured coordinate (2-3),
+            # where forward mode costs a push-forward per fitted column (Justin: 127-192) for
+            # every row at once. Six sag steps on Justin: 0.27 s against 8.7 s, the same
+            # Jacobian to rounding; and one program serves every set of fitted columns.
+            def rows(a, u, d, side):
+                def one(u1, d1, side1):
+                    s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}
+                    return jax.jacrev(lambda x: robot.marker_points(x, a, u1[None],
+                                                                     side=s1)[0] - d1)(x)
+                return jax.vmap(one)(u, d, side).reshape(-1, x.shape[0])
+            return jnp.concatenate([rows(a, u, d, side)
+                                    for a, (u, d, side) in zip(arms, data, strict=True)])
         cache[key] = (jax.jit(residuals), jax.jit(jacobian), jax.jit(exact))
     res, jac, exact = cache[key]
     n_res = sum(int(d.size) for _, d, _ in data)
 
     def exact_columns(x, idx):
-        idx = jnp.asarray(idx)
-        return exact(x[idx], x, idx, data)
+        return exact(x, data)[:, np.asarray(idx)]
     return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res, exact_columns
 
 

@@ -531,6 +531,41 @@ def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
     assert np.nanmax(with_prior.se[lateral]) < np.nanmax(without.se[lateral])
 
 
+def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
+    """The polish's exact Jacobian (reverse mode, row by row) is forward-mode autodiff of the
+    whole residual vector: on a two-handed rig whose rows carry the other arm (the side rows
+    that bend the torso), three steps of the torques, every kind of parameter moved (joint and
+    lateral compliances, play, encoder), columns picked out of order. Both are exact, so they
+    agree to rounding (1e-9 of each column's largest entry; measured 1e-15 on Justin)."""
+    from bayesrob import calibration
+
+    shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
+    rng = np.random.default_rng(8)
+    cols = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
+            + [f"left_u{k}" for k in range(1, 8)])
+    lines = ["config,set," + ",".join(cols) + ",x,y,z"]
+    for hand in ("right", "left"):
+        for pose in rng.uniform(-1, 1, (7, 17)):
+            lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
+    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
+    rig = load_rig(tmp_path, min_train_rows=0)
+    robot = calibration._with_gravity(rig, 3)
+    lay = robot.layout
+    x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
+    joint = np.array([p.name.endswith(".compliance") for p in lay.params])
+    x[joint] = rng.uniform(0, 1e-7, joint.sum())
+    bending = lay.group_mask(("lateral",))
+    x[bending] = rng.uniform(0, 3e-8, bending.sum())
+    res, _, n_res, exact = calibration._residual_function(rig, robot, "train")
+    assert n_res == 2 * 7 * 3
+    idx = rng.permutation(lay.nominal.size)[:40]
+    auto = np.asarray(jax.jacfwd(res)(jnp.asarray(x)))[:, idx]
+    mine = np.asarray(exact(jnp.asarray(x), idx))
+    assert mine.shape == (n_res, 40)
+    scale = np.abs(auto).max(axis=0) + 1e-300
+    assert (np.abs(mine - auto).max(axis=0) / scale).max() < 1e-9
+
+
 def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
     """A hand's row may also carry the other arm's columns (read as the rest of the pose);
     side rows are given only when every row of the arm and set carries them."""
