@@ -7,7 +7,8 @@ train and 200 validation poses) when its data is at hand, else the simulator's c
 
 Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from
 after the imports), the effects named and the validation ladder. Target (2 cores): under 5
-minutes on Justin. Measured: 218 s with four candidates and the lateral compliances' prior,
+minutes on Justin. Measured: 199 s (218 s by the command) with four candidates and the
+lateral compliances' prior,
 the polish's exact Jacobian in reverse mode row by row (224-276 s before it; 273 s without
 the prior; 314 s while every selection fit started from the nominal robot, 284 s with three
 candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With ``--sag-steps 6``
