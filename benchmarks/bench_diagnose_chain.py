@@ -5,16 +5,16 @@ train and 200 validation poses) when its data is at hand, else the simulator's c
     python benchmarks/bench_diagnose_chain.py [--data PATH/agile-justin/measurements.csv]
                                               [--sag-steps N]
 
-Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from
-after the imports), the effects named and the validation ladder. Target (2 cores): under 5
-minutes on Justin. Measured: 199 s (218 s by the command) with four candidates and the
-lateral compliances' prior,
-the polish's exact Jacobian in reverse mode row by row (224-276 s before it; 273 s without
-the prior; 314 s while every selection fit started from the nominal robot, 284 s with three
-candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With ``--sag-steps 6``
-(the ladder's steps with gravity at torque equilibrium where one is reached; no target):
-317 s, 1.45 times the default run's (445-457 s before; 94 s of it joint compliance's six-step
-fit, thrown away as off its fixed point), 10.97 -> 4.34 (one step) -> 3.08 mm.
+Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from after
+the imports), the effects named and the validation ladder. Target (2 cores): under 5 minutes on
+Justin. Measured: 199 s (218 s by the command) with four candidates and the lateral
+compliances' prior, the polish's exact Jacobian in reverse mode row by row (224-276 s before
+it; 273 s without the prior; 314 s while every selection fit started from the nominal robot,
+284 s with three candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With
+``--sag-steps 6`` (the ladder's steps with gravity at torque equilibrium where one is reached;
+no target): 317 s, 1.45 times the default run's (445-457 s before; 94 s of it joint
+compliance's six-step fit, thrown away as off its fixed point), 10.97 -> 4.34 (one step) ->
+3.08 mm.
 """
 
 from __future__ import annotations
