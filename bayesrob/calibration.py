@@ -404,8 +404,8 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
             # Reverse mode, row by row: a row's marker depends on the parameters through its
             # own pose alone, so each row costs a pull-back per measured coordinate (2-3),
             # where forward mode costs a push-forward per fitted column (Justin: 127-192) for
-            # every row at once. Six sag steps on Justin: 0.27 s against 8.7 s, the same
-            # Jacobian to rounding; and one program serves every set of fitted columns.
+            # every row at once (on Justin about thirty times the cost: docs/diagnose.md); and
+            # one compiled program serves every set of fitted columns.
             def rows(a, u, d, side):
                 def one(u1, d1, side1):
                     s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}

@@ -12,9 +12,9 @@ compliances' prior, the polish's exact Jacobian in reverse mode row by row (224-
 it; 273 s without the prior; 314 s while every selection fit started from the nominal robot,
 284 s with three candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With
 ``--sag-steps 6`` (the ladder's steps with gravity at torque equilibrium where one is reached;
-no target): 317 s, 1.45 times the default run's (445-457 s before; 94 s of it joint
-compliance's six-step fit, thrown away as off its fixed point), 10.97 -> 4.34 (one step) ->
-3.08 mm.
+no target): 317 s by the command, 1.45 times its default run's 218 s (445-457 s before the
+reverse-mode Jacobian); of the 317 s, 94 s is joint compliance's six-step fit, thrown away as
+off its fixed point; 10.97 -> 4.34 (one step) -> 3.08 mm.
 """
 
 from __future__ import annotations

@@ -531,14 +531,39 @@ def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
     assert np.nanmax(with_prior.se[lateral]) < np.nanmax(without.se[lateral])
 
 
+def _exact_against_forward_mode(rig, rng, compliance: float, picked=()):
+    """The fit's exact Jacobian at a random point (three steps of the torques, every kind of
+    parameter moved), on 40 columns in random order with ``picked`` among them, beside
+    forward-mode autodiff of the whole residual vector: largest error per column over the
+    column's largest entry (or 1e-12 of the whole Jacobian's, where that is larger)."""
+    from bayesrob import calibration
+
+    robot = calibration._with_gravity(rig, 3)
+    lay = robot.layout
+    x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
+    joint = np.array([p.name.endswith(".compliance") for p in lay.params])
+    x[joint] = rng.uniform(0, compliance, joint.sum())
+    bending = lay.group_mask(("lateral",))
+    x[bending] = rng.uniform(0, 0.3 * compliance, bending.sum())
+    res, _, n_res, exact = calibration._residual_function(rig, robot, "train")
+    picked = list(picked)
+    rest = rng.permutation(np.setdiff1d(np.arange(lay.nominal.size), picked))
+    idx = rng.permutation(np.concatenate([picked, rest[: 40 - len(picked)]]).astype(int))
+    auto = np.asarray(jax.jacfwd(res)(jnp.asarray(x)))[:, idx]
+    mine = np.asarray(exact(jnp.asarray(x), idx))
+    assert mine.shape == (n_res, 40) and np.abs(auto).max() > 0
+    # a column the markers do not depend on (a planar marker's z) is zero in one and rounding
+    # in the other: measured against the whole Jacobian's largest entry there
+    scale = np.maximum(np.abs(auto).max(axis=0), 1e-12 * np.abs(auto).max())
+    return float((np.abs(mine - auto).max(axis=0) / scale).max())
+
+
 def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
     """The polish's exact Jacobian (reverse mode, row by row) is forward-mode autodiff of the
     whole residual vector: on a two-handed rig whose rows carry the other arm (the side rows
-    that bend the torso), three steps of the torques, every kind of parameter moved (joint and
-    lateral compliances, play, encoder), columns picked out of order. Both are exact, so they
-    agree to rounding (1e-9 of each column's largest entry; measured 1e-15 on Justin)."""
-    from bayesrob import calibration
-
+    that bend the torso; play columns among those checked) and on the planar default rig (no
+    side rows, two coordinates per marker). Both are exact, so they agree to rounding (1e-9
+    of each column's largest entry; 1e-15 measured on Justin's model at its data)."""
     shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
     rng = np.random.default_rng(8)
     cols = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
@@ -549,21 +574,15 @@ def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
             lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
     (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
     rig = load_rig(tmp_path, min_train_rows=0)
-    robot = calibration._with_gravity(rig, 3)
-    lay = robot.layout
-    x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
-    joint = np.array([p.name.endswith(".compliance") for p in lay.params])
-    x[joint] = rng.uniform(0, 1e-7, joint.sum())
-    bending = lay.group_mask(("lateral",))
-    x[bending] = rng.uniform(0, 3e-8, bending.sum())
-    res, _, n_res, exact = calibration._residual_function(rig, robot, "train")
-    assert n_res == 2 * 7 * 3
-    idx = rng.permutation(lay.nominal.size)[:40]
-    auto = np.asarray(jax.jacfwd(res)(jnp.asarray(x)))[:, idx]
-    mine = np.asarray(exact(jnp.asarray(x), idx))
-    assert mine.shape == (n_res, 40)
-    scale = np.abs(auto).max(axis=0) + 1e-300
-    assert (np.abs(mine - auto).max(axis=0) / scale).max() < 1e-9
+    # the side rows are what the torso's bend reads: the check is void without them
+    assert rig.chain_side_rows("right", "train") is not None
+    assert rig.chain_side_rows("left", "train") is not None
+    play = np.flatnonzero(rig.robot.layout.group_mask(("backlash",)))[:4]
+    assert len(play) == 4
+    assert _exact_against_forward_mode(rig, rng, 1e-7, play) < 1e-9
+    planar = load_rig(default_rig_dir())
+    assert planar.robot.dim == 2 and planar.chain_side_rows("top", "train") is None
+    assert _exact_against_forward_mode(planar, rng, 1e-6) < 1e-9
 
 
 def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
