@@ -406,20 +406,22 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
             # where forward mode costs a push-forward per fitted column (Justin: 127-192) for
             # every row at once (on Justin about thirty times the cost: docs/diagnose.md); and
             # one compiled program serves every set of fitted columns.
-            def rows(a, u, d, side):
-                def one(u1, d1, side1):
+            def rows(a, u, side):
+                def one(u1, side1):
                     s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}
                     return jax.jacrev(lambda x: robot.marker_points(x, a, u1[None],
-                                                                     side=s1)[0] - d1)(x)
-                return jax.vmap(one)(u, d, side).reshape(-1, x.shape[0])
-            return jnp.concatenate([rows(a, u, d, side)
-                                    for a, (u, d, side) in zip(arms, data, strict=True)])
+                                                                     side=s1)[0])(x)
+                return jax.vmap(one)(u, side).reshape(-1, x.shape[0])
+            return jnp.concatenate([rows(a, u, side)
+                                    for a, (u, _, side) in zip(arms, data, strict=True)])
         cache[key] = (jax.jit(residuals), jax.jit(jacobian), jax.jit(exact))
     res, jac, exact = cache[key]
     n_res = sum(int(d.size) for _, d, _ in data)
 
     def exact_columns(x, idx):
-        return exact(x, data)[:, np.asarray(idx)]
+        # the columns picked on the host: indexing the device array would compile a gather
+        # for every count of fitted columns
+        return np.asarray(exact(x, data))[:, np.asarray(idx)]
     return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res, exact_columns
 
 
