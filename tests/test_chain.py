@@ -17,6 +17,9 @@ from bayesrob.chain_simulator import ChainTruth, arm6_urdf_path, simulate_chain_
 from bayesrob.rig import default_rig_dir, dump_toml, load_rig, load_rig_toml
 
 JUSTIN_TOML = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / "rig.toml"
+# a Justin row's joint columns: the torso's three, then each arm's seven
+JUSTIN_COLUMNS = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
+                  + [f"left_u{k}" for k in range(1, 8)])
 
 
 def _rot(axis: str, a: float) -> np.ndarray:
@@ -566,9 +569,7 @@ def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
     of each column's largest entry; 1e-15 measured on Justin's model at its data)."""
     shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
     rng = np.random.default_rng(8)
-    cols = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
-            + [f"left_u{k}" for k in range(1, 8)])
-    lines = ["config,set," + ",".join(cols) + ",x,y,z"]
+    lines = ["config,set," + ",".join(JUSTIN_COLUMNS) + ",x,y,z"]
     for hand in ("right", "left"):
         for pose in rng.uniform(-1, 1, (7, 17)):
             lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
@@ -589,10 +590,8 @@ def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
     """A hand's row may also carry the other arm's columns (read as the rest of the pose);
     side rows are given only when every row of the arm and set carries them."""
     shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
-    cols = ([f"torso_u{k}" for k in range(1, 4)] + [f"right_u{k}" for k in range(1, 8)]
-            + [f"left_u{k}" for k in range(1, 8)])
     pose = ",".join(["0.1"] * 17)
-    lines = ["config,set," + ",".join(cols) + ",x,y,z"]
+    lines = ["config,set," + ",".join(JUSTIN_COLUMNS) + ",x,y,z"]
     lines += [f"right,train,{pose},1,2,3"] * 2 + [f"left,train,{pose},1,2,3"]
     lines += ["left,train," + ",".join(["0.1"] * 3 + [""] * 7 + ["0.1"] * 7) + ",1,2,3"]
     lines += ["right,train,0.1,0.1,0.1," + ",".join(["0.1"] * 7 + [""] * 7) + ",1,2,3"]
