@@ -173,6 +173,48 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(later
         assert rel.max() < 0.01, lay.names[int(rel.argmax())]
 
 
+@pytest.mark.parametrize("sag_steps", [1, 3])
+def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_steps):
+    """The analytic Jacobian's derivative of the deflections and bending with respect to the
+    sag's parameters (masses, first moments, compliances, lateral compliances, play), written
+    out from the torques' linearity, is ``jax.jacfwd`` of the sag in the same frames: on the
+    two-handed rig (the other arm hanging off the shared torso) and on the planar default rig,
+    every parameter non-zero (play within its smooth step's width, so its slope counts).
+    Both are exact: 1e-12 of each column's largest entry (measured 7e-15)."""
+    from bayesrob import calibration
+
+    rng = np.random.default_rng(21)
+    for rig in (_two_handed_rig(tmp_path, rng), load_rig(default_rig_dir())):
+        robot = calibration._with_gravity(rig, sag_steps)
+        lay = robot.layout
+        x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
+        joint = np.array([p.name.endswith(".compliance") for p in lay.params])
+        # compliances over four decades: some deflections within the play's step
+        x[joint] = 10 ** rng.uniform(-11, -7, joint.sum())
+        lateral, play = lay.group_mask(("lateral",)), lay.group_mask(("backlash",))
+        x[lateral] = rng.uniform(0, 3e-8, lateral.sum())
+        x[play] = rng.uniform(0, 1e-3, play.sum())
+        x = jnp.asarray(x)
+        idx = np.flatnonzero(lay.group_mask(kin.SAG_GROUPS))
+        for arm in robot.measured_arms():
+            u = jnp.asarray(rig.chain_rows(arm, "train")[0])
+            frames = robot._sag_frames(x, arm, u, calibration.side_rows(rig, robot, arm,
+                                                                        "train"))
+            defl = np.asarray(robot._sag_at(x.at[np.flatnonzero(play)].set(0.0), arm,
+                                            *frames)[0])
+            assert ((np.abs(defl) > 0) & (np.abs(defl) < 2 * kin.PLAY_SIDE_RAD)).any()
+            auto = jax.jacfwd(lambda v, r=robot, x=x, i=idx, a=arm, f=frames: r._sag_at(
+                x.at[i].set(v), a, *f))(x[idx])
+            mine = robot._sag_jacobian(x, arm, *frames, idx)
+            for a, m in zip(auto, mine, strict=True):
+                assert a.shape == m.shape
+                a = np.asarray(a).reshape(-1, a.shape[-1])
+                m = np.asarray(m).reshape(-1, m.shape[-1])
+                assert np.abs(a).max() > 0
+                scale = np.maximum(np.abs(a).max(axis=0), 1e-12 * np.abs(a).max())
+                assert (np.abs(m - a).max(axis=0) / scale).max() < 1e-12
+
+
 def test_sag_steps_iterate_the_torques_to_equilibrium():
     """``sag_steps`` takes the gravity torques again at the pose the last step sagged into.
     With about 20 mrad of sag (Justin's robot, compliances drawn large) each step shrinks the
@@ -534,6 +576,22 @@ def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
     assert np.nanmax(with_prior.se[lateral]) < np.nanmax(without.se[lateral])
 
 
+def _two_handed_rig(tmp_path: Path, rng: np.random.Generator):
+    """Justin's robot with seven train rows per hand, each row carrying the other arm's
+    columns (the side rows that bend the shared torso), asserted present: the checks that
+    use it are void without them."""
+    shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
+    lines = ["config,set," + ",".join(JUSTIN_COLUMNS) + ",x,y,z"]
+    for hand in ("right", "left"):
+        for pose in rng.uniform(-1, 1, (7, 17)):
+            lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
+    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
+    rig = load_rig(tmp_path, min_train_rows=0)
+    assert rig.chain_side_rows("right", "train") is not None
+    assert rig.chain_side_rows("left", "train") is not None
+    return rig
+
+
 def _exact_against_forward_mode(rig, rng, compliance: float, picked=()):
     """The fit's exact Jacobian at a random point (three steps of the torques, every kind of
     parameter moved), on 40 columns in random order with ``picked`` among them, beside
@@ -567,17 +625,8 @@ def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
     that bend the torso; play columns among those checked) and on the planar default rig (no
     side rows, two coordinates per marker). Both are exact, so they agree to rounding (1e-9
     of each column's largest entry; 1e-15 measured on Justin's model at its data)."""
-    shutil.copy(JUSTIN_TOML, tmp_path / "rig.toml")
     rng = np.random.default_rng(8)
-    lines = ["config,set," + ",".join(JUSTIN_COLUMNS) + ",x,y,z"]
-    for hand in ("right", "left"):
-        for pose in rng.uniform(-1, 1, (7, 17)):
-            lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
-    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
-    rig = load_rig(tmp_path, min_train_rows=0)
-    # the side rows are what the torso's bend reads: the check is void without them
-    assert rig.chain_side_rows("right", "train") is not None
-    assert rig.chain_side_rows("left", "train") is not None
+    rig = _two_handed_rig(tmp_path, rng)
     play = np.flatnonzero(rig.robot.layout.group_mask(("backlash",)))[:4]
     assert len(play) == 4
     assert _exact_against_forward_mode(rig, rng, 1e-7, play) < 1e-9
