@@ -510,16 +510,21 @@ class Robot:
         play = xz[el["play_idx"]][:, None] * jnp.tanh(defl / PLAY_SIDE_RAD)
         return (defl + play).T, jnp.swapaxes(bend, 0, 1)
 
-    def _sag_jacobian(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
-                      hanging: tuple, idx: np.ndarray) -> tuple[jax.Array, jax.Array]:
-        """d (deflections, bending) of :meth:`_sag_at` / d x[idx] in the frames given, held
-        fixed: (N, E, C) and (N, E, 3, C), equal to ``jax.jacfwd`` of it (tested).
+    def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
+                             links: jax.Array, hanging: tuple, idx: np.ndarray,
+                             w_q: jax.Array, w_phi: jax.Array) -> jax.Array:
+        """The sag's part of the marker Jacobian, (N, 3, C) over the parameters x[idx]:
+        sum_e w_q[e, n, i] d defl[n, e] / dc + sum_e,j w_phi[e, n, j, i] d bend[n, e, j] / dc
+        for :meth:`_sag_at` in the frames given, held fixed (``w_q``: d marker / d joint value,
+        (E, N, 3); ``w_phi``: d marker / d bend about the joint's own axes, (E, N, 3, 3)); the
+        same as contracting ``jax.jacfwd`` of the sag with them (tested).
 
-        Written out from the sag's structure rather than pushed through it: a link's mass and
-        first moment enter its weight through its own frame alone, and every torque is linear
-        in them, so their derivatives are the frames themselves, masked to the elements they
-        hang beyond. Forward mode pushes each of the C (Justin: 144) tangents through all the
-        torques; this costs about one pass (docs/diagnose.md)."""
+        Written out from the sag's structure rather than pushed through it: every torque is
+        linear in the masses and first moments, and a link's enter through its own frame
+        alone, so the marker's derivative by them is that frame dotted with the weights of
+        the elements the link hangs beyond, summed along the chain. Forward mode pushes each
+        of the C (Justin: 144) tangents through every torque; this is a few passes
+        (docs/diagnose.md)."""
         el = self._elements(arm)
         n_e, n = joints.shape[0], joints.shape[1]
         zero = len(self.layout.params)
@@ -528,70 +533,66 @@ class Robot:
         weight, mass = self._weights(xz, el["link_idx"], links)
         beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
         mass_beyond = jnp.cumsum(mass[::-1], axis=0)[::-1][:, None]
+        for shared, start, frames, b in hanging:
+            w, m = self._weights(xz, self._elements(b)["link_idx"][start:start + frames.shape[0]],
+                                 frames)
+            on = (jnp.arange(n_e) < shared)[:, None]
+            beyond = beyond + jnp.where(on[..., None], w.sum(axis=0)[None], 0.0)
+            mass_beyond = mass_beyond + jnp.where(on, m.sum(), 0.0)
         origin = joints[:, :, :3, 3]  # (E, N, 3)
         rot = joints[:, :, :3, :3]
         g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
-
-        def lever_terms(frames, on):
-            # d lever_e / d (mass, first moment) of each link l: (E, L, N, 3, 4), zero where
-            # link l does not hang beyond element e (``on``, (E, L))
-            d_w = jnp.concatenate([frames[:, :, :3, 3:4], frames[:, :, :3, :3]], axis=-1)
-            d_m = jnp.zeros(4).at[0].set(1.0)
-            d = d_w[None] - origin[:, None, :, :, None] * d_m
-            return d * on[:, :, None, None, None]
-
-        blocks = [(lever_terms(links, jnp.asarray(np.triu(np.ones((n_e, n_e))))),
-                   np.asarray(el["link_idx"]))]
-        for shared, start, frames, b in hanging:
-            on = np.broadcast_to((np.arange(n_e) < shared)[:, None], (n_e, frames.shape[0]))
-            w, m = self._weights(xz, self._elements(b)["link_idx"][start:start + frames.shape[0]],
-                                 frames)
-            on_e = (jnp.arange(n_e) < shared)[:, None]
-            beyond = beyond + jnp.where(on_e[..., None], w.sum(axis=0)[None], 0.0)
-            mass_beyond = mass_beyond + jnp.where(on_e, m.sum(), 0.0)
-            blocks.append((lever_terms(frames, jnp.asarray(on, float)),
-                           np.asarray(self._elements(b)["link_idx"][start:start
-                                                                    + frames.shape[0]])))
-        lever = beyond - mass_beyond[:, :, None] * origin
-        torque = jnp.einsum("enji,enj->eni", rot, jnp.cross(lever, g))
+        torque = jnp.einsum("enji,enj->eni", rot,
+                            jnp.cross(beyond - mass_beyond[:, :, None] * origin, g))
         axes = jnp.asarray(el["axes"])
         tau = jnp.sum(torque * axes[:, None, :], axis=-1)  # (E, N)
-        defl = s[:, None] * tau
         play = xz[el["play_idx"]][:, None]
-        side = jnp.tanh(defl / PLAY_SIDE_RAD)
-        # d (defl + play) / d defl: the play's smooth step turns with the deflection
+        side = jnp.tanh(s[:, None] * tau / PLAY_SIDE_RAD)
+        # d (deflection + play) / d deflection: the play's smooth step turns with it
         gain = 1.0 + play * (1.0 - side ** 2) / PLAY_SIDE_RAD
         across = jnp.asarray(el["across"])  # (E, 2, 3)
         lateral = xz[el["lateral_idx"]]  # (E, 2)
-        # every source's columns side by side, then one gather into idx's order: each sag
-        # parameter is one source's column (a tool's zero index aside), so nothing is summed,
-        # and a gather is far cheaper here than XLA's scatter-add
-        eye = jnp.eye(n_e)
-        src_defl, src_bend, keys = [], [], []
-        for d_lever, lidx in blocks:
-            d_t = jnp.einsum("enji,elnjk->enilk", rot,
-                             jnp.cross(d_lever, g[:, None], axisa=3, axisb=0, axisc=3))
-            d_t = d_t.reshape(n_e, n, 3, -1)  # (E, N, 3, L * 4), the link's params inner
-            src_defl.append(jnp.einsum("enic,ei,en->nec", d_t, axes, s[:, None] * gain))
-            src_bend.append(jnp.einsum("ek,enkc,ekj->nejc", lateral,
-                                       jnp.einsum("enic,eki->enkc", d_t, across), across))
-            keys.append(lidx.ravel())
-        diag = (tau * gain).T[:, :, None] * eye  # (N, E, E): an element's own compliance
-        src_defl += [diag, side.T[:, :, None] * eye, jnp.zeros((n, n_e, 2 * n_e))]
+        phi_across = jnp.einsum("enji,ekj->enik", w_phi, across)  # (E, N, 3, 2)
+        # the marker's weight on each torque component in the joint's frame, then on the
+        # lever arm in the instrument frame: w . R^T (dlever x g) = dlever . (g x R w)
+        on_torque = ((w_q * (s[:, None] * gain)[:, :, None])[..., None] * axes[:, None, None]
+                     + jnp.einsum("enik,ek,ekm->enim", phi_across, lateral, across))
+        v = jnp.cross(g, jnp.einsum("enim,enjm->enij", on_torque, rot))  # (E, N, 3, 3)
+        v_origin = jnp.einsum("enia,ena->eni", v, origin)
+
+        def links_block(frames, v_sum, o_sum):
+            # a link's weight moves by its frame's origin per unit mass and its frame's axes
+            # per unit first moment; its mass also moves every lever by minus that element's
+            # origin: (N, 3, L * 4), the link's four parameters inner
+            d_w = jnp.concatenate([frames[:, :, :3, 3:4], frames[:, :, :3, :3]], axis=-1)
+            out = jnp.einsum("lnia,lnak->nilk", v_sum, d_w)
+            return out.at[:, :, :, 0].add(-jnp.transpose(o_sum, (1, 2, 0))).reshape(n, 3, -1)
+
+        # a link on the path weighs on the elements up to its own: cumulative sums
+        sources = [links_block(links, jnp.cumsum(v, axis=0), jnp.cumsum(v_origin, axis=0))]
+        keys = [np.asarray(el["link_idx"]).ravel()]
+        for shared, start, frames, b in hanging:
+            # a chain off the path weighs on the path's elements before where it hangs
+            h = frames.shape[0]
+            sources.append(links_block(
+                frames, jnp.broadcast_to(v[:shared].sum(axis=0), (h, n, 3, 3)),
+                jnp.broadcast_to(v_origin[:shared].sum(axis=0), (h, n, 3))))
+            keys.append(np.asarray(self._elements(b)["link_idx"][start:start + h]).ravel())
         along = jnp.einsum("eni,eki->enk", torque, across)  # (E, N, 2)
-        bend_lat = jnp.einsum("enk,ekj,ef->nejfk", along, across, eye).reshape(n, n_e, 3, -1)
-        src_bend += [jnp.zeros((n, n_e, 3, 2 * n_e)), bend_lat]
+        sources += [jnp.transpose(w_q * (tau * gain)[:, :, None], (1, 2, 0)),  # compliances
+                    jnp.transpose(w_q * side[:, :, None], (1, 2, 0)),  # play
+                    jnp.transpose(phi_across * along[:, :, None, :], (1, 2, 0, 3)).reshape(
+                        n, 3, -1)]  # lateral compliances
         keys += [el["compliance_idx"], el["play_idx"], np.asarray(el["lateral_idx"]).ravel()]
+        # every source's columns side by side, then one gather into idx's order: each sag
+        # parameter is one source's column (a tool's zero index aside), so nothing is summed
         keys = np.concatenate([np.asarray(k) for k in keys])
         real = keys != zero
-        if len(set(keys[real])) != int(real.sum()):
+        if len(set(keys[real].tolist())) != int(real.sum()):
             raise AssertionError("a sag parameter enters two elements")  # the gather's premise
         pos = np.full(zero + 1, len(keys))  # a parameter no source has: the zero column
         pos[keys[real]] = np.flatnonzero(real)
-        take = pos[np.asarray(idx)]
-        d_defl = jnp.concatenate([*src_defl, jnp.zeros((n, n_e, 1))], axis=-1)[..., take]
-        d_bend = jnp.concatenate([*src_bend, jnp.zeros((n, n_e, 3, 1))], axis=-1)[..., take]
-        return d_defl, d_bend
+        return jnp.concatenate([*sources, jnp.zeros((n, 3, 1))], axis=-1)[..., pos[np.asarray(idx)]]
 
     def n_path_joints(self, arm: str) -> int:
         """How many joints the path to ``arm`` has (its mounts' and its own)."""
@@ -712,14 +713,12 @@ class Robot:
             # of a few mrad (tests/test_chain.py: jax.jacfwd). Where the sag is large (Agile
             # Justin's fits) the calibration finishes with the exact Jacobian.
             idx = np.flatnonzero(self.layout.group_mask(SAG_GROUPS))
-            d_defl, d_bend = self._sag_jacobian(x, arm, *frames, idx)  # (N, E, C), (N, E, 3, C)
             gens = jnp.stack([jnp.zeros((4, 4)).at[:3, :3].set(jnp.cross(jnp.eye(3), e))
                               for e in jnp.eye(3)])  # about the joint's own x, y, z
             before = jnp.einsum("enij,ejk->enik", prefix, factors)
             j_phi = jnp.einsum("enij,kjl,enl->enki", before, gens, inner)  # (E, N, 3, 4)
-            jac = jac.at[:, :, idx].add(jnp.einsum("eni,nec->nic", j_q[:, :, :3], d_defl)
-                                        + jnp.einsum("enki,nekc->nic", j_phi[..., :3],
-                                                     d_bend))
+            jac = jac.at[:, :, idx].add(self._sag_marker_jacobian(
+                x, arm, *frames, idx, j_q[:, :, :3], j_phi[..., :3]))
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
