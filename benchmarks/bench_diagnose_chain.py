@@ -7,15 +7,16 @@ train and 200 validation poses) when its data is at hand, else the simulator's c
 
 Prints one JSON line: seconds for the whole diagnosis (calibrations included, timed from after
 the imports), the effects named and the validation ladder. Target (2 cores): under 5 minutes on
-Justin. Measured: 167 s (159 s by the command) with four candidates and the lateral
-compliances' prior and the sag's derivative written out in the fast Jacobian (199 s before it;
+Justin. Measured: 91 s with JAX's compilation cache warm (149 s by the command on its first
+run after the change, compiling) with four candidates, the lateral compliances' prior and the
+sag's part of the fast Jacobian written out (167 s with it uncontracted, 199 s with jacfwd;
 224-276 s before the polish's exact Jacobian was taken in reverse mode row by row; 273 s
 without the prior; 314 s while every selection fit started from the nominal robot, 284 s with
 three candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With
 ``--sag-steps 6`` (the ladder's steps with gravity at torque equilibrium where one is
-reached): 267 s by the command (317 s before the sag's derivative was written out, 445-457 s
-before the reverse-mode Jacobian); of the 267 s, 86 s is joint compliance's six-step fit,
-thrown away as off its fixed point; 10.97 -> 4.34 (one step) -> 3.08 mm.
+reached): 205 s by the command, compiling (267 s with the sag's derivative uncontracted, 317 s
+with jacfwd, 445-457 s before the reverse-mode Jacobian); of the 267 s, 86 s was joint
+compliance's six-step fit, thrown away as off its fixed point; 10.97 -> 4.34 (one step) -> 3.08 mm.
 """
 
 from __future__ import annotations
