@@ -14,7 +14,7 @@ import pytest
 
 from bayesrob import kinematics as kin
 from bayesrob.chain_simulator import ChainTruth, arm6_urdf_path, simulate_chain_rig
-from bayesrob.rig import default_rig_dir, dump_toml, load_rig, load_rig_toml
+from bayesrob.rig import Rig, default_rig_dir, dump_toml, load_rig, load_rig_toml
 
 JUSTIN_TOML = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / "rig.toml"
 # a Justin row's joint columns: the torso's three, then each arm's seven
@@ -584,7 +584,7 @@ def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
     assert np.nanmax(with_prior.se[lateral]) < np.nanmax(without.se[lateral])
 
 
-def _two_handed_rig(tmp_path: Path, rng: np.random.Generator):
+def _two_handed_rig(tmp_path: Path, rng: np.random.Generator) -> Rig:
     """Justin's robot with seven train rows per hand, each row carrying the other arm's
     columns (the side rows that bend the shared torso), asserted present: the checks that
     use it are void without them."""

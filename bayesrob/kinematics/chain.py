@@ -48,6 +48,9 @@ POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 # of its play: which side it rests on there depends on how it was approached, which the rows
 # do not record.
 PLAY_SIDE_RAD = 1e-4
+# chains off a path, per chain: (path elements it weighs on, its first element, its links'
+# frames (E_c, N, 4, 4), its name), as Robot.side_frames gives them
+Hanging = tuple[tuple[int, int, jax.Array, str], ...]
 
 
 class KinematicsError(ValueError):
@@ -476,13 +479,14 @@ class Robot:
             "enij,ej->eni", links[:, :, :3, :3], moment)
         return weight, mass
 
-    def _sag_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
-                hanging: tuple = ()) -> tuple[jax.Array, jax.Array]:
-        # the torques of sag() in frames already computed: linear in the masses and first
-        # moments, the deflections and bending linear in the compliances (plus the play)
+    def _torques(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
+                 hanging: Hanging = ()) -> tuple[jax.Array, jax.Array]:
+        """The gravity torques of sag() in frames already computed, linear in the masses and
+        first moments: each element's torque in its joint's frame (E, N, 3) and about its
+        axis (E, N). One function for the sag and its written-out derivative, which must
+        take the same torques."""
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
-        s = xz[el["compliance_idx"]]  # (E,)
         weight, mass = self._weights(xz, el["link_idx"], links)
         beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
         mass_beyond = jnp.cumsum(mass[::-1], axis=0)[::-1][:, None]
@@ -493,12 +497,26 @@ class Robot:
             on = (jnp.arange(beyond.shape[0]) < shared)[:, None]
             beyond = beyond + jnp.where(on[..., None], w.sum(axis=0)[None], 0.0)
             mass_beyond = mass_beyond + jnp.where(on, m.sum(), 0.0)
-        g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
+        g = self._gravity_force(x, arm)
         origin = joints[:, :, :3, 3]
         rot = joints[:, :, :3, :3]
         lever = beyond - mass_beyond[:, :, None] * origin
         torque = jnp.einsum("enji,enj->eni", rot, jnp.cross(lever, g))  # in the joint's frame
         tau = jnp.sum(torque * jnp.asarray(el["axes"])[:, None, :], axis=-1)  # (E, N)
+        return torque, tau
+
+    def _gravity_force(self, x: jax.Array, arm: str) -> jax.Array:
+        # weight per kg in the instrument frame, where the frames are
+        return self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
+
+    def _sag_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
+                hanging: Hanging = ()) -> tuple[jax.Array, jax.Array]:
+        # the deflections and bending linear in the compliances (plus the play), from the
+        # torques in frames already computed
+        el = self._elements(arm)
+        xz = jnp.concatenate([x, jnp.zeros(1)])
+        s = xz[el["compliance_idx"]]  # (E,)
+        torque, tau = self._torques(x, arm, joints, links, hanging)
         across = jnp.asarray(el["across"])  # (E, 2, 3)
         lateral = xz[el["lateral_idx"]]  # (E, 2)
         bend = jnp.einsum("ek,enk,ekj->enj", lateral,
@@ -511,7 +529,7 @@ class Robot:
         return (defl + play).T, jnp.swapaxes(bend, 0, 1)
 
     def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
-                             links: jax.Array, hanging: tuple, idx: np.ndarray,
+                             links: jax.Array, hanging: Hanging, idx: np.ndarray,
                              w_q: jax.Array, w_phi: jax.Array) -> jax.Array:
         """The sag's part of the marker Jacobian, (N, 3, C) over the parameters x[idx]:
         sum_e w_q[e, n, i] d defl[n, e] / dc + sum_e,j w_phi[e, n, j, i] d bend[n, e, j] / dc
@@ -521,31 +539,21 @@ class Robot:
 
         Written out from the sag's structure rather than pushed through it: every torque is
         linear in the masses and first moments, and a link's enter through its own frame
-        alone, so the marker's derivative by them is that frame dotted with the weights of
-        the elements the link hangs beyond, summed along the chain. Forward mode pushes each
+        alone (mass and first moment), so the marker's derivative by them is that frame
+        dotted with the weights of the elements the link hangs beyond, summed along the
+        chain. Forward mode pushes each
         of the C (Justin: 144) tangents through every torque; this is a few passes
         (docs/diagnose.md)."""
         el = self._elements(arm)
-        n_e, n = joints.shape[0], joints.shape[1]
+        n = joints.shape[1]
         zero = len(self.layout.params)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         s = xz[el["compliance_idx"]]
-        weight, mass = self._weights(xz, el["link_idx"], links)
-        beyond = jnp.cumsum(weight[::-1], axis=0)[::-1]
-        mass_beyond = jnp.cumsum(mass[::-1], axis=0)[::-1][:, None]
-        for shared, start, frames, b in hanging:
-            w, m = self._weights(xz, self._elements(b)["link_idx"][start:start + frames.shape[0]],
-                                 frames)
-            on = (jnp.arange(n_e) < shared)[:, None]
-            beyond = beyond + jnp.where(on[..., None], w.sum(axis=0)[None], 0.0)
-            mass_beyond = mass_beyond + jnp.where(on, m.sum(), 0.0)
+        torque, tau = self._torques(x, arm, joints, links, hanging)
         origin = joints[:, :, :3, 3]  # (E, N, 3)
         rot = joints[:, :, :3, :3]
-        g = self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
-        torque = jnp.einsum("enji,enj->eni", rot,
-                            jnp.cross(beyond - mass_beyond[:, :, None] * origin, g))
+        g = self._gravity_force(x, arm)
         axes = jnp.asarray(el["axes"])
-        tau = jnp.sum(torque * axes[:, None, :], axis=-1)  # (E, N)
         play = xz[el["play_idx"]][:, None]
         side = jnp.tanh(s[:, None] * tau / PLAY_SIDE_RAD)
         # d (deflection + play) / d deflection: the play's smooth step turns with it
