@@ -541,9 +541,8 @@ class Robot:
         linear in the masses and first moments, and a link's enter through its own frame
         alone (mass and first moment), so the marker's derivative by them is that frame
         dotted with the weights of the elements the link hangs beyond, summed along the
-        chain. Forward mode pushes each
-        of the C (Justin: 144) tangents through every torque; this is a few passes
-        (docs/diagnose.md)."""
+        chain. Forward mode pushes each of the C (Justin: 144) tangents through every
+        torque; this is a few passes (docs/diagnose.md)."""
         el = self._elements(arm)
         n = joints.shape[1]
         zero = len(self.layout.params)
