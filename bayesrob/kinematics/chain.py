@@ -409,7 +409,7 @@ class Robot:
         return [b for b in self.measured_arms() if b != arm]
 
     def side_frames(self, x: jax.Array, arm: str, side: dict[str, jax.Array]
-                    ) -> tuple[tuple[int, int, jax.Array, str], ...]:
+                    ) -> Hanging:
         """For each chain off ``arm``'s path, its links' frames (E_c, N, 4, 4) in the pose of
         ``side`` (columns of a side arm's path, per row), with where it hangs: (how many of
         ``arm``'s path elements it hangs beyond, its first element on the side arm's path,
