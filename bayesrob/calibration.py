@@ -331,6 +331,10 @@ class ChainCalibration:
     method: str = "least-squares"
     extra: dict = field(default_factory=dict)  # e.g. the Bayesian posterior's diagnostics
     draws: np.ndarray | None = None  # (S, P) posterior draws of every parameter (bayes only)
+    # "description": the links' masses and first moments held at the robot description's
+    # (URDF <inertial>), so the compliances are the joints' own; "fitted": free, only their
+    # products with the compliances seen
+    masses: str = "fitted"
 
     def to_json(self) -> dict:
         layout = self.robot.layout
@@ -462,7 +466,8 @@ def _with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
                     polish: bool = True, max_nfev: int = 300,
-                    start: np.ndarray | None = None, sag_steps: int = 1) -> ChainCalibration:
+                    start: np.ndarray | None = None, sag_steps: int = 1,
+                    masses: str = "fitted") -> ChainCalibration:
     """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
     ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
     ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
@@ -471,7 +476,10 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     ``start``: the parameter vector to start from (a fit of fewer groups on the same rig, its
     frames fitted), instead of the nominal one. ``sag_steps``: how many times the sag's
     torques are taken, the first at the commanded pose, each next at the pose the last one
-    sagged into (:attr:`kinematics.Robot.sag_steps`)."""
+    sagged into (:attr:`kinematics.Robot.sag_steps`). ``masses``: "fitted" (the links' masses
+    and first moments are free, the rank analysis keeping what the compliances make visible),
+    or "description": held at the robot description's (URDF ``<inertial>``), so that each
+    compliance is the joint's own and not its product with an unknown mass scale."""
     import time
 
     t0 = time.perf_counter()
@@ -489,6 +497,11 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     x = layout.nominal.copy() if start is None else np.array(start, float)
     if x.shape != layout.nominal.shape:
         raise ValueError(f"start has {x.size} parameters; the robot has {layout.nominal.size}")
+    if masses not in ("fitted", "description"):
+        raise ValueError(f"masses must be 'fitted' or 'description', not {masses!r}")
+    candidates = layout.group_mask(groups)
+    if masses == "description" and sags:
+        candidates = candidates & ~described_links(robot, x)
     nfev = 0
     penalty = prior_penalty(layout, groups)
 
@@ -527,8 +540,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         nfev += n
         if progress:
             progress("frames fitted")
-    ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,
-                            layout.group_mask(groups))
+    ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, candidates)
     if int(ident.free.sum()) >= n_res:
         raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
                          "measured coordinates in the train rows")
@@ -545,8 +557,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         # fitted deflection's.
         if progress:
             progress("compliances fitted; freeing link masses")
-        ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout,
-                                layout.group_mask(groups))
+        ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, candidates)
         x, n = fit(ident.free, x)
         nfev += n
         # The analytic Jacobian leaves out how the geometry moves the sag, so its fit stops a
@@ -560,7 +571,26 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     se = _chain_standard_errors(full_res, full_jac, x, ident.free, penalty)
     extra = sag_convergence(rig, x, sag_steps) if sags and polish else {}
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
-                            time.perf_counter() - t0, extra=extra)
+                            time.perf_counter() - t0, extra=extra,
+                            masses=masses if sags else "fitted")
+
+
+def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:
+    """Put every chain's link masses and first moments from its description into ``x`` (in
+    place) and return the mask (P,) of those parameters; a chain whose description does not
+    weigh every moving link is an error."""
+    layout = robot.layout
+    held = np.zeros(layout.nominal.shape, bool)
+    for c in robot.chains.values():
+        m, h = c.source.get("link_masses_kg"), c.source.get("link_moments_kg_mm")
+        if m is None or h is None:
+            raise ValueError(f"chain {c.name!r}: its description does not give every moving "
+                             "link a mass (URDF <inertial>), so the masses cannot be held at "
+                             "it; fit them instead (masses 'fitted')")
+        sl = layout.slices[c.name, "links"]
+        x[sl] = np.column_stack([np.asarray(m, float), np.asarray(h, float)]).ravel()
+        held[sl] = True
+    return held
 
 
 SAG_CONVERGED_MM = 0.01  # a tenth of the markers' noise on the arms seen so far

@@ -111,7 +111,7 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
         for i, m in enumerate(specs):
             errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
                                        seed=design.seed + i)
-            mods = ChainModules(cal, {m.arm: errors}, {m.arm: _stiffness_prior(rig, m.arm)},
+            mods = ChainModules(cal, {m.arm: errors}, {m.arm: _stiffness_prior(rig, m.arm, cal)},
                                 cov)
             base = np.asarray(cal.robot.instrument_pose(jnp.asarray(cal.x), m.arm))[:3, 3]
             out[m.name] = ChainModule(m.name, m.arm, rig, mods, base[: rig.robot.dim],

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -49,9 +50,9 @@ from bayesrob.latent_errors import (
 )
 from bayesrob.rig import Rig, RigError
 
-__all__ = ["ChainModules", "fit_chain_modules", "aim_chain", "chain_draws", "chain_equilibrium",
-           "free_draws", "parameter_draws", "stiffness_draws", "hdr_levels", "hdr_sizes",
-           "product_draws_nuts", "predict_chain_points"]
+__all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "chain_draws",
+           "chain_equilibrium", "free_draws", "parameter_draws", "stiffness_draws",
+           "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
@@ -73,6 +74,15 @@ CHAIN_STIFFNESS_ARM_LOG_SD = 0.5  # shared by an arm's joints: an arm stiffer or
 # limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
 # "equal" joints
 CHAIN_STIFFNESS_CENTRE = "effort"
+# How far a robot description's link masses are trusted (log sd): a compliance fitted under
+# them carries their error into the stiffness read from it.
+DESCRIBED_MASS_LOG_SD = 0.1
+# With the arm's scale fixed by its seen joints, how far an unseen joint's stiffness strays from
+# its place in the torque-limit profile (log sd). Chosen on the linked tuning rigs (seeds
+# 201-206, link masses 10% off the URDF's) as the value whose pooled 50% / 90% coverage came
+# closest to nominal: 0.2 gave 0.50 / 0.89, 0.3 0.58 / 0.90, 0.5 0.67 / 0.92 (error ratio
+# 1.04 each).
+UNSEEN_STIFFNESS_LOG_SD = 0.2
 
 
 @dataclass
@@ -81,8 +91,8 @@ class ChainModules:
 
     calibration: ChainCalibration
     errors: dict[str, LatentJointErrors]
-    # per arm: the log joint stiffnesses' prior centre and sd (sd 0 where known)
-    stiffness: dict[str, tuple[np.ndarray, np.ndarray]]
+    # per arm: the log joint stiffnesses' prior
+    stiffness: dict[str, StiffnessPrior]
     # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
     param_cov: np.ndarray | None
 
@@ -98,13 +108,17 @@ class ChainModules:
 def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                       groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
                       calibration: ChainCalibration | None = None,
-                      parameter_uncertainty: bool = False) -> ChainModules:
+                      parameter_uncertainty: bool = False,
+                      masses: str = "fitted") -> ChainModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
 
     ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
     too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
     residual scaling for the fit's degrees of freedom having already widened them.
+    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s; with the
+    description's masses and a compliance group, the arms' stiffnesses come from the fitted
+    compliances instead of the prior.
     """
     check_latent_model(model)  # before the calibration, which takes the time
     measured = rig.robot.measured_arms()
@@ -115,31 +129,64 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
         if not rig.measurements.mask(a, "train").any():
             raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
                            "and fit its joint-error model on")
-    cal = calibration if calibration is not None else calibrate_chain(rig, groups)
+    cal = (calibration if calibration is not None
+           else calibrate_chain(rig, groups, masses=masses))
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = {a: _stiffness_prior(rig, a) for a in arms}
+    stiffness = {a: _stiffness_prior(rig, a, cal) for a in arms}
     cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
     return ChainModules(cal, errors, stiffness, cov)
 
 
-def _stiffness_prior(rig: Rig, arm: str) -> tuple[np.ndarray, np.ndarray]:
-    """Centre and sd of the log joint stiffnesses along the path to ``arm`` (mounts first)."""
+class StiffnessPrior(NamedTuple):
+    """An arm's log joint stiffnesses along its path (mounts first): Normal(centre, sd) per
+    joint (sd 0: known), plus the prior's arm term where ``shared`` (an arm stiffer or softer
+    as a whole, where nothing fixes its scale)."""
+
+    centre: np.ndarray
+    sd: np.ndarray
+    shared: np.ndarray
+
+
+def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
+                     ) -> StiffnessPrior:
+    """The log joint stiffnesses along the path to ``arm``: the rig's ``stiffness`` when it
+    gives them; else, from a calibration whose compliances were fitted under the description's
+    masses (``masses="description"``), each seen joint's own and the rest scaled to them; else
+    the prior."""
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
     if all(p is not None for p in parts):
         k = np.concatenate(parts)
-        return np.log(k), np.zeros_like(k)
+        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool))
     n = rig.robot.n_path_joints(arm)
     efforts = [c.source.get("efforts") for c in rig.robot.path(arm)]
     centre = (np.log(np.concatenate(efforts))
               if CHAIN_STIFFNESS_CENTRE == "effort" and all(e is not None for e in efforts)
               else np.zeros(n))
-    # Not from a fitted compliance: without masses only compliance x first moment is
-    # identified, so each arm's compliances carry its own unknown mass scale. Read as
-    # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
-    # overflowed on another (seed 1), though they helped on the tuning rigs.
-    return centre, np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    sd = np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    if cal is None or cal.masses != "description" or "compliance" not in cal.groups:
+        # Not from compliances fitted with the masses: then only compliance x first moment is
+        # identified, so each arm's compliances carry its own unknown mass scale. Read as
+        # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
+        # overflowed on another (seed 1), though they helped on the tuning rigs.
+        return StiffnessPrior(centre, sd, np.ones(n, bool))
+    layout = cal.robot.layout
+    every = np.arange(layout.nominal.size)
+    idx = np.concatenate([every[layout.slices[c.name, "compliance"]]
+                          for c in rig.robot.path(arm)])
+    c, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
+    seen = free & (c > 0) & np.isfinite(se)
+    if not seen.any():
+        return StiffnessPrior(centre, sd, np.ones(n, bool))
+    fitted = -np.log(np.where(seen, c, 1.0))
+    # A joint the gravity torques never turn (a vertical axis) shows no compliance: its prior
+    # keeps its shape (in proportion to the torque limits) at the scale of the arm's seen joints.
+    centre = centre + np.mean(fitted[seen] - centre[seen])
+    centre[seen] = fitted[seen]
+    sd = np.where(seen, np.hypot(se / np.where(seen, c, 1.0), DESCRIBED_MASS_LOG_SD),
+                  UNSEEN_STIFFNESS_LOG_SD)
+    return StiffnessPrior(centre, sd, np.zeros(n, bool))
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -190,21 +237,20 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return u
 
 
-def _log_stiffness_prior(priors: Sequence[tuple[np.ndarray, np.ndarray]],
-                         arm_sd: float) -> None:
+def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> None:
     """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
-    where they are not known, a Normal(0, arm_sd) term the arm's joints share: an arm as a
-    whole is stiffer or softer than another."""
-    for i, (loc, scale) in enumerate(priors):
+    where the prior marks them ``shared``, a Normal(0, arm_sd) term the arm's joints share: an
+    arm as a whole is stiffer or softer than another."""
+    for i, (loc, scale, on) in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(loc)]).to_event(1))
         whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
-        shared = jnp.where(jnp.asarray(scale) > 0, arm_sd, 0.0) * whole
+        shared = jnp.where(jnp.asarray(on), arm_sd, 0.0) * whole
         numpyro.deterministic(f"log_stiffness_{i}",
                               jnp.asarray(loc) + jnp.asarray(scale) * z + shared)
 
 
-def stiffness_draws(priors: Sequence[tuple[np.ndarray, np.ndarray]], key: jax.Array,
+def stiffness_draws(priors: Sequence[StiffnessPrior], key: jax.Array,
                     num_samples: int) -> list[jax.Array]:
     """Draws (S, n_a) of each arm's joint log stiffnesses from their prior (centre, sd)."""
     sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(

@@ -295,6 +295,11 @@ class LinkedChainTruth(_ArmErrors):
     # N(0, sd) per joint, from a stream of its own (the rest of the rig is what the seed always
     # gave); truth.toml records what was drawn. 0: the profile as it is, on every seed.
     stiffness_log_sd: float = 0.3
+    # Nor is a built arm's link mass what its description (arm6.urdf, masses_kg at the links'
+    # middles) says: each arm's true masses are those scaled by a log-normal factor per arm and
+    # per link, from a stream of their own; ``drawn_masses_kg`` records them. 0: as described.
+    mass_log_sd: float = 0.0
+    drawn_masses_kg: dict = field(default_factory=dict)
     # Linked targets are drawn uniformly in this box (instrument frame, mm): between the bases,
     # 300-600 mm in front of each, within both arms' reach at their working joint ranges.
     target_box_mm: tuple[tuple[float, float], ...] = ((300.0, 600.0), (-150.0, 150.0),
@@ -609,11 +614,10 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
         commands[arm] = np.array([[float(f"{v:.10g}") for v in row] for row in u])
     u0 = {a: commands[a] + rng.normal(0, truth.joint_noise_rad, commands[a].shape)
           for a in LINKED_ARMS}
-    masses = np.asarray(truth.masses_kg, float)
     eq = linked_equilibrium(
         rig.robot, x_true, u0,
         {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS},
-        {a: masses for a in LINKED_ARMS} if truth.compliance else None,
+        drawn_masses(truth) if truth.compliance else None,
         GRAVITY if truth.compliance else None)
     return targets, commands, u0, eq
 
@@ -624,6 +628,17 @@ def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
     drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
                                           for a in LINKED_ARMS}, truth.stiffness_log_sd)
     return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
+
+
+MASS_STREAM = 19  # the arms' true masses' own random stream: other draws stay as they were
+
+
+def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
+    """Each arm's true link masses (kg) for the rig of ``truth.seed``: the described masses
+    scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
+    rng = np.random.default_rng([truth.seed, MASS_STREAM])
+    m = np.asarray(truth.masses_kg, float)
+    return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in LINKED_ARMS}
 
 
 def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
@@ -645,9 +660,10 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
                             instrument=truth.instrument_nominal[a]) for a in LINKED_ARMS}
     robot = Robot(chains, 3)
     x_true = _true_vector(robot, truth, rng)
-    masses = np.asarray(truth.masses_kg, float)
+    masses = drawn_masses(truth)
     # a copy: the caller's truth stays the profile, so simulating it again draws the same
-    truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth))
+    truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth),
+                    drawn_masses_kg={a: m.tolist() for a, m in masses.items()})
     stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS}
     lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
                        *[f"{a}_u{k + 1}" for a in LINKED_ARMS for k in range(6)],
@@ -661,7 +677,7 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
             # Frames in the instrument frame, so gravity is the instrument's -z. Eight steps:
             # the softer arm's fixed point contracts more slowly than four steps allow (they
             # leave up to 6e-6 rad).
-            q = q + gravity_deflection(robot, x_true, arm, q, masses, stiffness[arm],
+            q = q + gravity_deflection(robot, x_true, arm, q, masses[arm], stiffness[arm],
                                        np.asarray(GRAVITY), iterations=8)
         p = np.asarray(robot.marker_points(jnp.asarray(x_true), arm, jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)

@@ -37,26 +37,32 @@ VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
 
 
-def _fitted(seed: int, where: Path):
+def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0):
     """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
-    second sweep of priors skips the fits (the fits do not depend on the prior)."""
+    second sweep of priors skips the fits (the fits do not depend on the prior). ``masses``:
+    the calibration's (fitted, or held at the description's); ``mass_log_sd``: how far each
+    simulated arm's true link masses stray from the description's."""
     import pickle
 
     import bayesrob.chain_prediction as cp
     from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
     from bayesrob.rig import load_rig
 
-    rig_dir, kept = where / f"rig-{seed}", where / f"modules-{seed}.pkl"
+    tag = f"{seed}-{masses}-{mass_log_sd:g}"
+    rig_dir, kept = where / f"rig-{tag}", where / f"modules-{tag}.pkl"
     if kept.is_file():
         return load_rig(rig_dir), pickle.loads(kept.read_bytes())
-    rig = load_rig(simulate_linked_chain_rig(rig_dir, LinkedChainTruth(seed=seed)))
-    mods = cp.fit_chain_modules(rig, ["left", "right"], "ind", groups=GROUPS, seed=seed)
+    rig = load_rig(simulate_linked_chain_rig(rig_dir, LinkedChainTruth(
+        seed=seed, mass_log_sd=mass_log_sd)))
+    mods = cp.fit_chain_modules(rig, ["left", "right"], "ind", groups=GROUPS, seed=seed,
+                                masses=masses)
     kept.write_bytes(pickle.dumps(mods))
     return rig, mods
 
 
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
-             cache: Path | None = None) -> dict:
+             cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0
+             ) -> dict:
     import bayesrob.chain_prediction as cp
 
     pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
@@ -64,7 +70,7 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
         where = cache if cache is not None else Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
         for seed in seeds:
-            rig, mods = _fitted(seed, where)
+            rig, mods = _fitted(seed, where, masses, mass_log_sd)
             m = rig.measurements.mask("left+right", "test")
             commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
@@ -72,7 +78,8 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
             for centre, joint_sd, arm_sd in variants:
                 cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
                 cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_sd
-                mods.stiffness = {a: cp._stiffness_prior(rig, a) for a in ("left", "right")}
+                mods.stiffness = {a: cp._stiffness_prior(rig, a, mods.calibration)
+                                  for a in ("left", "right")}
                 draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
                 level = cp.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
@@ -101,6 +108,12 @@ def main() -> None:
                    help="with --coverage: every prior in VARIANTS, not only the chosen one")
     p.add_argument("--cache", metavar="DIR",
                    help="with --coverage: keep the rigs and fitted modules here for a rerun")
+    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+                   help="with --coverage: the links' masses fitted, or held at the URDF's "
+                        "(then the stiffnesses come from the fitted compliances)")
+    p.add_argument("--mass-spread", type=float, default=0.0, metavar="SD",
+                   help="with --coverage: log sd of the simulated arms' true link masses "
+                        "about the URDF's (0)")
     args = p.parse_args()
     if args.coverage:
         import bayesrob.chain_prediction as cp
@@ -109,7 +122,8 @@ def main() -> None:
                    cp.CHAIN_STIFFNESS_ARM_LOG_SD)]
         seeds = TUNING_SEEDS if args.coverage == "tuning" else REPORT_SEEDS
         print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
-                                  Path(args.cache) if args.cache else None)))
+                                  Path(args.cache) if args.cache else None, args.masses,
+                                  args.mass_spread)))
         return
 
     from bayesrob.assembly import predict_assembly

@@ -10,6 +10,7 @@ import scipy.stats
 
 from bayesrob.assembly import grid_targets, predict_assembly, read_targets
 from bayesrob.chain_prediction import (
+    StiffnessPrior,
     aim_chain,
     chain_draws,
     fit_chain_modules,
@@ -215,8 +216,8 @@ def test_linked_arms_with_known_stiffness_land_where_predicted(linked_modules):
     k = load_linked_truth(d)["stiffness_nmm_per_rad"]
     known = dict(mods.stiffness)
     try:
-        mods.stiffness = {a: (np.log(np.asarray(k[a], float)), np.zeros(6))
-                          for a in ("left", "right")}
+        mods.stiffness = {a: StiffnessPrior(np.log(np.asarray(k[a], float)), np.zeros(6),
+                                            np.zeros(6, bool)) for a in ("left", "right")}
         draws = chain_draws(mods, ["left", "right"], rows["commands"], seed=2)
     finally:
         mods.stiffness = known
@@ -267,15 +268,17 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
 
     rig, _ = arm6_modules
-    loc, sd = _stiffness_prior(rig, "arm")
+    loc, sd, shared = _stiffness_prior(rig, "arm")
     np.testing.assert_allclose(np.exp(loc), [150, 150, 150, 28, 28, 28])
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
+    assert shared.all()
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
                                                                       stiffness=k)})
-    loc, sd = _stiffness_prior(given, "arm")
+    loc, sd, shared = _stiffness_prior(given, "arm")
     np.testing.assert_allclose(np.exp(loc), k)
     np.testing.assert_array_equal(sd, 0.0)
+    assert not shared.any()
     bad = tmp_path / "bad"
     shutil.copytree(arm6_rig, bad)
     toml = (bad / "rig.toml").read_text()
@@ -295,8 +298,8 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     import bayesrob.chain_prediction as cp
 
     monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
-    unknown = (np.zeros(3), np.full(3, 0.5))
-    known = (np.log([4e6, 2e6, 6e5]), np.zeros(3))
+    unknown = cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool))
+    known = cp.StiffnessPrior(np.log([4e6, 2e6, 6e5]), np.zeros(3), np.zeros(3, bool))
     a, b, c = cp.stiffness_draws([unknown, unknown, known], jax.random.PRNGKey(0), 20_000)
     a, b, c = (np.asarray(v) for v in (a, b, c))
     r = np.corrcoef(np.hstack([a, b]).T)

@@ -1,8 +1,10 @@
 """Chains from URDF files, and calibrated URDF files out.
 
 Only what kinematics needs is read, with the standard XML parser: each joint's ``type``,
-``origin`` (xyz in metres, rpy in rad), ``axis``, ``parent``/``child`` link and ``mimic``.
-Meshes, inertias and limits are left alone, and written back untouched. The chain between two
+``origin`` (xyz in metres, rpy in rad), ``axis``, ``parent``/``child`` link and ``mimic``, its
+``limit`` effort, and each link's ``inertial`` mass and centre (a sagging chain's weights when
+the file's masses are to be trusted). Meshes and inertia tensors are left alone, and written
+back untouched. The chain between two
 named links becomes a :class:`~bayesrob.kinematics.chain.Chain` in mm: fixed joints are folded
 into the next joint's origin (or into the tool), ``continuous`` joints are revolute, and a
 ``mimic`` joint is a coupled passive joint (its multiplier goes into the coupling matrix, its
@@ -53,6 +55,24 @@ def _origin_matrix(joint: ET.Element, where: str) -> np.ndarray:
     return tf.np_pose_matrix(np.concatenate([xyz * M_TO_MM, rpy]))
 
 
+def _inertial(link: ET.Element | None, where: str) -> tuple[float, np.ndarray] | None:
+    """A link's mass (kg) and centre of mass (mm, in the link's frame), or None without one."""
+    el = link.find("inertial") if link is not None else None
+    if el is None:
+        return None
+    m = el.find("mass")
+    try:
+        mass = float(m.get("value", "")) if m is not None else float("nan")
+    except ValueError:
+        mass = float("nan")
+    if not (np.isfinite(mass) and mass >= 0):
+        raise KinematicsError(f"{where}: <inertial> needs <mass value> a number >= 0 (kg)")
+    o = el.find("origin")
+    xyz = _floats(o.get("xyz") if o is not None else None, 3, [0, 0, 0], f"{where} inertial "
+                  "origin xyz")
+    return mass, xyz * M_TO_MM
+
+
 def _joint_path(root_el: ET.Element, root: str, tip: str, path: Path) -> list[ET.Element]:
     links = {el.get("name") for el in root_el.findall("link")}
     for name, what in ((root, "root"), (tip, "tip")):
@@ -87,14 +107,27 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
     prefix: list[str] = []  # fixed joints folded into the next movable joint's origin
     movable, origins, axes, kinds, mimics, prefixes = [], [], [], [], [], []
     efforts: list[float | None] = []  # each joint's <limit effort>, where the file gives it
+    links = {el.get("name"): el for el in root_el.findall("link")}
+    # per movable joint: its link's mass and first moment (kg, kg mm), the links that fixed
+    # joints hang on it folded in; None where its own link gives no <inertial>
+    masses: list[float | None] = []
+    moments: list[np.ndarray] = []
     for j in joints:
         jname = j.get("name") or "?"
         where = f"{path}: joint {jname!r}"
         jtype = j.get("type")
         t = _origin_matrix(j, where)
+        child = j.find("child")
+        cname = child.get("link") if child is not None else None
+        inertial = _inertial(links.get(cname), f"{path}: link {cname!r}")
         if jtype == "fixed":
             fixed = fixed @ t
             prefix.append(jname)
+            if inertial is not None and masses and masses[-1] is not None:
+                # a link bolted on by fixed joints weighs on the movable joint before them
+                masses[-1] += inertial[0]
+                moments[-1] = moments[-1] + inertial[0] * (fixed[:3, :3] @ inertial[1]
+                                                           + fixed[:3, 3])
             continue
         if jtype not in ("revolute", "continuous", "prismatic"):
             raise KinematicsError(f"{where}: joint type {jtype!r} is not supported "
@@ -123,6 +156,8 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
         prefixes.append(prefix)
         fixed, prefix = np.eye(4), []
         movable.append(jname)
+        masses.append(None if inertial is None else inertial[0])
+        moments.append(np.zeros(3) if inertial is None else inertial[0] * inertial[1])
         axes.append(axis)
         kinds.append(kind)
         lim = j.find("limit")
@@ -146,6 +181,10 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
             coupling[i, actuated.index(mim[0])] = mim[1]
     source = {"kind": "urdf", "path": str(path), "root": root, "tip": tip,
               "efforts": None if None in efforts else efforts,
+              # every movable joint's link weighed, or nothing: a chain half described
+              # cannot be trusted for its torques
+              "link_masses_kg": None if None in masses else masses,
+              "link_moments_kg_mm": None if None in masses else [m.tolist() for m in moments],
               "joints": movable, "prefixes": prefixes, "tail": prefix}
     return Chain.build(name, movable, kinds, np.array(axes), np.array(origins),
                        coupling=coupling, source=source, **chain_kwargs)
