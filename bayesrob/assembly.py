@@ -213,11 +213,15 @@ def _with_command_ranges(pred: AssemblyPrediction, rig: Rig) -> AssemblyPredicti
 
 def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
                      fusion: str = DEFAULT_FUSION, models_dir: Any = None, seed: int = 0,
-                     groups: tuple[str, ...] | None = None) -> AssemblyPrediction:
+                     groups: tuple[str, ...] | None = None, masses: str = "fitted"
+                     ) -> AssemblyPrediction:
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
     ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains).
     ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``).
+    ``masses``: a chain rig's link masses, "fitted" or held at the URDF's ("description"),
+    when the groups make the arms sag: then the arms' stiffnesses come from their fitted
+    compliances instead of the prior.
     """
     t0 = time.perf_counter()
     if fusion not in FUSIONS:
@@ -239,7 +243,10 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     if rig.is_chain:
         return _with_command_ranges(_predict_chain(
             rig, config, members, targets, model or LATENT_MODELS[0], fusion, seed, t0,
-            groups or kin.GROUPS), rig)
+            groups or kin.GROUPS, masses), rig)
+    if masses != "fitted":
+        raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
+                       f"{masses!r} is for URDF rigs)")
     model = model or "cond"
     spec = discover_models(models_dir, [model])
     cal = calibrate(rig)
@@ -262,11 +269,14 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 
 
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
-                   fusion: str, seed: int, t0: float, groups: tuple[str, ...]
-                   ) -> AssemblyPrediction:
+                   fusion: str, seed: int, t0: float, groups: tuple[str, ...],
+                   masses: str = "fitted") -> AssemblyPrediction:
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
 
-    mods = fit_chain_modules(rig, members, model, groups, seed=seed)
+    try:
+        mods = fit_chain_modules(rig, members, model, groups, seed=seed, masses=masses)
+    except ValueError as e:
+        raise RigError(f"{rig.path}: {e}") from None
     commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)
     sizes = hdr_sizes(draws)
     return AssemblyPrediction(

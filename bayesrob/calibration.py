@@ -354,6 +354,7 @@ class ChainCalibration:
             "nfev": self.nfev,
             "seconds": self.seconds,
             **({"lateral_prior_mm": LATERAL_PRIOR_MM} if "lateral" in self.groups else {}),
+            **({"masses": self.masses} if self.masses != "fitted" else {}),
             **self.extra,
         }
 

@@ -77,12 +77,6 @@ CHAIN_STIFFNESS_CENTRE = "effort"
 # How far a robot description's link masses are trusted (log sd): a compliance fitted under
 # them carries their error into the stiffness read from it.
 DESCRIBED_MASS_LOG_SD = 0.1
-# With the arm's scale fixed by its seen joints, how far an unseen joint's stiffness strays from
-# its place in the torque-limit profile (log sd). Chosen on the linked tuning rigs (seeds
-# 201-206, link masses 10% off the URDF's) as the value whose pooled 50% / 90% coverage came
-# closest to nominal: 0.2 gave 0.50 / 0.89, 0.3 0.58 / 0.90, 0.5 0.67 / 0.92 (error ratio
-# 1.04 each).
-UNSEEN_STIFFNESS_LOG_SD = 0.2
 
 
 @dataclass
@@ -179,13 +173,20 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     seen = free & (c > 0) & np.isfinite(se)
     if not seen.any():
         return StiffnessPrior(centre, sd, np.ones(n, bool))
-    fitted = -np.log(np.where(seen, c, 1.0))
-    # A joint the gravity torques never turn (a vertical axis) shows no compliance: its prior
-    # keeps its shape (in proportion to the torque limits) at the scale of the arm's seen joints.
-    centre = centre + np.mean(fitted[seen] - centre[seen])
-    centre[seen] = fitted[seen]
-    sd = np.where(seen, np.hypot(se / np.where(seen, c, 1.0), DESCRIBED_MASS_LOG_SD),
-                  UNSEEN_STIFFNESS_LOG_SD)
+    # The prior, log k_j = scale + profile_j + N(0, sd), updated by the fitted compliances
+    # (each log k_j measured with its standard error and the masses' accuracy): the arm's
+    # scale is their precision-weighted mean about the profile, so a poorly seen joint (a
+    # wrist that gravity hardly turns) neither sets it nor leaves the profile by much; a joint
+    # gravity never turns (a vertical axis) keeps the profile at that scale.
+    y = -np.log(np.where(seen, c, 1.0))
+    var_fit = (se / np.where(seen, c, 1.0)) ** 2 + DESCRIBED_MASS_LOG_SD**2
+    w = np.where(seen, 1.0 / (sd**2 + var_fit), 0.0)
+    scale = np.sum(w * (y - centre)) / w.sum()
+    prior_mean, prior_var = centre + scale, sd**2 + 1.0 / w.sum()
+    post_var = np.where(seen, 1.0 / (1.0 / prior_var + 1.0 / np.where(seen, var_fit, 1.0)),
+                        prior_var)
+    centre = np.where(seen, post_var * (prior_mean / prior_var + y / var_fit), prior_mean)
+    sd = np.sqrt(post_var)
     return StiffnessPrior(centre, sd, np.zeros(n, bool))
 
 

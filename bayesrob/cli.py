@@ -306,6 +306,11 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "at the commanded pose, then each time at the pose the last step "
                         "sagged into, towards torque equilibrium (default 1; the fit reports "
                         "how far one more step would move the markers: docs/robots.md)")
+    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+                   help="with compliance or lateral: the links' masses and first moments "
+                        "fitted (default; only their products with the compliances are seen) "
+                        "or held at the URDF's <inertial> ones, so each compliance is the "
+                        "joint's own")
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
@@ -335,6 +340,9 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
     if args.sag_steps > 1 and args.method == "bayes":
         raise UsageError("--sag-steps is for the least-squares fit; --method bayes takes the "
                          "torques once")
+    if args.masses != "fitted" and args.method == "bayes":
+        raise UsageError("--masses description is for the least-squares fit; --method bayes "
+                         "fits the masses")
     with progress(None, "calibrate", enabled=_progress(args),
                   postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
         try:
@@ -344,7 +352,7 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
                 cal = calibrate_chain_bayes(rig, groups, progress=bar.set_postfix)
             else:
                 cal = calibrate_chain(rig, groups, progress=bar.set_postfix,
-                                      sag_steps=args.sag_steps)
+                                      sag_steps=args.sag_steps, masses=args.masses)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     doc = {"rig": rig.name, **cal.to_json()}
@@ -807,6 +815,11 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                    help="URDF/DH rigs: parameter groups the modules are calibrated with, as "
                         "'bayesrob calibrate --params' (default frames,offsets,geometric,servo; "
                         "add compliance for arms that sag under gravity)")
+    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+                   help="URDF rigs calibrated with compliance: the links' masses fitted "
+                        "(default; only their products with the compliances are seen, and the "
+                        "arms' stiffnesses come from a prior), or held at the URDF's <inertial> "
+                        "ones, so the fitted compliances give each arm's stiffnesses")
     p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
@@ -828,7 +841,8 @@ def _predict(args: argparse.Namespace) -> int:
             raise UsageError("--params is for URDF/DH rigs; planar arms are calibrated with "
                              "their eight parameters")
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
-                                args.models_dir, args.seed, groups=args.params)
+                                args.models_dir, args.seed, groups=args.params,
+                                masses=args.masses)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     if args.json != "-":

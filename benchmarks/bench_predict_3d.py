@@ -32,6 +32,10 @@ import numpy as np
 WARM_TARGET_S = 60.0
 TUNING_SEEDS = (201, 202, 203, 204, 205, 206)
 REPORT_SEEDS = (211, 212, 213, 214)
+# The report rigs of --masses description (stiffnesses from compliances fitted under the URDF's
+# masses), fixed before its first report run: 211-214 had been run with a variant of it
+# (docs/fusion.md), so they no longer report it untouched.
+DESCRIPTION_REPORT_SEEDS = (221, 222, 223, 224)
 GROUPS = ("frames", "offsets", "geometric", "compliance")
 VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
@@ -120,7 +124,8 @@ def main() -> None:
 
         chosen = [(cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
                    cp.CHAIN_STIFFNESS_ARM_LOG_SD)]
-        seeds = TUNING_SEEDS if args.coverage == "tuning" else REPORT_SEEDS
+        seeds = (TUNING_SEEDS if args.coverage == "tuning"
+                 else DESCRIPTION_REPORT_SEEDS if args.masses == "description" else REPORT_SEEDS)
         print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
                                   Path(args.cache) if args.cache else None, args.masses,
                                   args.mass_spread)))
