@@ -367,7 +367,11 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     # change it by parts in a thousand.
     log_k = stiffness_draws([mods.stiffness[a] for a in arms], jax.random.fold_in(key, 0),
                             num_samples)
-    return np.asarray(chain_equilibrium(free, jacs, log_k))
+    # The linked point is measured once, with the tracker's whole noise, where the balance
+    # averages the noise each free point carries: it is put back (each arm's population has
+    # its own fitted estimate of the one tracker's noise; their mean).
+    noise = float(np.mean([np.mean(mods.errors[a].noise_sd) for a in arms]))
+    return np.asarray(chain_equilibrium(free, jacs, log_k, noise, jax.random.fold_in(key, 7)))
 
 
 def _product_model(commands, robot, x, arms, covs, noises, start) -> None:

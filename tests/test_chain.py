@@ -100,6 +100,74 @@ def test_urdf_torque_limits_are_kept_where_every_joint_gives_one(tmp_path):
     assert kin.urdf_chain(path, "base_link", "tool0", "arm").source["efforts"] is None
 
 
+def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
+    """Each movable joint's link weighs what its <inertial> says, at its centre (mm, in the
+    link's frame); a link bolted on by a fixed joint (here a 0.5 kg tool past the tool flange's
+    turn) adds its weight through that joint's transform; a moving link without <inertial>
+    leaves the chain unweighed (None), and a mass that is not a number >= 0 is refused naming
+    the link."""
+    chain = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
+    m = np.array(chain.source["link_masses_kg"])
+    h = np.array(chain.source["link_moments_kg_mm"])
+    np.testing.assert_allclose(m, ChainTruth().masses_kg)
+    # arm6 states the simulator's point masses: each link's middle, half way to the next origin
+    np.testing.assert_allclose(h, m[:, None] * 0.5 * chain.origins[1:, :3], atol=1e-9)
+    text = arm6_urdf_path().read_text()
+    tool = text.replace('<link name="tool0"/>', '<link name="tool0"><inertial><origin '
+                        'xyz="0 0 0.02"/><mass value="0.5"/></inertial></link>')
+    (tmp_path / "tool.urdf").write_text(tool)
+    c = kin.urdf_chain(tmp_path / "tool.urdf", "base_link", "tool0", "arm")
+    assert c.source["link_masses_kg"][-1] == pytest.approx(0.7)
+    # the flange: 82 mm along y, then turned -90 deg about x, so the tool's z is the link's y
+    np.testing.assert_allclose(c.source["link_moments_kg_mm"][-1],
+                               h[-1] + 0.5 * np.array([0.0, 82.0 + 20.0, 0.0]), atol=1e-9)
+    start = text.index('<link name="forearm_link">')
+    end = text.index("</link>", start) + len("</link>")
+    (tmp_path / "half.urdf").write_text(text[:start] + '<link name="forearm_link"/>'
+                                        + text[end:])
+    half = kin.urdf_chain(tmp_path / "half.urdf", "base_link", "tool0", "arm")
+    assert half.source["link_masses_kg"] is None and half.source["link_moments_kg_mm"] is None
+    (tmp_path / "bad.urdf").write_text(text.replace('<mass value="2.3"/>',
+                                                    '<mass value="-2.3"/>'))
+    with pytest.raises(kin.KinematicsError, match=r"link 'forearm_link': <inertial> needs"):
+        kin.urdf_chain(tmp_path / "bad.urdf", "base_link", "tool0", "arm")
+
+
+def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_path):
+    """With the links' masses held at the URDF's (the simulator's, here), the compliance
+    group's fit gives each joint's own stiffness: the shoulder and elbow, whose gravity
+    torques are large, within 10% of the simulator's (measured 1%); the first
+    joint, whose axis is vertical, is not identified; the masses stay as described. A robot
+    whose URDF does not weigh every moving link is refused by name."""
+    from bayesrob.calibration import calibrate_chain, described_links
+
+    truth = ChainTruth(seed=3, compliance=True)
+    rig = load_rig(simulate_chain_rig(tmp_path / "r", truth))
+    cal = calibrate_chain(rig, ("frames", "offsets", "geometric", "compliance"),
+                          masses="description")
+    lay = cal.robot.layout
+    comp = lay.slices["arm", "compliance"]
+    free = cal.ident.free[comp]
+    assert not free[0] and free[1] and free[2]
+    true_k = np.asarray(truth.stiffness_nmm_per_rad)
+    print("fitted / true stiffness, joints 2-3:", 1.0 / cal.x[comp][1:3] / true_k[1:3])
+    np.testing.assert_allclose(1.0 / cal.x[comp][1:3], true_k[1:3], rtol=0.10)
+    links = lay.slices["arm", "links"]
+    assert not cal.ident.free[links].any()
+    np.testing.assert_allclose(cal.x[links].reshape(-1, 4)[:, 0], truth.masses_kg)
+    assert cal.masses == "description" and cal.to_json()["masses"] == "description"
+    text = arm6_urdf_path().read_text()
+    start = text.index('<link name="forearm_link">')
+    end = text.index("</link>", start) + len("</link>")
+    (tmp_path / "half.urdf").write_text(text[:start] + '<link name="forearm_link"/>'
+                                        + text[end:])
+    robot = kin.Robot({"arm": kin.urdf_chain(tmp_path / "half.urdf", "base_link", "tool0",
+                                             "arm")})
+    with pytest.raises(ValueError, match=r"chain 'arm': its description does not give every "
+                                         r"moving link a mass"):
+        described_links(robot, robot.layout.nominal.copy())
+
+
 def test_mimic_joint_is_a_coupling(tmp_path):
     text = arm6_urdf_path().read_text().replace(
         '<joint name="wrist_3" type="revolute">',

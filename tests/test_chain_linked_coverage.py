@@ -6,6 +6,10 @@ tuning rigs 201-206. Targets (issue "linked predictions"): 50% / 90% regions wit
 error of nominal at 96 points (0.40-0.60, 0.84-0.96) and predicted / observed mean error
 within 0.85-1.15. The sweep is seeded, so the published figures (docs/fusion.md) are asserted
 to 0.001: a change that moves them must update the docs with it.
+
+The same study with the arms' stiffnesses read from compliances fitted under the URDF's link
+masses (``--masses description``; each simulated arm's true masses 10% off the URDF's) runs on
+its own report rigs 221-224, fixed before its first report run.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ pytestmark = pytest.mark.slow
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 PUBLISHED = {"points": 96, "coverage50": 0.625, "coverage90": 0.958, "error_ratio": 1.034}
+DESCRIBED = {"points": 96, "coverage50": 0.531, "coverage90": 0.781, "error_ratio": 0.997}
 
 
 @pytest.fixture(scope="module")
@@ -50,3 +55,36 @@ def test_linked_90_percent_regions_and_error_ratio_hold(report):
                    "each rig's pair of arms has one stiffness ratio the prior only brackets")
 def test_linked_50_percent_regions_hold(report):
     assert 0.40 <= report["coverage50"] <= 0.60
+
+
+@pytest.fixture(scope="module")
+def described(tmp_path_factory) -> dict:
+    import bench_predict_3d as bench
+
+    import bayesrob.chain_prediction as cp
+
+    chosen = (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
+              cp.CHAIN_STIFFNESS_ARM_LOG_SD)
+    (figures,) = bench.coverage(bench.DESCRIPTION_REPORT_SEEDS, [chosen],
+                                tmp_path_factory.mktemp("described"), "description",
+                                0.1).values()
+    return figures
+
+
+def test_the_published_figures_with_the_described_masses(described):
+    assert described["points"] == DESCRIBED["points"]
+    for key in ("coverage50", "coverage90", "error_ratio"):
+        assert described[key] == pytest.approx(DESCRIBED[key], abs=1e-3), key
+
+
+def test_described_masses_50_percent_regions_and_error_ratio_hold(described):
+    assert 0.40 <= described["coverage50"] <= 0.60
+    assert 0.85 <= described["error_ratio"] <= 1.15
+
+
+@pytest.mark.xfail(strict=True, reason="target missed on report rigs 221-224: the 90% regions "
+                   "hold 0.781 of 96 linked points (0.84-0.96 asked; per rig 0.50-1.00); with "
+                   "the stiffnesses nearly known, the free points' own spread is too narrow "
+                   "(tuning rig 201 with the true stiffnesses: 0.375 / 0.79)")
+def test_described_masses_90_percent_regions_hold(described):
+    assert 0.84 <= described["coverage90"] <= 0.96

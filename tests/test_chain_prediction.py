@@ -288,6 +288,54 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
         load_rig(bad)
 
 
+def test_stiffness_from_compliances_fitted_under_the_described_masses(arm6_modules):
+    """With compliances fitted under the URDF's masses the prior is updated by the fit: a
+    joint seen sharply keeps its fitted stiffness (sd about the masses' 0.1); a joint gravity
+    never turns sits in the torque-limit profile at the arm's fitted scale, its sd the
+    prior's and the scale's; a joint seen poorly (standard error three times its compliance)
+    stays near the profile (a tenth of its fit's error at most) and moves the scale by under
+    1% of that error; no joint takes the prior's shared arm term."""
+    from types import SimpleNamespace
+
+    import bayesrob.chain_prediction as cp
+
+    rig, mods = arm6_modules
+    lay = mods.robot.layout
+    comp = np.arange(lay.nominal.size)[lay.slices["arm", "compliance"]]
+    true_k = np.array([4e6, 5e6, 2.5e6, 5e5, 4e5, 6e5])
+
+    def fitted(wrist2_k):
+        x, se = np.zeros(lay.nominal.size), np.full(lay.nominal.size, np.nan)
+        free = np.zeros(lay.nominal.size, bool)
+        k = true_k.copy()
+        k[4] = wrist2_k
+        x[comp] = 1.0 / k
+        se[comp] = 1e-3 / k  # a sharp fit: 0.1% of each compliance
+        se[comp[4]] = 3.0 / k[4]
+        free[comp[1:]] = True  # the first joint's axis is vertical: never seen
+        cal = SimpleNamespace(masses="description", groups=("frames", "compliance"),
+                              robot=mods.robot, x=x, se=se, ident=SimpleNamespace(free=free))
+        return cp._stiffness_prior(rig, "arm", cal)
+
+    p = fitted(4e5)
+    assert not p.shared.any()
+    np.testing.assert_allclose(np.exp(p.centre[[1, 2, 3, 5]]), true_k[[1, 2, 3, 5]], rtol=0.02)
+    assert np.all(np.abs(p.sd[[1, 2, 3, 5]] - cp.DESCRIBED_MASS_LOG_SD) < 0.01)
+    # the arm's scale about the profile (150 N m on the first three joints, 28 on the wrist)
+    seen = [1, 2, 3, 5]
+    profile = np.log([150, 150, 150, 28, 28, 28])
+    scale = np.mean(np.log(true_k[seen]) - profile[seen])
+    assert p.centre[0] == pytest.approx(profile[0] + scale, abs=0.02)
+    # the profile's own spread, and the scale's: four sharp joints, each off the profile by
+    # the prior's sd, fix it to sd / 2
+    tau = cp.CHAIN_STIFFNESS_LOG_SD
+    assert p.sd[0] == pytest.approx(np.sqrt(tau**2 + (tau**2 + 0.01) / 4), abs=0.01)
+    far = fitted(4e5 / 50)  # the poorly seen wrist fitted 50 times too soft
+    # its weight beside a sharp joint's: 0.26 / 9.3 of it, over four sharp joints
+    assert abs(far.centre[0] - p.centre[0]) < 0.01 * np.log(50)
+    assert abs(far.centre[4] - (profile[4] + scale)) < 0.1 * np.log(50)
+
+
 def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     """With a shared per-arm sd a and a per-joint sd j, two joints of one arm have log
     stiffnesses correlated a^2 / (a^2 + j^2) (0.5 at a = j = 0.5), joints of different arms
@@ -307,3 +355,33 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     assert abs(r[0, 3]) < 0.03 and abs(r[2, 5]) < 0.03
     np.testing.assert_allclose(a.std(axis=0), np.sqrt(0.5**2 + 0.5**2), rtol=0.03)
     np.testing.assert_array_equal(c, np.broadcast_to(known[0], c.shape))
+
+
+def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
+    """The linked point is measured once with the tracker's whole noise, where the balance
+    averages the noise each free point carries: ``chain_draws`` hands the balance the mean of
+    the arms' fitted noise sds (0.1 and 0.3 mm here: 0.2) to put back."""
+    from types import SimpleNamespace
+
+    import jax.numpy as jnp
+
+    import bayesrob.chain_prediction as cp
+
+    seen = {}
+
+    def balance(free, jacs, log_k, tracker_noise_mm=0.0, key=None):
+        seen["noise"], seen["key"] = tracker_noise_mm, key
+        return free[0]
+
+    monkeypatch.setattr(cp, "chain_equilibrium", balance)
+    monkeypatch.setattr(cp, "free_draws", lambda mods, a, u, xs, key, side=None:
+                        np.zeros((xs.shape[0], len(u), 3)))
+    monkeypatch.setattr(cp, "joint_jacobian", lambda robot, x, a, u: jnp.zeros((len(u), 3, 6)))
+    monkeypatch.setattr(cp, "parameter_draws", lambda mods, key, n: jnp.zeros((n, 1)))
+    errors = {"a": SimpleNamespace(noise_sd=np.array([0.08, 0.12])),
+              "b": SimpleNamespace(noise_sd=np.array([0.3, 0.3]))}
+    prior = cp.StiffnessPrior(np.zeros(6), np.full(6, 0.5), np.ones(6, bool))
+    mods = SimpleNamespace(errors=errors, stiffness={"a": prior, "b": prior}, robot=None,
+                           x=np.zeros(1))
+    cp.chain_draws(mods, ["a", "b"], [np.zeros((2, 6)), np.zeros((2, 6))], num_samples=10)
+    assert seen["noise"] == pytest.approx(0.2) and seen["key"] is not None

@@ -250,6 +250,8 @@ def test_predict_says_where_commands_leave_the_calibrated_range(tmp_path, capsys
     (["--config", "top+bottom", "--targets", "MISSING"], "file not found"),
     (["--config", "top+bottom", "--targets", "BAD"], "line 3: x, y must be numbers"),
     (["--config", "top+bottom", "--targets", "FAR"], "is out of reach of arm 'top'"),
+    (["--config", "top+bottom", "--grid", "2", "--masses", "description"],
+     "planar arms have no link masses to hold"),
 ])
 def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, message):
     (tmp_path / "BAD").write_text("x,y\n150,150\n150,abc\n")
