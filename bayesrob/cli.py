@@ -159,6 +159,10 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="draw each arm's joint stiffnesses for the seed: log k = log(profile) "
                         "+ N(0, LOG_SD) per arm + N(0, LOG_SD) per joint (planar rigs: 0, "
                         "every arm alike, by default; arm6 --linked: 0.3)")
+    p.add_argument("--mass-spread", type=_non_negative_float, default=None, metavar="LOG_SD",
+                   help="arm6 --linked: draw each arm's true link masses about the URDF's: "
+                        "m = m_urdf exp(N(0, LOG_SD)) per arm and link (default 0: as the "
+                        "URDF states them)")
 
 
 def _truth_options(truth: T, args: argparse.Namespace) -> T:
@@ -192,6 +196,8 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
         if args.play_mrad is not None:
             raise UsageError("--play-mrad is for a single arm6 (the linked arms have none)")
         return _simulate_linked_chain(args, out_dir, existing)
+    if args.mass_spread is not None:
+        raise UsageError("--mass-spread is for arm6 --linked")
     if args.stiffness_spread is not None:
         raise UsageError("--stiffness-spread is for planar rigs and arm6 --linked (a single "
                          "arm6 has one stiffness profile)")
@@ -218,6 +224,8 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     truth = LinkedChainTruth(seed=args.seed)
     if args.stiffness_spread is not None:
         truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
+    if args.mass_spread is not None:
+        truth = replace(truth, mass_log_sd=args.mass_spread)
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
     truth = _truth_options(truth, args)
@@ -253,9 +261,10 @@ def _simulate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
     if args.planned:
-        if args.stiffness_spread is not None:
-            raise UsageError("--planned measures with the stiffnesses of the rig's truth.toml; "
-                             "--stiffness-spread cannot change them")
+        if args.stiffness_spread is not None or args.mass_spread is not None:
+            raise UsageError("--planned measures with the stiffnesses and masses of the rig's "
+                             "truth.toml; --stiffness-spread and --mass-spread cannot change "
+                             "them")
         return _simulate_planned(args, out_dir)
     names = (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE)
     existing = [out_dir / n for n in names if (out_dir / n).exists()]
@@ -267,6 +276,8 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_chain(args, out_dir, existing)
     if args.compliance is not None or args.poses or args.linked or args.play_mrad is not None:
         raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6")
+    if args.mass_spread is not None:
+        raise UsageError("--mass-spread is for arm6 --linked")
     make = three_arm_truth if args.robot == "three-arm" else paper_truth
     truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid,
                                 stiffness_log_sd=args.stiffness_spread or 0.0), args)

@@ -361,3 +361,29 @@ def test_each_seed_draws_its_arms_stiffnesses():
                      for s in range(200) for arm in LINKED_ARMS])
     assert abs(logs.std() / np.hypot(0.3, 0.3) - 1) < 0.1
     assert abs(logs.mean()) < 0.1
+
+
+def test_linked_arms_true_masses_are_drawn_about_the_urdfs(tmp_path, capsys):
+    """``mass_log_sd`` 0 keeps every arm's link masses as arm6.urdf states them; above it
+    each arm's are the URDF's times a log-normal factor per link, the same for a seed every
+    time and different between the arms. ``--mass-spread`` sets it for arm6 --linked only
+    (one line, exit 2, elsewhere)."""
+    from bayesrob.chain_simulator import arm6_urdf_path, drawn_masses
+    from bayesrob.kinematics import urdf_chain
+
+    described = np.array(urdf_chain(arm6_urdf_path(), "base_link", "tool0", "a")
+                         .source["link_masses_kg"])
+    same = drawn_masses(LinkedChainTruth(seed=5))
+    assert all(np.array_equal(m, described) for m in same.values())
+    drawn = drawn_masses(LinkedChainTruth(seed=5, mass_log_sd=0.1))
+    again = drawn_masses(LinkedChainTruth(seed=5, mass_log_sd=0.1))
+    assert all(np.array_equal(drawn[a], again[a]) for a in drawn)
+    ratios = np.log(np.concatenate([drawn[a] / described for a in ("left", "right")]))
+    assert not np.allclose(drawn["left"], drawn["right"])
+    # twelve log-normal factors of sd 0.1: all within 4 sd, spread between a third and three
+    # times the sd (chi-square with 12 degrees of freedom: far outside its 1e-4 tails)
+    assert np.all(np.abs(ratios) < 0.4) and 0.033 < ratios.std() < 0.3
+    for argv in ([], ["--robot", "arm6"]):
+        assert main(["simulate", str(tmp_path / "r"), "--mass-spread", "0.1", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--mass-spread is for arm6 --linked" in err, err
