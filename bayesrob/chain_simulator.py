@@ -28,11 +28,11 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import dump_toml
 from bayesrob.simulator import draw_stiffnesses
 
 ARM6_URDF = "arm6.urdf"
-G_N_PER_KG = 9.81  # weight per kg of mass: torques in N mm with lever arms in mm
 
 
 def arm6_urdf_path() -> Path:

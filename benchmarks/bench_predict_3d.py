@@ -3,6 +3,8 @@
 
     python benchmarks/bench_predict_3d.py [--repeats 2]
     python benchmarks/bench_predict_3d.py --coverage tuning|report [--variants]
+    python benchmarks/bench_predict_3d.py --coverage tuning|report --masses description \
+        --mass-spread 0.1
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
@@ -16,7 +18,11 @@ targets and commands with the stiffness prior (the rig gives no stiffness) and c
 simulated measurements of the linked assembly: the share inside the predicted 50% / 90%
 regions and predicted / observed mean error. ``tuning`` (seeds TUNING_SEEDS) with
 ``--variants`` tries every prior in VARIANTS (centre, per-joint sd, shared per-arm sd); ``report``
-(seeds REPORT_SEEDS, fixed before any run) runs the chosen prior once.
+(seeds REPORT_SEEDS, fixed before any run) runs the chosen prior once. With ``--masses
+description`` the arms are calibrated with their link masses held at the URDF's, their
+stiffnesses read from the fitted compliances (``chain_prediction._stiffness_prior``), each
+simulated arm's true masses drawn ``--mass-spread`` (log sd) about the URDF's; its report rigs
+are DESCRIPTION_REPORT_SEEDS.
 """
 
 from __future__ import annotations

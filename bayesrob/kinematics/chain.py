@@ -514,19 +514,26 @@ class Robot:
         # the deflections and bending linear in the compliances (plus the play), from the
         # torques in frames already computed
         el = self._elements(arm)
-        xz = jnp.concatenate([x, jnp.zeros(1)])
-        s = xz[el["compliance_idx"]]  # (E,)
+        s, lateral, play = self._sag_coefficients(x, arm)
         torque, tau = self._torques(x, arm, joints, links, hanging)
         across = jnp.asarray(el["across"])  # (E, 2, 3)
-        lateral = xz[el["lateral_idx"]]  # (E, 2)
         bend = jnp.einsum("ek,enk,ekj->enj", lateral,
                           jnp.einsum("enj,ekj->enk", torque, across), across)
         defl = s[:, None] * tau
         # play taken on the side the joint gives way to: the deflection's sign is identified
         # where the torque itself is not (only compliance x mass is), and it is zero, so is
         # the play's effect, until a compliance is fitted
-        play = xz[el["play_idx"]][:, None] * jnp.tanh(defl / PLAY_SIDE_RAD)
-        return (defl + play).T, jnp.swapaxes(bend, 0, 1)
+        taken = play[:, None] * jnp.tanh(defl / PLAY_SIDE_RAD)
+        return (defl + taken).T, jnp.swapaxes(bend, 0, 1)
+
+    def _sag_coefficients(self, x: jax.Array, arm: str
+                          ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Each element's compliance (E,), lateral compliances (E, 2) and half play (E,), read
+        in one place for the sag and its written-out derivative (a tool's zero where an
+        element has none)."""
+        el = self._elements(arm)
+        xz = jnp.concatenate([x, jnp.zeros(1)])
+        return xz[el["compliance_idx"]], xz[el["lateral_idx"]], xz[el["play_idx"]]
 
     def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
                              links: jax.Array, hanging: Hanging, idx: np.ndarray,
@@ -546,19 +553,17 @@ class Robot:
         el = self._elements(arm)
         n = joints.shape[1]
         zero = len(self.layout.params)
-        xz = jnp.concatenate([x, jnp.zeros(1)])
-        s = xz[el["compliance_idx"]]
+        s, lateral, play = self._sag_coefficients(x, arm)
+        play = play[:, None]
         torque, tau = self._torques(x, arm, joints, links, hanging)
         origin = joints[:, :, :3, 3]  # (E, N, 3)
         rot = joints[:, :, :3, :3]
         g = self._gravity_force(x, arm)
         axes = jnp.asarray(el["axes"])
-        play = xz[el["play_idx"]][:, None]
         side = jnp.tanh(s[:, None] * tau / PLAY_SIDE_RAD)
         # d (deflection + play) / d deflection: the play's smooth step turns with it
         gain = 1.0 + play * (1.0 - side ** 2) / PLAY_SIDE_RAD
         across = jnp.asarray(el["across"])  # (E, 2, 3)
-        lateral = xz[el["lateral_idx"]]  # (E, 2)
         phi_across = jnp.einsum("enji,ekj->enik", w_phi, across)  # (E, N, 3, 2)
         # the marker's weight on each torque component in the joint's frame, then on the
         # lever arm in the instrument frame: w . R^T (dlever x g) = dlever . (g x R w)
