@@ -64,6 +64,9 @@ class AssemblyPrediction:
     beyond_train: dict[str, np.ndarray] = field(default_factory=dict)
     columns: dict[str, list[str]] = field(default_factory=dict)  # arm -> its command columns
     command_unit: str = " us"  # of the command columns in the note ("" for joint values)
+    # linked chain arms under equilibrium fusion: arm -> the joint stiffnesses the balance
+    # drew from (median N mm/rad, log sd) and where they came from
+    stiffness: dict[str, dict] = field(default_factory=dict)
 
     @property
     def size_key(self) -> str:
@@ -92,6 +95,7 @@ class AssemblyPrediction:
                         f"mean_hdr50_{u}": float(self.hdr50.mean()),
                         f"mean_hdr90_{u}": float(self.hdr90.mean()),
                         "targets_beyond_train_range": int(self.extrapolated.sum())},
+            **({"stiffness": self.stiffness} if self.stiffness else {}),
             "seconds": self.seconds,
         }
 
@@ -142,9 +146,14 @@ class AssemblyPrediction:
                 f"{s['max_expected_error_mm']:.2f}); mean 50% / 90% region "
                 f"{s[f'mean_hdr50_{u}']:.3g} / {s[f'mean_hdr90_{u}']:.3g} {unit}")
         note = self.extrapolation_note()
+        springs = [f"joint stiffness of {a}, from {v['from']} ("
+                   + ("N mm/rad, median): " if "nmm_per_rad" in v else "relative to its first "
+                      "joint): ")
+                   + " ".join(f"{k:.3g}" for k in v.get("nmm_per_rad", v.get("relative")))
+                   for a, v in self.stiffness.items()]
         return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
                                               f"50% {unit}", f"90% {unit}"], rows), tail,
-                          *([note] if note else [])])
+                          *springs, *([note] if note else [])])
 
 
 def grid_targets(rig: Rig, n: int) -> np.ndarray:
@@ -279,10 +288,27 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
         raise RigError(f"{rig.path}: {e}") from None
     commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)
     sizes = hdr_sizes(draws)
-    return AssemblyPrediction(
+    pred = AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
         None, time.perf_counter() - t0, draws)
+    if fusion == "equilibrium" and len(members) > 1:
+        pred.stiffness = {a: _stiffness_summary(mods.stiffness[a]) for a in members}
+    return pred
+
+
+def _stiffness_summary(prior: Any) -> dict:
+    """What the balance drew an arm's joint stiffnesses from: medians (N mm/rad; relative to
+    the arm's first joint under the prior, whose scale is arbitrary), log sds and source."""
+    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD
+
+    k = np.exp(prior.centre)
+    if np.any(prior.shared):
+        return {"from": "the prior", "relative": [float(v) for v in k / k[0]],
+                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": CHAIN_STIFFNESS_ARM_LOG_SD}
+    source = "the rig" if not np.any(prior.sd) else "compliances fitted under the URDF's masses"
+    return {"from": source, "nmm_per_rad": [float(v) for v in k],
+            "log_sd": [float(v) for v in prior.sd]}
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:

@@ -385,3 +385,48 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
                            x=np.zeros(1))
     cp.chain_draws(mods, ["a", "b"], [np.zeros((2, 6)), np.zeros((2, 6))], num_samples=10)
     assert seen["noise"] == pytest.approx(0.2) and seen["key"] is not None
+
+
+def test_stiffness_summary_names_where_the_balance_drew_from():
+    """``predict``'s JSON says where each linked arm's stiffnesses came from: the rig's
+    (N mm/rad, sd 0), compliances fitted under the URDF's masses (N mm/rad and log sds), or
+    the prior, whose scale is arbitrary (relative to the first joint, with its arm term)."""
+    from bayesrob.assembly import _stiffness_summary
+    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD
+
+    k = np.array([4e6, 2e6, 5e5])
+    rig = _stiffness_summary(StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool)))
+    assert rig["from"] == "the rig" and np.allclose(rig["nmm_per_rad"], k)
+    fit = _stiffness_summary(StiffnessPrior(np.log(k), np.full(3, 0.1), np.zeros(3, bool)))
+    assert fit["from"].startswith("compliances fitted") and fit["log_sd"] == [0.1] * 3
+    prior = _stiffness_summary(StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5),
+                                              np.ones(3, bool)))
+    assert prior["from"] == "the prior" and "nmm_per_rad" not in prior
+    np.testing.assert_allclose(prior["relative"], [1.0, 1.0, 28 / 150])
+    assert prior["arm_log_sd"] == CHAIN_STIFFNESS_ARM_LOG_SD
+
+
+@pytest.mark.slow
+def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, tmp_path,
+                                                                 capsys):
+    """``bayesrob predict --masses description`` on the linked arm6 rig (its URDF's masses
+    the simulated ones): each arm's shoulder and elbow stiffnesses, read from the fitted
+    compliances, within 15% of the simulator's (the tuning rigs' fits: 1-8%), named as such
+    in the JSON and the terminal."""
+    from bayesrob.chain_simulator import load_linked_truth
+
+    d, rig, _, rows = linked_modules
+    tfile = tmp_path / "t.csv"
+    tfile.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.3f}" for v in p)
+                                           for p in rows["target"][:3]))
+    out = tmp_path / "p.json"
+    assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile),
+                 "--params", "frames,offsets,geometric,compliance", "--masses", "description",
+                 "--json", str(out)]) == 0
+    assert "joint stiffness of left, from compliances fitted" in capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    truth = load_linked_truth(d)["stiffness_nmm_per_rad"]
+    for arm in ("left", "right"):
+        s = doc["stiffness"][arm]
+        assert s["from"] == "compliances fitted under the URDF's masses"
+        np.testing.assert_allclose(s["nmm_per_rad"][1:3], truth[arm][1:3], rtol=0.15)
