@@ -284,6 +284,8 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
 
     try:
         mods = fit_chain_modules(rig, members, model, groups, seed=seed, masses=masses)
+    except RigError:
+        raise
     except ValueError as e:
         raise RigError(f"{rig.path}: {e}") from None
     commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)

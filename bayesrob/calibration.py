@@ -501,7 +501,11 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     if masses not in ("fitted", "description"):
         raise ValueError(f"masses must be 'fitted' or 'description', not {masses!r}")
     candidates = layout.group_mask(groups)
-    if masses == "description" and sags:
+    if masses == "description":
+        if not sags:
+            raise ValueError("masses 'description' holds the link masses of a fit in which "
+                             "joints give way under gravity; add compliance, lateral or "
+                             f"backlash to the groups ({', '.join(groups)})")
         candidates = candidates & ~described_links(robot, x)
     nfev = 0
     penalty = prior_penalty(layout, groups)
@@ -557,7 +561,8 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
         # first moments the fitted compliances make visible, and the play, whose side is the
         # fitted deflection's.
         if progress:
-            progress("compliances fitted; freeing link masses")
+            progress("compliances fitted; freeing " + ("link masses" if masses == "fitted"
+                                                      else "what they make visible"))
         ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, candidates)
         x, n = fit(ident.free, x)
         nfev += n
@@ -573,7 +578,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     extra = sag_convergence(rig, x, sag_steps) if sags and polish else {}
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
                             time.perf_counter() - t0, extra=extra,
-                            masses=masses if sags else "fitted")
+                            masses=masses)
 
 
 def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:
@@ -585,9 +590,10 @@ def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:
     for c in robot.chains.values():
         m, h = c.source.get("link_masses_kg"), c.source.get("link_moments_kg_mm")
         if m is None or h is None:
+            why = c.source.get("unweighed") or f"a {c.source.get('kind', 'DH')} description"
             raise ValueError(f"chain {c.name!r}: its description does not give every moving "
-                             "link a mass (URDF <inertial>), so the masses cannot be held at "
-                             "it; fit them instead (masses 'fitted')")
+                             f"link a mass ({why}), so the masses cannot be held at it; fit "
+                             "them instead (masses 'fitted')")
         sl = layout.slices[c.name, "links"]
         x[sl] = np.column_stack([np.asarray(m, float), np.asarray(h, float)]).ravel()
         held[sl] = True

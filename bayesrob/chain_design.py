@@ -82,9 +82,11 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
     for index, (rig_dir, specs) in enumerate(by_rig.items()):
         rig = rigs[rig_dir]
         groups = {m.params for m in specs}
-        if len(groups) > 1:
+        masses = {m.masses for m in specs}
+        if len(groups) > 1 or len(masses) > 1:
             raise DesignError(f"{design.path}: modules {', '.join(m.name for m in specs)} "
-                              f"share rig {rig_dir} but name different params; a rig is "
+                              f"share rig {rig_dir} but name different "
+                              f"{'params' if len(groups) > 1 else 'masses'}; a rig is "
                               "calibrated once")
         for m in specs:
             where = f"{design.path}: [modules.{m.name}]"
@@ -103,7 +105,7 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
                 raise DesignError(f"{where}: {rig_dir} measures {rig.robot.dim}-D points but "
                                   f"the mounts and the task are {design.dim}-D")
         try:
-            cal = calibrate_chain(rig, groups.pop() or kin.GROUPS)
+            cal = calibrate_chain(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
         except ValueError as e:
             raise DesignError(f"{design.path}: {rig_dir}: {e}") from None
         n_free = int(cal.ident.free.sum())

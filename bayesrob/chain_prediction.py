@@ -307,9 +307,11 @@ def parameter_draws(mods: ChainModules, key: jax.Array, n: int) -> jax.Array:
 
 
 def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
-                side: dict[str, np.ndarray] | None = None) -> np.ndarray:
+                side: dict[str, np.ndarray] | None = None, measured: bool = True
+                ) -> np.ndarray:
     """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
-    vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs)."""
+    vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs), as the
+    tracker measures it (``measured``: with its noise) or as it is."""
     n = xs.shape[0]
     e, noise = mods.errors[arm].draw(key, (n, len(u)))
     # the rest of the pose weighs only where the model has gravity in it
@@ -329,6 +331,8 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
         xs, e = np.asarray(xs), np.asarray(e)
         pts = np.concatenate([np.asarray(push(xs[i:i + size], rows, e[i:i + size], rest))
                               for i in range(0, n, size)])
+    if not measured:
+        return np.asarray(pts)
     eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
     return np.asarray(pts + eps)
 
@@ -356,10 +360,14 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     if fusion == "product" and len(arms) > 1:
         return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
     xs = parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
+    linked = len(arms) > 1
+    # Linked, the free points are drawn without the tracker's noise and the balance is
+    # measured once, with all of it (below): the balance would average the noise each free
+    # point carried.
     free = [free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
-                        side if len(arms) == 1 else None)
+                        None if linked else side, measured=not linked)
             for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
-    if len(arms) == 1:
+    if not linked:
         return free[0]
     jacs = [joint_jacobian(mods.robot, jnp.asarray(mods.x), a, jnp.asarray(u))
             for a, u in zip(arms, commands, strict=True)]
@@ -367,11 +375,12 @@ def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.n
     # change it by parts in a thousand.
     log_k = stiffness_draws([mods.stiffness[a] for a in arms], jax.random.fold_in(key, 0),
                             num_samples)
-    # The linked point is measured once, with the tracker's whole noise, where the balance
-    # averages the noise each free point carries: it is put back (each arm's population has
-    # its own fitted estimate of the one tracker's noise; their mean).
+    d = chain_equilibrium(free, jacs, log_k)
+    # each arm's population has its own fitted estimate of the one tracker's noise: their mean
     noise = float(np.mean([np.mean(mods.errors[a].noise_sd) for a in arms]))
-    return np.asarray(chain_equilibrium(free, jacs, log_k, noise, jax.random.fold_in(key, 7)))
+    # a key of the parameters' branch: the arms' own keys are 1, 2, ... for any number of arms
+    eps = jax.random.normal(jax.random.fold_in(jax.random.fold_in(key, 99), 1), d.shape)
+    return np.asarray(d + noise * eps)
 
 
 def _product_model(commands, robot, x, arms, covs, noises, start) -> None:

@@ -617,7 +617,8 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
     eq = linked_equilibrium(
         rig.robot, x_true, u0,
         {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS},
-        drawn_masses(truth) if truth.compliance else None,
+        {a: np.asarray(truth.drawn_masses_kg[a], float) for a in LINKED_ARMS}
+        if truth.compliance else None,
         GRAVITY if truth.compliance else None)
     return targets, commands, u0, eq
 

@@ -225,6 +225,9 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     if args.stiffness_spread is not None:
         truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
     if args.mass_spread is not None:
+        if args.compliance is False:
+            raise UsageError("--mass-spread draws the masses gravity bends the arms with; "
+                             "--no-compliance has none")
         truth = replace(truth, mass_log_sd=args.mass_spread)
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
@@ -398,9 +401,10 @@ def _calibrate(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig, chains=True)
     if rig.is_chain or args.params is not None or args.urdf_out:
         return _calibrate_chain(args, rig)
-    if args.sag_steps != 1:
-        raise UsageError("--sag-steps is for URDF/DH rigs (and --params); the planar "
-                         "eight-parameter fit has no sag")
+    if args.sag_steps != 1 or args.masses != "fitted":
+        raise UsageError(f"{'--sag-steps' if args.sag_steps != 1 else '--masses'} is for "
+                         "URDF/DH rigs (and --params); the planar eight-parameter fit has no "
+                         "sag")
     # NUTS per arm compiles and samples for tens of seconds; the other methods take about one.
     with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
                   postfix=f"NUTS posterior of {len(rig.arms)} arms"):

@@ -134,6 +134,9 @@ class ModuleSpec:
     model: str = DEFAULT_MODEL
     # a chain module's calibration groups (None: the chain default; a planar module: refused)
     params: tuple[str, ...] | None = None
+    # a chain module's link masses with a compliance group: "fitted", or held at its URDF's
+    # ("description"), so that its fitted compliances give its joint stiffnesses
+    masses: str = "fitted"
 
 
 @dataclass(frozen=True)
@@ -252,13 +255,18 @@ def load_design(path: str | Path) -> DesignSpec:
         where = f"{path}: [modules.{name}]"
         if not isinstance(t, dict):
             raise DesignError(f"{where}: must be a table with rig, arm, model")
-        _unknown(t, ("rig", "arm", "model", "params"), where)
+        _unknown(t, ("rig", "arm", "model", "params", "masses"), where)
+        masses = t.get("masses", "fitted")
+        if masses not in ("fitted", "description"):
+            raise DesignError(f"{where}: masses = {masses!r} must be \"fitted\" or "
+                              "\"description\"")
         if not isinstance(t.get("rig"), str):
             raise DesignError(f"{where}: needs rig = \"DIR\" (a rig directory)")
         rig = (path.parent / t["rig"]).resolve()
         modules[name] = ModuleSpec(name, rig, str(t.get("arm", name)),
                                    str(t.get("model", DEFAULT_MODEL)),
-                                   _groups(t["params"], where) if "params" in t else None)
+                                   _groups(t["params"], where) if "params" in t else None,
+                                   masses)
     mt = _table(doc, "mounts", str(path))
     _unknown(mt, ("points", "grid"), f"{path}: [mounts]")
     if ("points" in mt) == ("grid" in mt):
@@ -392,6 +400,9 @@ def load_modules(design: DesignSpec, models_dir: Any = None
         if m.params is not None:  # a planar arm's eight parameters are always fitted
             raise DesignError(f"{design.path}: [modules.{m.name}]: params names calibration "
                               "groups of URDF/DH arms; a planar arm fits its eight parameters")
+        if m.masses != "fitted":
+            raise DesignError(f"{design.path}: [modules.{m.name}]: masses is for URDF arms "
+                              "calibrated with compliance; a planar arm has no link masses")
     return _load_planar_modules(design, rigs, by_rig, models_dir)
 
 

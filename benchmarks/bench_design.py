@@ -4,6 +4,7 @@
     python benchmarks/bench_design.py --proof    # 10 report inventories, designs simulated
     python benchmarks/bench_design.py --proof --seeds 111-130   # the second report set
     python benchmarks/bench_design.py --chain-proof   # 6-joint 3-D modules, assemblies built
+    python benchmarks/bench_design.py --chain-proof --masses description   # stiffnesses from masses
     python benchmarks/bench_design.py --tuning   # tuning inventories: predicted builds vs built
 
 Scale (prints one JSON line): 1,000 candidate assemblies of 2-3 planar arms at 16 targets each
@@ -84,6 +85,9 @@ INVENTORY_STIFFNESS_LOG_SD = 0.3
 EXAMPLE_ERROR_MM = 1.2
 CHAIN_SEEDS = (301, 302, 303)
 CHAIN_PARAMS = "frames,offsets,geometric,compliance"
+# --masses description: each simulated arm's true link masses this far (log sd) from the
+# URDF's, as the linked coverage study draws them (bench_predict_3d.py)
+DESCRIBED_MASS_SPREAD = 0.1
 
 
 def _design(tmp: Path, seed: int | None, text_changes: dict[str, str] | None = None) -> Path:
@@ -232,7 +236,10 @@ def tuning() -> dict:
         for n, t in sorted(counts.items())}}
 
 
-def chain_proof() -> dict:
+def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0) -> dict:
+    """``masses``: the modules' (``masses = "description"``: held at the URDF's, their
+    stiffnesses read from the fitted compliances); ``mass_log_sd``: how far each simulated
+    arm's true link masses stray from the URDF's."""
     from bayesrob.chain_design import chain_candidate_draws
     from bayesrob.chain_simulator import (
         LinkedChainTruth,
@@ -251,7 +258,8 @@ def chain_proof() -> dict:
         for seed in CHAIN_SEEDS:
             rig_dir = simulate_linked_chain_rig(
                 Path(tmp) / f"rig-{seed}",
-                LinkedChainTruth(seed=seed, calibration_groups=tuple(CHAIN_PARAMS.split(","))))
+                LinkedChainTruth(seed=seed, calibration_groups=tuple(CHAIN_PARAMS.split(",")),
+                                 mass_log_sd=mass_log_sd))
             path = Path(tmp) / f"design-{seed}.toml"
             # mounts and task only complete the file; the placements are set below
             path.write_text(f"""
@@ -260,9 +268,11 @@ tracker_noise_mm = 0.1
 [modules.left]
 rig = "{rig_dir}"
 params = "{CHAIN_PARAMS}"
+masses = "{masses}"
 [modules.right]
 rig = "{rig_dir}"
 params = "{CHAIN_PARAMS}"
+masses = "{masses}"
 [mounts]
 points = [[0.0, 0.0, 0.0]]
 [task]
@@ -331,6 +341,10 @@ def main() -> None:
     p.add_argument("--proof", action="store_true", help="the proof in simulation instead")
     p.add_argument("--chain-proof", action="store_true",
                    help="6-joint 3-D modules: predictions against the built assembly")
+    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+                   help="with --chain-proof: the modules' link masses fitted, or held at the "
+                        "URDF's (then each simulated arm's true masses are drawn 10%% about "
+                        "them)")
     p.add_argument("--tuning", action="store_true",
                    help="tuning inventories: where built assemblies fall in their predictions")
     p.add_argument("--seeds", default=f"{REPORT_SEEDS[0]}-{REPORT_SEEDS[-1]}",
@@ -341,7 +355,9 @@ def main() -> None:
     except ValueError:
         p.error(f"--seeds: expected FIRST-LAST, e.g. 111-130, got {args.seeds!r}")
     seeds = tuple(range(first, last + 1))
-    print(json.dumps(proof(seeds) if args.proof else chain_proof() if args.chain_proof
+    chain = (chain_proof("description", DESCRIBED_MASS_SPREAD) if args.masses == "description"
+             else chain_proof()) if args.chain_proof else None
+    print(json.dumps(proof(seeds) if args.proof else chain if args.chain_proof
                      else tuning() if args.tuning else scale()))
 
 

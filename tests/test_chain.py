@@ -104,8 +104,8 @@ def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
     """Each movable joint's link weighs what its <inertial> says, at its centre (mm, in the
     link's frame); a link bolted on by a fixed joint (here a 0.5 kg tool past the tool flange's
     turn) adds its weight through that joint's transform; a moving link without <inertial>
-    leaves the chain unweighed (None), and a mass that is not a number >= 0 is refused naming
-    the link."""
+    leaves the chain unweighed (None, and which link says so), as does a mass that is not a
+    number >= 0: the chain still loads, and only a fit that holds the masses refuses it."""
     chain = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
     m = np.array(chain.source["link_masses_kg"])
     h = np.array(chain.source["link_moments_kg_mm"])
@@ -127,10 +127,15 @@ def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
                                         + text[end:])
     half = kin.urdf_chain(tmp_path / "half.urdf", "base_link", "tool0", "arm")
     assert half.source["link_masses_kg"] is None and half.source["link_moments_kg_mm"] is None
+    assert half.source["unweighed"] == f"{tmp_path / 'half.urdf'}: link 'forearm_link' has no " \
+                                       "<inertial>"
+    # a malformed mass is only an error to a fit that holds the masses: the chain loads
     (tmp_path / "bad.urdf").write_text(text.replace('<mass value="2.3"/>',
                                                     '<mass value="-2.3"/>'))
-    with pytest.raises(kin.KinematicsError, match=r"link 'forearm_link': <inertial> needs"):
-        kin.urdf_chain(tmp_path / "bad.urdf", "base_link", "tool0", "arm")
+    bad = kin.urdf_chain(tmp_path / "bad.urdf", "base_link", "tool0", "arm")
+    assert bad.source["link_masses_kg"] is None
+    assert "link 'forearm_link': <inertial> needs <mass value> a number >= 0" in \
+        bad.source["unweighed"]
 
 
 def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_path):
@@ -164,7 +169,8 @@ def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_pa
     robot = kin.Robot({"arm": kin.urdf_chain(tmp_path / "half.urdf", "base_link", "tool0",
                                              "arm")})
     with pytest.raises(ValueError, match=r"chain 'arm': its description does not give every "
-                                         r"moving link a mass"):
+                                         r"moving link a mass \(.*half.urdf: link "
+                                         r"'forearm_link' has no <inertial>\)"):
         described_links(robot, robot.layout.nominal.copy())
 
 

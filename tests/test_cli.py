@@ -129,6 +129,14 @@ BAD_ARGUMENTS = {
     "sag-steps-0": (["calibrate", "{rig}", "--sag-steps", "0"], "must be at least 1, got 0"),
     "sag-steps-planar": (["calibrate", "{rig}", "--sag-steps", "3"],
                          "--sag-steps is for URDF/DH rigs"),
+    "masses-planar": (["calibrate", "{rig}", "--masses", "description"],
+                      "--masses is for URDF/DH rigs"),
+    # the planar arm as a chain: no compliance group asked for, and no link masses described
+    "masses-without-sag": (["calibrate", "{rig}", "--params", "frames,offsets",
+                            "--masses", "description"], "add compliance, lateral or backlash"),
+    "masses-undescribed": (["calibrate", "{rig}", "--params", "frames,compliance",
+                            "--masses", "description"],
+                           "does not give every moving link a mass"),
 }
 
 

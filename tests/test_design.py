@@ -170,6 +170,10 @@ def test_design_command_writes_its_outputs_and_the_planned_rig_simulates(tmp_pat
     ({"error_mm = 1.2": "error_mm = -1"}, "error_mm = -1 must be a number (must be above 0)"),
     ({"[task]": "[task]\nshape = 1"}, "unknown key 'shape'"),
     ({"tracker_noise_mm = 0.35": "tracker_noise_mm = -0.3"}, "tracker_noise_mm = -0.3 must be 0"),
+    ({'[modules.side]\nrig = "modules"': '[modules.side]\nrig = "modules"\nmasses = "cad"'},
+     "masses = 'cad' must be \"fitted\" or \"description\""),
+    ({'[modules.side]\nrig = "modules"': '[modules.side]\nrig = "modules"\n'
+      'masses = "description"'}, "masses is for URDF arms"),
 ])
 def test_bad_design_files_are_one_line_exit_2(tmp_path, capsys, edit, message):
     path = _small_design(tmp_path, **edit)

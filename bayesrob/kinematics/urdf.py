@@ -112,6 +112,7 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
     # joints hang on it folded in; None where its own link gives no <inertial>
     masses: list[float | None] = []
     moments: list[np.ndarray] = []
+    unweighed = ""  # why the chain's masses cannot be read: the first link that says so
     for j in joints:
         jname = j.get("name") or "?"
         where = f"{path}: joint {jname!r}"
@@ -119,7 +120,11 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
         t = _origin_matrix(j, where)
         child = j.find("child")
         cname = child.get("link") if child is not None else None
-        inertial = _inertial(links.get(cname), f"{path}: link {cname!r}")
+        try:
+            inertial = _inertial(links.get(cname), f"{path}: link {cname!r}")
+        except KinematicsError as exc:
+            # only a fit that holds the masses needs them: it names this, the rest load
+            inertial, unweighed = None, unweighed or str(exc)
         if jtype == "fixed":
             fixed = fixed @ t
             prefix.append(jname)
@@ -156,6 +161,8 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
         prefixes.append(prefix)
         fixed, prefix = np.eye(4), []
         movable.append(jname)
+        if inertial is None and not unweighed:
+            unweighed = f"{path}: link {cname!r} has no <inertial>"
         masses.append(None if inertial is None else inertial[0])
         moments.append(np.zeros(3) if inertial is None else inertial[0] * inertial[1])
         axes.append(axis)
@@ -183,8 +190,9 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
               "efforts": None if None in efforts else efforts,
               # every movable joint's link weighed, or nothing: a chain half described
               # cannot be trusted for its torques
-              "link_masses_kg": None if None in masses else masses,
-              "link_moments_kg_mm": None if None in masses else [m.tolist() for m in moments],
+              "link_masses_kg": None if unweighed else masses,
+              "link_moments_kg_mm": None if unweighed else [m.tolist() for m in moments],
+              "unweighed": unweighed or None,
               "joints": movable, "prefixes": prefixes, "tail": prefix}
     return Chain.build(name, movable, kinds, np.array(axes), np.array(origins),
                        coupling=coupling, source=source, **chain_kwargs)
