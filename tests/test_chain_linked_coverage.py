@@ -23,8 +23,8 @@ pytestmark = pytest.mark.slow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-PUBLISHED = {"points": 96, "coverage50": 0.656, "coverage90": 0.958, "error_ratio": 1.035}
-DESCRIBED = {"points": 96, "coverage50": 0.5625, "coverage90": 0.823, "error_ratio": 0.998}
+PUBLISHED = {"points": 96, "coverage50": 0.646, "coverage90": 0.958, "error_ratio": 1.035}
+DESCRIBED = {"points": 96, "coverage50": 0.552, "coverage90": 0.8125, "error_ratio": 0.998}
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_linked_90_percent_regions_and_error_ratio_hold(report):
 
 
 @pytest.mark.xfail(strict=True, reason="target missed on the report rigs: the 50% regions "
-                   "hold 0.656 of 96 linked points (0.40-0.60 asked); per rig 0.33-0.92, as "
+                   "hold 0.646 of 96 linked points (0.40-0.60 asked); per rig 0.33-0.92, as "
                    "each rig's pair of arms has one stiffness ratio the prior only brackets")
 def test_linked_50_percent_regions_hold(report):
     assert 0.40 <= report["coverage50"] <= 0.60
@@ -83,7 +83,7 @@ def test_described_masses_50_percent_regions_and_error_ratio_hold(described):
 
 
 @pytest.mark.xfail(strict=True, reason="target missed on report rigs 221-224: the 90% regions "
-                   "hold 0.823 of 96 linked points (0.84-0.96 asked): rig 222 holds 0.54, the "
-                   "others 0.83-1.00; the wrists gravity hardly turns are read least well")
+                   "hold 0.8125 of 96 linked points (0.84-0.96 asked): rig 222 holds 0.58, "
+                   "the others 0.79-1.00; the wrists gravity hardly turns are read least well")
 def test_described_masses_90_percent_regions_hold(described):
     assert 0.84 <= described["coverage90"] <= 0.96
