@@ -110,9 +110,10 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
     too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
     residual scaling for the fit's degrees of freedom having already widened them.
-    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s; with the
-    description's masses and a compliance group, the arms' stiffnesses come from the fitted
-    compliances instead of the prior.
+    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s, for the calibration
+    made here (a ``calibration`` given carries its own); with the description's masses and a
+    compliance group, the arms' stiffnesses come from the fitted compliances instead of the
+    prior.
     """
     check_latent_model(model)  # before the calibration, which takes the time
     measured = rig.robot.measured_arms()
