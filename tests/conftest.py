@@ -15,6 +15,12 @@ import pytest
 if "BAYESROB_CACHE_DIR" not in os.environ:
     os.environ["BAYESROB_CACHE_DIR"] = tempfile.mkdtemp(prefix="bayesrob-test-cache-")
     atexit.register(shutil.rmtree, os.environ["BAYESROB_CACHE_DIR"], ignore_errors=True)
+# ... and none is written or read in a test session: the two xdist workers shared it, JAX's
+# file cache writes its entries without a lock (no eviction configured), and a slow run died
+# twice inside XLA's (de)serialiser, reading and writing one of the chain fits' programs. The
+# caches' own behaviour is tested in subprocesses with their own environment
+# (test_eval_cache.py).
+os.environ.setdefault("BAYESROB_NO_CACHE", "1")
 
 
 @pytest.fixture(scope="session")
