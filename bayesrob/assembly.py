@@ -306,10 +306,9 @@ def _stiffness_summary(prior: Any) -> dict:
 
     k = np.exp(prior.centre)
     if np.any(prior.shared):
-        return {"from": "the prior", "relative": [float(v) for v in k / k[0]],
+        return {"from": prior.source, "relative": [float(v) for v in k / k[0]],
                 "log_sd": [float(v) for v in prior.sd], "arm_log_sd": CHAIN_STIFFNESS_ARM_LOG_SD}
-    source = "the rig" if not np.any(prior.sd) else "compliances fitted under the URDF's masses"
-    return {"from": source, "nmm_per_rad": [float(v) for v in k],
+    return {"from": prior.source, "nmm_per_rad": [float(v) for v in k],
             "log_sd": [float(v) for v in prior.sd]}
 
 

@@ -498,8 +498,8 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     x = layout.nominal.copy() if start is None else np.array(start, float)
     if x.shape != layout.nominal.shape:
         raise ValueError(f"start has {x.size} parameters; the robot has {layout.nominal.size}")
-    if masses not in ("fitted", "description"):
-        raise ValueError(f"masses must be 'fitted' or 'description', not {masses!r}")
+    if masses not in kin.MASS_SOURCES:
+        raise ValueError(f"masses must be one of {kin.MASS_SOURCES}, not {masses!r}")
     candidates = layout.group_mask(groups)
     if masses == "description":
         if not sags:

@@ -137,11 +137,16 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
 class StiffnessPrior(NamedTuple):
     """An arm's log joint stiffnesses along its path (mounts first): Normal(centre, sd) per
     joint (sd 0: known), plus the prior's arm term where ``shared`` (an arm stiffer or softer
-    as a whole, where nothing fixes its scale)."""
+    as a whole, where nothing fixes its scale). ``source`` says where it came from, in words
+    a report can print: one of ``STIFFNESS_SOURCES``."""
 
     centre: np.ndarray
     sd: np.ndarray
     shared: np.ndarray
+    source: str
+
+
+STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior")
 
 
 def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
@@ -153,7 +158,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
     if all(p is not None for p in parts):
         k = np.concatenate(parts)
-        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool))
+        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool), "the rig")
     n = rig.robot.n_path_joints(arm)
     efforts = [c.source.get("efforts") for c in rig.robot.path(arm)]
     centre = (np.log(np.concatenate(efforts))
@@ -165,7 +170,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
         # identified, so each arm's compliances carry its own unknown mass scale. Read as
         # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
         # overflowed on another (seed 1), though they helped on the tuning rigs.
-        return StiffnessPrior(centre, sd, np.ones(n, bool))
+        return StiffnessPrior(centre, sd, np.ones(n, bool), "the prior")
     layout = cal.robot.layout
     every = np.arange(layout.nominal.size)
     idx = np.concatenate([every[layout.slices[c.name, "compliance"]]
@@ -173,7 +178,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     c, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
     seen = free & (c > 0) & np.isfinite(se)
     if not seen.any():
-        return StiffnessPrior(centre, sd, np.ones(n, bool))
+        return StiffnessPrior(centre, sd, np.ones(n, bool), "the prior")
     # The prior, log k_j = scale + profile_j + N(0, sd), updated by the fitted compliances
     # (each log k_j measured with its standard error and the masses' accuracy): the arm's
     # scale is their precision-weighted mean about the profile, so a poorly seen joint (a
@@ -188,7 +193,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
                         prior_var)
     centre = np.where(seen, post_var * (prior_mean / prior_var + y / var_fit), prior_mean)
     sd = np.sqrt(post_var)
-    return StiffnessPrior(centre, sd, np.zeros(n, bool))
+    return StiffnessPrior(centre, sd, np.zeros(n, bool), STIFFNESS_SOURCES[1])
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -243,13 +248,13 @@ def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> Non
     """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
     where the prior marks them ``shared``, a Normal(0, arm_sd) term the arm's joints share: an
     arm as a whole is stiffer or softer than another."""
-    for i, (loc, scale, on) in enumerate(priors):
+    for i, p in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
-                           dist.Normal(0.0, 1.0).expand([len(loc)]).to_event(1))
+                           dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
         whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
-        shared = jnp.where(jnp.asarray(on), arm_sd, 0.0) * whole
+        shared = jnp.where(jnp.asarray(p.shared), arm_sd, 0.0) * whole
         numpyro.deterministic(f"log_stiffness_{i}",
-                              jnp.asarray(loc) + jnp.asarray(scale) * z + shared)
+                              jnp.asarray(p.centre) + jnp.asarray(p.sd) * z + shared)
 
 
 def stiffness_draws(priors: Sequence[StiffnessPrior], key: jax.Array,
@@ -257,7 +262,7 @@ def stiffness_draws(priors: Sequence[StiffnessPrior], key: jax.Array,
     """Draws (S, n_a) of each arm's joint log stiffnesses from their prior (centre, sd)."""
     sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
         key, priors, CHAIN_STIFFNESS_ARM_LOG_SD)
-    return [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, len(p[0])))
+    return [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, len(p.centre)))
             for i, p in enumerate(priors)]
 
 

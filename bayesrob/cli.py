@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+from bayesrob.kinematics import MASS_SOURCES
 from bayesrob.rig import RigError
 
 # name -> (one-line help, add_arguments(parser), run(args) -> exit code)
@@ -320,7 +321,7 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "at the commanded pose, then each time at the pose the last step "
                         "sagged into, towards torque equilibrium (default 1; the fit reports "
                         "how far one more step would move the markers: docs/robots.md)")
-    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+    p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="with compliance or lateral: the links' masses and first moments "
                         "fitted (default; only their products with the compliances are seen) "
                         "or held at the URDF's <inertial> ones, so each compliance is the "
@@ -830,7 +831,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                    help="URDF/DH rigs: parameter groups the modules are calibrated with, as "
                         "'bayesrob calibrate --params' (default frames,offsets,geometric,servo; "
                         "add compliance for arms that sag under gravity)")
-    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+    p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="URDF rigs calibrated with compliance: the links' masses fitted "
                         "(default; only their products with the compliances are seen, and the "
                         "arms' stiffnesses come from a prior), or held at the URDF's <inertial> "

@@ -256,10 +256,10 @@ def load_design(path: str | Path) -> DesignSpec:
         if not isinstance(t, dict):
             raise DesignError(f"{where}: must be a table with rig, arm, model")
         _unknown(t, ("rig", "arm", "model", "params", "masses"), where)
-        masses = t.get("masses", "fitted")
-        if masses not in ("fitted", "description"):
-            raise DesignError(f"{where}: masses = {masses!r} must be \"fitted\" or "
-                              "\"description\"")
+        masses = t.get("masses", kin.MASS_SOURCES[0])
+        if masses not in kin.MASS_SOURCES:
+            raise DesignError(f"{where}: masses = {masses!r} must be "
+                              + " or ".join(f'"{m}"' for m in kin.MASS_SOURCES))
         if not isinstance(t.get("rig"), str):
             raise DesignError(f"{where}: needs rig = \"DIR\" (a rig directory)")
         rig = (path.parent / t["rig"]).resolve()

@@ -70,6 +70,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bayesrob.kinematics import MASS_SOURCES
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "design"
 REPORT_SEEDS = tuple(range(101, 111))
 TUNING_SEEDS = (1, 2, 3, 4)
@@ -341,7 +343,7 @@ def main() -> None:
     p.add_argument("--proof", action="store_true", help="the proof in simulation instead")
     p.add_argument("--chain-proof", action="store_true",
                    help="6-joint 3-D modules: predictions against the built assembly")
-    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+    p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="with --chain-proof: the modules' link masses fitted, or held at the "
                         "URDF's (then each simulated arm's true masses are drawn 10%% about "
                         "them)")

@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bayesrob.kinematics import MASS_SOURCES
+
 WARM_TARGET_S = 60.0
 TUNING_SEEDS = (201, 202, 203, 204, 205, 206)
 REPORT_SEEDS = (211, 212, 213, 214)
@@ -118,7 +120,7 @@ def main() -> None:
                    help="with --coverage: every prior in VARIANTS, not only the chosen one")
     p.add_argument("--cache", metavar="DIR",
                    help="with --coverage: keep the rigs and fitted modules here for a rerun")
-    p.add_argument("--masses", choices=("fitted", "description"), default="fitted",
+    p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="with --coverage: the links' masses fitted, or held at the URDF's "
                         "(then the stiffnesses come from the fitted compliances)")
     p.add_argument("--mass-spread", type=float, default=0.0, metavar="SD",

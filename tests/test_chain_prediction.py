@@ -217,7 +217,8 @@ def test_linked_arms_with_known_stiffness_land_where_predicted(linked_modules):
     known = dict(mods.stiffness)
     try:
         mods.stiffness = {a: StiffnessPrior(np.log(np.asarray(k[a], float)), np.zeros(6),
-                                            np.zeros(6, bool)) for a in ("left", "right")}
+                                            np.zeros(6, bool), "the rig")
+                          for a in ("left", "right")}
         draws = chain_draws(mods, ["left", "right"], rows["commands"], seed=2)
     finally:
         mods.stiffness = known
@@ -268,14 +269,16 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
 
     rig, _ = arm6_modules
-    loc, sd, shared = _stiffness_prior(rig, "arm")
+    loc, sd, shared, source = _stiffness_prior(rig, "arm")
+    assert source == "the prior"
     np.testing.assert_allclose(np.exp(loc), [150, 150, 150, 28, 28, 28])
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
     assert shared.all()
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
                                                                       stiffness=k)})
-    loc, sd, shared = _stiffness_prior(given, "arm")
+    loc, sd, shared, source = _stiffness_prior(given, "arm")
+    assert source == "the rig"
     np.testing.assert_allclose(np.exp(loc), k)
     np.testing.assert_array_equal(sd, 0.0)
     assert not shared.any()
@@ -318,7 +321,7 @@ def test_stiffness_from_compliances_fitted_under_the_described_masses(arm6_modul
         return cp._stiffness_prior(rig, "arm", cal)
 
     p = fitted(4e5)
-    assert not p.shared.any()
+    assert not p.shared.any() and p.source == "compliances fitted under the URDF's masses"
     np.testing.assert_allclose(np.exp(p.centre[[1, 2, 3, 5]]), true_k[[1, 2, 3, 5]], rtol=0.02)
     assert np.all(np.abs(p.sd[[1, 2, 3, 5]] - cp.DESCRIBED_MASS_LOG_SD) < 0.01)
     # the arm's scale about the profile (150 N m on the first three joints, 28 on the wrist)
@@ -346,8 +349,9 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     import bayesrob.chain_prediction as cp
 
     monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
-    unknown = cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool))
-    known = cp.StiffnessPrior(np.log([4e6, 2e6, 6e5]), np.zeros(3), np.zeros(3, bool))
+    unknown = cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool), "the prior")
+    known = cp.StiffnessPrior(np.log([4e6, 2e6, 6e5]), np.zeros(3), np.zeros(3, bool),
+                                "the rig")
     a, b, c = cp.stiffness_draws([unknown, unknown, known], jax.random.PRNGKey(0), 20_000)
     a, b, c = (np.asarray(v) for v in (a, b, c))
     r = np.corrcoef(np.hstack([a, b]).T)
@@ -382,7 +386,7 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
     monkeypatch.setattr(cp, "parameter_draws", lambda mods, key, n: jnp.zeros((n, 1)))
     errors = {"a": SimpleNamespace(noise_sd=np.array([0.08, 0.12])),
               "b": SimpleNamespace(noise_sd=np.array([0.3, 0.3]))}
-    prior = cp.StiffnessPrior(np.zeros(6), np.full(6, 0.5), np.ones(6, bool))
+    prior = cp.StiffnessPrior(np.zeros(6), np.full(6, 0.5), np.ones(6, bool), "the prior")
     mods = SimpleNamespace(errors=errors, stiffness={"a": prior, "b": prior}, robot=None,
                            x=np.zeros(1))
     d = cp.chain_draws(mods, ["a", "b"], [np.zeros((2, 6)), np.zeros((2, 6))],
@@ -397,15 +401,17 @@ def test_stiffness_summary_names_where_the_balance_drew_from():
     (N mm/rad, sd 0), compliances fitted under the URDF's masses (N mm/rad and log sds), or
     the prior, whose scale is arbitrary (relative to the first joint, with its arm term)."""
     from bayesrob.assembly import _stiffness_summary
-    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD
+    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD, STIFFNESS_SOURCES
 
     k = np.array([4e6, 2e6, 5e5])
-    rig = _stiffness_summary(StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool)))
+    rig = _stiffness_summary(StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool),
+                                            "the rig"))
     assert rig["from"] == "the rig" and np.allclose(rig["nmm_per_rad"], k)
-    fit = _stiffness_summary(StiffnessPrior(np.log(k), np.full(3, 0.1), np.zeros(3, bool)))
+    fit = _stiffness_summary(StiffnessPrior(np.log(k), np.full(3, 0.1), np.zeros(3, bool),
+                                            STIFFNESS_SOURCES[1]))
     assert fit["from"].startswith("compliances fitted") and fit["log_sd"] == [0.1] * 3
     prior = _stiffness_summary(StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5),
-                                              np.ones(3, bool)))
+                                              np.ones(3, bool), "the prior"))
     assert prior["from"] == "the prior" and "nmm_per_rad" not in prior
     np.testing.assert_allclose(prior["relative"], [1.0, 1.0, 28 / 150])
     assert prior["arm_log_sd"] == CHAIN_STIFFNESS_ARM_LOG_SD

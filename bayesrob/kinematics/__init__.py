@@ -9,6 +9,7 @@ diagnosis work on them directly (``from bayesrob import kinematics as kin; kin.f
 from bayesrob.kinematics.chain import (
     ALL_GROUPS,
     GROUPS,
+    MASS_SOURCES,
     OPTIONAL_GROUPS,
     PLAY_SIDE_RAD,
     SAG_GROUPS,
@@ -37,7 +38,8 @@ from bayesrob.kinematics.planar import (
 from bayesrob.kinematics.urdf import urdf_chain, write_urdf
 
 __all__ = [
-    "ALL_GROUPS", "GROUPS", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD", "SAG_GROUPS",
+    "ALL_GROUPS", "GROUPS", "MASS_SOURCES", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD",
+    "SAG_GROUPS",
     "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout",
     "Robot", "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",

@@ -40,6 +40,10 @@ ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 SAG_GROUPS = ("compliance", "lateral", "backlash")  # the groups gravity's torques drive
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
+# Where a compliance fit takes the links' masses from: fitted with the compliances (only their
+# products are seen), or held at the description's (a URDF's <inertial>). The first is the
+# default everywhere the choice is offered.
+MASS_SOURCES = ("fitted", "description")
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 # A joint's play is taken on the side its gravity deflection points to, as
 # tanh(deflection / PLAY_SIDE_RAD): a deflection of 0.1 mrad, the joints' repeatability on the
