@@ -12,10 +12,17 @@ executables in ``executables/`` (see :mod:`bayesrob.kde`). ``BAYESROB_CACHE_DIR`
 ``BAYESROB_NO_CACHE=1`` turns it off, and a cache directory set through JAX's own
 configuration is left alone. The cache holds executable code: keep it in a directory only
 you can write to.
+
+Every compiled program maps its machine code into the process (about two dozen memory maps
+each), and Linux caps a process's maps (``vm.max_map_count``, 65530 by default): past it XLA
+dies with a segmentation fault in whatever maps next (a compilation, or the cache's
+(de)serialiser). A process that compiles programs for robot after robot (a diagnosis sweep, a
+designer's worker, a test session) calls :func:`release_compiled_programs` between them.
 """
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -62,3 +69,31 @@ def _enable_compilation_cache() -> None:
 
 
 _enable_compilation_cache()
+
+# Where JAX's compiled programs are dropped: the share of the kernel's cap on a process's
+# memory maps. A test worker on the chain tests went from 3,700 to 28,000 maps in two minutes:
+# a release at half the cap leaves the next fits that much room and more.
+RELEASE_MAPS_SHARE = 0.5
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """This process's memory maps and the kernel's cap on them, or None where the system does
+    not say (not Linux)."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps), limit
+    except (OSError, ValueError):
+        return None
+
+
+def release_compiled_programs(share: float = RELEASE_MAPS_SHARE) -> bool:
+    """Drop JAX's compiled programs (``jax.clear_caches``) when this process holds more than
+    ``share`` of the memory maps the kernel allows; True when it did. A program used again is
+    compiled again, or read back from the persistent cache."""
+    counts = memory_maps()
+    if counts is None or counts[0] <= share * counts[1]:
+        return False
+    jax.clear_caches()
+    gc.collect()  # the programs' code is unmapped when the last reference goes
+    return True

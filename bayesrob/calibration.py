@@ -23,6 +23,7 @@ import scipy.optimize
 import scipy.stats
 
 from bayesrob import kinematics as kin
+from bayesrob import release_compiled_programs
 from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
 Method = Literal["least-squares", "hill-climb"]
@@ -484,6 +485,8 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     import time
 
     t0 = time.perf_counter()
+    # a fit compiles programs for its robot; sweeps fit robot after robot in one process
+    release_compiled_programs()
     unknown = [g for g in groups if g not in kin.ALL_GROUPS]
     if unknown:
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "

@@ -82,6 +82,7 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from bayesrob import kinematics as kin
+from bayesrob import release_compiled_programs
 from bayesrob.chain_design import ChainModule, chain_candidate_draws, chain_reach_table
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, equilibrium_program, fused_posterior
 from bayesrob.inference import error_arrays, error_kind, is_sampleable
@@ -685,6 +686,7 @@ def _result(job: _Job, cand: Candidate, models: list[str], dist: np.ndarray,
 
 def evaluate_batch(job: _Job, batch: Sequence[tuple[int, Candidate]]) -> list[tuple[int, dict]]:
     """Predict every candidate of a batch (one Dask task): (index, result) pairs."""
+    release_compiled_programs()  # a worker lives through many batches, and runs
     return [(i, _evaluate(job, c, i)) for i, c in batch]
 
 

@@ -15,13 +15,23 @@ import pytest
 if "BAYESROB_CACHE_DIR" not in os.environ:
     os.environ["BAYESROB_CACHE_DIR"] = tempfile.mkdtemp(prefix="bayesrob-test-cache-")
     atexit.register(shutil.rmtree, os.environ["BAYESROB_CACHE_DIR"], ignore_errors=True)
-# ... and none is written or read in a test session. The slow suite died three times inside
-# XLA's executable (de)serialiser, writing or reading one of the chain fits' programs (Justin's
-# ladder, the chain diagnosis sweep): twice with both xdist workers sharing one directory, once
-# with a directory per worker, so it is not the sharing; the same programs read and written in
-# a process of their own passed. The caches' own behaviour is tested in subprocesses with an
-# environment of their own (test_eval_cache.py).
-os.environ.setdefault("BAYESROB_NO_CACHE", "1")
+# Each xdist worker (and the processes it starts: Dask workers, the command run as a
+# subprocess) has a directory of its own in it, so no entry is written by two processes at once.
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _worker and not os.environ.get("BAYESROB_CACHE_DIR", "").endswith(_worker):
+    os.environ["BAYESROB_CACHE_DIR"] = os.path.join(os.environ["BAYESROB_CACHE_DIR"], _worker)
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    """A worker runs hundreds of tests, each compiling programs for robots of its own: past
+    the kernel's cap on a process's memory maps XLA dies in whatever maps next. The slow suite
+    died that way three times (in compilation and in the cache's (de)serialiser), and again,
+    reproduced, with the cap lowered to the maps a worker had reached."""
+    yield
+    from bayesrob import release_compiled_programs
+
+    release_compiled_programs()
 
 
 @pytest.fixture(scope="session")
