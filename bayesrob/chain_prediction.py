@@ -103,7 +103,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                       groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
                       calibration: ChainCalibration | None = None,
                       parameter_uncertainty: bool = False,
-                      masses: str = "fitted") -> ChainModules:
+                      masses: str = "fitted", sag_steps: int = 1) -> ChainModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
 
     ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
@@ -113,7 +113,8 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s, for the calibration
     made here (a ``calibration`` given carries its own); with the description's masses and a
     compliance group, the arms' stiffnesses come from the fitted compliances instead of the
-    prior.
+    prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
+    use the calibration's robot, so its sag model too).
     """
     check_latent_model(model)  # before the calibration, which takes the time
     measured = rig.robot.measured_arms()
@@ -125,7 +126,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
             raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
                            "and fit its joint-error model on")
     cal = (calibration if calibration is not None
-           else calibrate_chain(rig, groups, masses=masses))
+           else calibrate_chain(rig, groups, masses=masses, sag_steps=sag_steps))
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}

@@ -4,7 +4,7 @@
     python benchmarks/bench_predict_3d.py [--repeats 2]
     python benchmarks/bench_predict_3d.py --coverage tuning|report [--variants]
     python benchmarks/bench_predict_3d.py --coverage tuning|report --masses description \
-        --mass-spread 0.1
+        --mass-spread 0.1 [--sag-steps N]
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
@@ -49,11 +49,13 @@ VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
 
 
-def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0):
+def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
+            sag_steps: int = 1):
     """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
     second sweep of priors skips the fits (the fits do not depend on the prior). ``masses``:
     the calibration's (fitted, or held at the description's); ``mass_log_sd``: how far each
-    simulated arm's true link masses stray from the description's."""
+    simulated arm's true link masses stray from the description's; ``sag_steps``: the
+    calibration's steps of the sag's torques."""
     import pickle
 
     import bayesrob.chain_prediction as cp
@@ -61,20 +63,21 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     from bayesrob.rig import load_rig
 
     tag = f"{seed}-{masses}-{mass_log_sd:g}"
-    rig_dir, kept = where / f"rig-{tag}", where / f"modules-{tag}.pkl"
+    rig_dir = where / f"rig-{tag}"
+    kept = where / f"modules-{tag}{'' if sag_steps == 1 else f'-steps{sag_steps}'}.pkl"
     if kept.is_file():
         return load_rig(rig_dir), pickle.loads(kept.read_bytes())
     rig = load_rig(simulate_linked_chain_rig(rig_dir, LinkedChainTruth(
         seed=seed, mass_log_sd=mass_log_sd)))
     mods = cp.fit_chain_modules(rig, ["left", "right"], "ind", groups=GROUPS, seed=seed,
-                                masses=masses)
+                                masses=masses, sag_steps=sag_steps)
     kept.write_bytes(pickle.dumps(mods))
     return rig, mods
 
 
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
-             cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0
-             ) -> dict:
+             cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
+             sag_steps: int = 1) -> dict:
     import bayesrob.chain_prediction as cp
 
     pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
@@ -82,7 +85,7 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
         where = cache if cache is not None else Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
         for seed in seeds:
-            rig, mods = _fitted(seed, where, masses, mass_log_sd)
+            rig, mods = _fitted(seed, where, masses, mass_log_sd, sag_steps)
             m = rig.measurements.mask("left+right", "test")
             commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
@@ -126,6 +129,8 @@ def main() -> None:
     p.add_argument("--mass-spread", type=float, default=0.0, metavar="SD",
                    help="with --coverage: log sd of the simulated arms' true link masses "
                         "about the URDF's (0)")
+    p.add_argument("--sag-steps", type=int, default=1, metavar="N",
+                   help="with --coverage: the calibration's steps of the sag's torques (1)")
     args = p.parse_args()
     if args.coverage:
         import bayesrob.chain_prediction as cp
@@ -136,7 +141,7 @@ def main() -> None:
                  else DESCRIPTION_REPORT_SEEDS if args.masses == "description" else REPORT_SEEDS)
         print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
                                   Path(args.cache) if args.cache else None, args.masses,
-                                  args.mass_spread)))
+                                  args.mass_spread, args.sag_steps)))
         return
 
     from bayesrob.assembly import predict_assembly
