@@ -159,7 +159,8 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
     if all(p is not None for p in parts):
         k = np.concatenate(parts)
-        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool), "the rig")
+        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool),
+                              STIFFNESS_SOURCES[0])
     n = rig.robot.n_path_joints(arm)
     efforts = [c.source.get("efforts") for c in rig.robot.path(arm)]
     centre = (np.log(np.concatenate(efforts))
@@ -171,7 +172,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
         # identified, so each arm's compliances carry its own unknown mass scale. Read as
         # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
         # overflowed on another (seed 1), though they helped on the tuning rigs.
-        return StiffnessPrior(centre, sd, np.ones(n, bool), "the prior")
+        return StiffnessPrior(centre, sd, np.ones(n, bool), STIFFNESS_SOURCES[2])
     layout = cal.robot.layout
     every = np.arange(layout.nominal.size)
     idx = np.concatenate([every[layout.slices[c.name, "compliance"]]
@@ -179,7 +180,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     c, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
     seen = free & (c > 0) & np.isfinite(se)
     if not seen.any():
-        return StiffnessPrior(centre, sd, np.ones(n, bool), "the prior")
+        return StiffnessPrior(centre, sd, np.ones(n, bool), STIFFNESS_SOURCES[2])
     # The prior, log k_j = scale + profile_j + N(0, sd), updated by the fitted compliances
     # (each log k_j measured with its standard error and the masses' accuracy): the arm's
     # scale is their precision-weighted mean about the profile, so a poorly seen joint (a
