@@ -686,7 +686,7 @@ def _result(job: _Job, cand: Candidate, models: list[str], dist: np.ndarray,
 
 def evaluate_batch(job: _Job, batch: Sequence[tuple[int, Candidate]]) -> list[tuple[int, dict]]:
     """Predict every candidate of a batch (one Dask task): (index, result) pairs."""
-    release_compiled_programs()  # a worker lives through many batches, and runs
+    release_compiled_programs()  # a worker lives through many batches
     return [(i, _evaluate(job, c, i)) for i, c in batch]
 
 
