@@ -517,9 +517,14 @@ class Robot:
                 hanging: Hanging = ()) -> tuple[jax.Array, jax.Array]:
         # the deflections and bending linear in the compliances (plus the play), from the
         # torques in frames already computed
+        return self._sag_from_torques(x, arm, *self._torques(x, arm, joints, links, hanging))
+
+    def _sag_from_torques(self, x: jax.Array, arm: str, torque: jax.Array, tau: jax.Array
+                          ) -> tuple[jax.Array, jax.Array]:
+        # apart from _sag_at so that the marker Jacobian, which needs the torques for the
+        # sag's derivative too, takes them once
         el = self._elements(arm)
         s, lateral, play = self._sag_coefficients(x, arm)
-        torque, tau = self._torques(x, arm, joints, links, hanging)
         across = jnp.asarray(el["across"])  # (E, 2, 3)
         bend = jnp.einsum("ek,enk,ekj->enj", lateral,
                           jnp.einsum("enj,ekj->enk", torque, across), across)
@@ -541,7 +546,8 @@ class Robot:
 
     def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
                              links: jax.Array, hanging: Hanging, idx: np.ndarray,
-                             w_q: jax.Array, w_phi: jax.Array) -> jax.Array:
+                             w_q: jax.Array, w_phi: jax.Array,
+                             torques: tuple[jax.Array, jax.Array] | None = None) -> jax.Array:
         """The sag's part of the marker Jacobian, (N, 3, C) over the parameters x[idx]:
         sum_e w_q[e, n, i] d defl[n, e] / dc + sum_e,j w_phi[e, n, j, i] d bend[n, e, j] / dc
         for :meth:`_sag_at` in the frames given, held fixed (``w_q``: d marker / d joint value,
@@ -553,13 +559,15 @@ class Robot:
         alone (mass and first moment), so the marker's derivative by them is that frame
         dotted with the weights of the elements the link hangs beyond, summed along the
         chain. Forward mode pushes each of the C (Justin: 144) tangents through every
-        torque; this is a few passes (docs/diagnose.md)."""
+        torque; this is a few passes (docs/diagnose.md). ``torques``: :meth:`_torques` in
+        these frames, when the caller has them already."""
         el = self._elements(arm)
         n = joints.shape[1]
         zero = len(self.layout.params)
         s, lateral, play = self._sag_coefficients(x, arm)
         play = play[:, None]
-        torque, tau = self._torques(x, arm, joints, links, hanging)
+        torque, tau = (self._torques(x, arm, joints, links, hanging) if torques is None
+                       else torques)
         origin = joints[:, :, :3, 3]  # (E, N, 3)
         rot = joints[:, :, :3, :3]
         g = self._gravity_force(x, arm)
@@ -653,7 +661,8 @@ class Robot:
         q = self._element_values(x, arm, u).T  # (E, N)
         if self.gravity is not None:
             frames = self._sag_frames(x, arm, u, side)
-            defl, bend = self._sag_at(x, arm, *frames)
+            torques = self._torques(x, arm, *frames)
+            defl, bend = self._sag_from_torques(x, arm, *torques)
             q = q + defl.T
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
@@ -734,7 +743,7 @@ class Robot:
             before = jnp.einsum("enij,ejk->enik", prefix, factors)
             j_phi = jnp.einsum("enij,kjl,enl->enki", before, gens, inner)  # (E, N, 3, 4)
             jac = jac.at[:, :, idx].add(self._sag_marker_jacobian(
-                x, arm, *frames, idx, j_q[:, :, :3], j_phi[..., :3]))
+                x, arm, *frames, idx, j_q[:, :, :3], j_phi[..., :3], torques))
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
