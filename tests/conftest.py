@@ -141,3 +141,17 @@ def write_handmade_rig(directory: Path) -> Path:
 def handmade_rig_dir(tmp_path: Path) -> Path:
     """A valid three-arm rig (left, right, middle) written without this project's simulator."""
     return write_handmade_rig(tmp_path / "bench")
+
+
+@pytest.fixture
+def forearm_unweighed(tmp_path: Path) -> Path:
+    """arm6's URDF with the forearm's <inertial> taken out, written as half.urdf: a
+    description that does not weigh every moving link."""
+    from bayesrob.chain_simulator import arm6_urdf_path
+
+    text = arm6_urdf_path().read_text()
+    start = text.index('<link name="forearm_link">')
+    end = text.index("</link>", start) + len("</link>")
+    path = tmp_path / "half.urdf"
+    path.write_text(text[:start] + '<link name="forearm_link"/>' + text[end:])
+    return path

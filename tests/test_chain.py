@@ -100,17 +100,8 @@ def test_urdf_torque_limits_are_kept_where_every_joint_gives_one(tmp_path):
     assert kin.urdf_chain(path, "base_link", "tool0", "arm").source["efforts"] is None
 
 
-def _forearm_unweighed(tmp_path: Path) -> Path:
-    """arm6's URDF with the forearm's <inertial> taken out, written as half.urdf."""
-    text = arm6_urdf_path().read_text()
-    start = text.index('<link name="forearm_link">')
-    end = text.index("</link>", start) + len("</link>")
-    path = tmp_path / "half.urdf"
-    path.write_text(text[:start] + '<link name="forearm_link"/>' + text[end:])
-    return path
-
-
-def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
+def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path,
+                                                                     forearm_unweighed):
     """Each movable joint's link weighs what its <inertial> says, at its centre (mm, in the
     link's frame); a link bolted on by a fixed joint (here a 0.5 kg tool past the tool flange's
     turn) adds its weight through that joint's transform; a moving link without <inertial>
@@ -131,7 +122,7 @@ def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
     # the flange: 82 mm along y, then turned -90 deg about x, so the tool's z is the link's y
     np.testing.assert_allclose(c.source["link_moments_kg_mm"][-1],
                                h[-1] + 0.5 * np.array([0.0, 82.0 + 20.0, 0.0]), atol=1e-9)
-    half = kin.urdf_chain(_forearm_unweighed(tmp_path), "base_link", "tool0", "arm")
+    half = kin.urdf_chain(forearm_unweighed, "base_link", "tool0", "arm")
     assert half.source["link_masses_kg"] is None and half.source["link_moments_kg_mm"] is None
     assert half.source["unweighed"] == f"{tmp_path / 'half.urdf'}: link 'forearm_link' has no " \
                                        "<inertial>"
@@ -144,7 +135,8 @@ def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path):
         bad.source["unweighed"]
 
 
-def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_path):
+def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_path,
+                                                                        forearm_unweighed):
     """With the links' masses held at the URDF's (the simulator's, here), the compliance
     group's fit gives each joint's own stiffness: the shoulder and elbow, whose gravity
     torques are large, within 10% of the simulator's (measured 1%); the first
@@ -167,8 +159,8 @@ def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_pa
     assert not cal.ident.free[links].any()
     np.testing.assert_allclose(cal.x[links].reshape(-1, 4)[:, 0], truth.masses_kg)
     assert cal.masses == "description" and cal.to_json()["masses"] == "description"
-    robot = kin.Robot({"arm": kin.urdf_chain(_forearm_unweighed(tmp_path), "base_link",
-                                             "tool0", "arm")})
+    robot = kin.Robot({"arm": kin.urdf_chain(forearm_unweighed, "base_link", "tool0",
+                                             "arm")})
     with pytest.raises(ValueError, match=r"chain 'arm': its description does not give every "
                                          r"moving link a mass \(.*half.urdf: link "
                                          r"'forearm_link' has no <inertial>\)"):

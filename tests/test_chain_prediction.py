@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from bayesrob import kinematics as kin
 from bayesrob.assembly import grid_targets, predict_assembly, read_targets
 from bayesrob.chain_prediction import (
     StiffnessPrior,
@@ -417,6 +418,28 @@ def test_stiffness_summary_names_where_the_balance_drew_from():
     assert prior["arm_log_sd"] == CHAIN_STIFFNESS_ARM_LOG_SD
 
 
+def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed):
+    """``predict`` notes, under its stiffness lines, that linked arms whose stiffnesses came
+    from the prior could read them from their URDF's masses, naming those arms; not when
+    another source gave them, nor when a chain on an arm's path leaves a link unweighed."""
+    from bayesrob.assembly import stiffness_note
+    from bayesrob.chain_prediction import STIFFNESS_SOURCES
+    from bayesrob.chain_simulator import arm6_urdf_path
+
+    def robot(right_urdf):
+        return kin.Robot({a: kin.urdf_chain(u, "base_link", "tool0", a)
+                          for a, u in (("left", arm6_urdf_path()), ("right", right_urdf))})
+
+    rig, fitted, prior = STIFFNESS_SOURCES[0], STIFFNESS_SOURCES[1], STIFFNESS_SOURCES[2]
+    weighed = robot(arm6_urdf_path())
+    note = stiffness_note(weighed, {"left": prior, "right": prior})
+    assert note.startswith("note: ") and "left, right took their stiffnesses from the prior" \
+        in note and "--masses description" in note
+    assert "yet right took" in stiffness_note(weighed, {"left": rig, "right": prior})
+    assert stiffness_note(weighed, {"left": fitted, "right": fitted}) is None
+    assert stiffness_note(robot(forearm_unweighed), {"left": prior, "right": prior}) is None
+
+
 @pytest.mark.slow
 def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, tmp_path,
                                                                  capsys):
@@ -434,7 +457,9 @@ def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, 
     assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile),
                  "--params", "frames,offsets,geometric,compliance", "--masses", "description",
                  "--json", str(out)]) == 0
-    assert "joint stiffness of left, from compliances fitted" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "joint stiffness of left, from compliances fitted" in out
+    assert "from the prior" not in out  # no note: the masses were read
     doc = json.loads(out.read_text())
     truth = load_linked_truth(d)["stiffness_nmm_per_rad"]
     for arm in ("left", "right"):
