@@ -321,8 +321,8 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     return (f"note: the description weighs every link, yet {', '.join(guessed)} took "
             "their stiffnesses from the prior: add compliance to --params and give "
             "--masses description to read them from compliances fitted under those masses "
-            "(on simulated report rigs: regions 0.49 / 0.885, mean error 1.02 of the "
-            "observed; the prior's 0.59 / 0.93 and 1.23; docs/fusion.md)")
+            "(on the simulated report rigs that route met every coverage target and the prior "
+            "did not: docs/fusion.md)")
 
 
 def weighs_every_link(chains: Iterable[kin.Chain]) -> bool:
