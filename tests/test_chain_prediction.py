@@ -446,7 +446,7 @@ def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, 
     """``bayesrob predict --masses description`` on the linked arm6 rig (its URDF's masses
     the simulated ones): each arm's shoulder and elbow stiffnesses, read from the fitted
     compliances, within 15% of the simulator's (the tuning rigs' fits: 1-8%), named as such
-    in the JSON and the terminal."""
+    in the JSON and the terminal; without ``--masses description`` a note points to it."""
     from bayesrob.chain_simulator import load_linked_truth
 
     d, rig, _, rows = linked_modules
@@ -457,9 +457,12 @@ def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, 
     assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile),
                  "--params", "frames,offsets,geometric,compliance", "--masses", "description",
                  "--json", str(out)]) == 0
-    out = capsys.readouterr().out
-    assert "joint stiffness of left, from compliances fitted" in out
-    assert "from the prior" not in out  # no note: the masses were read
+    printed = capsys.readouterr().out
+    assert "joint stiffness of left, from compliances fitted" in printed
+    assert "from the prior" not in printed  # no note: the masses were read
+    # without them the prior serves, and the terminal says the URDF's masses could replace it
+    assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile)]) == 0
+    assert "yet left, right took their stiffnesses from the prior" in capsys.readouterr().out
     doc = json.loads(out.read_text())
     truth = load_linked_truth(d)["stiffness_nmm_per_rad"]
     for arm in ("left", "right"):
