@@ -35,13 +35,10 @@ from bayesrob.prediction import hdr_area
 from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable
-
     from matplotlib.figure import Figure
 
 __all__ = ["AssemblyPrediction", "predict_assembly", "grid_targets", "read_targets",
-           "assembly_figure", "beyond_train_range", "stiffness_note",
-           "weighs_every_link"]
+           "assembly_figure", "beyond_train_range", "stiffness_note"]
 
 
 @dataclass
@@ -311,25 +308,19 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
 def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     """``predict``'s note where linked arms (``sources``: arm -> where its stiffnesses came
     from, one of ``chain_prediction.STIFFNESS_SOURCES``) took them from the prior although
-    every chain on their paths weighs its links: how to read them from those masses instead,
-    the route that held every coverage target on the simulated report rigs."""
+    every chain of the robot weighs its links (what ``masses="description"`` needs): how to
+    read them from those masses instead, the route that held every coverage target on the
+    simulated report rigs."""
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
 
     guessed = [a for a, src in sources.items() if src == STIFFNESS_SOURCES[2]]
-    if not guessed or not all(weighs_every_link(robot.path(a)) for a in sources):
+    if not guessed or not all(c.weighed for c in robot.chains.values()):
         return None
     return (f"note: the description weighs every link, yet {', '.join(guessed)} took "
             "their stiffnesses from the prior: add compliance to --params and give "
             "--masses description to read them from compliances fitted under those masses "
             "(on the simulated report rigs that route met every coverage target and the prior "
             "did not: docs/fusion.md)")
-
-
-def weighs_every_link(chains: Iterable[kin.Chain]) -> bool:
-    """Whether every chain's description gives each moving link a mass and first moment
-    (what ``masses="description"`` holds the links at)."""
-    return all(c.source.get("link_masses_kg") is not None
-               and c.source.get("link_moments_kg_mm") is not None for c in chains)
 
 
 def _stiffness_summary(prior: Any) -> dict:

@@ -591,12 +591,12 @@ def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:
     layout = robot.layout
     held = np.zeros(layout.nominal.shape, bool)
     for c in robot.chains.values():
-        m, h = c.source.get("link_masses_kg"), c.source.get("link_moments_kg_mm")
-        if m is None or h is None:
+        if not c.weighed:
             why = c.source.get("unweighed") or f"a {c.source.get('kind', 'DH')} description"
             raise ValueError(f"chain {c.name!r}: its description does not give every moving "
                              f"link a mass ({why}), so the masses cannot be held at it; fit "
                              "them instead (masses 'fitted')")
+        m, h = c.source["link_masses_kg"], c.source["link_moments_kg_mm"]
         sl = layout.slices[c.name, "links"]
         x[sl] = np.column_stack([np.asarray(m, float), np.asarray(h, float)]).ravel()
         held[sl] = True

@@ -102,6 +102,13 @@ class Chain:
     def n_columns(self) -> int:
         return self.coupling.shape[1]
 
+    @property
+    def weighed(self) -> bool:
+        """Whether the description gives every moving link a mass and first moment (what a
+        fit holding the masses, ``masses="description"``, holds them at)."""
+        return (self.source.get("link_masses_kg") is not None
+                and self.source.get("link_moments_kg_mm") is not None)
+
     @classmethod
     def build(cls, name: str, joint_names: Sequence[str], kinds: Sequence[str],
               axes: np.ndarray, origins: np.ndarray, coupling: np.ndarray | None = None,
