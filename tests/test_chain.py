@@ -281,7 +281,8 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
             w_phi = jnp.asarray(rng.normal(size=(n_e, n, 3, 3)))
             auto = np.asarray(jnp.einsum("eni,nec->nic", w_q, d_defl)
                               + jnp.einsum("enki,nekc->nic", w_phi, d_bend))
-            mine = np.asarray(robot._sag_marker_jacobian(x, arm, *frames, idx, w_q, w_phi))
+            mine = np.asarray(robot._sag_marker_jacobian(x, arm, *frames, idx, w_q, w_phi,
+                                                         robot._torques(x, arm, *frames)))
             assert mine.shape == auto.shape == (n, 3, len(idx))
             auto, mine = auto.reshape(-1, len(idx)), mine.reshape(-1, len(idx))
             assert np.abs(auto).max() > 0

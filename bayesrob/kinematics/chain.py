@@ -554,7 +554,7 @@ class Robot:
     def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
                              links: jax.Array, hanging: Hanging, idx: np.ndarray,
                              w_q: jax.Array, w_phi: jax.Array,
-                             torques: tuple[jax.Array, jax.Array] | None = None) -> jax.Array:
+                             torques: tuple[jax.Array, jax.Array]) -> jax.Array:
         """The sag's part of the marker Jacobian, (N, 3, C) over the parameters x[idx]:
         sum_e w_q[e, n, i] d defl[n, e] / dc + sum_e,j w_phi[e, n, j, i] d bend[n, e, j] / dc
         for :meth:`_sag_at` in the frames given, held fixed (``w_q``: d marker / d joint value,
@@ -567,14 +567,13 @@ class Robot:
         dotted with the weights of the elements the link hangs beyond, summed along the
         chain. Forward mode pushes each of the C (Justin: 144) tangents through every
         torque; this is a few passes (docs/diagnose.md). ``torques``: :meth:`_torques` in
-        these frames, when the caller has them already."""
+        these frames, which the caller has already taken for the sag itself."""
         el = self._elements(arm)
         n = joints.shape[1]
         zero = len(self.layout.params)
         s, lateral, play = self._sag_coefficients(x, arm)
         play = play[:, None]
-        torque, tau = (self._torques(x, arm, joints, links, hanging) if torques is None
-                       else torques)
+        torque, tau = torques
         origin = joints[:, :, :3, 3]  # (E, N, 3)
         rot = joints[:, :, :3, :3]
         g = self._gravity_force(x, arm)
