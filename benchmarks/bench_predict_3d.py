@@ -61,19 +61,24 @@ VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
 
 
 def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
-            sag_steps: int = 1, n_linked: int = 24):
+            sag_steps: int = 1, n_linked: int | None = None):
     """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
     second sweep of priors skips the fits (the fits do not depend on the prior). ``masses``:
     the calibration's (fitted, or held at the description's); ``mass_log_sd``: how far each
     simulated arm's true link masses stray from the description's; ``sag_steps``: the
-    calibration's steps of the sag's torques; ``n_linked``: the rig's linked points."""
+    calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
+    simulator's default)."""
     import pickle
 
     import bayesrob.chain_prediction as cp
     from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
     from bayesrob.rig import load_rig
 
-    tag = f"{seed}-{masses}-{mass_log_sd:g}{'' if n_linked == 24 else f'-linked{n_linked}'}"
+    if n_linked is None:
+        n_linked = LinkedChainTruth.n_linked
+    # rigs of the default size keep the names their caches were written under
+    linked = "" if n_linked == LinkedChainTruth.n_linked else f"-linked{n_linked}"
+    tag = f"{seed}-{masses}-{mass_log_sd:g}{linked}"
     rig_dir = where / f"rig-{tag}"
     kept = where / f"modules-{tag}{'' if sag_steps == 1 else f'-steps{sag_steps}'}.pkl"
     if kept.is_file():
@@ -88,7 +93,7 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
 
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
              cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
-             sag_steps: int = 1, n_linked: int = 24) -> dict:
+             sag_steps: int = 1, n_linked: int | None = None) -> dict:
     import bayesrob.chain_prediction as cp
 
     pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
@@ -144,7 +149,8 @@ def main() -> None:
                    help="with --coverage: the calibration's steps of the sag's torques (1)")
     p.add_argument("--many-rigs", action="store_true",
                    help=f"with --coverage report: {len(MANY_REPORT_SEEDS)} rigs of "
-                        f"{MANY_LINKED} linked points instead of {len(REPORT_SEEDS)} of 24")
+                        f"{MANY_LINKED} linked points instead of {len(REPORT_SEEDS)} of the "
+                        "simulator's default number")
     args = p.parse_args()
     if args.many_rigs and args.coverage != "report":
         p.error("--many-rigs needs --coverage report")
@@ -162,7 +168,7 @@ def main() -> None:
         print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
                                   Path(args.cache) if args.cache else None, args.masses,
                                   args.mass_spread, args.sag_steps,
-                                  MANY_LINKED if args.many_rigs else 24)))
+                                  MANY_LINKED if args.many_rigs else None)))
         return
 
     from bayesrob.assembly import predict_assembly
