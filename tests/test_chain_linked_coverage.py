@@ -35,14 +35,16 @@ PUBLISHED = {"points": 96, "coverage50": 0.594, "coverage90": 0.927, "error_rati
 DESCRIBED = {"points": 96, "coverage50": 0.490, "coverage90": 0.885, "error_ratio": 1.016}
 
 
-def _coverage(seeds: tuple[int, ...], *args) -> dict:
+def _coverage(seeds: tuple[int, ...], **kwargs) -> dict:
+    """The chosen prior's pooled figures over ``seeds``, rigs of MANY_LINKED linked points
+    (``kwargs``: the rest of ``bench_predict_3d.coverage``'s)."""
     import bench_predict_3d as bench
 
     import bayesrob.chain_prediction as cp
 
     chosen = (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
               cp.CHAIN_STIFFNESS_ARM_LOG_SD)
-    (figures,) = bench.coverage(seeds, [chosen], *args).values()
+    (figures,) = bench.coverage(seeds, [chosen], n_linked=bench.MANY_LINKED, **kwargs).values()
     return figures
 
 
@@ -56,7 +58,7 @@ def _holds_published(figures: dict, published: dict) -> None:
 def report() -> dict:
     import bench_predict_3d as bench
 
-    return _coverage(bench.MANY_REPORT_SEEDS, None, "fitted", 0.0, 1, bench.MANY_LINKED)
+    return _coverage(bench.MANY_REPORT_SEEDS)
 
 
 def test_the_published_report_figures(report):
@@ -79,8 +81,8 @@ def test_linked_error_ratio_holds(report):
 def described(tmp_path_factory) -> dict:
     import bench_predict_3d as bench
 
-    return _coverage(bench.MANY_DESCRIPTION_REPORT_SEEDS, tmp_path_factory.mktemp("described"),
-                     "description", 0.1, 1, bench.MANY_LINKED)
+    return _coverage(bench.MANY_DESCRIPTION_REPORT_SEEDS, masses="description", mass_log_sd=0.1,
+                     cache=tmp_path_factory.mktemp("described"))
 
 
 def test_the_published_figures_with_the_described_masses(described):
