@@ -6,6 +6,7 @@
     python benchmarks/bench_predict_3d.py --coverage tuning|report --masses description \
         --mass-spread 0.1 [--sag-steps N]
     python benchmarks/bench_predict_3d.py --coverage report --many-rigs [--masses ...]
+    python benchmarks/bench_predict_3d.py --coverage tuning --many-rigs [--variants]
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
@@ -54,6 +55,12 @@ DESCRIPTION_REPORT_SEEDS = (221, 222, 223, 224)
 # The same 96 points spread over twelve rigs (--many-rigs), fixed before their first run.
 MANY_REPORT_SEEDS = tuple(range(231, 243))
 MANY_DESCRIPTION_REPORT_SEEDS = tuple(range(251, 263))
+# The prior chosen again in that design (--coverage tuning --many-rigs): its tuning rigs, and
+# the rigs that report the choice (--coverage report --many-rigs --rechosen), both fixed before
+# their first run; 231-242 had shown the previous prior's error ratio, so they cannot report a
+# prior chosen after it.
+MANY_TUNING_SEEDS = tuple(range(271, 283))
+MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
 MANY_LINKED = 8
 GROUPS = ("frames", "offsets", "geometric", "compliance")
 VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
@@ -148,19 +155,28 @@ def main() -> None:
     p.add_argument("--sag-steps", type=int, default=1, metavar="N",
                    help="with --coverage: the calibration's steps of the sag's torques (1)")
     p.add_argument("--many-rigs", action="store_true",
-                   help=f"with --coverage report: {len(MANY_REPORT_SEEDS)} rigs of "
+                   help=f"with --coverage: {len(MANY_REPORT_SEEDS)} rigs of "
                         f"{MANY_LINKED} linked points instead of {len(REPORT_SEEDS)} of the "
                         "simulator's default number")
+    p.add_argument("--rechosen", action="store_true",
+                   help="with --coverage report --many-rigs: the rigs that report the prior "
+                        "chosen on the many-rig tuning rigs")
     args = p.parse_args()
-    if args.many_rigs and args.coverage != "report":
-        p.error("--many-rigs needs --coverage report")
+    if args.many_rigs and not args.coverage:
+        p.error("--many-rigs needs --coverage")
+    if args.rechosen and not (args.many_rigs and args.coverage == "report"):
+        p.error("--rechosen needs --coverage report --many-rigs")
     if args.coverage:
         import bayesrob.chain_prediction as cp
 
         chosen = [(cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
                    cp.CHAIN_STIFFNESS_ARM_LOG_SD)]
         described = args.masses == "description"
-        if args.many_rigs:
+        if args.many_rigs and args.coverage == "tuning":
+            seeds = MANY_TUNING_SEEDS
+        elif args.rechosen:
+            seeds = MANY_RECHOSEN_REPORT_SEEDS
+        elif args.many_rigs:
             seeds = MANY_DESCRIPTION_REPORT_SEEDS if described else MANY_REPORT_SEEDS
         else:
             seeds = (TUNING_SEEDS if args.coverage == "tuning"
