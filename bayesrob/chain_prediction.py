@@ -62,14 +62,15 @@ VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # the sag's torques taken six times, took the process to 23 GB in one call; a rig's 16-24
 # targets stay one call.
 POINTS_PER_CALL = 100_000
-# The joint stiffness prior when the rig does not give them. Chosen on the linked tuning rigs
-# (arm6 --linked seeds 201-206, each drawing its own arms' stiffnesses; 144 linked points;
-# `bench_predict_3d.py --coverage tuning --variants`) as the prior whose pooled 50% / 90%
-# coverage came closest to nominal: 0.53 / 0.98, error ratio 1.04 (centred on equal joints
-# with no arm term, as before: 0.24 / 0.71). Tried: per-joint sd 0.25 / 0.5 / 0.75, arm sd
-# 0 / 0.25 / 0.5, centred on equal joints or on the torque limits.
+# The joint stiffness prior when the rig does not give them. Chosen on two sets of linked
+# tuning rigs (arm6 --linked, each seed drawing its own arms' stiffnesses; 201-206, 24 points
+# each, and 271-282, 8 each: 240 points; `bench_predict_3d.py --coverage tuning [--many-rigs]
+# --variants`) as the prior whose pooled 50% / 90% coverage came closest to nominal: 0.47 /
+# 0.96 (arm sd 0.5, chosen on 201-206 alone before: 0.64 / 0.98). Tried: per-joint sd 0.25 /
+# 0.5 / 0.75, arm sd 0 / 0.25 / 0.5, centred on equal joints or on the torque limits. No prior
+# moves the mean error's ratio by much (1.14-1.27 over all 18 on 271-282).
 CHAIN_STIFFNESS_LOG_SD = 0.5  # each joint's own
-CHAIN_STIFFNESS_ARM_LOG_SD = 0.5  # shared by an arm's joints: an arm stiffer or softer as a whole
+CHAIN_STIFFNESS_ARM_LOG_SD = 0.25  # shared by an arm's joints: an arm stiffer or softer as a whole
 # Where the prior is centred: "effort", each joint's stiffness in proportion to its URDF torque
 # limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
 # "equal" joints
