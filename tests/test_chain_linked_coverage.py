@@ -1,8 +1,10 @@
 """Two 6-joint 3-D arms linked at their tool points, predicted before the assembly is built
 (``pytest -m slow``, about 12 minutes on two cores): the twelve report rigs of
-``benchmarks/bench_predict_3d.py --coverage report --many-rigs`` (seeds 231-242, 8 linked
-points each: 96 points, each rig its own pair of arms with their own stiffnesses, fixed
-before their first run), with the stiffness prior chosen on tuning rigs 201-206. Targets
+``benchmarks/bench_predict_3d.py --coverage report --many-rigs --rechosen`` (seeds 291-302,
+8 linked points each: 96 points, each rig its own pair of arms with their own stiffnesses,
+fixed before their first run), with the stiffness prior chosen on tuning rigs 201-206 and
+271-282 (the earlier report rigs 231-242 showed the previous prior's figures, so they no
+longer report one chosen after them; docs/fusion.md keeps their figures). Targets
 (issue "linked predictions"): 50% / 90% regions within binomial error of nominal at 96 points
 (0.40-0.60, 0.84-0.96) and predicted / observed mean error within 0.85-1.15. The sweep is
 seeded, so the published figures (docs/fusion.md) are asserted to 0.001: a change that moves
@@ -31,7 +33,7 @@ pytestmark = pytest.mark.slow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-PUBLISHED = {"points": 96, "coverage50": 0.594, "coverage90": 0.927, "error_ratio": 1.231}
+PUBLISHED = {"points": 96, "coverage50": 0.469, "coverage90": 0.865, "error_ratio": 1.175}
 DESCRIBED = {"points": 96, "coverage50": 0.490, "coverage90": 0.885, "error_ratio": 1.016}
 
 
@@ -58,7 +60,7 @@ def _holds_published(figures: dict, published: dict) -> None:
 def report() -> dict:
     import bench_predict_3d as bench
 
-    return _coverage(bench.MANY_REPORT_SEEDS)
+    return _coverage(bench.MANY_RECHOSEN_REPORT_SEEDS)
 
 
 def test_the_published_report_figures(report):
@@ -70,9 +72,10 @@ def test_linked_50_and_90_percent_regions_hold(report):
     assert 0.84 <= report["coverage90"] <= 0.96
 
 
-@pytest.mark.xfail(strict=True, reason="target missed on report rigs 231-242: predicted / "
-                   "observed mean error 1.231 (0.85-1.15 asked); per rig 0.70-1.89, the "
-                   "highest where one arm is several times stiffer than the prior expects")
+@pytest.mark.xfail(strict=True, reason="target missed on report rigs 291-302: predicted / "
+                   "observed mean error 1.175 (0.85-1.15 asked); per rig 0.86-1.67, the "
+                   "highest where one arm is several times stiffer than the other, which the "
+                   "prior, alike for both arms, cannot know")
 def test_linked_error_ratio_holds(report):
     assert 0.85 <= report["error_ratio"] <= 1.15
 
