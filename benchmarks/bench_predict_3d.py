@@ -30,7 +30,9 @@ are DESCRIPTION_REPORT_SEEDS.
 MANY_DESCRIPTION_REPORT_SEEDS with ``--masses description``; fixed before their first run)
 instead of four of 24: the same 96 points, but a rig's points share one pair of arms and
 their stiffness ratio, so they miss or hit together, and four rigs leave the pooled coverage
-far noisier than the binomial range the targets assume (docs/fusion.md).
+far noisier than the binomial range the targets assume (docs/fusion.md). With ``--coverage
+tuning`` it runs the twelve tuning rigs MANY_TUNING_SEEDS; ``--rechosen`` reports the prior
+chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS.
 """
 
 from __future__ import annotations
