@@ -38,9 +38,11 @@ chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +102,30 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     return rig, mods
 
 
+def chosen_prior() -> tuple[str, float, float]:
+    """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, per-arm log
+    sd), as VARIANTS names them."""
+    import bayesrob.chain_prediction as cp
+
+    return cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD, cp.CHAIN_STIFFNESS_ARM_LOG_SD
+
+
+@contextlib.contextmanager
+def _prior(centre: str, joint_sd: float, arm_sd: float) -> Iterator[None]:
+    """The module's prior set to a variant for the block, and put back after it: a sweep
+    must not leave its last variant behind for whatever runs next in the process."""
+    import bayesrob.chain_prediction as cp
+
+    before = chosen_prior()
+    cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
+    cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_sd
+    try:
+        yield
+    finally:
+        cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = before[:2]
+        cp.CHAIN_STIFFNESS_ARM_LOG_SD = before[2]
+
+
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
              cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
              sag_steps: int = 1, n_linked: int | None = None) -> dict:
@@ -116,11 +142,11 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
             row: dict = {"seed": seed}
             for centre, joint_sd, arm_sd in variants:
-                cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
-                cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_sd
-                mods.stiffness = {a: cp._stiffness_prior(rig, a, mods.calibration)
-                                  for a in ("left", "right")}
-                draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
+                # the prior is read when the stiffnesses are set and again when drawn
+                with _prior(centre, joint_sd, arm_sd):
+                    mods.stiffness = {a: cp._stiffness_prior(rig, a, mods.calibration)
+                                      for a in ("left", "right")}
+                    draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
                 level = cp.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
                 obs = np.linalg.norm(seen - target, axis=1)
@@ -169,10 +195,6 @@ def main() -> None:
     if args.rechosen and not (args.many_rigs and args.coverage == "report"):
         p.error("--rechosen needs --coverage report --many-rigs")
     if args.coverage:
-        import bayesrob.chain_prediction as cp
-
-        chosen = [(cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
-                   cp.CHAIN_STIFFNESS_ARM_LOG_SD)]
         described = args.masses == "description"
         if args.many_rigs and args.coverage == "tuning":
             seeds = MANY_TUNING_SEEDS
@@ -183,7 +205,7 @@ def main() -> None:
         else:
             seeds = (TUNING_SEEDS if args.coverage == "tuning"
                      else DESCRIPTION_REPORT_SEEDS if described else REPORT_SEEDS)
-        print(json.dumps(coverage(seeds, VARIANTS if args.variants else chosen,
+        print(json.dumps(coverage(seeds, VARIANTS if args.variants else [chosen_prior()],
                                   Path(args.cache) if args.cache else None, args.masses,
                                   args.mass_spread, args.sag_steps,
                                   MANY_LINKED if args.many_rigs else None)))

@@ -42,11 +42,8 @@ def _coverage(seeds: tuple[int, ...], **kwargs) -> dict:
     (``kwargs``: the rest of ``bench_predict_3d.coverage``'s)."""
     import bench_predict_3d as bench
 
-    import bayesrob.chain_prediction as cp
-
-    chosen = (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
-              cp.CHAIN_STIFFNESS_ARM_LOG_SD)
-    (figures,) = bench.coverage(seeds, [chosen], n_linked=bench.MANY_LINKED, **kwargs).values()
+    (figures,) = bench.coverage(seeds, [bench.chosen_prior()], n_linked=bench.MANY_LINKED,
+                                **kwargs).values()
     return figures
 
 
