@@ -52,6 +52,7 @@ from bayesrob.rig import Rig, RigError
 
 __all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "chain_draws",
            "chain_equilibrium", "free_draws", "parameter_draws", "stiffness_draws",
+           "arm_sags", "sag_scaled_priors",
            "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
 
 IK_TOL_MM = 1e-3
@@ -75,6 +76,10 @@ CHAIN_STIFFNESS_ARM_LOG_SD = 0.25  # shared by an arm's joints: an arm stiffer o
 # limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
 # "equal" joints
 CHAIN_STIFFNESS_CENTRE = "effort"
+# Where the arm term is centred when every linked arm takes the prior: "sags", each arm's log
+# stiffness scale set against the others' by its fitted sag at the poses they were all trained
+# on (:func:`sag_scaled_priors`), or "equal" arms.
+CHAIN_STIFFNESS_ARM_CENTRE = "sags"
 # How far a robot description's link masses are trusted (log sd): a compliance fitted under
 # them carries their error into the stiffness read from it.
 DESCRIBED_MASS_LOG_SD = 0.1
@@ -131,7 +136,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = {a: _stiffness_prior(rig, a, cal) for a in arms}
+    stiffness = sag_scaled_priors(rig, cal, {a: _stiffness_prior(rig, a, cal) for a in arms})
     cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
     return ChainModules(cal, errors, stiffness, cov)
 
@@ -146,9 +151,12 @@ class StiffnessPrior(NamedTuple):
     sd: np.ndarray
     shared: np.ndarray
     source: str
+    # the arm term's mean: the arm's log stiffness scale against the other linked arms'
+    arm_centre: float = 0.0
 
 
-STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior")
+STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior",
+                     "the prior, the arms scaled by their fitted sags")
 
 
 def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
@@ -197,6 +205,58 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     centre = np.where(seen, post_var * (prior_mean / prior_var + y / var_fit), prior_mean)
     sd = np.sqrt(post_var)
     return StiffnessPrior(centre, sd, np.zeros(n, bool), STIFFNESS_SOURCES[1])
+
+
+def arm_sags(rig: Rig, cal: ChainCalibration, arms: Sequence[str]) -> dict[str, float] | None:
+    """Each arm's mean fitted sag (mm): how far its marker moves when its own chains'
+    compliances are set to zero, over the train poses of all ``arms`` pooled, so every arm is
+    weighed at the same poses. None where that cannot be read: the arms' paths differ in
+    joints (no common poses), the calibration fitted no compliance or has no gravity, or an
+    arm shows no sag."""
+    robot = cal.robot
+    if ("compliance" not in cal.groups or robot.gravity is None or len(arms) < 2
+            or len({robot.n_path_joints(a) for a in arms}) > 1):
+        return None
+    shared = set.intersection(*({c.name for c in robot.path(a)} for a in arms))
+    u = jnp.asarray(np.concatenate([rig.chain_rows(a, "train")[0] for a in arms]))
+    sags = {}
+    for a in arms:
+        rigid = np.array(cal.x, float)
+        for c in robot.path(a):
+            if c.name not in shared:
+                rigid[robot.layout.slices[c.name, "compliance"]] = 0.0
+        points = robot.compiled_points(a)
+        moved = np.asarray(points(jnp.asarray(cal.x), u) - points(jnp.asarray(rigid), u))
+        sags[a] = float(np.linalg.norm(moved, axis=1).mean())
+    if not all(np.isfinite(v) and v > 0 for v in sags.values()):
+        return None
+    return sags
+
+
+def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, StiffnessPrior]
+                      ) -> dict[str, StiffnessPrior]:
+    """``priors`` with each arm's term centred on its fitted sag against the others' (log k_a
+    = -log sag_a + the mean of log sag over the arms), where every arm took the prior and
+    CHAIN_STIFFNESS_ARM_CENTRE is "sags"; else as given.
+
+    Only the ratios of the arms' stiffnesses move the balance, and the prior alone treats
+    the arms alike. A calibration that fits compliance without the masses identifies each
+    joint's compliance times the first moment it carries, not the stiffness; but arms of one
+    model carry alike moments, so an arm that sags further is the softer one. On the tuning
+    rigs (271-282, 201-206) the log ratio of two arms' sags followed their true log stiffness
+    ratio with slope -0.98 / -0.94 (Spearman -0.91 / -0.94), scattered by about 0.25, the
+    arm term's sd (docs/fusion.md).
+    """
+    if (CHAIN_STIFFNESS_ARM_CENTRE != "sags"
+            or any(p.source != STIFFNESS_SOURCES[2] for p in priors.values())):
+        return priors
+    sags = arm_sags(rig, cal, list(priors))
+    if sags is None:
+        return priors
+    log_sag = {a: np.log(v) for a, v in sags.items()}
+    mean = float(np.mean(list(log_sag.values())))
+    return {a: p._replace(arm_centre=mean - log_sag[a], source=STIFFNESS_SOURCES[3])
+            for a, p in priors.items()}
 
 
 def _column_jacobian(robot: kin.Robot, arm: str):
@@ -249,13 +309,13 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
 
 def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> None:
     """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
-    where the prior marks them ``shared``, a Normal(0, arm_sd) term the arm's joints share: an
-    arm as a whole is stiffer or softer than another."""
+    where the prior marks them ``shared``, a Normal(arm_centre, arm_sd) term the arm's joints
+    share: an arm as a whole is stiffer or softer than another."""
     for i, p in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
         whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
-        shared = jnp.where(jnp.asarray(p.shared), arm_sd, 0.0) * whole
+        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + arm_sd * whole, 0.0)
         numpyro.deterministic(f"log_stiffness_{i}",
                               jnp.asarray(p.centre) + jnp.asarray(p.sd) * z + shared)
 

@@ -7,6 +7,8 @@
         --mass-spread 0.1 [--sag-steps N]
     python benchmarks/bench_predict_3d.py --coverage report --many-rigs [--masses ...]
     python benchmarks/bench_predict_3d.py --coverage tuning --many-rigs [--variants]
+    python benchmarks/bench_predict_3d.py --coverage tuning [--many-rigs] --sag-variants
+    python benchmarks/bench_predict_3d.py --coverage report --many-rigs --sag-report
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
@@ -19,7 +21,8 @@ calibrated with joint compliance on their single-arm rows, predicted at the rig'
 targets and commands with the stiffness prior (the rig gives no stiffness) and compared with the
 simulated measurements of the linked assembly: the share inside the predicted 50% / 90%
 regions and predicted / observed mean error. ``tuning`` (seeds TUNING_SEEDS) with
-``--variants`` tries every prior in VARIANTS (centre, per-joint sd, shared per-arm sd); ``report``
+``--variants`` tries every prior in VARIANTS (centre, per-joint sd, the shared per-arm term's
+centre and sd) and ``--sag-variants`` those of SAG_VARIANTS; ``report``
 (seeds REPORT_SEEDS, fixed before any run) runs the chosen prior once. With ``--masses
 description`` the arms are calibrated with their link masses held at the URDF's, their
 stiffnesses read from the fitted compliances (``chain_prediction._stiffness_prior``), each
@@ -32,7 +35,9 @@ instead of four of 24: the same 96 points, but a rig's points share one pair of 
 their stiffness ratio, so they miss or hit together, and four rigs leave the pooled coverage
 far noisier than the binomial range the targets assume (docs/fusion.md). With ``--coverage
 tuning`` it runs the twelve tuning rigs MANY_TUNING_SEEDS; ``--rechosen`` reports the prior
-chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS.
+chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS, and ``--sag-report``
+the prior whose arm term is centred on the arms' fitted sags
+(``chain_prediction.sag_scaled_priors``) on MANY_SAG_REPORT_SEEDS.
 """
 
 from __future__ import annotations
@@ -65,10 +70,19 @@ MANY_DESCRIPTION_REPORT_SEEDS = tuple(range(251, 263))
 # prior chosen after it.
 MANY_TUNING_SEEDS = tuple(range(271, 283))
 MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
+# The rigs that report the arm term centred on the fitted sags (--coverage report --many-rigs
+# --sag-report), fixed before their first run: 291-302 led to it (their worst rigs were read
+# arm by arm), so they cannot report it.
+MANY_SAG_REPORT_SEEDS = tuple(range(311, 323))
 MANY_LINKED = 8
 GROUPS = ("frames", "offsets", "geometric", "compliance")
-VARIANTS = [(c, j, a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
+# (centre, per-joint log sd, arm term's centre, arm term's log sd), as chosen_prior() names them
+VARIANTS = [(c, j, "equal", a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
+# the arm term centred on the arms' fitted sags (--sag-variants), beside the prior it would
+# replace
+SAG_VARIANTS = [("effort", 0.5, "equal", 0.25)] + [
+    ("effort", j, "sags", a) for j in (0.25, 0.5) for a in (0.0, 0.15, 0.25, 0.35, 0.5)]
 
 
 def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
@@ -102,31 +116,32 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     return rig, mods
 
 
-def chosen_prior() -> tuple[str, float, float]:
-    """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, per-arm log
-    sd), as VARIANTS names them."""
+def chosen_prior() -> tuple[str, float, str, float]:
+    """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, arm term's
+    centre, arm term's log sd), as VARIANTS names them."""
     import bayesrob.chain_prediction as cp
 
-    return cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD, cp.CHAIN_STIFFNESS_ARM_LOG_SD
+    return (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
+            cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD)
 
 
 @contextlib.contextmanager
-def _prior(centre: str, joint_sd: float, arm_sd: float) -> Iterator[None]:
+def _prior(centre: str, joint_sd: float, arm_centre: str, arm_sd: float) -> Iterator[None]:
     """The module's prior set to a variant for the block, and put back after it: a sweep
     must not leave its last variant behind for whatever runs next in the process."""
     import bayesrob.chain_prediction as cp
 
     before = chosen_prior()
     cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
-    cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_sd
+    cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_centre, arm_sd
     try:
         yield
     finally:
         cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = before[:2]
-        cp.CHAIN_STIFFNESS_ARM_LOG_SD = before[2]
+        cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD = before[2:]
 
 
-def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
+def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float]],
              cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
              sag_steps: int = 1, n_linked: int | None = None) -> dict:
     import bayesrob.chain_prediction as cp
@@ -141,28 +156,30 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, float]],
             commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
             row: dict = {"seed": seed}
-            for centre, joint_sd, arm_sd in variants:
+            for variant in variants:
                 # the prior is read when the stiffnesses are set and again when drawn
-                with _prior(centre, joint_sd, arm_sd):
-                    mods.stiffness = {a: cp._stiffness_prior(rig, a, mods.calibration)
-                                      for a in ("left", "right")}
+                with _prior(*variant):
+                    mods.stiffness = cp.sag_scaled_priors(rig, mods.calibration, {
+                        a: cp._stiffness_prior(rig, a, mods.calibration)
+                        for a in ("left", "right")})
                     draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
                 level = cp.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
                 obs = np.linalg.norm(seen - target, axis=1)
-                p = pooled[centre, joint_sd, arm_sd]
+                p = pooled[variant]
                 p["in50"] += (level < 0.5).tolist()
                 p["in90"] += (level < 0.9).tolist()
                 p["pred"] += pred.tolist()
                 p["obs"] += obs.tolist()
-                row[f"{centre}/{joint_sd}/{arm_sd}"] = [
+                row["/".join(map(str, variant))] = [
                     float(np.mean(level < 0.5)), float(np.mean(level < 0.9)),
                     float(pred.mean() / obs.mean())]
             print(json.dumps(row), flush=True)
-    return {f"{c}/{j}/{a}": {"points": len(p["in50"]), "coverage50": float(np.mean(p["in50"])),
-                             "coverage90": float(np.mean(p["in90"])),
-                             "error_ratio": float(np.mean(p["pred"]) / np.mean(p["obs"]))}
-            for (c, j, a), p in pooled.items()}
+    return {"/".join(map(str, v)): {
+        "points": len(p["in50"]), "coverage50": float(np.mean(p["in50"])),
+        "coverage90": float(np.mean(p["in90"])),
+        "error_ratio": float(np.mean(p["pred"]) / np.mean(p["obs"]))}
+            for v, p in pooled.items()}
 
 
 def main() -> None:
@@ -189,23 +206,39 @@ def main() -> None:
     p.add_argument("--rechosen", action="store_true",
                    help="with --coverage report --many-rigs: the rigs that report the prior "
                         "chosen on the many-rig tuning rigs")
+    p.add_argument("--sag-variants", action="store_true",
+                   help="with --coverage: every prior in SAG_VARIANTS (the arm term centred "
+                        "on the arms' fitted sags)")
+    p.add_argument("--sag-report", action="store_true",
+                   help="with --coverage report --many-rigs: the rigs that report the arm "
+                        "term centred on the arms' fitted sags")
     args = p.parse_args()
     if args.many_rigs and not args.coverage:
         p.error("--many-rigs needs --coverage")
-    if args.rechosen and not (args.many_rigs and args.coverage == "report"):
-        p.error("--rechosen needs --coverage report --many-rigs")
+    for flag in ("rechosen", "sag_report"):
+        if getattr(args, flag) and not (args.many_rigs and args.coverage == "report"):
+            p.error(f"--{flag.replace('_', '-')} needs --coverage report --many-rigs")
+    if (args.rechosen or args.sag_report) and args.masses == "description":
+        # the described-masses route has its own report rigs; these report the prior
+        p.error("--rechosen and --sag-report report the stiffness prior: drop --masses "
+                "description")
+    if args.variants and args.sag_variants:
+        p.error("give --variants or --sag-variants, not both")
     if args.coverage:
         described = args.masses == "description"
         if args.many_rigs and args.coverage == "tuning":
             seeds = MANY_TUNING_SEEDS
         elif args.rechosen:
             seeds = MANY_RECHOSEN_REPORT_SEEDS
+        elif args.sag_report:
+            seeds = MANY_SAG_REPORT_SEEDS
         elif args.many_rigs:
             seeds = MANY_DESCRIPTION_REPORT_SEEDS if described else MANY_REPORT_SEEDS
         else:
             seeds = (TUNING_SEEDS if args.coverage == "tuning"
                      else DESCRIPTION_REPORT_SEEDS if described else REPORT_SEEDS)
-        print(json.dumps(coverage(seeds, VARIANTS if args.variants else [chosen_prior()],
+        print(json.dumps(coverage(seeds, VARIANTS if args.variants
+                                  else SAG_VARIANTS if args.sag_variants else [chosen_prior()],
                                   Path(args.cache) if args.cache else None, args.masses,
                                   args.mass_spread, args.sag_steps,
                                   MANY_LINKED if args.many_rigs else None)))
