@@ -153,6 +153,9 @@ class AssemblyPrediction:
                    + ("N mm/rad, median): " if "nmm_per_rad" in v else "relative to its first "
                       "joint): ")
                    + " ".join(f"{k:.3g}" for k in v.get("nmm_per_rad", v.get("relative")))
+                   + (f"; the arm {np.exp(v['arm_log_centre']):.3g} times as stiff as the "
+                      "linked arms' geometric mean, by its fitted sag"
+                      if v.get("arm_log_centre") else "")
                    for a, v in self.stiffness.items()]
         return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
                                               f"50% {unit}", f"90% {unit}"], rows), tail,
@@ -313,7 +316,7 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     simulated report rigs."""
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
 
-    guessed = [a for a, src in sources.items() if src == STIFFNESS_SOURCES[2]]
+    guessed = [a for a, src in sources.items() if src in STIFFNESS_SOURCES[2:]]
     if not guessed or not all(c.weighed for c in robot.chains.values()):
         return None
     return (f"note: the description weighs every link, yet {', '.join(guessed)} took "
@@ -325,13 +328,17 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
 
 def _stiffness_summary(prior: Any) -> dict:
     """What the balance drew an arm's joint stiffnesses from: medians (N mm/rad; relative to
-    the arm's first joint under the prior, whose scale is arbitrary), log sds and source."""
+    the arm's first joint under the prior, whose scale is arbitrary), log sds and source;
+    under the prior, its arm term's centre (the arm's log scale against the other linked
+    arms') and sd."""
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD
 
     k = np.exp(prior.centre)
     if np.any(prior.shared):
         return {"from": prior.source, "relative": [float(v) for v in k / k[0]],
-                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": CHAIN_STIFFNESS_ARM_LOG_SD}
+                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": (
+                    CHAIN_STIFFNESS_ARM_LOG_SD if prior.arm_sd is None else prior.arm_sd),
+                "arm_log_centre": float(prior.arm_centre)}
     return {"from": prior.source, "nmm_per_rad": [float(v) for v in k],
             "log_sd": [float(v) for v in prior.sd]}
 

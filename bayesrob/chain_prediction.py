@@ -15,7 +15,8 @@ Linked arms share one point:
   K_a = C_a^-1, and d = (sum_a K_a)^-1 sum_a K_a d_a; for a square J this is the planar
   J^-T diag(k) J^-1. Stiffnesses: the rig's ``stiffness`` when given, else a log-normal prior
   centred on the joints' URDF torque limits, with a term per arm and one per joint
-  (CHAIN_STIFFNESS_*).
+  (CHAIN_STIFFNESS_*); where every linked arm takes the prior, each arm's term is centred on
+  its fitted sag against the others' (:func:`sag_scaled_priors`).
   Forward draws (``numpyro.infer.Predictive``), no sampler needed.
 - ``product`` (the paper's rule): the density of the shared point is the product of the arms'
   end-point densities. Every arm's joint errors and the shared point are latent and sampled
@@ -78,8 +79,15 @@ CHAIN_STIFFNESS_ARM_LOG_SD = 0.25  # shared by an arm's joints: an arm stiffer o
 CHAIN_STIFFNESS_CENTRE = "effort"
 # Where the arm term is centred when every linked arm takes the prior: "sags", each arm's log
 # stiffness scale set against the others' by its fitted sag at the poses they were all trained
-# on (:func:`sag_scaled_priors`), or "equal" arms.
+# on (:func:`sag_scaled_priors`), or "equal" arms (the two sds above).
 CHAIN_STIFFNESS_ARM_CENTRE = "sags"
+# The sag-centred prior's own per-joint and arm-term log sds: chosen on the tuning rigs
+# 271-282 and 201-206 (`bench_predict_3d.py --coverage tuning [--many-rigs] --sag-variants`,
+# 240 points) by a rule written before the sweep, the smallest largest miss relative to each
+# target's half-width: 0.512 / 0.892, error ratio 0.929, against 0.471 / 0.958, 1.081 for the
+# equal-arms prior (docs/fusion.md)
+SAG_SCALED_LOG_SD = 0.4
+SAG_SCALED_ARM_LOG_SD = 0.5
 # How far a robot description's link masses are trusted (log sd): a compliance fitted under
 # them carries their error into the stiffness read from it.
 DESCRIBED_MASS_LOG_SD = 0.1
@@ -151,8 +159,10 @@ class StiffnessPrior(NamedTuple):
     sd: np.ndarray
     shared: np.ndarray
     source: str
-    # the arm term's mean: the arm's log stiffness scale against the other linked arms'
+    # the arm term's mean (the arm's log stiffness scale against the other linked arms') and
+    # sd (None: CHAIN_STIFFNESS_ARM_LOG_SD)
     arm_centre: float = 0.0
+    arm_sd: float | None = None
 
 
 STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior",
@@ -244,8 +254,9 @@ def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, Stiffne
     joint's compliance times the first moment it carries, not the stiffness; but arms of one
     model carry alike moments, so an arm that sags further is the softer one. On the tuning
     rigs (271-282, 201-206) the log ratio of two arms' sags followed their true log stiffness
-    ratio with slope -0.98 / -0.94 (Spearman -0.91 / -0.94), scattered by about 0.25, the
-    arm term's sd (docs/fusion.md).
+    ratio with slope -0.98 / -0.94 (Spearman -0.91 / -0.94), scattered by about 0.25
+    (docs/fusion.md). Its sds are SAG_SCALED_LOG_SD per joint and SAG_SCALED_ARM_LOG_SD per
+    arm.
     """
     if (CHAIN_STIFFNESS_ARM_CENTRE != "sags"
             or any(p.source != STIFFNESS_SOURCES[2] for p in priors.values())):
@@ -255,7 +266,8 @@ def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, Stiffne
         return priors
     log_sag = {a: np.log(v) for a, v in sags.items()}
     mean = float(np.mean(list(log_sag.values())))
-    return {a: p._replace(arm_centre=mean - log_sag[a], source=STIFFNESS_SOURCES[3])
+    return {a: p._replace(sd=np.full_like(p.sd, SAG_SCALED_LOG_SD), arm_centre=mean - log_sag[a],
+                          arm_sd=SAG_SCALED_ARM_LOG_SD, source=STIFFNESS_SOURCES[3])
             for a, p in priors.items()}
 
 
@@ -309,13 +321,15 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
 
 def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> None:
     """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
-    where the prior marks them ``shared``, a Normal(arm_centre, arm_sd) term the arm's joints
-    share: an arm as a whole is stiffer or softer than another."""
+    where the prior marks them ``shared``, a Normal(arm_centre, sd) term the arm's joints
+    share (sd: the prior's ``arm_sd``, else ``arm_sd``): an arm as a whole is stiffer or softer
+    than another."""
     for i, p in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
         whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
-        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + arm_sd * whole, 0.0)
+        own = arm_sd if p.arm_sd is None else p.arm_sd
+        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + own * whole, 0.0)
         numpyro.deterministic(f"log_stiffness_{i}",
                               jnp.asarray(p.centre) + jnp.asarray(p.sd) * z + shared)
 

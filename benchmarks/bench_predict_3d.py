@@ -80,9 +80,11 @@ GROUPS = ("frames", "offsets", "geometric", "compliance")
 VARIANTS = [(c, j, "equal", a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
 # the arm term centred on the arms' fitted sags (--sag-variants), beside the prior it would
-# replace
+# replace (per-joint sds 0.35-0.45 were added after 0.25 and 0.5 had bracketed the rates on
+# tuning rigs 271-282)
 SAG_VARIANTS = [("effort", 0.5, "equal", 0.25)] + [
-    ("effort", j, "sags", a) for j in (0.25, 0.5) for a in (0.0, 0.15, 0.25, 0.35, 0.5)]
+    ("effort", j, "sags", a) for j in (0.25, 0.35, 0.4, 0.45, 0.5)
+    for a in (0.0, 0.15, 0.25, 0.35, 0.5)]
 
 
 def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
@@ -116,11 +118,19 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     return rig, mods
 
 
+_PRIOR_CONSTANTS = ("CHAIN_STIFFNESS_CENTRE", "CHAIN_STIFFNESS_LOG_SD",
+                    "CHAIN_STIFFNESS_ARM_CENTRE", "CHAIN_STIFFNESS_ARM_LOG_SD",
+                    "SAG_SCALED_LOG_SD", "SAG_SCALED_ARM_LOG_SD")
+
+
 def chosen_prior() -> tuple[str, float, str, float]:
     """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, arm term's
-    centre, arm term's log sd), as VARIANTS names them."""
+    centre, arm term's log sd), as VARIANTS names them (the sds the arms' fitted sags
+    bring with them where the arm term is centred on them)."""
     import bayesrob.chain_prediction as cp
 
+    if cp.CHAIN_STIFFNESS_ARM_CENTRE == "sags":
+        return cp.CHAIN_STIFFNESS_CENTRE, cp.SAG_SCALED_LOG_SD, "sags", cp.SAG_SCALED_ARM_LOG_SD
     return (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
             cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD)
 
@@ -131,19 +141,24 @@ def _prior(centre: str, joint_sd: float, arm_centre: str, arm_sd: float) -> Iter
     must not leave its last variant behind for whatever runs next in the process."""
     import bayesrob.chain_prediction as cp
 
-    before = chosen_prior()
-    cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = centre, joint_sd
-    cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD = arm_centre, arm_sd
+    before = {name: getattr(cp, name) for name in _PRIOR_CONSTANTS}
+    cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_ARM_CENTRE = centre, arm_centre
+    if arm_centre == "sags":
+        cp.SAG_SCALED_LOG_SD, cp.SAG_SCALED_ARM_LOG_SD = joint_sd, arm_sd
+    else:
+        cp.CHAIN_STIFFNESS_LOG_SD, cp.CHAIN_STIFFNESS_ARM_LOG_SD = joint_sd, arm_sd
     try:
         yield
     finally:
-        cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD = before[:2]
-        cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD = before[2:]
+        for name, value in before.items():
+            setattr(cp, name, value)
 
 
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float]],
              cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
              sag_steps: int = 1, n_linked: int | None = None) -> dict:
+    import jax
+
     import bayesrob.chain_prediction as cp
 
     pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
@@ -174,7 +189,12 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float
                 row["/".join(map(str, variant))] = [
                     float(np.mean(level < 0.5)), float(np.mean(level < 0.9)),
                     float(pred.mean() / obs.mean())]
+            row["observed_mean_error_mm"] = float(np.linalg.norm(seen - target, axis=1).mean())
             print(json.dumps(row), flush=True)
+            # each variant's draws compile programs of their own, whose code stays mapped until
+            # released: a sweep of 26 variants ran the process out of memory maps on its sixth
+            # rig (LLVM: cannot allocate memory)
+            jax.clear_caches()
     return {"/".join(map(str, v)): {
         "points": len(p["in50"]), "coverage50": float(np.mean(p["in50"])),
         "coverage90": float(np.mean(p["in90"])),

@@ -230,6 +230,65 @@ def test_linked_arms_with_known_stiffness_land_where_predicted(linked_modules):
 
 
 @pytest.mark.slow
+def test_linked_arms_prior_is_centred_on_their_fitted_sags(linked_modules, monkeypatch):
+    """Where both linked arms take the prior, each arm's term is centred on its fitted sag
+    against the other's: the arm that sags further is the softer. The sag is linear in the
+    compliance at one step of the torques, so tripling the right arm's fitted compliances
+    triples its sag (to 1%: the sag's own pull on the pose is second order) and moves the
+    arms' centres apart by log 3 more; draws of the log stiffnesses take those centres (20,000
+    draws: the mean's error about 0.005; tolerance 0.02). Not where an arm's stiffnesses are
+    given, nor for one arm alone, nor with CHAIN_STIFFNESS_ARM_CENTRE "equal"."""
+    from dataclasses import replace
+
+    import jax
+
+    import bayesrob.chain_prediction as cp
+
+    _, rig, mods, _ = linked_modules
+    cal = mods.calibration
+    prior = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
+    assert all(p.source == "the prior" and p.arm_centre == 0 for p in prior.values())
+    scaled = cp.sag_scaled_priors(rig, cal, prior)
+    assert _same_priors(mods.stiffness, scaled)  # what fit_chain_modules keeps
+    sags = cp.arm_sags(rig, cal, ["left", "right"])
+    assert all(v > 0.05 for v in sags.values()), sags  # mm: gravity bends both arms
+    gap = scaled["left"].arm_centre - scaled["right"].arm_centre
+    assert gap == pytest.approx(np.log(sags["right"] / sags["left"]), abs=1e-9)
+    assert scaled["left"].arm_centre == pytest.approx(-scaled["right"].arm_centre)
+    assert all(p.source == cp.STIFFNESS_SOURCES[3] for p in scaled.values())
+    np.testing.assert_array_equal(scaled["left"].centre, prior["left"].centre)
+    assert np.all(scaled["left"].sd == cp.SAG_SCALED_LOG_SD)
+    assert scaled["left"].arm_sd == cp.SAG_SCALED_ARM_LOG_SD
+
+    x = np.array(cal.x, float)
+    x[cal.robot.layout.slices["right", "compliance"]] *= 3.0
+    softer = replace(cal, x=x)
+    tripled = cp.arm_sags(rig, softer, ["left", "right"])
+    assert tripled["left"] == pytest.approx(sags["left"], rel=1e-9)
+    assert tripled["right"] == pytest.approx(3.0 * sags["right"], rel=0.01)
+    wider = cp.sag_scaled_priors(rig, softer, prior)
+    assert wider["left"].arm_centre - wider["right"].arm_centre == pytest.approx(
+        gap + np.log(3.0), abs=0.01)
+
+    draws = cp.stiffness_draws([wider["left"], wider["right"]], jax.random.PRNGKey(0), 20_000)
+    for d, p in zip(draws, (wider["left"], wider["right"]), strict=True):
+        np.testing.assert_allclose(np.asarray(d).mean(0), p.centre + p.arm_centre, atol=0.02)
+
+    given = dict(prior, right=cp.StiffnessPrior(np.zeros(6), np.zeros(6), np.zeros(6, bool),
+                                                "the rig"))
+    assert _same_priors(cp.sag_scaled_priors(rig, cal, given), given)
+    alone = {"left": prior["left"]}
+    assert _same_priors(cp.sag_scaled_priors(rig, cal, alone), alone)
+    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
+    assert _same_priors(cp.sag_scaled_priors(rig, cal, prior), prior)
+
+
+def _same_priors(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(
+        np.array_equal(u, v) for k in a for u, v in zip(a[k], b[k], strict=True))
+
+
+@pytest.mark.slow
 def test_nuts_product_agrees_with_the_gaussian_product(linked_modules):
     """The product fusion samples every arm's joint errors and the shared point with NUTS.
     Reference: each arm's free-point draws summarised as a Gaussian and multiplied (exact for
@@ -416,6 +475,11 @@ def test_stiffness_summary_names_where_the_balance_drew_from():
     assert prior["from"] == "the prior" and "nmm_per_rad" not in prior
     np.testing.assert_allclose(prior["relative"], [1.0, 1.0, 28 / 150])
     assert prior["arm_log_sd"] == CHAIN_STIFFNESS_ARM_LOG_SD
+    assert prior["arm_log_centre"] == 0.0
+    scaled = _stiffness_summary(StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5),
+                                               np.ones(3, bool), STIFFNESS_SOURCES[3], -0.4))
+    assert scaled["from"].endswith("scaled by their fitted sags")
+    assert scaled["arm_log_centre"] == -0.4
 
 
 def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed):
@@ -436,6 +500,8 @@ def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed
     assert note.startswith("note: ") and "left, right took their stiffnesses from the prior" \
         in note and "--masses description" in note
     assert "yet right took" in stiffness_note(weighed, {"left": rig, "right": prior})
+    scaled = STIFFNESS_SOURCES[3]  # the prior still, its arm terms centred on the sags
+    assert "yet left, right took" in stiffness_note(weighed, {"left": scaled, "right": scaled})
     assert stiffness_note(weighed, {"left": fitted, "right": fitted}) is None
     assert stiffness_note(robot(forearm_unweighed), {"left": prior, "right": prior}) is None
 
