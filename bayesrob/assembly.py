@@ -312,8 +312,8 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     """``predict``'s note where linked arms (``sources``: arm -> where its stiffnesses came
     from, one of ``chain_prediction.STIFFNESS_SOURCES``) took them from the prior although
     every chain of the robot weighs its links (what ``masses="description"`` needs): how to
-    read them from those masses instead, the route that held every coverage target on the
-    simulated report rigs."""
+    read them from those masses instead, each joint's own stiffness where the prior gives
+    only a profile."""
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
 
     guessed = [a for a, src in sources.items() if src in STIFFNESS_SOURCES[2:]]
@@ -322,8 +322,8 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     return (f"note: the description weighs every link, yet {', '.join(guessed)} took "
             "their stiffnesses from the prior: add compliance to --params and give "
             "--masses description to read them from compliances fitted under those masses "
-            "(on the simulated report rigs that route met every coverage target and the prior "
-            "did not: docs/fusion.md)")
+            "(each joint's own, where the prior gives the arms' profile; on the simulated "
+            "report rigs that route met every coverage target: docs/fusion.md)")
 
 
 def _stiffness_summary(prior: Any) -> dict:

@@ -1,14 +1,18 @@
 """Two 6-joint 3-D arms linked at their tool points, predicted before the assembly is built
 (``pytest -m slow``, about 12 minutes on two cores): the twelve report rigs of
-``benchmarks/bench_predict_3d.py --coverage report --many-rigs --rechosen`` (seeds 291-302,
+``benchmarks/bench_predict_3d.py --coverage report --many-rigs --sag-report`` (seeds 311-322,
 8 linked points each: 96 points, each rig its own pair of arms with their own stiffnesses,
-fixed before their first run), with the stiffness prior chosen on tuning rigs 201-206 and
-271-282 (the earlier report rigs 231-242 showed the previous prior's figures, so they no
-longer report one chosen after them; docs/fusion.md keeps their figures). Targets
-(issue "linked predictions"): 50% / 90% regions within binomial error of nominal at 96 points
-(0.40-0.60, 0.84-0.96) and predicted / observed mean error within 0.85-1.15. The sweep is
-seeded, so the published figures (docs/fusion.md) are asserted to 0.001: a change that moves
-them must update the docs with it.
+fixed before their first run), with the stiffness prior whose arm terms are centred on the
+arms' fitted sags, its sds chosen on tuning rigs 201-206 and 271-282 (the earlier report rigs
+291-302 led to the sag-centred arm term, and 231-242 showed an earlier prior's figures, so
+neither reports it; docs/fusion.md keeps their figures). Targets (issue "linked
+predictions"): 50% / 90% regions within binomial error of nominal at 96 points (0.40-0.60,
+0.84-0.96) and predicted / observed mean error within 0.85-1.15. The sweep is seeded, so the
+published figures (docs/fusion.md) are asserted: the error ratio to 0.001, the coverages to two
+points of 96, as far as points at a region's edge were seen to flip with the compiled
+programs' rounding (the described masses' 50% came out 0.490 in the whole slow suite and 0.510
+run alone, before and after the sag-centred prior, whose route it does not take). A change
+that moves them further must update the docs with it.
 
 Twelve rigs of 8 points rather than four of 24 (the first report rigs, 211-214 and 221-224,
 whose figures docs/fusion.md keeps): a rig's points share one pair of arms and their
@@ -33,8 +37,8 @@ pytestmark = pytest.mark.slow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-PUBLISHED = {"points": 96, "coverage50": 0.469, "coverage90": 0.865, "error_ratio": 1.175}
-DESCRIBED = {"points": 96, "coverage50": 0.490, "coverage90": 0.885, "error_ratio": 1.016}
+PUBLISHED = {"points": 96, "coverage50": 0.5625, "coverage90": 0.948, "error_ratio": 0.993}
+DESCRIBED = {"points": 96, "coverage50": 0.510, "coverage90": 0.885, "error_ratio": 1.016}
 
 
 def _coverage(seeds: tuple[int, ...], **kwargs) -> dict:
@@ -49,15 +53,17 @@ def _coverage(seeds: tuple[int, ...], **kwargs) -> dict:
 
 def _holds_published(figures: dict, published: dict) -> None:
     assert figures["points"] == published["points"]
-    for key in ("coverage50", "coverage90", "error_ratio"):
-        assert figures[key] == pytest.approx(published[key], abs=1e-3), key
+    for key in ("coverage50", "coverage90"):
+        assert figures[key] == pytest.approx(published[key], abs=2.5 / 96), key
+    assert figures["error_ratio"] == pytest.approx(published["error_ratio"], abs=1e-3)
 
 
 @pytest.fixture(scope="module")
 def report() -> dict:
     import bench_predict_3d as bench
 
-    return _coverage(bench.MANY_RECHOSEN_REPORT_SEEDS)
+    assert bench.chosen_prior()[2] == "sags"  # what predict draws linked arms' stiffnesses from
+    return _coverage(bench.MANY_SAG_REPORT_SEEDS)
 
 
 def test_the_published_report_figures(report):
@@ -69,10 +75,6 @@ def test_linked_50_and_90_percent_regions_hold(report):
     assert 0.84 <= report["coverage90"] <= 0.96
 
 
-@pytest.mark.xfail(strict=True, reason="target missed on report rigs 291-302: predicted / "
-                   "observed mean error 1.175 (0.85-1.15 asked); per rig 0.86-1.67, the "
-                   "highest where one arm is several times stiffer than the other, which the "
-                   "prior, alike for both arms, cannot know")
 def test_linked_error_ratio_holds(report):
     assert 0.85 <= report["error_ratio"] <= 1.15
 

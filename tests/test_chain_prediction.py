@@ -329,7 +329,7 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
 
     rig, _ = arm6_modules
-    loc, sd, shared, source = _stiffness_prior(rig, "arm")
+    loc, sd, shared, source, *_ = _stiffness_prior(rig, "arm")
     assert source == "the prior"
     np.testing.assert_allclose(np.exp(loc), [150, 150, 150, 28, 28, 28])
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
@@ -337,7 +337,7 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
                                                                       stiffness=k)})
-    loc, sd, shared, source = _stiffness_prior(given, "arm")
+    loc, sd, shared, source, *_ = _stiffness_prior(given, "arm")
     assert source == "the rig"
     np.testing.assert_allclose(np.exp(loc), k)
     np.testing.assert_array_equal(sd, 0.0)
@@ -529,6 +529,16 @@ def test_predict_reads_linked_stiffnesses_from_the_urdfs_masses(linked_modules, 
     # without them the prior serves, and the terminal says the URDF's masses could replace it
     assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile)]) == 0
     assert "yet left, right took their stiffnesses from the prior" in capsys.readouterr().out
+    # with compliance fitted but not the masses, the prior's arm terms are set by the sags
+    sagged = tmp_path / "s.json"
+    assert main(["predict", str(d), "--config", "left+right", "--targets", str(tfile),
+                 "--params", "frames,offsets,geometric,compliance", "--json", str(sagged)]) == 0
+    assert "times as stiff as the linked arms' geometric mean" in capsys.readouterr().out
+    by_sag = json.loads(sagged.read_text())["stiffness"]
+    assert {v["from"] for v in by_sag.values()} == {
+        "the prior, the arms scaled by their fitted sags"}
+    centres = [by_sag[a]["arm_log_centre"] for a in ("left", "right")]
+    assert centres[0] == pytest.approx(-centres[1]) and centres[0] != 0
     doc = json.loads(out.read_text())
     truth = load_linked_truth(d)["stiffness_nmm_per_rad"]
     for arm in ("left", "right"):
