@@ -10,9 +10,9 @@ predictions"): 50% / 90% regions within binomial error of nominal at 96 points (
 0.84-0.96) and predicted / observed mean error within 0.85-1.15. The sweep is seeded, so the
 published figures (docs/fusion.md) are asserted: the error ratio to 0.001, the coverages to two
 points of 96, as far as points at a region's edge were seen to flip with the compiled
-programs' rounding (the described masses' 50% came out 0.490 in the whole slow suite and 0.510
-run alone, before and after the sag-centred prior, whose route it does not take). A change
-that moves them further must update the docs with it.
+programs' rounding: the described masses' 50% came out 0.490 under pytest before the
+sag-centred prior (whose route it does not take) and 0.510 after it, and 0.510 from the bench
+run on its own with either. A change that moves them further must update the docs with it.
 
 Twelve rigs of 8 points rather than four of 24 (the first report rigs, 211-214 and 221-224,
 whose figures docs/fusion.md keeps): a rig's points share one pair of arms and their
