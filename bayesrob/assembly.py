@@ -331,13 +331,10 @@ def _stiffness_summary(prior: Any) -> dict:
     the arm's first joint under the prior, whose scale is arbitrary), log sds and source;
     under the prior, its arm term's centre (the arm's log scale against the other linked
     arms') and sd."""
-    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD
-
     k = np.exp(prior.centre)
     if np.any(prior.shared):
         return {"from": prior.source, "relative": [float(v) for v in k / k[0]],
-                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": (
-                    CHAIN_STIFFNESS_ARM_LOG_SD if prior.arm_sd is None else prior.arm_sd),
+                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": prior.arm_term_sd(),
                 "arm_log_centre": float(prior.arm_centre)}
     return {"from": prior.source, "nmm_per_rad": [float(v) for v in k],
             "log_sd": [float(v) for v in prior.sd]}

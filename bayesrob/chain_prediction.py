@@ -53,7 +53,7 @@ from bayesrob.rig import Rig, RigError
 
 __all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "chain_draws",
            "chain_equilibrium", "free_draws", "parameter_draws", "stiffness_draws",
-           "arm_sags", "sag_scaled_priors",
+           "arm_sags", "sag_scaled_priors", "stiffness_priors",
            "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
 
 IK_TOL_MM = 1e-3
@@ -144,7 +144,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
-    stiffness = sag_scaled_priors(rig, cal, {a: _stiffness_prior(rig, a, cal) for a in arms})
+    stiffness = stiffness_priors(rig, arms, cal)
     cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
     return ChainModules(cal, errors, stiffness, cov)
 
@@ -163,6 +163,11 @@ class StiffnessPrior(NamedTuple):
     # sd (None: CHAIN_STIFFNESS_ARM_LOG_SD)
     arm_centre: float = 0.0
     arm_sd: float | None = None
+
+    def arm_term_sd(self) -> float:
+        """The arm term's log sd: its own, else CHAIN_STIFFNESS_ARM_LOG_SD as it stands now
+        (a sweep of priors sets it between draws)."""
+        return CHAIN_STIFFNESS_ARM_LOG_SD if self.arm_sd is None else self.arm_sd
 
 
 STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior",
@@ -271,6 +276,14 @@ def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, Stiffne
             for a, p in priors.items()}
 
 
+def stiffness_priors(rig: Rig, arms: Sequence[str], cal: ChainCalibration
+                     ) -> dict[str, StiffnessPrior]:
+    """The log joint stiffnesses' prior of each of ``arms``, linked: each arm's own
+    (:func:`_stiffness_prior`), their arm terms then centred on their fitted sags
+    (:func:`sag_scaled_priors`)."""
+    return sag_scaled_priors(rig, cal, {a: _stiffness_prior(rig, a, cal) for a in arms})
+
+
 def _column_jacobian(robot: kin.Robot, arm: str):
     """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c))."""
     cache = robot.__dict__.setdefault("_column_jacobians", {})
@@ -319,17 +332,15 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return u
 
 
-def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> None:
+def _log_stiffness_prior(priors: Sequence[StiffnessPrior]) -> None:
     """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
-    where the prior marks them ``shared``, a Normal(arm_centre, sd) term the arm's joints
-    share (sd: the prior's ``arm_sd``, else ``arm_sd``): an arm as a whole is stiffer or softer
-    than another."""
+    where the prior marks them ``shared``, a Normal(arm_centre, arm_term_sd()) term the arm's
+    joints share: an arm as a whole is stiffer or softer than another."""
     for i, p in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
         whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
-        own = arm_sd if p.arm_sd is None else p.arm_sd
-        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + own * whole, 0.0)
+        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + p.arm_term_sd() * whole, 0.0)
         numpyro.deterministic(f"log_stiffness_{i}",
                               jnp.asarray(p.centre) + jnp.asarray(p.sd) * z + shared)
 
@@ -337,8 +348,7 @@ def _log_stiffness_prior(priors: Sequence[StiffnessPrior], arm_sd: float) -> Non
 def stiffness_draws(priors: Sequence[StiffnessPrior], key: jax.Array,
                     num_samples: int) -> list[jax.Array]:
     """Draws (S, n_a) of each arm's joint log stiffnesses from their prior (centre, sd)."""
-    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(
-        key, priors, CHAIN_STIFFNESS_ARM_LOG_SD)
+    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(key, priors)
     return [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, len(p.centre)))
             for i, p in enumerate(priors)]
 

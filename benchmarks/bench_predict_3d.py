@@ -170,17 +170,16 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float
             m = rig.measurements.mask("left+right", "test")
             commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
+            obs = np.linalg.norm(seen - target, axis=1)
             row: dict = {"seed": seed}
             for variant in variants:
                 # the prior is read when the stiffnesses are set and again when drawn
                 with _prior(*variant):
-                    mods.stiffness = cp.sag_scaled_priors(rig, mods.calibration, {
-                        a: cp._stiffness_prior(rig, a, mods.calibration)
-                        for a in ("left", "right")})
+                    mods.stiffness = cp.stiffness_priors(rig, ["left", "right"],
+                                                         mods.calibration)
                     draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
                 level = cp.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
-                obs = np.linalg.norm(seen - target, axis=1)
                 p = pooled[variant]
                 p["in50"] += (level < 0.5).tolist()
                 p["in90"] += (level < 0.9).tolist()
@@ -189,7 +188,7 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float
                 row["/".join(map(str, variant))] = [
                     float(np.mean(level < 0.5)), float(np.mean(level < 0.9)),
                     float(pred.mean() / obs.mean())]
-            row["observed_mean_error_mm"] = float(np.linalg.norm(seen - target, axis=1).mean())
+            row["observed_mean_error_mm"] = float(obs.mean())
             print(json.dumps(row), flush=True)
             # each variant's draws compile programs of their own, whose code stays mapped until
             # released: a sweep of 26 variants ran the process out of memory maps on its sixth
