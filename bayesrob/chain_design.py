@@ -11,7 +11,8 @@ there, and the draws are moved back.
 
 A candidate's draws are builds, as in the plane: each carries one set of calibration errors
 (the rig's parameter covariance; modules of one rig share a set) and one set of joint
-stiffnesses (the rig's ``stiffness`` or the log-normal prior), the same at every target.
+stiffnesses (the rig's ``stiffness`` or the log-normal prior, linked arms of one rig centred on
+their fitted sags as ``bayesrob predict`` centres them), the same at every target.
 A placement's free-point draws do not depend on the other arms of the candidate, so each
 worker draws them once per (module, mount) and every candidate that uses the placement reuses
 them (common random numbers also make the ranking less noisy); linked arms then balance
@@ -32,10 +33,12 @@ import numpy as np
 from bayesrob import kinematics as kin
 from bayesrob.chain_prediction import (
     ChainModules,
+    StiffnessPrior,
     aim_chain,
     chain_equilibrium,
     free_draws,
     parameter_draws,
+    sag_scaled_priors,
     stiffness_draws,
 )
 from bayesrob.latent_errors import joint_jacobian
@@ -44,8 +47,8 @@ from bayesrob.rig import Rig, RigError
 if TYPE_CHECKING:
     from bayesrob.design import DesignSpec, ModuleSpec
 
-__all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "chain_candidate_draws",
-           "write_chain_candidate_rig"]
+__all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "linked_priors",
+           "chain_candidate_draws", "write_chain_candidate_rig"]
 
 
 @dataclass
@@ -163,12 +166,35 @@ def _rig_parameters(job: Any, m: ChainModule) -> jax.Array:
     return job.cache[key]
 
 
-def _log_stiffness(job: Any, name: str) -> jax.Array:
-    """One module's joint log stiffnesses (S, n), the same in every candidate it is in."""
-    m: ChainModule = job.modules[name]
-    order = list(job.modules).index(name)
-    return stiffness_draws([m.mods.stiffness[m.arm]],
-                           jax.random.PRNGKey(job.seed * 104729 + order), job.draws)[0]
+def linked_priors(modules: Sequence[ChainModule]) -> list[StiffnessPrior]:
+    """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
+    one rig: where the modules are distinct arms of one rig and each took the prior, their arm
+    terms are centred on their fitted sags
+    (:func:`bayesrob.chain_prediction.sag_scaled_priors`); else each module's own. Modules
+    of different rigs keep their own: their sags come from different calibrations, and the
+    sag stands for the stiffness only between arms of one model."""
+    own = [m.mods.stiffness[m.arm] for m in modules]
+    arms = {m.arm for m in modules}
+    if len({m.rig_index for m in modules}) > 1 or len(arms) < len(modules):
+        return own
+    first = modules[0]
+    scaled = sag_scaled_priors(first.rig, first.mods.calibration,
+                               {m.arm: m.mods.stiffness[m.arm] for m in modules})
+    return [scaled[m.arm] for m in modules]
+
+
+def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
+    """Linked modules' joint log stiffnesses, each (S, n). Each module draws its standard
+    normals from its own seed, the same in every candidate it is in (common random numbers);
+    the candidate's arms then set their centres and sds (:func:`linked_priors`)."""
+    key = ("stiffness", tuple(names))
+    if key not in job.cache:
+        priors = linked_priors([job.modules[n] for n in names])
+        job.cache[key] = [
+            stiffness_draws([p], jax.random.PRNGKey(job.seed * 104729
+                                                    + list(job.modules).index(n)), job.draws)[0]
+            for n, p in zip(names, priors, strict=True)]
+    return job.cache[key]
 
 
 def chain_candidate_draws(job: Any, arms: Sequence[str], mounts: Sequence[int],
@@ -179,7 +205,7 @@ def chain_candidate_draws(job: Any, arms: Sequence[str], mounts: Sequence[int],
     if len(parts) == 1:
         return parts[0][0]
     d = chain_equilibrium([p[0] for p in parts], [p[1] for p in parts],
-                          [_log_stiffness(job, a) for a in arms],
+                          _log_stiffness(job, arms),
                           tracker_noise_mm=job.tracker_noise_mm,
                           key=jax.random.fold_in(jax.random.PRNGKey(job.seed + 1), index))
     return np.asarray(d)
