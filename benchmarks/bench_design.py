@@ -5,6 +5,7 @@
     python benchmarks/bench_design.py --proof --seeds 111-130   # the second report set
     python benchmarks/bench_design.py --chain-proof   # 6-joint 3-D modules, assemblies built
     python benchmarks/bench_design.py --chain-proof --masses description   # stiffnesses from masses
+    python benchmarks/bench_design.py --chain-proof --sag-report   # fresh rigs 331-336
     python benchmarks/bench_design.py --tuning   # tuning inventories: predicted builds vs built
 
 Scale (prints one JSON line): 1,000 candidate assemblies of 2-3 planar arms at 16 targets each
@@ -56,6 +57,8 @@ tracker's 0.1 mm noise). Reported: the share of measured errors within the predi
 pooled rows) and predicted / observed mean error. Placing a module elsewhere is a
 translation, which leaves the simulator's physics (a uniform gravity) and the prediction
 alike unchanged (``tests/test_chain_design.py``), so what holds here holds at any mount.
+``--sag-report`` runs it on CHAIN_SAG_REPORT_SEEDS, the rigs that report the designer's
+linked modules centred on their fitted sags; ``--arm-centre equal`` draws them as before.
 """
 
 from __future__ import annotations

@@ -283,6 +283,52 @@ def test_linked_arms_prior_is_centred_on_their_fitted_sags(linked_modules, monke
     assert _same_priors(cp.sag_scaled_priors(rig, cal, prior), prior)
 
 
+
+@pytest.mark.slow
+def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_modules):
+    """``bayesrob design`` fits each module's prior alone; linked, two modules that are the
+    two arms of one rig take the sag-centred priors ``predict`` gives those arms, in either
+    order. Modules of different rigs, or one arm mounted twice, keep their own. A module's
+    stiffness draws come from its own seed whatever it is linked with, so the same module
+    pair draws the same stiffnesses in either order (common random numbers)."""
+    from types import SimpleNamespace
+
+    import jax
+
+    import bayesrob.chain_prediction as cp
+    from bayesrob.chain_design import ChainModule, _log_stiffness, linked_priors
+
+    _, rig, mods, _ = linked_modules
+    cal = mods.calibration
+    own = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
+
+    def module(arm: str, rig_index: int = 0) -> ChainModule:
+        m = cp.ChainModules(cal, {arm: mods.errors[arm]}, {arm: own[arm]}, mods.param_cov)
+        return ChainModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
+
+    left, right = module("left"), module("right")
+
+    def named(arms: tuple[str, str], priors: list) -> dict:
+        return dict(zip(arms, priors, strict=True))
+
+    scaled = cp.sag_scaled_priors(rig, cal, own)
+    assert scaled["left"].source == cp.STIFFNESS_SOURCES[3]
+    assert _same_priors(named(("left", "right"), linked_priors([left, right])), scaled)
+    assert _same_priors(named(("right", "left"), linked_priors([right, left])), scaled)
+    other_rig = module("right", rig_index=1)
+    assert _same_priors(named(("left", "right"), linked_priors([left, other_rig])), own)
+    twice = linked_priors([left, module("left")])
+    assert all(_same_priors({"left": p}, {"left": own["left"]}) for p in twice)
+
+    job = SimpleNamespace(cache={}, modules={"left": left, "right": right}, seed=3, draws=50)
+    ab = _log_stiffness(job, ("left", "right"))
+    ba = _log_stiffness(job, ("right", "left"))
+    np.testing.assert_array_equal(np.asarray(ab[0]), np.asarray(ba[1]))
+    np.testing.assert_array_equal(np.asarray(ab[1]), np.asarray(ba[0]))
+    # the centres moved the draws: the sag-centred left arm is not the left arm alone
+    alone = cp.stiffness_draws([own["left"]], jax.random.PRNGKey(3 * 104729), 50)[0]
+    assert not np.allclose(np.asarray(ab[0]), np.asarray(alone))
+
 def _same_priors(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(
         np.array_equal(u, v) for k in a for u, v in zip(a[k], b[k], strict=True))
