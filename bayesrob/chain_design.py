@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from bayesrob.design import DesignSpec, ModuleSpec
 
 __all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "linked_priors",
-           "chain_candidate_draws", "write_chain_candidate_rig"]
+           "chain_stiffness_record", "chain_candidate_draws", "write_chain_candidate_rig"]
 
 
 @dataclass
@@ -183,13 +183,30 @@ def linked_priors(modules: Sequence[ChainModule]) -> list[StiffnessPrior]:
     return [scaled[m.arm] for m in modules]
 
 
+def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
+    """:func:`linked_priors` of a candidate's modules, once per worker."""
+    key = ("priors", tuple(names))
+    if key not in job.cache:
+        job.cache[key] = linked_priors([job.modules[n] for n in names])
+    return job.cache[key]
+
+
+def chain_stiffness_record(job: Any, names: Sequence[str]) -> list[dict]:
+    """What a linked candidate's balance drew each module's joint stiffnesses from, in
+    ``names``' order, for ``design.json``: ``from`` (one of
+    ``chain_prediction.STIFFNESS_SOURCES``) and ``arm_log_centre`` (the module's log
+    stiffness scale against the others', 0 unless set by their fitted sags)."""
+    return [{"from": p.source, "arm_log_centre": float(p.arm_centre)}
+            for p in _candidate_priors(job, names)]
+
+
 def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
     """Linked modules' joint log stiffnesses, each (S, n). Each module draws its standard
     normals from its own seed, the same in every candidate it is in (common random numbers);
     the candidate's arms then set their centres and sds (:func:`linked_priors`)."""
     key = ("stiffness", tuple(names))
     if key not in job.cache:
-        priors = linked_priors([job.modules[n] for n in names])
+        priors = _candidate_priors(job, names)
         job.cache[key] = [
             stiffness_draws([p], jax.random.PRNGKey(job.seed * 104729
                                                     + list(job.modules).index(n)), job.draws)[0]

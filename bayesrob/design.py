@@ -83,7 +83,12 @@ from distributed import WorkerPlugin
 
 from bayesrob import kinematics as kin
 from bayesrob import release_compiled_programs
-from bayesrob.chain_design import ChainModule, chain_candidate_draws, chain_reach_table
+from bayesrob.chain_design import (
+    ChainModule,
+    chain_candidate_draws,
+    chain_reach_table,
+    chain_stiffness_record,
+)
 from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, equilibrium_program, fused_posterior
 from bayesrob.inference import error_arrays, error_kind, is_sampleable
 from bayesrob.noise_models import FittedNoiseModel
@@ -625,8 +630,11 @@ def _evaluate(job: _Job, cand: Candidate, index: int) -> dict:
     if _is_chain(job.modules):
         d = chain_candidate_draws(job, cand.arms, cand.mounts, index)
         dist, mean, confidence, assured, optimistic = _draw_scores(job, d)
-        return _result(job, cand, [job.modules[a].model for a in cand.arms], dist, None, mean,
-                       confidence, assured, optimistic)
+        out = _result(job, cand, [job.modules[a].model for a in cand.arms], dist, None, mean,
+                      confidence, assured, optimistic)
+        if len(cand.arms) > 1:
+            out["stiffness"] = chain_stiffness_record(job, cand.arms)
+        return out
     mods = [job.modules[a] for a in cand.arms]
     arms = [m.at(b) for m, b in zip(mods, cand.bases, strict=True)]
     commands = [job.reach[a, j] for a, j in zip(cand.arms, cand.mounts, strict=True)]

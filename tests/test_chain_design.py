@@ -239,6 +239,12 @@ def test_chain_design_on_a_local_cluster(chain, tmp_path):
         # the predicted end point is near its target (the arms are calibrated)
         miss = np.linalg.norm(np.asarray(c["expected_point"]) - res.targets, axis=1)
         assert np.all(miss < 2.0), miss
+        # what each linked module's stiffnesses were drawn from: these modules fitted no
+        # compliance, so the prior, its arms alike
+        if len(c["arms"]) > 1:
+            assert c["stiffness"] == [{"from": "the prior", "arm_log_centre": 0.0}] * 2
+        else:
+            assert "stiffness" not in c
     # two arms holding one point are more accurate than either alone
     best = {k: min(c["overall"]["error_quantile_mm"] for c in res.candidates
                    if len(c["arms"]) == k) for k in (1, 2)}

@@ -296,7 +296,12 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     import jax
 
     import bayesrob.chain_prediction as cp
-    from bayesrob.chain_design import ChainModule, _log_stiffness, linked_priors
+    from bayesrob.chain_design import (
+        ChainModule,
+        _log_stiffness,
+        chain_stiffness_record,
+        linked_priors,
+    )
 
     _, rig, mods, _ = linked_modules
     cal = mods.calibration
@@ -321,6 +326,9 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     assert all(_same_priors({"left": p}, {"left": own["left"]}) for p in twice)
 
     job = SimpleNamespace(cache={}, modules={"left": left, "right": right}, seed=3, draws=50)
+    assert chain_stiffness_record(job, ("right", "left")) == [
+        {"from": cp.STIFFNESS_SOURCES[3], "arm_log_centre": scaled[a].arm_centre}
+        for a in ("right", "left")]
     ab = _log_stiffness(job, ("left", "right"))
     ba = _log_stiffness(job, ("right", "left"))
     np.testing.assert_array_equal(np.asarray(ab[0]), np.asarray(ba[1]))
