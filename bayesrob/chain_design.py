@@ -142,7 +142,7 @@ def chain_reach_table(modules: dict[str, ChainModule], mounts: np.ndarray, targe
 def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
     """A placement's free-point draws (S, T, dim) in the world and its joint Jacobian
     (T, dim, n), drawn once per worker (``job.cache``) from seeds of its own."""
-    key = (name, mount)
+    key = ("placement", name, mount)
     if key not in job.cache:
         m: ChainModule = job.modules[name]
         order = list(job.modules).index(name)
@@ -171,15 +171,20 @@ def linked_priors(modules: Sequence[ChainModule]) -> list[StiffnessPrior]:
     one rig: where the modules are distinct arms of one rig and each took the prior, their arm
     terms are centred on their fitted sags
     (:func:`bayesrob.chain_prediction.sag_scaled_priors`); else each module's own. Modules
-    of different rigs keep their own: their sags come from different calibrations, and the
-    sag stands for the stiffness only between arms of one model."""
+    of different rigs keep their own, as their sags come from different calibrations. Like
+    ``predict``, it takes arms with paths of equal joint counts to be of one model (alike
+    first moments): that is what lets a sag stand for a stiffness."""
     own = [m.mods.stiffness[m.arm] for m in modules]
     arms = {m.arm for m in modules}
     if len({m.rig_index for m in modules}) > 1 or len(arms) < len(modules):
         return own
     first = modules[0]
+    # the rig's arm order, not the candidate's: the sags pool the arms' poses, and a sum in
+    # another order could move a centre in its last bit between (a, b) and (b, a)
+    ordered = [a for a in first.rig.robot.measured_arms() if a in arms]
+    by_arm = {m.arm: m for m in modules}
     scaled = sag_scaled_priors(first.rig, first.mods.calibration,
-                               {m.arm: m.mods.stiffness[m.arm] for m in modules})
+                               {a: by_arm[a].mods.stiffness[a] for a in ordered})
     return [scaled[m.arm] for m in modules]
 
 
@@ -191,11 +196,12 @@ def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
     return job.cache[key]
 
 
-def chain_stiffness_record(job: Any, names: Sequence[str]) -> list[dict]:
+def chain_stiffness_record(job: Any, names: Sequence[str]) -> list[dict[str, Any]]:
     """What a linked candidate's balance drew each module's joint stiffnesses from, in
     ``names``' order, for ``design.json``: ``from`` (one of
     ``chain_prediction.STIFFNESS_SOURCES``) and ``arm_log_centre`` (the module's log
-    stiffness scale against the others', 0 unless set by their fitted sags)."""
+    stiffness scale against the others', 0 unless set by their fitted sags; written for every
+    source, where ``predict``'s JSON gives it only with the prior's arm term)."""
     return [{"from": p.source, "arm_log_centre": float(p.arm_centre)}
             for p in _candidate_priors(job, names)]
 

@@ -574,7 +574,8 @@ class _Job:
     seed: int
     tracker_noise_mm: float = 0.0
     mounts: np.ndarray | None = None  # (P, dim): where chain placements' draws are moved to
-    # each worker's draws per chain placement, reused by every candidate using it
+    # each worker's chain draws (per placement, per rig's parameters, per linked module
+    # set's priors and stiffnesses), reused by every candidate that shares them
     cache: dict = field(default_factory=dict, compare=False)
 
 

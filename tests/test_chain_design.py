@@ -176,6 +176,53 @@ def test_a_robot_pickles_without_its_compiled_programs(rig_dir):
     np.testing.assert_array_equal(np.asarray(copy.compiled_points("left")(x, u)), before)
 
 
+
+def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeypatch):
+    """Stub modules of one rig with fixed sags (1, 2 and 4 mm; no calibration): linked, each
+    arm's term is centred at the mean log sag less its own, and a module draws the same
+    standard normals with any partner, so its draws in (a, b) and (a, c) differ by the two
+    centres alone (the sag prior's sds are the same; to rounding). A module of another rig
+    keeps its own prior, and with the arms' centring off the draws are those of the module's
+    own prior and seed, as before linked modules were centred."""
+    from types import SimpleNamespace
+
+    import bayesrob.chain_prediction as cp
+    from bayesrob.chain_design import ChainModule, _log_stiffness, linked_priors
+
+    sags = {"a": 1.0, "b": 2.0, "c": 4.0}
+    monkeypatch.setattr(cp, "arm_sags", lambda rig, cal, arms: {x: sags[x] for x in arms})
+    rig = SimpleNamespace(robot=SimpleNamespace(measured_arms=lambda: ["a", "b", "c"]))
+
+    def prior() -> cp.StiffnessPrior:
+        return cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool),
+                                 cp.STIFFNESS_SOURCES[2])
+
+    def module(name: str, arm: str, rig_index: int = 0) -> ChainModule:
+        return ChainModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
+                                                           calibration=None),
+                           np.zeros(3), rig_index, "ind")
+
+    mods = {x: module(x, x) for x in "abc"}
+    ab, ac = linked_priors([mods["a"], mods["b"]]), linked_priors([mods["a"], mods["c"]])
+    assert ab[0].arm_centre == pytest.approx(0.5 * np.log(2.0))
+    assert ab[1].arm_centre == pytest.approx(-0.5 * np.log(2.0))
+    assert ac[0].arm_centre == pytest.approx(np.log(2.0))
+    assert all(p.source == cp.STIFFNESS_SOURCES[3] for p in ab + ac)
+    job = SimpleNamespace(cache={}, modules=mods, seed=5, draws=40)
+    with_b = np.asarray(_log_stiffness(job, ("a", "b"))[0])
+    with_c = np.asarray(_log_stiffness(job, ("a", "c"))[0])
+    np.testing.assert_allclose(with_b - ab[0].arm_centre, with_c - ac[0].arm_centre,
+                               atol=1e-12)
+
+    other = module("d", "b", rig_index=1)
+    assert linked_priors([mods["a"], other]) == [mods["a"].mods.stiffness["a"],
+                                                 other.mods.stiffness["b"]]
+    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
+    job = SimpleNamespace(cache={}, modules=mods, seed=5, draws=40)
+    plain = np.asarray(_log_stiffness(job, ("a", "b"))[0])
+    np.testing.assert_array_equal(plain, np.asarray(cp.stiffness_draws(
+        [prior()], jax.random.PRNGKey(5 * 104729), 40)[0]))
+
 def test_the_balance_puts_the_tracker_noise_back():
     """Two equally stiff arms with the same Jacobian: each weighs 1/2, so the balance of the
     free points keeps half the tracker's variance and sigma^2 (I - 2 (I/2)^2) = sigma^2 / 2
@@ -306,7 +353,7 @@ def test_design_command_on_chain_modules(rig_dir, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_linked_chain_modules_on_the_designers_report_rigs():
+def test_linked_chain_modules_on_the_designers_report_rigs(monkeypatch):
     """``bench_design.py --chain-proof --sag-report`` (about 3 minutes on two cores): six fresh
     rigs of two sagging 6-joint arms (seeds 331-336, fixed before their first run; nothing was
     chosen on them), each arm a module, predicted a priori at the 24 built linked targets of
@@ -316,9 +363,7 @@ def test_linked_chain_modules_on_the_designers_report_rigs():
     a quantile's edge can flip with the compiled programs' rounding). The linked q50 share,
     0.65, is not asserted against the binomial range: a rig's rows share one stiffness ratio
     (docs/design.md)."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import bench_design
 
     out = bench_design.chain_proof(seeds=bench_design.CHAIN_SAG_REPORT_SEEDS)

@@ -283,7 +283,6 @@ def test_linked_arms_prior_is_centred_on_their_fitted_sags(linked_modules, monke
     assert _same_priors(cp.sag_scaled_priors(rig, cal, prior), prior)
 
 
-
 @pytest.mark.slow
 def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_modules):
     """``bayesrob design`` fits each module's prior alone; linked, two modules that are the
@@ -336,6 +335,7 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     # the centres moved the draws: the sag-centred left arm is not the left arm alone
     alone = cp.stiffness_draws([own["left"]], jax.random.PRNGKey(3 * 104729), 50)[0]
     assert not np.allclose(np.asarray(ab[0]), np.asarray(alone))
+
 
 def _same_priors(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(
