@@ -176,7 +176,6 @@ def test_a_robot_pickles_without_its_compiled_programs(rig_dir):
     np.testing.assert_array_equal(np.asarray(copy.compiled_points("left")(x, u)), before)
 
 
-
 def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeypatch):
     """Stub modules of one rig with fixed sags (1, 2 and 4 mm; no calibration): linked, each
     arm's term is centred at the mean log sag less its own, and a module draws the same
@@ -222,6 +221,7 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     plain = np.asarray(_log_stiffness(job, ("a", "b"))[0])
     np.testing.assert_array_equal(plain, np.asarray(cp.stiffness_draws(
         [prior()], jax.random.PRNGKey(5 * 104729), 40)[0]))
+
 
 def test_the_balance_puts_the_tracker_noise_back():
     """Two equally stiff arms with the same Jacobian: each weighs 1/2, so the balance of the
