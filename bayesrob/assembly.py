@@ -302,7 +302,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
         None, time.perf_counter() - t0, draws)
     if fusion == "equilibrium" and len(members) > 1:
-        pred.stiffness = {a: _stiffness_summary(mods.stiffness[a]) for a in members}
+        pred.stiffness = {a: mods.stiffness[a].record() for a in members}
         pred.stiffness_note = stiffness_note(
             rig.robot, {a: mods.stiffness[a].source for a in members})
     return pred
@@ -324,20 +324,6 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
             "--masses description to read them from compliances fitted under those masses "
             "(each joint's own, where the prior gives the arms' profile; on the simulated "
             "report rigs that route met every coverage target: docs/fusion.md)")
-
-
-def _stiffness_summary(prior: Any) -> dict:
-    """What the balance drew an arm's joint stiffnesses from: medians (N mm/rad; relative to
-    the arm's first joint under the prior, whose scale is arbitrary), log sds and source;
-    under the prior, its arm term's centre (the arm's log scale against the other linked
-    arms') and sd."""
-    k = np.exp(prior.centre)
-    if np.any(prior.shared):
-        return {"from": prior.source, "relative": [float(v) for v in k / k[0]],
-                "log_sd": [float(v) for v in prior.sd], "arm_log_sd": prior.arm_term_sd(),
-                "arm_log_centre": float(prior.arm_centre)}
-    return {"from": prior.source, "nmm_per_rad": [float(v) for v in k],
-            "log_sd": [float(v) for v in prior.sd]}
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:

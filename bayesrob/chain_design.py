@@ -139,16 +139,21 @@ def chain_reach_table(modules: dict[str, ChainModule], mounts: np.ndarray, targe
     return out
 
 
+def _order(job: Any, name: str) -> int:
+    """A module's place in the inventory: its seeds derive from it, so a module draws the
+    same numbers in every candidate it is in (common random numbers)."""
+    return list(job.modules).index(name)
+
+
 def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
     """A placement's free-point draws (S, T, dim) in the world and its joint Jacobian
     (T, dim, n), drawn once per worker (``job.cache``) from seeds of its own."""
     key = ("placement", name, mount)
     if key not in job.cache:
         m: ChainModule = job.modules[name]
-        order = list(job.modules).index(name)
         u = job.reach[name, mount]
         xs = _rig_parameters(job, m)
-        k = jax.random.fold_in(jax.random.PRNGKey(job.seed), 1000 * order + mount)
+        k = jax.random.fold_in(jax.random.PRNGKey(job.seed), 1000 * _order(job, name) + mount)
         local = free_draws(m.mods, m.arm, u, xs, k)
         jac = joint_jacobian(m.mods.robot, jnp.asarray(m.mods.x), m.arm, jnp.asarray(u))
         world = local - m.base + np.asarray(job.mounts[mount], float)
@@ -198,12 +203,9 @@ def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
 
 def chain_stiffness_record(job: Any, names: Sequence[str]) -> list[dict[str, Any]]:
     """What a linked candidate's balance drew each module's joint stiffnesses from, in
-    ``names``' order, for ``design.json``: ``from`` (one of
-    ``chain_prediction.STIFFNESS_SOURCES``) and ``arm_log_centre`` (the module's log
-    stiffness scale against the others', 0 unless set by their fitted sags; written for every
-    source, where ``predict``'s JSON gives it only with the prior's arm term)."""
-    return [{"from": p.source, "arm_log_centre": float(p.arm_centre)}
-            for p in _candidate_priors(job, names)]
+    ``names``' order, for ``design.json``: the record ``predict``'s JSON gives per arm
+    (:meth:`chain_prediction.StiffnessPrior.record`)."""
+    return [p.record() for p in _candidate_priors(job, names)]
 
 
 def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
@@ -214,8 +216,8 @@ def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
     if key not in job.cache:
         priors = _candidate_priors(job, names)
         job.cache[key] = [
-            stiffness_draws([p], jax.random.PRNGKey(job.seed * 104729
-                                                    + list(job.modules).index(n)), job.draws)[0]
+            stiffness_draws([p], jax.random.PRNGKey(job.seed * 104729 + _order(job, n)),
+                            job.draws)[0]
             for n, p in zip(names, priors, strict=True)]
     return job.cache[key]
 

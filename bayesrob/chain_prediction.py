@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -168,6 +168,21 @@ class StiffnessPrior(NamedTuple):
         """The arm term's log sd: its own, else CHAIN_STIFFNESS_ARM_LOG_SD as it stands now
         (a sweep of priors sets it between draws)."""
         return CHAIN_STIFFNESS_ARM_LOG_SD if self.arm_sd is None else self.arm_sd
+
+    def record(self) -> dict[str, Any]:
+        """What the balance draws this arm's joint stiffnesses from, for a report (``predict``'s
+        JSON ``stiffness.<arm>``, ``design.json``'s ``stiffness[]``): ``from``, medians (N mm/rad;
+        ``relative`` to the arm's first joint under the prior, whose scale is arbitrary), log
+        sds, and ``arm_log_centre`` (the arm's log scale against the other linked arms', 0
+        unless their fitted sags set it); under the prior also the arm term's sd."""
+        k = np.exp(self.centre)
+        out: dict[str, Any] = {"from": self.source}
+        if np.any(self.shared):
+            out |= {"relative": [float(v) for v in k / k[0]],
+                    "log_sd": [float(v) for v in self.sd], "arm_log_sd": self.arm_term_sd()}
+        else:
+            out |= {"nmm_per_rad": [float(v) for v in k], "log_sd": [float(v) for v in self.sd]}
+        return out | {"arm_log_centre": float(self.arm_centre)}
 
 
 STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior",

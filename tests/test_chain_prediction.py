@@ -325,9 +325,11 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     assert all(_same_priors({"left": p}, {"left": own["left"]}) for p in twice)
 
     job = SimpleNamespace(cache={}, modules={"left": left, "right": right}, seed=3, draws=50)
+    # the record predict's JSON gives per arm, in the candidate's order
     assert chain_stiffness_record(job, ("right", "left")) == [
-        {"from": cp.STIFFNESS_SOURCES[3], "arm_log_centre": scaled[a].arm_centre}
-        for a in ("right", "left")]
+        scaled[a].record() for a in ("right", "left")]
+    assert [r["from"] for r in chain_stiffness_record(job, ("right", "left"))] == [
+        cp.STIFFNESS_SOURCES[3]] * 2
     ab = _log_stiffness(job, ("left", "right"))
     ba = _log_stiffness(job, ("right", "left"))
     np.testing.assert_array_equal(np.asarray(ab[0]), np.asarray(ba[1]))
@@ -510,30 +512,33 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
     assert abs(np.corrcoef(d[:, 0, 0], d[:, 0, 1])[0, 1]) < 0.03
 
 
-def test_stiffness_summary_names_where_the_balance_drew_from():
-    """``predict``'s JSON says where each linked arm's stiffnesses came from: the rig's
-    (N mm/rad, sd 0), compliances fitted under the URDF's masses (N mm/rad and log sds), or
-    the prior, whose scale is arbitrary (relative to the first joint, with its arm term)."""
-    from bayesrob.assembly import _stiffness_summary
+def test_stiffness_record_names_where_the_balance_drew_from():
+    """``predict``'s JSON and ``design.json`` say where each linked arm's stiffnesses came
+    from: the rig's (N mm/rad, sd 0), compliances fitted under the URDF's masses (N mm/rad and
+    log sds), or the prior, whose scale is arbitrary (relative to the first joint, with its
+    arm term); every record gives the arm's log scale against the others'."""
     from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD, STIFFNESS_SOURCES
 
     k = np.array([4e6, 2e6, 5e5])
-    rig = _stiffness_summary(StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool),
-                                            "the rig"))
+    rig = StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool), "the rig").record()
     assert rig["from"] == "the rig" and np.allclose(rig["nmm_per_rad"], k)
-    fit = _stiffness_summary(StiffnessPrior(np.log(k), np.full(3, 0.1), np.zeros(3, bool),
-                                            STIFFNESS_SOURCES[1]))
+    assert rig["log_sd"] == [0.0] * 3 and rig["arm_log_centre"] == 0.0
+    assert "relative" not in rig and "arm_log_sd" not in rig
+    fit = StiffnessPrior(np.log(k), np.full(3, 0.1), np.zeros(3, bool),
+                         STIFFNESS_SOURCES[1]).record()
     assert fit["from"].startswith("compliances fitted") and fit["log_sd"] == [0.1] * 3
-    prior = _stiffness_summary(StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5),
-                                              np.ones(3, bool), "the prior"))
+    prior = StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5), np.ones(3, bool),
+                           "the prior").record()
     assert prior["from"] == "the prior" and "nmm_per_rad" not in prior
     np.testing.assert_allclose(prior["relative"], [1.0, 1.0, 28 / 150])
     assert prior["arm_log_sd"] == CHAIN_STIFFNESS_ARM_LOG_SD
     assert prior["arm_log_centre"] == 0.0
-    scaled = _stiffness_summary(StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5),
-                                               np.ones(3, bool), STIFFNESS_SOURCES[3], -0.4))
+    scaled = StiffnessPrior(np.log([150.0, 150.0, 28.0]), np.full(3, 0.5), np.ones(3, bool),
+                            STIFFNESS_SOURCES[3], -0.4).record()
     assert scaled["from"].endswith("scaled by their fitted sags")
     assert scaled["arm_log_centre"] == -0.4
+    # the record is JSON as it stands
+    assert json.loads(json.dumps(scaled)) == scaled
 
 
 def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed):
