@@ -14,10 +14,11 @@ sag's part of the fast Jacobian written out (167 s with it uncontracted, 199 s w
 without the prior; 314 s while every selection fit started from the nominal robot, 284 s with
 three candidates); joint then lateral compliance, 10.97 -> 4.34 -> 3.21 mm. With
 ``--sag-steps 6`` (the ladder's steps with gravity at torque equilibrium where one is
-reached): 205 s by the command, after the default run (six-step programs compiled; 267 s
-with the sag's derivative uncontracted, 317 s with jacfwd, 445-457 s before the reverse-mode
-Jacobian); of the 267 s, 86 s was joint
-compliance's six-step fit, thrown away as off its fixed point; 10.97 -> 4.34 (one step) -> 3.08 mm.
+reached): 149 s from an empty compilation cache (``BAYESROB_CACHE_DIR`` set to a new
+directory), 10.97 -> 4.34 -> 3.08 mm; earlier 205 s by the command, after the default run
+(six-step programs compiled; 267 s with the sag's derivative uncontracted, 317 s with
+jacfwd, 445-457 s before the reverse-mode Jacobian); of the 267 s, 86 s was joint
+compliance's six-step fit, thrown away as off its fixed point (that step stays one step).
 """
 
 from __future__ import annotations
