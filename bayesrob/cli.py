@@ -681,7 +681,8 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", metavar="DIR", help="write the figures (PNG) into DIR")
     p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
                    help="comma-separated candidate effects to try (default: all registered: "
-                        "gravity_sag,backlash,servo_nonlinearity for planar rigs; "
+                        "gravity_sag (or joint_compliance),backlash,servo_nonlinearity for "
+                        "planar rigs; "
                         "joint_compliance,lateral_compliance,encoder_error,backlash for URDF/DH "
                         "chains, backlash tried once joint_compliance is named)")
     p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
@@ -699,6 +700,7 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                      "show the gap shrink")(_diagnose_args)
 def _diagnose(args: argparse.Namespace) -> int:
     from bayesrob.diagnosis import diagnose, format_diagnosis
+    from bayesrob.effects import resolve_effects
     from bayesrob.outputs import write_diagnosis_report
 
     rig = _load_rig_arg(args.rig, chains=True)
@@ -710,7 +712,11 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.sag_steps != 1:
         raise UsageError(f"--sag-steps is for URDF/DH rigs; {rig.name!r} is planar (its "
                          "gravity_sag takes the torques at the pose it sags into already)")
-    diag = diagnose(rig, args.effects, seed=args.seed, progress=_progress(args))
+    try:
+        effects = None if args.effects is None else resolve_effects(args.effects)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    diag = diagnose(rig, effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
         print(format_diagnosis(doc))

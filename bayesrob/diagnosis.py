@@ -859,10 +859,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     ``candidates``: effect names to try (default: every registered effect).
     """
     rule = rule or DecisionRule()
-    candidates = list(candidates if candidates is not None else fx.effect_names())
-    for c in candidates:
-        if c not in fx.REGISTRY:
-            raise ValueError(f"unknown effect {c!r}; known: {', '.join(fx.REGISTRY)}")
+    candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
     # Rounds are not known in advance; the total is the usual case (one step per effect).

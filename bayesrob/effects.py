@@ -33,6 +33,7 @@ cannot fit (which side of a sign change a point lies on); the fit profiles over 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cache
 from typing import ClassVar
@@ -185,8 +186,37 @@ def register(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
+# The chain effects' names that have a planar instance: the planar ``gravity_sag`` is joint
+# compliance on a two-link arm in a vertical plane (``tests/test_diagnosis.py`` checks it
+# deflects as the chain's compliance group does on ``kinematics.planar_chain``).
+ALIASES = {"joint_compliance": "gravity_sag"}
+# Chain effects with no planar instance, and why: what a planar rig can be asked instead.
+CHAIN_ONLY = {
+    "lateral_compliance": "gravity acts in the arm's plane, so it has no torque across the "
+                          "joints' axes to bend them",
+    "encoder_error": "a planar arm's angles come from its servo map, whose curve is "
+                     "servo_nonlinearity",
+}
+
+
 def effect_names() -> tuple[str, ...]:
     return tuple(REGISTRY)
+
+
+def resolve_effects(names: Sequence[str]) -> list[str]:
+    """Planar candidate effect names, aliases resolved and repeats dropped; a chain-only name
+    or an unknown one is a ``ValueError`` of one line saying what to ask for instead."""
+    out: list[str] = []
+    for n in names:
+        if n in CHAIN_ONLY:
+            raise ValueError(f"effect {n!r} is for URDF/DH chains: {CHAIN_ONLY[n]} (planar "
+                             f"rigs: {', '.join(REGISTRY)}; joint_compliance is gravity_sag)")
+        n = ALIASES.get(n, n)
+        if n not in REGISTRY:
+            raise ValueError(f"unknown effect {n!r}; known: {', '.join(REGISTRY)}")
+        if n not in out:
+            out.append(n)
+    return out
 
 
 def make_effect(name: str, ctx: EffectContext) -> Effect:

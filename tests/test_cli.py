@@ -125,6 +125,9 @@ BAD_ARGUMENTS = {
     "unknown-effect": (["simulate", "{out}", "--effects", "gravity_sag,wobble"],
                        "unknown effect 'wobble'"),
     "grid-1": (["simulate", "{out}", "--grid", "1"], "at least 2"),
+    # a chain effect with no planar instance, asked of a planar rig
+    "lateral-planar": (["diagnose", "{rig}", "--effects", "gravity_sag,lateral_compliance"],
+                       "'lateral_compliance' is for URDF/DH chains"),
     "unknown-method": (["calibrate", "{rig}", "--method", "newton"], "invalid choice: 'newton'"),
     "sag-steps-0": (["calibrate", "{rig}", "--sag-steps", "0"], "must be at least 1, got 0"),
     "sag-steps-planar": (["calibrate", "{rig}", "--sag-steps", "3"],

@@ -30,6 +30,7 @@ from bayesrob.diagnosis import (
     neighbour_pairs,
     workspace_regions,
 )
+from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import default_rig_dir, load_rig
 
 CONTRACT_KEYS = {"effects", "steps", "baseline_heldout_error_mm", "final_heldout_error_mm"}
@@ -81,6 +82,52 @@ def test_gravity_sag_magnitude_is_the_sag_of_a_straight_level_arm():
     assert rep["values"]["sag_full_reach_mm"]["value"] == pytest.approx(350 * 0.012 + 150 * 0.004)
     assert rep["values"]["sag_full_reach_mm"]["se"] > 0
     assert "sag at full reach" in rep["text"]
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_gravity_sag_is_joint_compliance_on_the_planar_chain(steps):
+    """The planar ``gravity_sag`` is the chain effect ``joint_compliance`` on a two-link arm in
+    a vertical plane: links with their masses along them (first moments h1, h2; the forearm's
+    mass m2 also at the elbow's lever L1 from the shoulder) and joint compliances k1, k2 (rad
+    per N mm) give c11 = k1 g (h1 + m2 L1), c12 = k1 g h2, c22 = k2 g h2, and the chain's
+    compliance group on ``kinematics.planar_chain`` then deflects every pose as the planar
+    effect does. ``steps``: the planar effect's torque iterations against the chain's
+    ``sag_steps`` (one step each; and the planar default, three). Tolerance 1e-12 rad: the
+    same arithmetic in another order."""
+    params = kin.ArmParams.from_vector(jnp.array([20.0, -10.0, 180.0, 150.0, 1.2e-3, -1.1e-3,
+                                                  -1.9, 2.4]))
+    m1, m2, a1, a2 = 0.4, 0.25, 90.0, 70.0  # kg, mm (centres of mass along the links)
+    k1, k2 = 2e-5, 3e-5  # soft: deflections of 0.01-0.03 rad, where the iteration matters
+    chain = kin.planar_chain("arm", params)
+    robot = kin.Robot({"arm": chain}, dim=2, gravity=np.array([0.0, -1.0, 0.0]),
+                      sag_steps=steps)
+    x = robot.layout.nominal.copy()
+    x[robot.layout.slices["arm", "compliance"]] = [k1, k2]
+    x[robot.layout.slices["arm", "links"]] = [m1, m1 * a1, 0, 0, m2, m2 * a2, 0, 0]
+    g = G_N_PER_KG
+    c = jnp.array([k1 * g * (m1 * a1 + m2 * params.links[0]), k1 * g * m2 * a2,
+                   k2 * g * m2 * a2])
+    u = np.stack(np.meshgrid(np.linspace(700, 2300, 7), np.linspace(800, 2200, 7)),
+                 -1).reshape(-1, 2)
+    theta = kin.servo(params, jnp.asarray(u))
+    sag = fx.GravitySag(_ctx())
+    planar = sag.apply(params, c, jnp.asarray(u), theta) if steps == sag.ITERATIONS else \
+        theta + sag._deflection(c, theta)
+    defl = np.asarray(robot.deflections(jnp.asarray(x), "arm", jnp.asarray(u)))
+    assert np.abs(defl).max() > 0.01 and np.all(defl[:, 2] == 0)  # the tool has no joint
+    np.testing.assert_allclose(defl[:, :2], np.asarray(planar - theta), atol=1e-12)
+    # the name of the chain effect is accepted for a planar rig, as its planar instance
+    assert fx.resolve_effects(["joint_compliance", "gravity_sag"]) == ["gravity_sag"]
+
+
+def test_chain_only_effects_are_a_one_line_error_for_planar_rigs():
+    for name, why in (("lateral_compliance", "no torque across"),
+                      ("encoder_error", "servo_nonlinearity")):
+        with pytest.raises(ValueError, match=why) as err:
+            fx.resolve_effects(["backlash", name])
+        assert len(str(err.value).splitlines()) == 1
+    with pytest.raises(ValueError, match="unknown effect 'droop'"):
+        fx.resolve_effects(["droop"])
 
 
 def test_backlash_keeps_one_setting_per_sign_pattern():
