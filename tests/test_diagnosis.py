@@ -120,6 +120,42 @@ def test_gravity_sag_is_joint_compliance_on_the_planar_chain(steps):
     assert fx.resolve_effects(["joint_compliance", "gravity_sag"]) == ["gravity_sag"]
 
 
+def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
+    """The planar ``backlash`` with mass position rho = c12 / (c11 + c12) takes, away from
+    where a torque changes sign, the side the chains' play takes on ``kinematics.planar_chain``
+    (its fitted deflection's side): the same half play on the same side. Only the smoothing
+    near the sign change differs (planar: 0.05 of the lever signature; chain: 1e-4 rad of
+    deflection), so poses within that of the line are left out. Tolerance 1e-9 rad: both
+    steps are saturated there to better than that."""
+    # the shoulder swings through the vertical, so both joints' torques change sign
+    params = kin.ArmParams.from_vector(jnp.array([20.0, -10.0, 180.0, 150.0, 1.2e-3, -1.1e-3,
+                                                  -0.3, 2.4]))
+    m1, m2, a1, a2, k1, k2 = 0.4, 0.25, 90.0, 70.0, 2e-5, 3e-5
+    play = np.array([0.004, 0.006])
+    robot = kin.Robot({"arm": kin.planar_chain("arm", params)}, dim=2,
+                      gravity=np.array([0.0, -1.0, 0.0]))
+    x = robot.layout.nominal.copy()
+    x[robot.layout.slices["arm", "compliance"]] = [k1, k2]
+    x[robot.layout.slices["arm", "links"]] = [m1, m1 * a1, 0, 0, m2, m2 * a2, 0, 0]
+    with_play = x.copy()
+    with_play[robot.layout.slices["arm", "backlash"]] = play
+    u = np.stack(np.meshgrid(np.linspace(600, 2400, 13), np.linspace(600, 2400, 13)),
+                 -1).reshape(-1, 2)
+    chain_side = np.asarray(robot.deflections(jnp.asarray(with_play), "arm", jnp.asarray(u))
+                            - robot.deflections(jnp.asarray(x), "arm", jnp.asarray(u)))[:, :2]
+    c11, c12 = m1 * a1 + m2 * params.links[0], m2 * a2  # x k1 g, which cancels in rho
+    eff = fx.Backlash(_ctx(), jnp.array([c12 / (c11 + c12)]))
+    theta = kin.servo(params, jnp.asarray(u))
+    planar_side = np.asarray(eff.apply(params, jnp.asarray(play), jnp.asarray(u), theta)
+                             - theta)
+    s1, s12 = (np.asarray(v) for v in fx.lever_signatures(theta, (0.0, -1.0)))
+    rho = float(c12 / (c11 + c12))
+    clear = (np.abs((1 - rho) * s1 + rho * s12) > 0.4) & (np.abs(s12) > 0.4)
+    assert clear.sum() >= 40
+    assert all({-1.0, 1.0} <= set(np.sign(planar_side[clear, j])) for j in (0, 1))
+    np.testing.assert_allclose(chain_side[clear], planar_side[clear], atol=1e-9)
+
+
 def test_chain_only_effects_are_a_one_line_error_for_planar_rigs():
     for name, why in (("lateral_compliance", "no torque across"),
                       ("encoder_error", "servo_nonlinearity")):
