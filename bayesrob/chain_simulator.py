@@ -11,7 +11,8 @@ drawn at different random poses. The planar paper rigs come from :mod:`bayesrob.
 :func:`simulate_linked_chain_rig` writes a rig of two such arms facing each other, with
 single-arm rows for each and ``left+right`` rows where their markers are joined at one point:
 the arms settle at the exact minimum of their summed spring and gravity energy with the
-markers together (:func:`linked_equilibrium`).
+markers together (:func:`linked_equilibrium`). :func:`three_linked_chain_truth` adds a third
+arm (``front``) and joins all three.
 """
 
 from __future__ import annotations
@@ -259,6 +260,12 @@ def load_true_params(rig_dir: str | Path) -> dict[str, float]:
 # prediction code under test balances linearised stiffnesses, so the simulator must not.
 
 LINKED_ARMS = ("left", "right")
+# A third arm for assemblies of three: facing the targets from the side (its base 450 mm from
+# the box's middle line, turned a quarter turn), so the box lies where it lies for the left
+# arm in the arm's own frame; stiffer than the right arm, softer than the left.
+THIRD_ARM = "front"
+THIRD_ARM_INSTRUMENT = (450.0, -450.0, 0.0, 0.0, 0.0, np.pi / 2)
+THIRD_ARM_STIFFNESS_SCALE = 0.8
 GRAVITY = (0.0, 0.0, -1.0)  # unit gravity in the instrument frame
 
 
@@ -275,13 +282,15 @@ def _left_stiffness() -> tuple[float, ...]:
 class LinkedChainTruth(_ArmErrors):
     """What a simulated rig of two linked arm6 arms really is (written to truth.toml).
 
-    Per-arm settings are tables keyed by arm name (``left``, ``right``); everything else is
+    Per-arm settings are tables keyed by arm name (``left``, ``right``; ``arms`` names the
+    arms, in order: :func:`three_linked_chain_truth` adds ``front``); everything else is
     shared. ``true_params`` holds both arms' parameters under their full names
     (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
     :func:`simulate_linked_chain_rig`).
     """
 
     n_linked: int = 24
+    arms: tuple[str, ...] = LINKED_ARMS
     # Bases 900 mm apart on the x axis, facing each other (the right one turned half a turn).
     instrument_nominal: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
         "left": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), "right": (900.0, 0.0, 0.0, 0.0, 0.0, np.pi)})
@@ -307,6 +316,20 @@ class LinkedChainTruth(_ArmErrors):
     calibration_groups: tuple[str, ...] = ("frames", "offsets", "geometric")
     true_params: dict = field(default_factory=dict)
     linked_rows: dict = field(default_factory=dict)
+
+
+def three_linked_chain_truth(**kwargs) -> LinkedChainTruth:
+    """Three arm6 arms joined at one point: ``left`` and ``right`` as in
+    :class:`LinkedChainTruth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
+    side; ``kwargs`` as the class takes them. Its stiffness profile is the left arm's times
+    :data:`THIRD_ARM_STIFFNESS_SCALE`, drawn about per seed as the others are."""
+    base = LinkedChainTruth()
+    instrument = {**base.instrument_nominal, THIRD_ARM: THIRD_ARM_INSTRUMENT}
+    stiffness = {**base.stiffness_nmm_per_rad,
+                 THIRD_ARM: tuple(THIRD_ARM_STIFFNESS_SCALE * k for k in _left_stiffness())}
+    return LinkedChainTruth(**{"arms": (*LINKED_ARMS, THIRD_ARM),
+                               "instrument_nominal": instrument,
+                               "stiffness_nmm_per_rad": stiffness, **kwargs})
 
 
 @dataclass
@@ -580,10 +603,11 @@ def _arm_table(name: str, marker: Sequence[float], instrument: Sequence[float]) 
 
 
 def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
-             commands: Mapping[str, np.ndarray], point: np.ndarray) -> str:
+             commands: Mapping[str, np.ndarray], point: np.ndarray,
+             arms: Sequence[str] = LINKED_ARMS) -> str:
     cells = [config, set_name]
     cells += [f"{v:.4f}" for v in target] if target is not None else ["", "", ""]
-    for a in LINKED_ARMS:
+    for a in arms:
         cells += [f"{v:.10g}" for v in commands[a]] if a in commands else [""] * 6
     return ",".join(cells + [f"{v:.4f}" for v in point])
 
@@ -606,18 +630,18 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
     box = np.asarray(truth.target_box_mm, float)
     targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
     commands = {}
-    for arm in LINKED_ARMS:
+    for arm in truth.arms:
         u_train, p_train = rig.chain_rows(arm, "train")
         nearest = np.argsort(np.linalg.norm(p_train[None] - targets[:, None], axis=2), axis=1)
         u = position_ik(cal.robot, cal.x, arm, targets, u_train[nearest])
         # Ten significant digits, as written: the springs hold what the file says.
         commands[arm] = np.array([[float(f"{v:.10g}") for v in row] for row in u])
     u0 = {a: commands[a] + rng.normal(0, truth.joint_noise_rad, commands[a].shape)
-          for a in LINKED_ARMS}
+          for a in truth.arms}
     eq = linked_equilibrium(
         rig.robot, x_true, u0,
-        {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS},
-        {a: np.asarray(truth.drawn_masses_kg[a], float) for a in LINKED_ARMS}
+        {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in truth.arms},
+        {a: np.asarray(truth.drawn_masses_kg[a], float) for a in truth.arms}
         if truth.compliance else None,
         GRAVITY if truth.compliance else None)
     return targets, commands, u0, eq
@@ -627,7 +651,7 @@ def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
     """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
     scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
     drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
-                                          for a in LINKED_ARMS}, truth.stiffness_log_sd)
+                                          for a in truth.arms}, truth.stiffness_log_sd)
     return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
 
 
@@ -639,39 +663,40 @@ def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
     scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
     rng = np.random.default_rng([truth.seed, MASS_STREAM])
     m = np.asarray(truth.masses_kg, float)
-    return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in LINKED_ARMS}
+    return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in truth.arms}
 
 
 def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
-    """Write a rig of two arm6 arms, ``left`` and ``right``, into out_dir: rig.toml, arm6.urdf
-    (nominal), measurements.csv and truth.toml.
+    """Write a rig of two arm6 arms, ``left`` and ``right`` (or ``truth.arms``), into out_dir:
+    rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml.
 
     Each arm has single-arm train, validation and holdout rows at random poses (as
     :func:`simulate_chain_rig`, with its own true geometry, noise and compliance). Then each
     arm is calibrated on its train rows (``truth.calibration_groups``) and the ``left+right``
-    test rows aim both arms at random targets in ``truth.target_box_mm`` through their
-    calibrated models (position-only inverse kinematics); their observed point is where the
-    joined markers really settle (:func:`linked_equilibrium`), plus measurement noise.
+    (``+``-joined ``truth.arms``) test rows aim every arm at random targets in
+    ``truth.target_box_mm`` through their calibrated models (position-only inverse
+    kinematics); their observed point is where the joined markers really settle
+    (:func:`linked_equilibrium`), plus measurement noise.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(truth.seed)
     chains = {a: urdf_chain(arm6_urdf_path(), "base_link", "tool0", a,
                             marker=truth.marker_nominal_mm,
-                            instrument=truth.instrument_nominal[a]) for a in LINKED_ARMS}
+                            instrument=truth.instrument_nominal[a]) for a in truth.arms}
     robot = Robot(chains, 3)
     x_true = _true_vector(robot, truth, rng)
     masses = drawn_masses(truth)
     # a copy: the caller's truth stays the profile, so simulating it again draws the same
     truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth),
                     drawn_masses_kg={a: m.tolist() for a, m in masses.items()})
-    stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in LINKED_ARMS}
+    stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in truth.arms}
     lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
-                       *[f"{a}_u{k + 1}" for a in LINKED_ARMS for k in range(6)],
+                       *[f"{a}_u{k + 1}" for a in truth.arms for k in range(6)],
                        "x", "y", "z"])]
     sets = [(s, n) for s, n in (("train", truth.n_train), ("validation", truth.n_validation),
                                 ("holdout", truth.n_holdout)) if n]
-    for arm in LINKED_ARMS:
+    for arm in truth.arms:
         q_cmd = _poses(rng, sum(n for _, n in sets))
         q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
         if truth.compliance:
@@ -683,12 +708,12 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
         p = np.asarray(robot.marker_points(jnp.asarray(x_true), arm, jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         names = [s for s, n in sets for _ in range(n)]
-        lines += [_fmt_row(arm, s, None, {arm: qc}, pc)
+        lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
                   for s, qc, pc in zip(names, q_cmd, p, strict=True)]
     shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
     rig_doc = {"name": f"arm6-linked-seed{truth.seed}", "gravity": list(GRAVITY),
                "arms": {a: _arm_table(a, truth.marker_nominal_mm, truth.instrument_nominal[a])
-                        for a in LINKED_ARMS}}
+                        for a in truth.arms}}
     (out / "rig.toml").write_text(dump_toml(rig_doc))
     (out / "measurements.csv").write_text("\n".join(lines) + "\n")
 
@@ -700,16 +725,16 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
             targets, commands, u0, eq = _aim_and_settle(out, robot, x_true, truth, rng)
         observed = eq.point + rng.normal(0, truth.measurement_noise_mm, eq.point.shape)
         first_line = len(lines) + 1
-        lines += [_fmt_row("+".join(LINKED_ARMS), "test", t,
-                           {a: commands[a][i] for a in LINKED_ARMS}, o)
+        lines += [_fmt_row("+".join(truth.arms), "test", t,
+                           {a: commands[a][i] for a in truth.arms}, o, truth.arms)
                   for i, (t, o) in enumerate(zip(targets, observed, strict=True))]
         (out / "measurements.csv").write_text("\n".join(lines) + "\n")
         linked = {
             "line": list(range(first_line, first_line + truth.n_linked)),
             "target": targets.tolist(),
             "point": eq.point.tolist(),
-            **{f"free_{a}": eq.free_points[a].tolist() for a in LINKED_ARMS},
-            **{f"u0_{a}": u0[a].tolist() for a in LINKED_ARMS},
+            **{f"free_{a}": eq.free_points[a].tolist() for a in truth.arms},
+            **{f"u0_{a}": u0[a].tolist() for a in truth.arms},
             "max_violation_mm": float(eq.violation_mm.max()),
         }
     truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,

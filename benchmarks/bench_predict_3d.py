@@ -9,6 +9,7 @@
     python benchmarks/bench_predict_3d.py --coverage tuning --many-rigs [--variants]
     python benchmarks/bench_predict_3d.py --coverage tuning [--many-rigs] --sag-variants
     python benchmarks/bench_predict_3d.py --coverage report --many-rigs --sag-report
+    python benchmarks/bench_predict_3d.py --coverage tuning|report --three-arms
 
 Prints one JSON line: the whole ``predict_assembly`` warm (calibration, both arms' latent
 joint-error fits by NUTS, aiming, 4000 draws per target, regions), and its prediction step alone
@@ -38,6 +39,12 @@ tuning`` it runs the twelve tuning rigs MANY_TUNING_SEEDS; ``--rechosen`` report
 chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS, and ``--sag-report``
 the prior whose arm term is centred on the arms' fitted sags
 (``chain_prediction.sag_scaled_priors``) on MANY_SAG_REPORT_SEEDS.
+
+``--three-arms`` runs the same study on three arms joined at one point (left and right as
+above, and a third, front, facing the targets from the side:
+``chain_simulator.three_linked_chain_truth``), MANY_LINKED points per rig, with the prior
+``predict`` uses as it stands: THREE_TUNING_SEEDS checked that it runs, THREE_REPORT_SEEDS
+(fixed before any of them ran) report it.
 """
 
 from __future__ import annotations
@@ -75,6 +82,12 @@ MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
 # arm by arm), so they cannot report it.
 MANY_SAG_REPORT_SEEDS = tuple(range(311, 323))
 MANY_LINKED = 8
+# Three arms joined at one point (``chain_simulator.three_linked_chain_truth``: left, right and
+# front), predicted with the prior ``predict`` uses, chosen on the two-arm tuning rigs; nothing
+# is chosen on these. THREE_TUNING_SEEDS only checked that the study runs (its figures are
+# printed, not published); THREE_REPORT_SEEDS were fixed before any of them ran.
+THREE_TUNING_SEEDS = (901, 902, 903, 904, 905, 906)
+THREE_REPORT_SEEDS = tuple(range(341, 353))
 GROUPS = ("frames", "offsets", "geometric", "compliance")
 # (centre, per-joint log sd, arm term's centre, arm term's log sd), as chosen_prior() names them
 VARIANTS = [(c, j, "equal", a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
@@ -88,31 +101,36 @@ SAG_VARIANTS = [("effort", 0.5, "equal", 0.25)] + [
 
 
 def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
-            sag_steps: int = 1, n_linked: int | None = None):
+            sag_steps: int = 1, n_linked: int | None = None, three: bool = False):
     """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
     second sweep of priors skips the fits (the fits do not depend on the prior). ``masses``:
     the calibration's (fitted, or held at the description's); ``mass_log_sd``: how far each
     simulated arm's true link masses stray from the description's; ``sag_steps``: the
     calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
-    simulator's default)."""
+    simulator's default); ``three``: three arms joined (left, right and front)."""
     import pickle
 
     import bayesrob.chain_prediction as cp
-    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.chain_simulator import (
+        LinkedChainTruth,
+        simulate_linked_chain_rig,
+        three_linked_chain_truth,
+    )
     from bayesrob.rig import load_rig
 
     if n_linked is None:
         n_linked = LinkedChainTruth.n_linked
     # rigs of the default size keep the names their caches were written under
     linked = "" if n_linked == LinkedChainTruth.n_linked else f"-linked{n_linked}"
-    tag = f"{seed}-{masses}-{mass_log_sd:g}{linked}"
+    tag = f"{'three-' if three else ''}{seed}-{masses}-{mass_log_sd:g}{linked}"
     rig_dir = where / f"rig-{tag}"
     kept = where / f"modules-{tag}{'' if sag_steps == 1 else f'-steps{sag_steps}'}.pkl"
     if kept.is_file():
         return load_rig(rig_dir), pickle.loads(kept.read_bytes())
-    rig = load_rig(simulate_linked_chain_rig(rig_dir, LinkedChainTruth(
-        seed=seed, mass_log_sd=mass_log_sd, n_linked=n_linked)))
-    mods = cp.fit_chain_modules(rig, ["left", "right"], "ind", groups=GROUPS, seed=seed,
+    truth = (three_linked_chain_truth if three else LinkedChainTruth)(
+        seed=seed, mass_log_sd=mass_log_sd, n_linked=n_linked)
+    rig = load_rig(simulate_linked_chain_rig(rig_dir, truth))
+    mods = cp.fit_chain_modules(rig, list(truth.arms), "ind", groups=GROUPS, seed=seed,
                                 masses=masses, sag_steps=sag_steps)
     kept.write_bytes(pickle.dumps(mods))
     return rig, mods
@@ -156,7 +174,7 @@ def _prior(centre: str, joint_sd: float, arm_centre: str, arm_sd: float) -> Iter
 
 def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float]],
              cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
-             sag_steps: int = 1, n_linked: int | None = None) -> dict:
+             sag_steps: int = 1, n_linked: int | None = None, three: bool = False) -> dict:
     import jax
 
     import bayesrob.chain_prediction as cp
@@ -166,18 +184,18 @@ def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float
         where = cache if cache is not None else Path(tmp)
         where.mkdir(parents=True, exist_ok=True)
         for seed in seeds:
-            rig, mods = _fitted(seed, where, masses, mass_log_sd, sag_steps, n_linked)
-            m = rig.measurements.mask("left+right", "test")
-            commands = [rig.measurements.commands[a][m] for a in ("left", "right")]
+            rig, mods = _fitted(seed, where, masses, mass_log_sd, sag_steps, n_linked, three)
+            arms = rig.robot.measured_arms()
+            m = rig.measurements.mask("+".join(arms), "test")
+            commands = [rig.measurements.commands[a][m] for a in arms]
             seen, target = rig.measurements.observed[m], rig.measurements.target[m]
             obs = np.linalg.norm(seen - target, axis=1)
             row: dict = {"seed": seed}
             for variant in variants:
                 # the prior is read when the stiffnesses are set and again when drawn
                 with _prior(*variant):
-                    mods.stiffness = cp.stiffness_priors(rig, ["left", "right"],
-                                                         mods.calibration)
-                    draws = cp.chain_draws(mods, ["left", "right"], commands, seed=seed)
+                    mods.stiffness = cp.stiffness_priors(rig, arms, mods.calibration)
+                    draws = cp.chain_draws(mods, arms, commands, seed=seed)
                 level = cp.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
                 p = pooled[variant]
@@ -228,6 +246,10 @@ def main() -> None:
     p.add_argument("--sag-variants", action="store_true",
                    help="with --coverage: every prior in SAG_VARIANTS (the arm term centred "
                         "on the arms' fitted sags)")
+    p.add_argument("--three-arms", action="store_true",
+                   help="with --coverage: three arms joined at one point (left, right, front), "
+                        f"{MANY_LINKED} linked points per rig, with the chosen prior "
+                        "(THREE_TUNING_SEEDS or THREE_REPORT_SEEDS)")
     p.add_argument("--sag-report", action="store_true",
                    help="with --coverage report --many-rigs: the rigs that report the arm "
                         "term centred on the arms' fitted sags")
@@ -243,6 +265,17 @@ def main() -> None:
                 "description")
     if args.variants and args.sag_variants:
         p.error("give --variants or --sag-variants, not both")
+    if args.three_arms and (not args.coverage or args.many_rigs or args.rechosen
+                            or args.sag_report or args.variants or args.sag_variants
+                            or args.masses == "description"):
+        p.error("--three-arms takes --coverage tuning|report (and --cache) only: it reports "
+                "the chosen prior")
+    if args.three_arms:
+        seeds = THREE_TUNING_SEEDS if args.coverage == "tuning" else THREE_REPORT_SEEDS
+        print(json.dumps(coverage(seeds, [chosen_prior()],
+                                  Path(args.cache) if args.cache else None,
+                                  n_linked=MANY_LINKED, three=True)))
+        return
     if args.coverage:
         described = args.masses == "description"
         if args.many_rigs and args.coverage == "tuning":
