@@ -155,6 +155,10 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="arm6: two arms (left, right) facing each other, single-arm rows for "
                         "each (--poses per arm) and 24 left+right test rows with their markers "
                         "joined at one point")
+    p.add_argument("--third-arm", action="store_true",
+                   help="arm6 --linked: a third arm (front) facing the targets from the side, "
+                        "its single-arm rows beside the others' and the test rows joining all "
+                        "three (left+right+front)")
     p.add_argument("--stiffness-spread", type=_non_negative_float, default=None,
                    metavar="LOG_SD",
                    help="draw each arm's joint stiffnesses for the seed: log k = log(profile) "
@@ -193,6 +197,8 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     if args.effects or args.grid != 4:
         raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
                          "--compliance and --poses")
+    if args.third_arm and not args.linked:
+        raise UsageError("--third-arm joins a third arm to arm6 --linked; add --linked")
     if args.linked:
         if args.play_mrad is not None:
             raise UsageError("--play-mrad is for a single arm6 (the linked arms have none)")
@@ -220,9 +226,10 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
         LinkedChainTruth,
         LinkedSimulationError,
         simulate_linked_chain_rig,
+        three_linked_chain_truth,
     )
 
-    truth = LinkedChainTruth(seed=args.seed)
+    truth = (three_linked_chain_truth if args.third_arm else LinkedChainTruth)(seed=args.seed)
     if args.stiffness_spread is not None:
         truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
     if args.mass_spread is not None:
@@ -238,7 +245,7 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
-    print(f"wrote {out}/ (arm6 left+right, {truth.n_train}/{truth.n_validation}/"
+    print(f"wrote {out}/ (arm6 {'+'.join(truth.arms)}, {truth.n_train}/{truth.n_validation}/"
           f"{truth.n_holdout} train/validation/holdout poses per arm, {truth.n_linked} linked "
           f"test rows, compliance {'on' if truth.compliance else 'off'}, seed {args.seed}): "
           "measurements.csv, rig.toml, arm6.urdf, truth.toml")
@@ -278,8 +285,10 @@ def _simulate(args: argparse.Namespace) -> int:
                          "--force to overwrite, or choose another directory)")
     if args.robot == "arm6":
         return _simulate_chain(args, out_dir, existing)
-    if args.compliance is not None or args.poses or args.linked or args.play_mrad is not None:
-        raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6")
+    if (args.compliance is not None or args.poses or args.linked or args.third_arm
+            or args.play_mrad is not None):
+        raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6 "
+                         "(--third-arm for arm6 --linked)")
     if args.mass_spread is not None:
         raise UsageError("--mass-spread is for arm6 --linked")
     make = three_arm_truth if args.robot == "three-arm" else paper_truth

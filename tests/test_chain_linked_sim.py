@@ -33,6 +33,7 @@ from bayesrob.chain_simulator import (
     load_true_params,
     position_ik,
     simulate_linked_chain_rig,
+    three_linked_chain_truth,
 )
 from bayesrob.cli import main
 from bayesrob.rig import MEASUREMENTS_FILE, RigError, load_rig
@@ -342,6 +343,48 @@ def test_simulate_linked_on_the_command_line(tmp_path, capsys):
     rig = load_rig(out)
     assert (rig.measurements.config == "left+right").sum() == 24
     assert load_linked_truth(out)["seed"] == 4
+
+
+def test_three_arms_joined_at_one_point_on_the_command_line(tmp_path, capsys):
+    """``simulate --robot arm6 --linked --third-arm``: a front arm beside left and right, each
+    with single-arm rows, and test rows where all three markers settle at one point (the
+    simulator's solve leaves them at most 1e-6 mm apart, or it fails); the front arm's
+    stiffnesses are the left profile's times THIRD_ARM_STIFFNESS_SCALE, drawn about per seed
+    like the others', and the left and right arms draw what a two-arm rig of the seed draws."""
+    from bayesrob.chain_simulator import THIRD_ARM, THIRD_ARM_STIFFNESS_SCALE, drawn_stiffness
+
+    out = tmp_path / "r"
+    assert main(["simulate", str(out), "--robot", "arm6", "--linked", "--third-arm",
+                 "--poses", "30", "4", "4", "--seed", "5"]) == 0
+    assert "arm6 left+right+front" in capsys.readouterr().out
+    rig = load_rig(out)
+    assert rig.robot.measured_arms() == [*LINKED_ARMS, THIRD_ARM]
+    assert (rig.measurements.config == "left+right+front").sum() == 24
+    for arm in rig.robot.measured_arms():
+        assert (rig.measurements.config == arm).sum() == 38
+    table = load_linked_truth(out)
+    assert table["arms"] == ["left", "right", "front"]
+    assert table["linked_rows"]["max_violation_mm"] <= 1e-6
+    # the joined point is not any one arm's own: each free point lies off it
+    point = np.array(table["linked_rows"]["point"])
+    for a in table["arms"]:
+        assert np.linalg.norm(np.array(table["linked_rows"][f"free_{a}"]) - point,
+                              axis=1).mean() > 0.1
+    truth = three_linked_chain_truth(seed=5)
+    profile = np.array(truth.stiffness_nmm_per_rad[THIRD_ARM])
+    np.testing.assert_allclose(profile / np.array(truth.stiffness_nmm_per_rad["left"]),
+                               THIRD_ARM_STIFFNESS_SCALE)
+    assert table["stiffness_nmm_per_rad"]["front"] == list(drawn_stiffness(truth)["front"])
+    # the left and right arms draw what a two-arm rig of the seed draws
+    two = drawn_stiffness(LinkedChainTruth(seed=5))
+    assert all(table["stiffness_nmm_per_rad"][a] == list(two[a]) for a in LINKED_ARMS)
+
+
+def test_third_arm_needs_linked(tmp_path, capsys):
+    assert main(["simulate", str(tmp_path / "r"), "--robot", "arm6", "--third-arm"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--third-arm joins a third arm" in err, err
+    assert not (tmp_path / "r").exists()
 
 
 def test_each_seed_draws_its_arms_stiffnesses():
