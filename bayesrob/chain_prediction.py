@@ -58,6 +58,8 @@ __all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
+# Train poses (nearest first) an aim may start from while its solution leaves the train range
+AIM_SEEDS = 8
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
 # call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
@@ -318,15 +320,44 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     """Columns (T, c) putting ``arm``'s marker on each target under the calibrated model.
 
     Damped minimum-norm Gauss-Newton steps from the train pose whose observed point is
-    nearest, so the redundant arm stays on the branch of poses it was calibrated on. A target
-    it does not reach within IK_TOL_MM is refused with one line.
+    nearest, so the redundant arm stays on the branch of poses it was calibrated on. Where
+    that lands outside the range of the train commands (a column beyond its train minimum or
+    maximum: another branch, where the calibration extrapolates), the next nearest train
+    poses are tried in turn, up to AIM_SEEDS, and the first solution inside the range is
+    taken, else the one least beyond it. A target it does not reach within IK_TOL_MM from
+    any of them is refused with one line.
     """
     targets = np.atleast_2d(np.asarray(targets, float))
     u_train, d_train = rig.chain_rows(arm, "train")
-    nearest = np.argmin(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
-    u = u_train[nearest].copy()
+    lo, hi = u_train.min(axis=0), u_train.max(axis=0)
+    order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
     f = _column_jacobian(robot, arm)
     xj = jnp.asarray(x)
+    best = np.zeros((len(targets), u_train.shape[1]))
+    best_beyond = np.full(len(targets), np.inf)
+    best_miss = np.full(len(targets), np.inf)
+    for k in range(min(AIM_SEEDS, order.shape[1])):
+        u, miss = _aim_from(f, xj, targets, u_train[order[:, k]].copy())
+        beyond = np.where(miss < IK_TOL_MM, (np.maximum(lo - u, 0.0)
+                                             + np.maximum(u - hi, 0.0)).sum(axis=1), np.inf)
+        # a later seed replaces a solution only where it is strictly further inside the range
+        # (or the first to reach the target): where the nearest seed's is inside, it stays
+        better = (beyond < best_beyond) | (np.isinf(best_beyond) & (miss < best_miss))
+        best[better], best_beyond[better], best_miss[better] = u[better], beyond[better], \
+            miss[better]
+        if np.all(best_beyond == 0.0):
+            break
+    for t, m in zip(targets, best_miss, strict=True):
+        if m >= IK_TOL_MM:
+            raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
+                           f"{arm!r}: its calibrated model gets no closer than {m:.1f} mm")
+    return best
+
+
+def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`aim_chain`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
+    each target is missed (mm)."""
     for _ in range(IK_ITERATIONS):
         p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))
         r = targets - p
@@ -339,12 +370,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
         big = np.abs(step).max(axis=1, keepdims=True)
         u = u + step * np.minimum(1.0, 0.3 / np.maximum(big, 1e-12))
     p = np.asarray(f(xj, jnp.asarray(u))[0])
-    miss = np.linalg.norm(targets - p, axis=1)
-    for t, m in zip(targets, miss, strict=True):
-        if m >= IK_TOL_MM:
-            raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
-                           f"{arm!r}: its calibrated model gets no closer than {m:.1f} mm")
-    return u
+    return u, np.linalg.norm(targets - p, axis=1)
 
 
 def _log_stiffness_prior(priors: Sequence[StiffnessPrior]) -> None:

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import scipy.stats
 
+import bayesrob.chain_prediction as cp
 from bayesrob import kinematics as kin
 from bayesrob.assembly import grid_targets, predict_assembly, read_targets
 from bayesrob.chain_prediction import (
@@ -126,6 +128,45 @@ def test_aim_reaches_targets_and_refuses_what_it_cannot(arm6_modules):
     assert np.abs(got - targets).max() < 1e-3
     with pytest.raises(RigError, match=r"out of reach of arm 'arm'"):
         aim_chain(rig, mods.robot, mods.x, "arm", np.array([[9000.0, 0.0, 0.0]]))
+
+
+def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypatch):
+    """A redundant arm reaches a target on several branches. The nearest train pose's branch
+    is kept where it stays inside the train commands' range; where it leaves it, the next
+    nearest seeds are tried and the first inside is taken, else the one least beyond; a
+    target no seed reaches is refused. (Gauss-Newton stubbed: seed k's solution is given.)"""
+    u_train = np.array([[0.0, 0.0], [1.0, 1.0], [0.5, 0.2], [0.9, 0.9]])
+    d_train = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
+    rig = SimpleNamespace(chain_rows=lambda arm, s: (u_train, d_train))
+    # per target (rows) and seed rank (columns): the solution, and whether it reaches
+    answers = {0: [[0.5, 0.5], [1.4, 0.5], [0.2, 0.3], [0.1, 0.1]],  # in range at once
+               1: [[1.3, 0.0], [1.2, 0.5], [0.4, 0.4], [0.3, 0.3]],  # third seed is inside
+               2: [[2.0, 0.0], [1.5, 0.0], [1.1, 0.0], [1.05, 0.0]]}  # never: least beyond
+    reach = {3: [False, False, False, False]}
+    calls = []
+
+    def fake(f, xj, targets, seeds):
+        k = len(calls)
+        calls.append(seeds.copy())
+        u = np.array([answers[t][k] for t in range(len(targets))])
+        miss = np.array([1.0 if not reach.get(t, [True] * 4)[k] else 0.0
+                         for t in range(len(targets))])
+        return u, miss
+
+    monkeypatch.setattr(cp, "_aim_from", fake)
+    monkeypatch.setattr(cp, "_column_jacobian", lambda robot, arm: None)
+    targets = np.array([[1.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0]])
+    u = cp.aim_chain(rig, None, np.zeros(1), "arm", targets)
+    np.testing.assert_array_equal(u, [[0.5, 0.5], [0.4, 0.4], [1.05, 0.0]])
+    # seeds nearest first: target 1 (x = 12) starts from the train pose at x = 10
+    np.testing.assert_array_equal(calls[0][1], u_train[1])
+    np.testing.assert_array_equal(calls[1][1], u_train[2])
+    assert len(calls) == 4  # every seed tried, as target 2 never gets inside
+    calls.clear()
+    answers[3] = answers[0]
+    with pytest.raises(RigError, match=r"target \(25, 0, 0\) is out of reach"):
+        cp.aim_chain(rig, None, np.zeros(1), "arm", np.array([[1.0, 0, 0], [12.0, 0, 0],
+                                                              [19.0, 0, 0], [25.0, 0, 0]]))
 
 
 def test_predict_command_on_a_chain_rig(arm6_rig, tmp_path, capsys):
