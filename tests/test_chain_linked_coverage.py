@@ -24,6 +24,10 @@ binomial range the targets assume.
 The same study with the arms' stiffnesses read from compliances fitted under the URDF's link
 masses (``--masses description``; each simulated arm's true masses 10% off the URDF's) runs on
 its own twelve report rigs, seeds 251-262.
+
+Three arms joined at one point (``--three-arms``: left, right and a front arm facing the
+targets from the side), with the same prior and nothing chosen on them, run on twelve report
+rigs of their own, seeds 341-352 (fixed before any ran; about 10 minutes).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 PUBLISHED = {"points": 96, "coverage50": 0.5625, "coverage90": 0.948, "error_ratio": 0.993}
 DESCRIBED = {"points": 96, "coverage50": 0.510, "coverage90": 0.885, "error_ratio": 1.016}
+THREE = {"points": 96, "coverage50": 0.469, "coverage90": 0.948, "error_ratio": 0.945}
 
 
 def _coverage(seeds: tuple[int, ...], **kwargs) -> dict:
@@ -95,3 +100,20 @@ def test_described_masses_regions_and_error_ratio_hold(described):
     assert 0.40 <= described["coverage50"] <= 0.60
     assert 0.84 <= described["coverage90"] <= 0.96
     assert 0.85 <= described["error_ratio"] <= 1.15
+
+
+@pytest.fixture(scope="module")
+def three_arms() -> dict:
+    import bench_predict_3d as bench
+
+    return _coverage(bench.THREE_REPORT_SEEDS, three=True)
+
+
+def test_the_published_figures_of_three_arms(three_arms):
+    _holds_published(three_arms, THREE)
+
+
+def test_three_arms_regions_and_error_ratio_hold(three_arms):
+    assert 0.40 <= three_arms["coverage50"] <= 0.60
+    assert 0.84 <= three_arms["coverage90"] <= 0.96
+    assert 0.85 <= three_arms["error_ratio"] <= 1.15
