@@ -64,8 +64,8 @@ class AssemblyPrediction:
     beyond_train: dict[str, np.ndarray] = field(default_factory=dict)
     columns: dict[str, list[str]] = field(default_factory=dict)  # arm -> its command columns
     command_unit: str = " us"  # of the command columns in the note ("" for joint values)
-    # linked chain arms under equilibrium fusion: arm -> the joint stiffnesses the balance
-    # drew from (median N mm/rad, log sd) and where they came from
+    # linked chain arms under equilibrium fusion: arm -> what the balance drew its joint
+    # stiffnesses from (chain_prediction.StiffnessPrior.record)
     stiffness: dict[str, dict] = field(default_factory=dict)
     # set where the prior gave linked chain arms their stiffnesses though their description
     # weighs every link: how to read them from those masses instead

@@ -6,8 +6,8 @@ names, with its joint-error population fitted as ``bayesrob predict`` does
 (:mod:`bayesrob.chain_prediction`). Mounting it moves its robot base (the root's instrument
 position) to the mount point and keeps its orientation, so gravity acts on it as it did while
 it was calibrated. A world target t is then the point t - mount + base of the module's own
-frame: it is aimed (position-only inverse kinematics from its nearest train pose) and drawn
-there, and the draws are moved back.
+frame: it is aimed (position-only inverse kinematics from its nearest train pose, as
+``chain_prediction.aim_chain`` aims) and drawn there, and the draws are moved back.
 
 A candidate's draws are builds, as in the plane: each carries one set of calibration errors
 (the rig's parameter covariance; modules of one rig share a set) and one set of joint

@@ -3,7 +3,8 @@
 Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
 residuals (:mod:`bayesrob.latent_errors`). At a target, each arm is aimed through its calibrated
 model (position-only inverse kinematics, the minimum-norm solution nearest the train pose that
-came closest), and its *free* end point is the push-forward of the population: draws of
+came closest, or the next closest where that one leaves the train commands' range), and its
+*free* end point is the push-forward of the population: draws of
 (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated chain, plus
 N(0, s^2) for what no joint explains.
 
@@ -58,7 +59,9 @@ __all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
-# Train poses (nearest first) an aim may start from while its solution leaves the train range
+# Train poses (nearest first) an aim may start from while its solution leaves the train
+# range: enough for a target near the range's edge to find a neighbour on the calibrated
+# branch, few enough that a target truly beyond it costs at most that many solves
 AIM_SEEDS = 8
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
@@ -337,7 +340,11 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     best_beyond = np.full(len(targets), np.inf)
     best_miss = np.full(len(targets), np.inf)
     for k in range(min(AIM_SEEDS, order.shape[1])):
-        u, miss = _aim_from(f, xj, targets, u_train[order[:, k]].copy())
+        # targets already aimed inside the range start from their solution, where Gauss-Newton
+        # stops at once, so a later seed costs the steps of the targets still outside only
+        # (and every call keeps the shape its program was compiled for)
+        settled = (best_beyond == 0.0)[:, None]
+        u, miss = _aim_from(f, xj, targets, np.where(settled, best, u_train[order[:, k]]))
         beyond = np.where(miss < IK_TOL_MM, (np.maximum(lo - u, 0.0)
                                              + np.maximum(u - hi, 0.0)).sum(axis=1), np.inf)
         # a later seed replaces a solution only where it is strictly further inside the range
@@ -348,9 +355,11 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
         if np.all(best_beyond == 0.0):
             break
     for t, m in zip(targets, best_miss, strict=True):
-        if m >= IK_TOL_MM:
+        if not m < IK_TOL_MM:
+            where = (f"its calibrated model gets no closer than {m:.1f} mm" if np.isfinite(m)
+                     else "its calibrated model's inverse kinematics did not converge")
             raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
-                           f"{arm!r}: its calibrated model gets no closer than {m:.1f} mm")
+                           f"{arm!r}: {where}")
     return best
 
 

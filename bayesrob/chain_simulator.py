@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from importlib.resources import files
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -254,10 +255,11 @@ def load_true_params(rig_dir: str | Path) -> dict[str, float]:
 
 
 # ----------------------------------------------------------------------------- linked arms
-# Two arm6 arms facing each other over a shared workspace, their markers joined by a ball
-# joint for the linked rows. The joined point is found exactly, as the minimum of the arms'
-# summed spring and gravity energy under the constraint that the markers coincide: the
-# prediction code under test balances linearised stiffnesses, so the simulator must not.
+# Two arm6 arms facing each other over a shared workspace (and, for assemblies of three, a
+# third from the side), their markers joined by a ball joint for the linked rows. The joined
+# point is found exactly, as the minimum of the arms' summed spring and gravity energy under
+# the constraint that the markers coincide: the prediction code under test balances
+# linearised stiffnesses, so the simulator must not.
 
 LINKED_ARMS = ("left", "right")
 # A third arm for assemblies of three: facing the targets from the side (its base 450 mm from
@@ -280,11 +282,11 @@ def _left_stiffness() -> tuple[float, ...]:
 
 @dataclass
 class LinkedChainTruth(_ArmErrors):
-    """What a simulated rig of two linked arm6 arms really is (written to truth.toml).
+    """What a simulated rig of linked arm6 arms (two, or ``arms``) really is (truth.toml).
 
     Per-arm settings are tables keyed by arm name (``left``, ``right``; ``arms`` names the
     arms, in order: :func:`three_linked_chain_truth` adds ``front``); everything else is
-    shared. ``true_params`` holds both arms' parameters under their full names
+    shared. ``true_params`` holds every arm's parameters under their full names
     (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
     :func:`simulate_linked_chain_rig`).
     """
@@ -317,8 +319,18 @@ class LinkedChainTruth(_ArmErrors):
     true_params: dict = field(default_factory=dict)
     linked_rows: dict = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        # said here, not as a KeyError halfway through writing the rig
+        if len(self.arms) < 2 or len(set(self.arms)) != len(self.arms):
+            raise ValueError(f"linked arms must be two or more distinct names, not {self.arms}")
+        for table in ("instrument_nominal", "stiffness_nmm_per_rad"):
+            missing = [a for a in self.arms if a not in getattr(self, table)]
+            if missing:
+                raise ValueError(f"LinkedChainTruth.{table} has no entry for "
+                                 f"{', '.join(missing)}")
 
-def three_linked_chain_truth(**kwargs) -> LinkedChainTruth:
+
+def three_linked_chain_truth(**kwargs: Any) -> LinkedChainTruth:
     """Three arm6 arms joined at one point: ``left`` and ``right`` as in
     :class:`LinkedChainTruth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
     side; ``kwargs`` as the class takes them. Its stiffness profile is the left arm's times
@@ -604,7 +616,7 @@ def _arm_table(name: str, marker: Sequence[float], instrument: Sequence[float]) 
 
 def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
              commands: Mapping[str, np.ndarray], point: np.ndarray,
-             arms: Sequence[str] = LINKED_ARMS) -> str:
+             arms: Sequence[str]) -> str:
     cells = [config, set_name]
     cells += [f"{v:.4f}" for v in target] if target is not None else ["", "", ""]
     for a in arms:

@@ -272,6 +272,9 @@ def _simulate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
     if args.planned:
+        if args.linked or args.third_arm:
+            raise UsageError("--planned measures the rows the rig in OUT_DIR plans, with the "
+                             "arms of its truth.toml; --linked and --third-arm make a new rig")
         if args.stiffness_spread is not None or args.mass_spread is not None:
             raise UsageError("--planned measures with the stiffnesses and masses of the rig's "
                              "truth.toml; --stiffness-spread and --mass-spread cannot change "

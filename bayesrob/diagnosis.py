@@ -856,7 +856,9 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
              max_steps: int | None = None) -> Diagnosis:
     """Run the model-criticism workflow on a rig's single-arm rows (see the module docstring).
 
-    ``candidates``: effect names to try (default: every registered effect).
+    ``candidates``: effect names to try (default: every registered effect); a chain
+    effect's name asks for its planar instance (``joint_compliance``: ``gravity_sag``), and
+    one with none is a one-line ``ValueError`` (:func:`bayesrob.effects.resolve_effects`).
     """
     rule = rule or DecisionRule()
     candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())

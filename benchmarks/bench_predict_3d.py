@@ -267,7 +267,8 @@ def main() -> None:
         p.error("give --variants or --sag-variants, not both")
     if args.three_arms and (not args.coverage or args.many_rigs or args.rechosen
                             or args.sag_report or args.variants or args.sag_variants
-                            or args.masses == "description"):
+                            or args.masses == "description" or args.mass_spread
+                            or args.sag_steps != 1):
         p.error("--three-arms takes --coverage tuning|report (and --cache) only: it reports "
                 "the chosen prior")
     if args.three_arms:

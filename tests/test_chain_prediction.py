@@ -162,6 +162,18 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     np.testing.assert_array_equal(calls[0][1], u_train[1])
     np.testing.assert_array_equal(calls[1][1], u_train[2])
     assert len(calls) == 4  # every seed tried, as target 2 never gets inside
+    # targets aimed inside the range start later solves from their own solution
+    np.testing.assert_array_equal(calls[1][0], u[0])
+    # everything inside at once: the nearest seeds alone, one solve
+    calls.clear()
+    assert cp.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.5, 0.5]]
+    assert len(calls) == 1
+    # a seed that misses the target is passed over for a later one that reaches it
+    calls.clear()
+    answers[0] = [[5.0, 5.0], [0.6, 0.6], [0.2, 0.3], [0.1, 0.1]]
+    reach[0] = [False, True, True, True]
+    assert cp.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.6, 0.6]]
+    assert len(calls) == 2
     calls.clear()
     answers[3] = answers[0]
     with pytest.raises(RigError, match=r"target \(25, 0, 0\) is out of reach"):

@@ -125,6 +125,8 @@ BAD_ARGUMENTS = {
     "unknown-effect": (["simulate", "{out}", "--effects", "gravity_sag,wobble"],
                        "unknown effect 'wobble'"),
     "grid-1": (["simulate", "{out}", "--grid", "1"], "at least 2"),
+    "planned-linked": (["simulate", "{out}", "--planned", "--robot", "arm6", "--linked"],
+                       "--linked and --third-arm make a new rig"),
     # a chain effect with no planar instance, asked of a planar rig
     "lateral-planar": (["diagnose", "{rig}", "--effects", "gravity_sag,lateral_compliance"],
                        "'lateral_compliance' is for URDF/DH chains"),

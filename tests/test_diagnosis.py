@@ -156,6 +156,16 @@ def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
     np.testing.assert_allclose(chain_side[clear], planar_side[clear], atol=1e-9)
 
 
+def test_every_chain_effect_is_a_planar_effect_or_says_why_not():
+    """A chain effect's name on a planar rig is either its planar instance or a reason: a new
+    chain effect must be placed in one of them, not left to a bare 'unknown effect'."""
+    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
+
+    for name in CHAIN_EFFECTS:
+        assert (name in fx.REGISTRY) + (name in fx.ALIASES) + (name in fx.CHAIN_ONLY) == 1, name
+    assert set(fx.ALIASES.values()) <= set(fx.REGISTRY)
+
+
 def test_chain_only_effects_are_a_one_line_error_for_planar_rigs():
     for name, why in (("lateral_compliance", "no torque across"),
                       ("encoder_error", "servo_nonlinearity")):
