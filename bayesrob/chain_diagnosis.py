@@ -36,6 +36,7 @@ from bayesrob.calibration import (
     chain_residuals,
     sag_convergence,
 )
+from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
 
@@ -56,7 +57,8 @@ NEEDS = {"backlash": "joint_compliance"}
 # selection poses against 3.48 from the nominal robot.
 WARM_STARTED = ("encoder_error", "backlash")
 WARM_NFEV = 40
-ALIASES = {"gravity_sag": "joint_compliance"}  # the planar name of joint compliance
+# the planar names of chain effects: effects.ALIASES read the other way
+ALIASES = {planar: chain for chain, planar in PLANAR_ALIASES.items()}
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
 # A paired z on the selection rows: the drop must be twice its standard error. Not tuned on

@@ -338,7 +338,8 @@ def three_linked_chain_truth(**kwargs: Any) -> LinkedChainTruth:
     base = LinkedChainTruth()
     instrument = {**base.instrument_nominal, THIRD_ARM: THIRD_ARM_INSTRUMENT}
     stiffness = {**base.stiffness_nmm_per_rad,
-                 THIRD_ARM: tuple(THIRD_ARM_STIFFNESS_SCALE * k for k in _left_stiffness())}
+                 THIRD_ARM: tuple(THIRD_ARM_STIFFNESS_SCALE * k
+                                  for k in base.stiffness_nmm_per_rad["left"])}
     return LinkedChainTruth(**{"arms": (*LINKED_ARMS, THIRD_ARM),
                                "instrument_nominal": instrument,
                                "stiffness_nmm_per_rad": stiffness, **kwargs})

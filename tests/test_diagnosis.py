@@ -84,6 +84,31 @@ def test_gravity_sag_magnitude_is_the_sag_of_a_straight_level_arm():
     assert "sag at full reach" in rep["text"]
 
 
+def _planar_params(shoulder_offset: float) -> kin.ArmParams:
+    return kin.ArmParams.from_vector(jnp.array([20.0, -10.0, 180.0, 150.0, 1.2e-3, -1.1e-3,
+                                                shoulder_offset, 2.4]))
+
+
+def _compliant_planar_chain(params: kin.ArmParams, sag_steps: int = 1
+                            ) -> tuple[kin.Robot, np.ndarray, jax.Array]:
+    """The planar arm as a chain under gravity (0, -1), its links' masses along them (first
+    moments h1 = m1 a1, h2 = m2 a2) on soft joints (deflections of 0.01-0.03 rad, where the
+    torque iteration matters): the robot, its parameter vector, and the planar
+    ``gravity_sag``'s terms for the same arm, c11 = k1 g (h1 + m2 L1), c12 = k1 g h2,
+    c22 = k2 g h2."""
+    m1, m2, a1, a2 = 0.4, 0.25, 90.0, 70.0  # kg, mm (centres of mass along the links)
+    k1, k2 = 2e-5, 3e-5  # rad per N mm
+    robot = kin.Robot({"arm": kin.planar_chain("arm", params)}, dim=2,
+                      gravity=np.array([0.0, -1.0, 0.0]), sag_steps=sag_steps)
+    x = robot.layout.nominal.copy()
+    x[robot.layout.slices["arm", "compliance"]] = [k1, k2]
+    x[robot.layout.slices["arm", "links"]] = [m1, m1 * a1, 0, 0, m2, m2 * a2, 0, 0]
+    g = G_N_PER_KG
+    c = jnp.array([k1 * g * (m1 * a1 + m2 * params.links[0]), k1 * g * m2 * a2,
+                   k2 * g * m2 * a2])
+    return robot, x, c
+
+
 @pytest.mark.parametrize("steps", [1, 3])
 def test_gravity_sag_is_joint_compliance_on_the_planar_chain(steps):
     """The planar ``gravity_sag`` is the chain effect ``joint_compliance`` on a two-link arm in
@@ -94,19 +119,8 @@ def test_gravity_sag_is_joint_compliance_on_the_planar_chain(steps):
     effect does. ``steps``: the planar effect's torque iterations against the chain's
     ``sag_steps`` (one step each; and the planar default, three). Tolerance 1e-12 rad: the
     same arithmetic in another order."""
-    params = kin.ArmParams.from_vector(jnp.array([20.0, -10.0, 180.0, 150.0, 1.2e-3, -1.1e-3,
-                                                  -1.9, 2.4]))
-    m1, m2, a1, a2 = 0.4, 0.25, 90.0, 70.0  # kg, mm (centres of mass along the links)
-    k1, k2 = 2e-5, 3e-5  # soft: deflections of 0.01-0.03 rad, where the iteration matters
-    chain = kin.planar_chain("arm", params)
-    robot = kin.Robot({"arm": chain}, dim=2, gravity=np.array([0.0, -1.0, 0.0]),
-                      sag_steps=steps)
-    x = robot.layout.nominal.copy()
-    x[robot.layout.slices["arm", "compliance"]] = [k1, k2]
-    x[robot.layout.slices["arm", "links"]] = [m1, m1 * a1, 0, 0, m2, m2 * a2, 0, 0]
-    g = G_N_PER_KG
-    c = jnp.array([k1 * g * (m1 * a1 + m2 * params.links[0]), k1 * g * m2 * a2,
-                   k2 * g * m2 * a2])
+    params = _planar_params(shoulder_offset=-1.9)
+    robot, x, c = _compliant_planar_chain(params, steps)
     u = np.stack(np.meshgrid(np.linspace(700, 2300, 7), np.linspace(800, 2200, 7)),
                  -1).reshape(-1, 2)
     theta = kin.servo(params, jnp.asarray(u))
@@ -128,28 +142,21 @@ def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
     deflection), so poses within that of the line are left out. Tolerance 1e-9 rad: both
     steps are saturated there to better than that."""
     # the shoulder swings through the vertical, so both joints' torques change sign
-    params = kin.ArmParams.from_vector(jnp.array([20.0, -10.0, 180.0, 150.0, 1.2e-3, -1.1e-3,
-                                                  -0.3, 2.4]))
-    m1, m2, a1, a2, k1, k2 = 0.4, 0.25, 90.0, 70.0, 2e-5, 3e-5
+    params = _planar_params(shoulder_offset=-0.3)
+    robot, x, c = _compliant_planar_chain(params)
     play = np.array([0.004, 0.006])
-    robot = kin.Robot({"arm": kin.planar_chain("arm", params)}, dim=2,
-                      gravity=np.array([0.0, -1.0, 0.0]))
-    x = robot.layout.nominal.copy()
-    x[robot.layout.slices["arm", "compliance"]] = [k1, k2]
-    x[robot.layout.slices["arm", "links"]] = [m1, m1 * a1, 0, 0, m2, m2 * a2, 0, 0]
     with_play = x.copy()
     with_play[robot.layout.slices["arm", "backlash"]] = play
     u = np.stack(np.meshgrid(np.linspace(600, 2400, 13), np.linspace(600, 2400, 13)),
                  -1).reshape(-1, 2)
     chain_side = np.asarray(robot.deflections(jnp.asarray(with_play), "arm", jnp.asarray(u))
                             - robot.deflections(jnp.asarray(x), "arm", jnp.asarray(u)))[:, :2]
-    c11, c12 = m1 * a1 + m2 * params.links[0], m2 * a2  # x k1 g, which cancels in rho
-    eff = fx.Backlash(_ctx(), jnp.array([c12 / (c11 + c12)]))
+    rho = float(c[1] / (c[0] + c[1]))
+    eff = fx.Backlash(_ctx(), jnp.array([rho]))
     theta = kin.servo(params, jnp.asarray(u))
     planar_side = np.asarray(eff.apply(params, jnp.asarray(play), jnp.asarray(u), theta)
                              - theta)
     s1, s12 = (np.asarray(v) for v in fx.lever_signatures(theta, (0.0, -1.0)))
-    rho = float(c12 / (c11 + c12))
     clear = (np.abs((1 - rho) * s1 + rho * s12) > 0.4) & (np.abs(s12) > 0.4)
     assert clear.sum() >= 40
     assert all({-1.0, 1.0} <= set(np.sign(planar_side[clear, j])) for j in (0, 1))
