@@ -504,6 +504,11 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     if masses not in kin.MASS_SOURCES:
         raise ValueError(f"masses must be one of {kin.MASS_SOURCES}, not {masses!r}")
     candidates = layout.group_mask(groups)
+    if sags and masses == "fitted":
+        # the links' masses and first moments sit in the compliance group's columns, but the
+        # lateral compliances bend the joints under the same unknown torques: fitted without
+        # joint compliance they would otherwise weigh the links at the layout's guess
+        candidates |= link_mask(layout)
     if masses == "description":
         if not sags:
             raise ValueError("masses 'description' holds the link masses of a fit in which "
@@ -582,6 +587,15 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
     return ChainCalibration(robot, x, groups, ident, se, chain_errors(rig, robot, x), nfev,
                             time.perf_counter() - t0, extra=extra,
                             masses=masses)
+
+
+def link_mask(layout: kin.ParamLayout) -> np.ndarray:
+    """The parameters (P,) that weigh the links: every chain's masses and first moments."""
+    mask = np.zeros(len(layout.params), bool)
+    for key, sl in layout.slices.items():
+        if key[1] == "links":
+            mask[sl] = True
+    return mask
 
 
 def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:

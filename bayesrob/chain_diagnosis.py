@@ -16,9 +16,11 @@ more than ``Z_MIN`` standard errors; of those that pass, the one whose mean sele
 drops the most per parameter it adds is named. An effect can mimic part of another (an
 encoder's sinusoid in a shoulder's angle takes up part of its gravity sag, with fewer
 parameters): the one that explains more per parameter goes first, and the mimic then no
-longer passes on top of it. The ``validation`` rows are never looked at while deciding: the
-ladder (mean / sd / max error after each named effect, refitted on every train row) is
-reported on them.
+longer passes on top of it. A candidate that passed beside the named one with selection errors
+within ``Z_MIN`` standard errors of its is reported as its *rival*: these poses cannot tell the
+two apart, and the name is the rule's choice between them. The ``validation`` rows are never
+looked at while deciding: the ladder (mean / sd / max error after each named effect, refitted
+on every train row) is reported on them.
 """
 
 from __future__ import annotations
@@ -202,6 +204,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     n_sel = int((split.measurements.set == "selection").sum())
     groups = BASE_GROUPS
     named: list[str] = []
+    rivals: list[list[str]] = []  # per named effect
     rounds: list[list[dict]] = []
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
@@ -231,14 +234,24 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                                "drop_per_parameter_mm": float(before.mean() - after.mean())
                                / max(added, 1),
                                "passes": z > Z_MIN, "_after": after, "_x": cal.x})
+            passing = [s for s in scores if s["passes"]]
+            best = None
+            if passing:
+                # of the candidates that pass, the one that explains the most per parameter
+                # it adds: the largest drop of the mean selection error per added parameter
+                best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
+                for s in passing:
+                    if s is not best:
+                        # positive where the named effect leaves the smaller errors
+                        s["z_vs_named"] = _paired_z(s["_after"], best["_after"])
             rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
                            for s in scores])
-            passing = [s for s in scores if s["passes"]]
-            if not passing:
+            if best is None:
                 break
-            # of the candidates that pass, the one that explains the most per parameter it
-            # adds: the largest drop of the mean selection error per added parameter
-            best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
+            # a passing candidate the selection poses cannot tell from the named one: the
+            # name is the rule's choice between fits the data hold equally good
+            rivals.append([s["effect"] for s in passing
+                           if abs(s.get("z_vs_named", np.inf)) <= Z_MIN])
             named.append(best["effect"])
             selected[best["effect"]] = best["_x"]
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
@@ -274,7 +287,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             if k == 0:
                 baseline = row
             else:
-                steps.append({"effect": named[k - 1], **row})
+                steps.append({"effect": named[k - 1], "rivals": rivals[k - 1], **row})
     notes = ["not modelled for chains, so not tried: servo_nonlinearity (a chain's "
              "encoder_error takes its place)"]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
@@ -319,6 +332,11 @@ def format_chain_diagnosis(doc: dict) -> str:
             [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
               f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
               "yes" if s["passes"] else "no"] for s in scores]))
+        chosen = doc["effects"][r - 1] if r <= len(doc["effects"]) else None
+        out += [f"  {s['effect']} fits the selection poses as well as {chosen} (paired z "
+                f"{s['z_vs_named']:+.1f} of the two fits' errors): these poses do not tell "
+                "them apart" for s in scores
+                if abs(s.get("z_vs_named", np.inf)) <= Z_MIN]
     rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
              *_ladder_cells(doc["baseline"])]]
     rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"

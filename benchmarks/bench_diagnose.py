@@ -133,6 +133,10 @@ def summary(results: list[dict]) -> str:
              f"{t['strong_right']}/{t['strong']} of those whose effects at least double the "
              f"base model's error at new poses (strength >= {STRONG:g}); "
              f"{t['false_alarms']} false alarms on {t['clean']} clean rigs."]
+    if any(r.get("rivals") for r in results):
+        lines.append(f"Counting a named effect as any of its rivals (candidates its selection "
+                     f"poses fit as well): {t['strong_right_up_to_rivals']}/{t['strong']} of "
+                     "the strong rigs.")
     if t["holdout_ratio"] is not None:
         lines.append(f"Where effects were named ({t['named']} rigs), the error at new poses "
                      f"fell to {100 * t['holdout_ratio']:.0f}% of the base model's on average, "

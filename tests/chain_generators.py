@@ -252,4 +252,6 @@ def diagnose_chain_case(case: ChainCase) -> dict:
             "baseline_holdout_error_mm": base,
             "final_holdout_error_mm": doc["final_heldout_error_mm"],
             "clean_holdout_error_mm": twin,
-            "rounds": doc["rounds"]}
+            "rounds": doc["rounds"],
+            # per named effect, the candidates its selection poses could not tell from it
+            "rivals": {st["effect"]: st["rivals"] for st in doc["steps"]}}

@@ -31,6 +31,7 @@ fixed before any diagnosis was run on them) only report.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -446,6 +447,19 @@ def exactly_right(result: dict) -> bool:
     return effects_key(result["truth"]) == result["named"]
 
 
+def right_up_to_rivals(result: dict) -> bool:
+    """Named the hidden effects once each named effect may stand for one of its rivals (the
+    candidates its selection poses could not tell from it; chain rigs only): how many misses
+    the data themselves leave open, beside the exact count the targets are stated in."""
+    if exactly_right(result):
+        return True
+    rivals = result.get("rivals") or {}
+    truth = set(effects_key(result["truth"]).split("+"))
+    order = result.get("order", [])
+    return any(set(pick) == truth for pick in
+               itertools.product(*([e, *rivals.get(e, [])] for e in order)))
+
+
 STRONG = 2.0  # the strength from which the issue asks for 90% of rigs exactly right
 
 
@@ -458,6 +472,7 @@ def targets(results: list[dict]) -> dict:
     ratio = [r["final_holdout_error_mm"] / r["baseline_holdout_error_mm"] for r in named]
     return {"rigs": len(results), "exactly_right": sum(map(exactly_right, results)),
             "strong": len(strong), "strong_right": sum(map(exactly_right, strong)),
+            "strong_right_up_to_rivals": sum(map(right_up_to_rivals, strong)),
             "clean": len(clean), "false_alarms": sum(r["named"] != "none" for r in clean),
             "named": len(named),
             "holdout_ratio": float(np.mean(ratio)) if ratio else None,

@@ -731,3 +731,22 @@ def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
     assert set(side) == {"left"} and side["left"].shape == (2, 10)
     assert rig.chain_side_rows("left", "train")["right"].shape == (1, 10)
     assert rig.chain_rows("right", "train")[0].shape == (2, 10)
+
+
+def test_lateral_compliance_alone_fits_the_links_masses(arm6_rig):
+    """The lateral compliances bend the joints under the same unknown gravity torques as the
+    joint compliances, so fitted without them they still free the links' masses and first
+    moments (the compliance group's columns), as far as the rank analysis sees them: not the
+    layout's guessed masses. With ``masses="description"`` they stay held."""
+    from bayesrob import calibration
+
+    rig = load_rig(arm6_rig)
+    cal = calibration.calibrate_chain(rig, ("frames", "geometric", "lateral"), polish=False)
+    links = calibration.link_mask(cal.robot.layout)
+    assert links.sum() == 4 * 6
+    assert cal.ident.free[links].any()
+    assert np.any(cal.x[links] != cal.robot.layout.nominal[links])
+    assert not cal.ident.free[cal.robot.layout.group_mask(("compliance",)) & ~links].any()
+    held = calibration.calibrate_chain(rig, ("frames", "geometric", "lateral"), polish=False,
+                                       masses="description")
+    assert not held.ident.free[links].any()

@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from bayesrob.chain_diagnosis import (
+    Z_MIN,
     ChainDiagnosisError,
     diagnose_chain,
+    format_chain_diagnosis,
     parse_published,
     resolve_effects,
 )
@@ -44,6 +46,13 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
         assert "(100%)" in last and "done" in last, last
     doc = json.loads(out.read_text())
     assert doc["effects"] == named
+    # each naming round compares the named effect with every other candidate that passed;
+    # those within Z_MIN standard errors of it are its rivals
+    for r, effect in enumerate(named):
+        others = [s for s in doc["rounds"][r] if s["passes"] and s["effect"] != effect]
+        assert all("z_vs_named" in s for s in others)
+        assert doc["steps"][r]["rivals"] == [s["effect"] for s in others
+                                             if abs(s["z_vs_named"]) <= Z_MIN]
     assert (tmp_path / "rep" / "ladder.png").stat().st_size > 5_000
     assert (tmp_path / "rep" / "residuals.png").stat().st_size > 20_000
     for key in ("steps", "baseline_heldout_error_mm", "final_heldout_error_mm"):
@@ -190,3 +199,25 @@ def test_torque_steps_are_refused_for_planar_rigs_in_one_line(capsys):
     assert main(["diagnose", "--sag-steps", "3"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--sag-steps is for URDF/DH rigs" in err, err
+
+
+def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart():
+    """A candidate that passed beside the named one, with errors within Z_MIN standard errors
+    of its, gets a line of its own; one the named effect clearly beats does not."""
+    row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True}
+    doc = {"rig": "r", "rule": "rule", "effects": ["joint_compliance"],
+           "rounds": [[{**row, "effect": "joint_compliance", "selection_error_after_mm": 0.20,
+                        "z": 5.0},
+                       {**row, "effect": "lateral_compliance", "selection_error_after_mm": 0.19,
+                        "z": 5.1, "z_vs_named": -1.5},
+                       {**row, "effect": "encoder_error", "selection_error_after_mm": 0.3,
+                        "z": 2.5, "z_vs_named": 4.0}]],
+           "baseline": {"n_free": 76, "heldout_error_mm": 0.4, "heldout_error_sd_mm": 0.1,
+                        "heldout_error_max_mm": 1.0},
+           "steps": [{"effect": "joint_compliance", "rivals": ["lateral_compliance"],
+                      "n_free": 89, "heldout_error_mm": 0.2, "heldout_error_sd_mm": 0.1,
+                      "heldout_error_max_mm": 0.5}], "seconds": 1.0, "notes": []}
+    text = format_chain_diagnosis(doc)
+    assert ("lateral_compliance fits the selection poses as well as joint_compliance (paired "
+            "z -1.5") in text
+    assert "encoder_error fits" not in text
