@@ -233,7 +233,11 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                                "selection_error_after_mm": float(after.mean()), "z": z,
                                "drop_per_parameter_mm": float(before.mean() - after.mean())
                                / max(added, 1),
-                               "passes": z > Z_MIN, "_after": after, "_x": cal.x})
+                               # a candidate the rank analysis leaves nothing to fit
+                               # (lateral bending under gravity in a planar arm's plane)
+                               # moves the errors by rounding alone: its z is noise
+                               "passes": bool(added > 0 and z > Z_MIN),
+                               "_after": after, "_x": cal.x})
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:

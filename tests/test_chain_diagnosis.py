@@ -221,3 +221,17 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
     assert ("lateral_compliance fits the selection poses as well as joint_compliance (paired "
             "z -1.5") in text
     assert "encoder_error fits" not in text
+
+
+def test_a_candidate_with_nothing_identifiable_to_fit_never_passes():
+    """On a planar rig gravity acts in the arms' plane, so lateral bending has no torque and
+    the rank analysis leaves it no parameter: its selection errors move by rounding alone,
+    whose paired z is noise (measured 2.3 on the default rig before this guard, naming an
+    effect that changed nothing)."""
+    from bayesrob.rig import default_rig_dir
+
+    doc = diagnose_chain(load_rig(default_rig_dir()), ["lateral_compliance"]).to_json()
+    (cand,) = doc["rounds"][0]
+    assert cand["parameters"] == 0
+    assert abs(cand["selection_error_after_mm"] - cand["selection_error_before_mm"]) < 1e-6
+    assert not cand["passes"] and doc["effects"] == []
