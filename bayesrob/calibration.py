@@ -559,7 +559,7 @@ def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=Non
                          "measured coordinates in the train rows")
     # a start with compliances fitted already shows the masses: the second round alone
     seen = start is not None and any(np.any(x[sl] != 0) for key, sl in layout.slices.items()
-                                     if key[1] == "compliance")
+                                     if key[1] in ("compliance", "lateral"))
     if groups != ("frames",) and not (sags and seen):
         x, n = fit(ident.free, x)
         nfev += n

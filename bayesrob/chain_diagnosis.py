@@ -18,7 +18,8 @@ encoder's sinusoid in a shoulder's angle takes up part of its gravity sag, with 
 parameters): the one that explains more per parameter goes first, and the mimic then no
 longer passes on top of it. A candidate that passed beside the named one with selection errors
 within ``Z_MIN`` standard errors of its is reported as its *rival*: these poses cannot tell the
-two apart, and the name is the rule's choice between them. The ``validation`` rows are never
+two apart, and the name is the rule's choice between them. A candidate whose own group the
+rank analysis leaves no parameter never passes. The ``validation`` rows are never
 looked at while deciding: the ladder (mean / sd / max error after each named effect, refitted
 on every train row) is reported on them.
 """
@@ -100,8 +101,9 @@ class ChainDiagnosis:
             "rule": (f"of the candidates whose paired error drop on the selection poses "
                      f"({self.selection_rows} train rows held back) exceeds {Z_MIN:g} "
                      "standard errors, name the one with the largest drop per added "
-                     "parameter (backlash is tried once joint_compliance is named); "
-                     "validation rows only report"),
+                     "parameter (backlash is tried once joint_compliance is named; a "
+                     "candidate left no identifiable parameter never passes); validation "
+                     "rows only report"),
             "steps": self.steps, "rounds": self.rounds,
             "baseline": self.baseline,
             "baseline_heldout_error_mm": self.baseline["heldout_error_mm"],
@@ -228,6 +230,10 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                 bar.update(1)
                 z = _paired_z(before, after)
                 added = int(cal.ident.free.sum()) - n_before
+                # its own group, not the net count: freeing the links' masses may change
+                # that count by itself
+                own = bool(cal.ident.free[cal.robot.layout.group_mask(
+                    (CHAIN_EFFECTS[eff],))].any())
                 scores.append({"effect": eff, "parameters": added,
                                "selection_error_before_mm": float(before.mean()),
                                "selection_error_after_mm": float(after.mean()), "z": z,
@@ -236,7 +242,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                                # a candidate the rank analysis leaves nothing to fit
                                # (lateral bending under gravity in a planar arm's plane)
                                # moves the errors by rounding alone: its z is noise
-                               "passes": bool(added > 0 and z > Z_MIN),
+                               "passes": bool(own and z > Z_MIN),
                                "_after": after, "_x": cal.x})
             passing = [s for s in scores if s["passes"]]
             best = None
@@ -337,10 +343,15 @@ def format_chain_diagnosis(doc: dict) -> str:
               f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
               "yes" if s["passes"] else "no"] for s in scores]))
         chosen = doc["effects"][r - 1] if r <= len(doc["effects"]) else None
-        out += [f"  {s['effect']} fits the selection poses as well as {chosen} (paired z "
-                f"{s['z_vs_named']:+.1f} of the two fits' errors): these poses do not tell "
-                "them apart" for s in scores
-                if abs(s.get("z_vs_named", np.inf)) <= Z_MIN]
+        for s in (s for s in scores if "z_vs_named" in s):
+            if abs(s["z_vs_named"]) <= Z_MIN:
+                out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
+                           f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
+                           "poses do not tell them apart")
+            elif s["z_vs_named"] < -Z_MIN:
+                out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
+                           f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
+                           "against its fewer: named second if it still passes on top")
     rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
              *_ladder_cells(doc["baseline"])]]
     rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"

@@ -322,7 +322,8 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "markers; always fitted), offsets (joint zero offsets), geometric (every "
                         "joint origin), servo (command gains), compliance (joints giving way "
                         "under gravity; link masses fitted too), lateral (joints and links "
-                        "bending across their axes under the same torques). Default for "
+                        "bending across their axes under the same torques; link masses "
+                        "fitted too). Default for "
                         "URDF/DH rigs: the first four; a planar rig without --params fits its "
                         "eight parameters per arm")
     p.add_argument("--urdf-out", metavar="FILE",

@@ -456,7 +456,8 @@ def right_up_to_rivals(result: dict) -> bool:
     rivals = result.get("rivals") or {}
     truth = set(effects_key(result["truth"]).split("+"))
     order = result.get("order", [])
-    return any(set(pick) == truth for pick in
+    # each named effect stands for one effect, and no two for the same one
+    return any(len(set(pick)) == len(pick) and set(pick) == truth for pick in
                itertools.product(*([e, *rivals.get(e, [])] for e in order)))
 
 

@@ -203,7 +203,8 @@ def test_torque_steps_are_refused_for_planar_rigs_in_one_line(capsys):
 
 def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart():
     """A candidate that passed beside the named one, with errors within Z_MIN standard errors
-    of its, gets a line of its own; one the named effect clearly beats does not."""
+    of its, gets a line of its own, as does one clearly better with more parameters; one the
+    named effect clearly beats does not."""
     row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True}
     doc = {"rig": "r", "rule": "rule", "effects": ["joint_compliance"],
            "rounds": [[{**row, "effect": "joint_compliance", "selection_error_after_mm": 0.20,
@@ -211,7 +212,9 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
                        {**row, "effect": "lateral_compliance", "selection_error_after_mm": 0.19,
                         "z": 5.1, "z_vs_named": -1.5},
                        {**row, "effect": "encoder_error", "selection_error_after_mm": 0.3,
-                        "z": 2.5, "z_vs_named": 4.0}]],
+                        "z": 2.5, "z_vs_named": 4.0},
+                       {**row, "effect": "backlash", "parameters": 30, "z": 6.0,
+                        "selection_error_after_mm": 0.15, "z_vs_named": -3.0}]],
            "baseline": {"n_free": 76, "heldout_error_mm": 0.4, "heldout_error_sd_mm": 0.1,
                         "heldout_error_max_mm": 1.0},
            "steps": [{"effect": "joint_compliance", "rivals": ["lateral_compliance"],
@@ -220,7 +223,10 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
     text = format_chain_diagnosis(doc)
     assert ("lateral_compliance fits the selection poses as well as joint_compliance (paired "
             "z -1.5") in text
-    assert "encoder_error fits" not in text
+    notes = [ln.strip() for ln in text.splitlines() if ln.startswith("  ")]
+    assert len(notes) == 2 and not any(n.startswith("encoder_error") for n in notes), notes
+    assert ("backlash leaves smaller errors than joint_compliance (paired z -3.0) with 30 "
+            "parameters") in text
 
 
 def test_a_candidate_with_nothing_identifiable_to_fit_never_passes():
