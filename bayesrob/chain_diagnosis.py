@@ -351,7 +351,7 @@ def format_chain_diagnosis(doc: dict) -> str:
             elif s["z_vs_named"] < -Z_MIN:
                 out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
                            f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
-                           "against its fewer: named second if it still passes on top")
+                           "against its fewer: named later if it still passes on top of it")
     rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
              *_ladder_cells(doc["baseline"])]]
     rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"
