@@ -342,9 +342,11 @@ def format_chain_diagnosis(doc: dict) -> str:
             [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
               f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
               "yes" if s["passes"] else "no"] for s in scores]))
-        chosen = doc["effects"][r - 1] if r <= len(doc["effects"]) else None
+        if r > len(doc["steps"]):
+            continue  # nothing named in this round: no comparison with a named effect
+        chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
         for s in (s for s in scores if "z_vs_named" in s):
-            if abs(s["z_vs_named"]) <= Z_MIN:
+            if s["effect"] in rivals:
                 out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
                            f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
                            "poses do not tell them apart")
