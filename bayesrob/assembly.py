@@ -234,7 +234,11 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
     ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains).
-    ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``).
+    ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``). Given for a
+    planar rig, its arms are predicted as the 2-joint chains they are (the chain path: latent
+    joint errors, aimed through the calibrated model with its gravity groups), so arms that
+    sag are aimed and predicted through their fitted physics instead of the eight-parameter
+    fit.
     ``masses``: a chain rig's link masses, "fitted" or held at the URDF's ("description"),
     when the groups make the arms sag: then the arms' stiffnesses come from their fitted
     compliances instead of the prior.
@@ -256,13 +260,13 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     if targets.shape[1] != dim:
         raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
                        f"{targets.shape[1]} coordinates")
-    if rig.is_chain:
+    if masses != "fitted" and not rig.is_chain:
+        raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
+                       f"{masses!r} is for URDF rigs)")
+    if rig.is_chain or groups is not None:
         return _with_command_ranges(_predict_chain(
             rig, config, members, targets, model or LATENT_MODELS[0], fusion, seed, t0,
             groups or kin.GROUPS, masses), rig)
-    if masses != "fitted":
-        raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
-                       f"{masses!r} is for URDF rigs)")
     model = model or "cond"
     spec = discover_models(models_dir, [model])
     cal = calibrate(rig)

@@ -336,6 +336,10 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
     f = _column_jacobian(robot, arm)
     xj = jnp.asarray(x)
+    # radians per command unit of each column: 1 on URDF/DH joints, the servo gain on planar
+    # arms, whose columns are pulse widths (a step limit in radians must not read as 0.3 us)
+    per_rad = np.concatenate([np.abs(x[robot.layout.slices[(c.name, "gain")]])
+                              for c in robot.path(arm)])
     best = np.zeros((len(targets), u_train.shape[1]))
     best_beyond = np.full(len(targets), np.inf)
     best_miss = np.full(len(targets), np.inf)
@@ -344,7 +348,8 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
         # stops at once, so a later seed costs the steps of the targets still outside only
         # (and every call keeps the shape its program was compiled for)
         settled = (best_beyond == 0.0)[:, None]
-        u, miss = _aim_from(f, xj, targets, np.where(settled, best, u_train[order[:, k]]))
+        u, miss = _aim_from(f, xj, targets, np.where(settled, best, u_train[order[:, k]]),
+                            per_rad)
         beyond = np.where(miss < IK_TOL_MM, (np.maximum(lo - u, 0.0)
                                              + np.maximum(u - hi, 0.0)).sum(axis=1), np.inf)
         # a later seed replaces a solution only where it is strictly further inside the range
@@ -363,10 +368,10 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return best
 
 
-def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray
+def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`aim_chain`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
-    each target is missed (mm)."""
+    each target is missed (mm). ``per_rad`` (c,): radians per unit of each column."""
     for _ in range(IK_ITERATIONS):
         p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))
         r = targets - p
@@ -376,7 +381,7 @@ def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray
         # the step is limited to 0.3 rad per column, so far targets are approached, not jumped
         jjt = np.einsum("tic,tjc->tij", jac, jac) + 1e-6 * np.eye(jac.shape[1])
         step = np.einsum("tic,ti->tc", jac, np.linalg.solve(jjt, r[..., None])[..., 0])
-        big = np.abs(step).max(axis=1, keepdims=True)
+        big = np.abs(step * per_rad).max(axis=1, keepdims=True)
         u = u + step * np.minimum(1.0, 0.3 / np.maximum(big, 1e-12))
     p = np.asarray(f(xj, jnp.asarray(u))[0])
     return u, np.linalg.norm(targets - p, axis=1)

@@ -843,13 +843,16 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                    help="how linked arms share the end point: equilibrium (their stiffnesses "
                         "balance; default) or product (the paper's product of likelihoods)")
     p.add_argument("--model", default=None,
-                   help="joint-error model name (default cond; ind or corr for URDF/DH arms, "
-                        "whose joint errors are latent: default ind)")
+                   help="joint-error model name (default cond; ind or corr for URDF/DH arms "
+                        "and with --params, whose joint errors are latent: default ind)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="URDF/DH rigs: parameter groups the modules are calibrated with, as "
-                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo; "
-                        "add compliance for arms that sag under gravity)")
+                   help="parameter groups the modules are calibrated with, as 'bayesrob "
+                        "calibrate --params' (URDF/DH default frames,offsets,geometric,servo; "
+                        "add compliance for arms that sag under gravity, backlash for play). "
+                        "Given for a planar rig, its arms are aimed and predicted as 2-joint "
+                        "chains with those groups (joint-error model ind or corr) instead of "
+                        "the eight-parameter fit")
     p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="URDF rigs calibrated with compliance: the links' masses fitted "
                         "(default; only their products with the compliances are seen, and the "
@@ -872,9 +875,6 @@ def _predict(args: argparse.Namespace) -> int:
     dim = rig.robot.dim
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
     try:
-        if args.params is not None and not rig.is_chain:
-            raise UsageError("--params is for URDF/DH rigs; planar arms are calibrated with "
-                             "their eight parameters")
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
                                 args.models_dir, args.seed, groups=args.params,
                                 masses=args.masses)
