@@ -371,18 +371,22 @@ def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
 
 def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     """A chain assembly: expected error seen from above (left), and the least accurate
-    target's draws in and out of its 50% / 90% regions, projected on two planes."""
+    target's draws in and out of its 50% / 90% regions, projected on two planes (3-D) or in
+    the arms' plane (planar arms predicted as chains)."""
     import matplotlib.pyplot as plt
 
     from bayesrob.chain_prediction import hdr_levels
 
-    fig, axs = plt.subplots(1, 3, figsize=(15, 4.6))
+    planes = [(0, 1), (0, 2)] if pred.targets.shape[1] == 3 else [(0, 1)]
+    fig, axs = plt.subplots(1, 1 + len(planes), figsize=(5 * (1 + len(planes)), 4.6))
     t = pred.targets
     sc = axs[0].scatter(t[:, 0], t[:, 1], c=pred.expected_error_mm, cmap="viridis", s=90)
     fig.colorbar(sc, ax=axs[0], label="expected error (mm)")
     x = rig.robot.layout.nominal
     for a in pred.config.split("+"):
-        base = np.asarray(rig.robot.instrument_pose(x, a))[:3, 3]
+        # a planar arm's base is its chain's first joint origin, not an instrument pose
+        base = (np.asarray(rig.robot.instrument_pose(x, a))[:3, 3] if rig.is_chain
+                else np.asarray(rig.arms[a].base, float))
         axs[0].plot(base[0], base[1], "k^")
         axs[0].annotate(a, base[:2], textcoords="offset points", xytext=(4, 4))
     axs[0].set_aspect("equal")
@@ -394,7 +398,7 @@ def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     sub = draws[:1500]
     level = hdr_levels(draws, sub)[:, 0]
     dev = sub[:, 0] - t[worst]
-    for ax, (i, j) in zip(axs[1:], [(0, 1), (0, 2)], strict=True):
+    for ax, (i, j) in zip(axs[1:], planes, strict=True):
         for lo, hi, colour, label in ((0.9, 1.01, "0.8", "outside 90%"),
                                       (0.5, 0.9, "C0", "50-90%"), (0.0, 0.5, "C3", "50%")):
             m = (level >= lo) & (level < hi)

@@ -336,10 +336,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
     f = _column_jacobian(robot, arm)
     xj = jnp.asarray(x)
-    # radians per command unit of each column: 1 on URDF/DH joints, the servo gain on planar
-    # arms, whose columns are pulse widths (a step limit in radians must not read as 0.3 us)
-    per_rad = np.concatenate([np.abs(x[robot.layout.slices[(c.name, "gain")]])
-                              for c in robot.path(arm)])
+    per_rad = _radians_per_unit(robot, x, arm)
     best = np.zeros((len(targets), u_train.shape[1]))
     best_beyond = np.full(len(targets), np.inf)
     best_miss = np.full(len(targets), np.inf)
@@ -366,6 +363,14 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
             raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
                            f"{arm!r}: {where}")
     return best
+
+
+def _radians_per_unit(robot: kin.Robot, x: np.ndarray, arm: str) -> np.ndarray:
+    """Radians per command unit of each of ``arm``'s columns: 1 on URDF/DH joints, the servo
+    gain on planar arms, whose columns are pulse widths (so a step limit in radians does not
+    read as 0.3 us, which never reaches a target)."""
+    return np.concatenate([np.abs(np.asarray(x)[robot.layout.slices[(c.name, "gain")]])
+                           for c in robot.path(arm)])
 
 
 def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray

@@ -130,6 +130,25 @@ def test_aim_reaches_targets_and_refuses_what_it_cannot(arm6_modules):
         aim_chain(rig, mods.robot, mods.x, "arm", np.array([[9000.0, 0.0, 0.0]]))
 
 
+def test_aim_reaches_targets_with_a_planar_arms_pulse_columns():
+    """A planar arm's columns are pulse widths (about 0.0015 rad per us): the step limit is
+    in radians, so its Gauss-Newton reaches the default rig's linked targets (a limit read
+    as 0.3 us per step stopped 14.6 mm short on a three-arm rig) and lands where the
+    eight-parameter fit's closed-form inverse does, the same model fitted the same way to
+    within 0.5 us."""
+    from bayesrob.calibration import calibrate, calibrate_chain
+    from bayesrob.rig import default_rig_dir
+
+    rig = load_rig(default_rig_dir())
+    cal = calibrate_chain(rig, kin.GROUPS)
+    targets = rig.config_rows("top+bottom", "test")["target"][:6]
+    u = aim_chain(rig, cal.robot, cal.x, "top", targets)
+    got = np.asarray(cal.robot.compiled_points("top")(cal.x, u))
+    assert np.abs(got - targets).max() < 1e-3
+    closed = np.asarray(calibrate(rig)["top"].arm.command(targets))
+    assert np.abs(u - closed).max() < 0.5
+
+
 def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypatch):
     """A redundant arm reaches a target on several branches. The nearest train pose's branch
     is kept where it stays inside the train commands' range; where it leaves it, the next
@@ -145,7 +164,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     reach = {3: [False, False, False, False]}
     calls = []
 
-    def fake(f, xj, targets, seeds):
+    def fake(f, xj, targets, seeds, per_rad):
         k = len(calls)
         calls.append(seeds.copy())
         u = np.array([answers[t][k] for t in range(len(targets))])
@@ -155,6 +174,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
 
     monkeypatch.setattr(cp, "_aim_from", fake)
     monkeypatch.setattr(cp, "_column_jacobian", lambda robot, arm: None)
+    monkeypatch.setattr(cp, "_radians_per_unit", lambda robot, x, arm: np.ones(2))
     targets = np.array([[1.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0]])
     u = cp.aim_chain(rig, None, np.zeros(1), "arm", targets)
     np.testing.assert_array_equal(u, [[0.5, 0.5], [0.4, 0.4], [1.05, 0.0]])

@@ -252,6 +252,10 @@ def test_predict_says_where_commands_leave_the_calibrated_range(tmp_path, capsys
     (["--config", "top+bottom", "--targets", "FAR"], "is out of reach of arm 'top'"),
     (["--config", "top+bottom", "--grid", "2", "--masses", "description"],
      "planar arms have no link masses to hold"),
+    (["--config", "top+bottom", "--grid", "2", "--params", "frames,compliance", "--masses",
+      "description"], "planar arms have no link masses to hold"),
+    (["--config", "top", "--grid", "2", "--params", "frames,offsets", "--model", "cond"],
+     "chain arms take the latent joint-error models"),
 ])
 def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, message):
     (tmp_path / "BAD").write_text("x,y\n150,150\n150,abc\n")
@@ -260,6 +264,40 @@ def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, messag
     assert main(["predict", str(default_rig_dir()), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys):
+    """``--params`` on a planar rig predicts its arms as 2-joint chains with those groups:
+    aimed through the calibrated physics (each arm's own point within 1 um of the target under
+    its fitted model), the latent ``ind`` errors by default, stiffnesses from the prior
+    scaled by the arms' fitted sags, and the draws' figure in the arms' plane. Beside the
+    eight-parameter route at the same targets, the commands differ by what the fitted sag
+    and play move (a few us, not tens) and the expected errors agree within a factor 2."""
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.chain_prediction import STIFFNESS_SOURCES
+
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y\n160,240\n200,200\n")
+    out, png = tmp_path / "p.json", tmp_path / "p.png"
+    groups = "frames,offsets,geometric,servo,compliance,backlash"
+    assert main(["predict", str(default_rig_dir()), "--config", "top+bottom", "--targets",
+                 str(targets), "--params", groups, "--json", str(out), "--plot",
+                 str(png)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    assert doc["model"] == "ind" and png.stat().st_size > 10_000
+    assert {v["from"] for v in doc["stiffness"].values()} == {STIFFNESS_SOURCES[3]}
+    assert "by its fitted sag" in text
+    rig = load_rig(default_rig_dir())
+    cal = calibrate_chain(rig, tuple(groups.split(",")))
+    plain = predict_assembly(rig, "top+bottom", read_targets(targets), "ind")
+    for arm in ("top", "bottom"):
+        u = np.array([t["commands"][arm] for t in doc["targets"]])
+        got = np.asarray(cal.robot.compiled_points(arm)(cal.x, u))
+        assert np.abs(got - read_targets(targets)).max() < 1e-3
+        assert 0.5 < np.abs(u - plain.commands[arm]).max() < 30
+    errors = np.array([t["expected_error_mm"] for t in doc["targets"]])
+    assert np.all((errors > plain.expected_error_mm / 2) & (errors < 2 * plain.expected_error_mm))
 
 
 def test_read_targets_needs_x_and_y(tmp_path):
