@@ -10,6 +10,7 @@ test uses.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -353,7 +354,8 @@ def three_arm_results(three_rigs, tmp_path_factory):
     pytest.param("cond", marks=pytest.mark.xfail(strict=True, reason=(
         "measured on three-arm rigs 1-6: the 50% / 90% regions hold 0.49 / 0.80 of 96 points; "
         "three arms are predicted a little too accurate there (six three-arm tuning rigs: "
-        "0.59 / 0.92)")))])
+        "0.59 / 0.92); through their fitted physics they meet it "
+        "(test_three_arms_predicted_through_their_fitted_physics)")))])
 def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, model,
                                                          record_property):
     """Issue target, as for two arms: the 50% / 90% regions hold 0.40-0.60 / 0.84-0.96 of the
@@ -368,7 +370,8 @@ def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, mode
 @pytest.mark.slow
 @pytest.mark.parametrize("model", [
     pytest.param("ind", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured on three-arm rigs 1-6: predicted / observed mean error 0.840"))),
+        "measured on three-arm rigs 1-6: predicted / observed mean error 0.840; through "
+        "their fitted physics 1.083 (test_three_arms_predicted_through_their_fitted_physics)"))),
     "cond"])
 def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, model,
                                                          record_property):
@@ -377,6 +380,29 @@ def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, mode
     _, ratios = three_arm_results
     record_property(f"three_arm_error_ratio_{model}", json.dumps(ratios[model]))
     assert 0.85 <= ratios[model] <= 1.15, ratios
+
+
+@pytest.mark.slow
+def test_three_arms_predicted_through_their_fitted_physics(monkeypatch):
+    """Item 4's three-arm check on the route that meets it: ``predict --params
+    frames,offsets,geometric,servo,compliance,backlash`` from single-arm rows, the assembly
+    then measured at predict's own commands (``bench_predict.py --three-arms report``: six
+    report rigs fixed before their first run, 96 linked points; about 5 minutes on two cores).
+    The groups were chosen on the tuning rigs 101-106 (compliance alone over-predicted there,
+    1.25). Issue targets: 0.40-0.60 / 0.84-0.96 at 96 points and an error ratio in
+    [0.85, 1.15]; the published figures (docs/fusion.md) to 2.5 points of 96 (a point at its
+    region's edge flips with the compiled programs' rounding) and the ratio to 0.002.
+    One test, so the study runs once whichever worker takes it."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import bench_predict
+
+    got = bench_predict.three_arm_study(bench_predict.THREE_ARM_REPORT_SEEDS)
+    assert got["points"] == 96
+    assert got["coverage50"] == pytest.approx(0.531, abs=2.5 / 96)
+    assert got["coverage90"] == pytest.approx(0.948, abs=2.5 / 96)
+    assert got["error_ratio"] == pytest.approx(1.083, abs=2e-3)
+    assert 0.40 <= got["coverage50"] <= 0.60 and 0.84 <= got["coverage90"] <= 0.96, got
+    assert 0.85 <= got["error_ratio"] <= 1.15, got
 
 
 @pytest.fixture(scope="module")
