@@ -336,7 +336,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
     f = _column_jacobian(robot, arm)
     xj = jnp.asarray(x)
-    per_rad = _radians_per_unit(robot, x, arm)
+    per_rad = _radians_per_unit(robot, arm)
     best = np.zeros((len(targets), u_train.shape[1]))
     best_beyond = np.full(len(targets), np.inf)
     best_miss = np.full(len(targets), np.inf)
@@ -365,11 +365,12 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     return best
 
 
-def _radians_per_unit(robot: kin.Robot, x: np.ndarray, arm: str) -> np.ndarray:
-    """Radians per command unit of each of ``arm``'s columns: 1 on URDF/DH joints, the servo
-    gain on planar arms, whose columns are pulse widths (so a step limit in radians does not
-    read as 0.3 us, which never reaches a target)."""
-    return np.concatenate([np.abs(np.asarray(x)[robot.layout.slices[(c.name, "gain")]])
+def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
+    """Radians per command unit of each of ``arm``'s columns, from the description's gains: 1
+    on URDF/DH joints, the servo gain on planar arms, whose columns are pulse widths (so a
+    step limit in radians does not read as 0.3 us, which never reaches a target). The
+    nominal gains, not the calibrated ones: a URDF arm's steps stay exactly as they were."""
+    return np.concatenate([np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
                            for c in robot.path(arm)])
 
 

@@ -174,7 +174,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
 
     monkeypatch.setattr(cp, "_aim_from", fake)
     monkeypatch.setattr(cp, "_column_jacobian", lambda robot, arm: None)
-    monkeypatch.setattr(cp, "_radians_per_unit", lambda robot, x, arm: np.ones(2))
+    monkeypatch.setattr(cp, "_radians_per_unit", lambda robot, arm: np.ones(2))
     targets = np.array([[1.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0]])
     u = cp.aim_chain(rig, None, np.zeros(1), "arm", targets)
     np.testing.assert_array_equal(u, [[0.5, 0.5], [0.4, 0.4], [1.05, 0.0]])

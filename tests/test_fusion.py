@@ -10,6 +10,7 @@ test uses.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -29,6 +30,7 @@ from bayesrob.rig import RigError, default_rig_dir, load_rig
 from bayesrob.simulator import PhysicalRig, paper_truth, simulate_rig, three_arm_truth
 
 ALPHA = 0.01
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 IMPROVED = ("ind", "corr", "cond")
 REPORT_SEEDS = range(601, 607)
 # Two arms are not equally stiff: with one stiffness for every arm a prior that linked arms are
@@ -179,15 +181,11 @@ def test_compare_scores_both_fusions(tmp_path):
 
 
 def _single_arm_copy(rig_dir, out):
-    """The rig with every linked row removed: what a lab has before linking the arms."""
-    out.mkdir()
-    (out / "rig.toml").write_text((rig_dir / "rig.toml").read_text())
-    lines = (rig_dir / "measurements.csv").read_text().splitlines()
-    header = lines[0].split(",")
-    col = header.index("config")
-    kept = [ln for ln in lines[1:] if "+" not in ln.split(",")[col]]
-    (out / "measurements.csv").write_text("\n".join([lines[0], *kept]) + "\n")
-    return out
+    """The rig with every linked row removed (the three-arm study's own helper)."""
+    sys.path.insert(0, str(BENCHMARKS))
+    import bench_predict
+
+    return bench_predict.single_arm_copy(rig_dir, out)
 
 
 def test_predict_needs_no_linked_rows_and_gives_the_same_answer(tmp_path):
@@ -393,7 +391,7 @@ def test_three_arms_predicted_through_their_fitted_physics(monkeypatch):
     [0.85, 1.15]; the published figures (docs/fusion.md) to 2.5 points of 96 (a point at its
     region's edge flips with the compiled programs' rounding) and the ratio to 0.002.
     One test, so the study runs once whichever worker takes it."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
     import bench_predict
 
     got = bench_predict.three_arm_study(bench_predict.THREE_ARM_REPORT_SEEDS)
