@@ -233,7 +233,8 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
                      ) -> AssemblyPrediction:
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
-    ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains).
+    ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains and
+    with ``groups``).
     ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``). Given for a
     planar rig, its arms are predicted as the 2-joint chains they are (the chain path: latent
     joint errors, aimed through the calibrated model with its gravity groups), so arms that

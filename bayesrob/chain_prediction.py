@@ -328,7 +328,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     maximum: another branch, where the calibration extrapolates), the next nearest train
     poses are tried in turn, up to AIM_SEEDS, and the first solution inside the range is
     taken, else the one least beyond it. A target it does not reach within IK_TOL_MM from
-    any of them is refused with one line.
+    any of them is refused with one line, and so is one a planar arm's pulse limits refuse.
     """
     targets = np.atleast_2d(np.asarray(targets, float))
     u_train, d_train = rig.chain_rows(arm, "train")
@@ -362,14 +362,24 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
                      else "its calibrated model's inverse kinematics did not converge")
             raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
                            f"{arm!r}: {where}")
+    limits = getattr(rig.arms[arm], "pulse_limits", None)  # planar arms: servo pulse limits
+    if limits is not None:
+        for t, ut in zip(targets, best, strict=True):
+            for j, (p, (a, b)) in enumerate(zip(ut, limits, strict=True)):
+                if not a <= p <= b:
+                    raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is outside the "
+                                   f"workspace of arm {arm!r}: aiming at it needs pulse {j + 1} "
+                                   f"= {p:.1f} us, outside its pulse_limits [{a:g}, {b:g}]")
     return best
 
 
 def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
-    """Radians per command unit of each of ``arm``'s columns, from the description's gains: 1
-    on URDF/DH joints, the servo gain on planar arms, whose columns are pulse widths (so a
-    step limit in radians does not read as 0.3 us, which never reaches a target). The
-    nominal gains, not the calibrated ones: a URDF arm's steps stay exactly as they were."""
+    """Joint units (rad; mm on a prismatic joint) per command unit of each of ``arm``'s
+    columns, from the description's gains: the servo gain on planar arms, whose columns are
+    pulse widths (so a step limit in radians does not read as 0.3 us, which never reaches a
+    target), 1 on URDF/DH joints unless the rig gives a ``gain``. The nominal gains, not the
+    calibrated ones, so the steps do not depend on the fit. Couplings are left out: a column
+    moving its joints by +-1 (the usual coupling) is limited as its joint."""
     return np.concatenate([np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
                            for c in robot.path(arm)])
 

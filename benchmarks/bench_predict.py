@@ -73,7 +73,7 @@ def three_arm_study(seeds: tuple[int, ...], groups: tuple[str, ...] = THREE_ARM_
             rig = load_rig(single_arm_copy(full, root / f"single{seed}"))
             targets = load_rig(full).config_rows(THREE_ARMS, "test")["target"]
             p = predict_assembly(rig, THREE_ARMS, targets, model, groups=groups)
-            # the assembly measured once at predict's commands, rounded to the servos' 1 us,
+            # the assembly measured once at predict's commands, rounded to the servos' 0.25 us,
             # with noise from a stream of its own
             plant = PhysicalRig(truth, seed=10_000 + seed)
             seen = np.array([plant.end_point({a: round_pulse(u[t]) for a, u in

@@ -156,7 +156,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     target no seed reaches is refused. (Gauss-Newton stubbed: seed k's solution is given.)"""
     u_train = np.array([[0.0, 0.0], [1.0, 1.0], [0.5, 0.2], [0.9, 0.9]])
     d_train = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
-    rig = SimpleNamespace(chain_rows=lambda arm, s: (u_train, d_train))
+    rig = SimpleNamespace(chain_rows=lambda arm, s: (u_train, d_train), arms={"arm": None})
     # per target (rows) and seed rank (columns): the solution, and whether it reaches
     answers = {0: [[0.5, 0.5], [1.4, 0.5], [0.2, 0.3], [0.1, 0.1]],  # in range at once
                1: [[1.3, 0.0], [1.2, 0.5], [0.4, 0.4], [0.3, 0.3]],  # third seed is inside

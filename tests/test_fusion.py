@@ -9,8 +9,8 @@ test uses.
 
 from __future__ import annotations
 
+import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -181,11 +181,12 @@ def test_compare_scores_both_fusions(tmp_path):
 
 
 def _single_arm_copy(rig_dir, out):
-    """The rig with every linked row removed (the three-arm study's own helper)."""
-    sys.path.insert(0, str(BENCHMARKS))
-    import bench_predict
-
-    return bench_predict.single_arm_copy(rig_dir, out)
+    """The rig with every linked row removed (the three-arm study's own helper, loaded from
+    its file so the tests' import path stays as it was)."""
+    spec = importlib.util.spec_from_file_location("bench_predict", BENCHMARKS / "bench_predict.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench.single_arm_copy(rig_dir, out)
 
 
 def test_predict_needs_no_linked_rows_and_gives_the_same_answer(tmp_path):
@@ -255,11 +256,15 @@ def test_predict_says_where_commands_leave_the_calibrated_range(tmp_path, capsys
       "description"], "planar arms have no link masses to hold"),
     (["--config", "top", "--grid", "2", "--params", "frames,offsets", "--model", "cond"],
      "chain arms take the latent joint-error models"),
+    (["--config", "bottom", "--targets", "LIMIT"], "outside its pulse_limits [600, 2400]"),
+    (["--config", "bottom", "--targets", "LIMIT", "--params", "frames,offsets,geometric,servo"],
+     "outside its pulse_limits [600, 2400]"),
 ])
 def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, message):
     (tmp_path / "BAD").write_text("x,y\n150,150\n150,abc\n")
     (tmp_path / "FAR").write_text("x,y\n2000,2000\n")
-    args = [str(tmp_path / a) if a in ("MISSING", "BAD", "FAR") else a for a in args]
+    (tmp_path / "LIMIT").write_text("x,y\n368,200\n")  # in reach, beyond a servo's pulses
+    args = [str(tmp_path / a) if a in ("MISSING", "BAD", "FAR", "LIMIT") else a for a in args]
     assert main(["predict", str(default_rig_dir()), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1, err
@@ -294,7 +299,7 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys):
         u = np.array([t["commands"][arm] for t in doc["targets"]])
         got = np.asarray(cal.robot.compiled_points(arm)(cal.x, u))
         assert np.abs(got - read_targets(targets)).max() < 1e-3
-        assert 0.5 < np.abs(u - plain.commands[arm]).max() < 30
+        assert 0.5 < np.abs(u - plain.commands[arm]).max() < 10
     errors = np.array([t["expected_error_mm"] for t in doc["targets"]])
     assert np.all((errors > plain.expected_error_mm / 2) & (errors < 2 * plain.expected_error_mm))
 
