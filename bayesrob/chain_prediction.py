@@ -44,6 +44,7 @@ from numpyro.infer import MCMC, NUTS, Predictive
 from bayesrob import kinematics as kin
 from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
 from bayesrob.fusion import DRAWS, FUSIONS, kde_bandwidth, kde_log_density
+from bayesrob.inference import check_pulse_limits
 from bayesrob.latent_errors import (
     LatentJointErrors,
     check_latent_model,
@@ -365,11 +366,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     limits = getattr(rig.arms[arm], "pulse_limits", None)  # planar arms: servo pulse limits
     if limits is not None:
         for t, ut in zip(targets, best, strict=True):
-            for j, (p, (a, b)) in enumerate(zip(ut, limits, strict=True)):
-                if not a <= p <= b:
-                    raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is outside the "
-                                   f"workspace of arm {arm!r}: aiming at it needs pulse {j + 1} "
-                                   f"= {p:.1f} us, outside its pulse_limits [{a:g}, {b:g}]")
+            check_pulse_limits(arm, t, ut, limits)
     return best
 
 

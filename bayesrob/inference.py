@@ -77,6 +77,7 @@ __all__ = [
     "point_log_density",
     "prior_spread",
     "initial_points",
+    "check_pulse_limits",
     "check_reach",
     "run_nuts",
     "run_emcee",
@@ -1073,11 +1074,19 @@ def check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
         raise ValueError(f"{where} is out of reach of arm {arm.name!r}: it is {r:.1f} mm from "
                          f"the arm's base ({base[0]:.1f}, {base[1]:.1f}), which reaches "
                          f"{lo:.1f} to {hi:.1f} mm")
-    for j, (p, (a, b)) in enumerate(zip(u, arm.pulse_limits, strict=True)):
+    check_pulse_limits(arm.name, target, u, arm.pulse_limits,
+                       f" (reach {lo:.1f} to {hi:.1f} mm from its base)")
+
+
+def check_pulse_limits(name: str, target: np.ndarray, u: np.ndarray,
+                       limits: Sequence[tuple[float, float]], note: str = "") -> None:
+    """Refuse pulses ``u`` aimed at ``target`` beyond an arm's pulse limits: one line naming
+    target, arm, pulse and limits (``note`` appended)."""
+    for j, (p, (a, b)) in enumerate(zip(u, limits, strict=True)):
         if not a <= p <= b:
-            raise ValueError(f"{where} is outside the workspace of arm {arm.name!r}: aiming "
-                             f"at it needs pulse {j + 1} = {p:.1f} us, outside its pulse_limits "
-                             f"[{a:g}, {b:g}] (reach {lo:.1f} to {hi:.1f} mm from its base)")
+            raise ValueError(f"target ({', '.join(f'{v:g}' for v in target)}) is outside the "
+                             f"workspace of arm {name!r}: aiming at it needs pulse {j + 1} = "
+                             f"{p:.1f} us, outside its pulse_limits [{a:g}, {b:g}]{note}")
 
 
 def format_sample(report: SampleReport) -> str:
