@@ -9,6 +9,7 @@ test uses.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import json
 from pathlib import Path
@@ -180,13 +181,19 @@ def test_compare_scores_both_fusions(tmp_path):
 # ------------------------------------------------------------------------------ predict
 
 
-def _single_arm_copy(rig_dir, out):
-    """The rig with every linked row removed (the three-arm study's own helper, loaded from
-    its file so the tests' import path stays as it was)."""
+@functools.cache
+def _bench_predict():
+    """``benchmarks/bench_predict.py`` (the three-arm study), loaded once from its file so the
+    tests' import path stays as it was."""
     spec = importlib.util.spec_from_file_location("bench_predict", BENCHMARKS / "bench_predict.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    return bench.single_arm_copy(rig_dir, out)
+    return bench
+
+
+def _single_arm_copy(rig_dir, out):
+    """The rig with every linked row removed (the three-arm study's own helper)."""
+    return _bench_predict().single_arm_copy(rig_dir, out)
 
 
 def test_predict_needs_no_linked_rows_and_gives_the_same_answer(tmp_path):
@@ -386,7 +393,7 @@ def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, mode
 
 
 @pytest.mark.slow
-def test_three_arms_predicted_through_their_fitted_physics(monkeypatch):
+def test_three_arms_predicted_through_their_fitted_physics():
     """Item 4's three-arm check on the route that meets it: ``predict --params
     frames,offsets,geometric,servo,compliance,backlash`` from single-arm rows, the assembly
     then measured at predict's own commands (``bench_predict.py --three-arms report``: six
@@ -396,10 +403,8 @@ def test_three_arms_predicted_through_their_fitted_physics(monkeypatch):
     [0.85, 1.15]; the published figures (docs/fusion.md) to 2.5 points of 96 (a point at its
     region's edge flips with the compiled programs' rounding) and the ratio to 0.002.
     One test, so the study runs once whichever worker takes it."""
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    import bench_predict
-
-    got = bench_predict.three_arm_study(bench_predict.THREE_ARM_REPORT_SEEDS)
+    bench = _bench_predict()
+    got = bench.three_arm_study(bench.THREE_ARM_REPORT_SEEDS)
     assert got["points"] == 96
     assert got["coverage50"] == pytest.approx(0.531, abs=2.5 / 96)
     assert got["coverage90"] == pytest.approx(0.948, abs=2.5 / 96)
