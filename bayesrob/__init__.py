@@ -32,6 +32,13 @@ jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 
+# In a checkout, the top-level models/ and validation/ are this package's bayesrob.models and
+# bayesrob.validation, as an install lays them out (pyproject's package-dir): the tests and the
+# validation suite then run the checkout's files, not an installed copy's.
+_checkout = Path(__file__).resolve().parent.parent
+if (_checkout / "pyproject.toml").exists() and (_checkout / "validation" / "suite.py").exists():
+    __path__.append(str(_checkout))
+
 # Programs compiling faster than this are cheaper to rebuild than to read back from disk.
 _CACHE_MIN_COMPILE_SECS = 0.05
 
