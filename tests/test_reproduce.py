@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,38 +59,59 @@ def test_reproduces_the_papers_findings(reproduced):
                 np.log(setup["predicted"][f"{fam}_paper"]["ratio"]))
 
 
-# The README's table ("Results on the default data"): per setup, the observed mean error and
-# its 95% CI, then each model's predicted expected error and ratio to the observation.
-README_TABLE = {
-    "top": ((1.36, 1.04, 1.68), {
-        "ind_paper": (2.33, 1.71), "ind": (1.26, 0.93), "corr_paper": (2.32, 1.70),
-        "corr": (1.28, 0.94), "cond_paper": (1.58, 1.16), "cond": (1.28, 0.94)}),
-    "bottom": ((1.32, 0.99, 1.65), {
-        "ind_paper": (2.99, 2.27), "ind": (1.62, 1.22), "corr_paper": (2.98, 2.26),
-        "corr": (1.59, 1.21), "cond_paper": (2.03, 1.54), "cond": (1.59, 1.21)}),
-    "top+bottom": ((0.85, 0.63, 1.07), {
-        "ind_paper": (1.34, 1.58), "ind": (0.80, 0.94), "corr_paper": (1.35, 1.59),
-        "corr": (0.86, 1.02), "cond_paper": (1.11, 1.31), "cond": (0.86, 1.02)}),
-}
+# tests/golden/default_accuracy.json is reproduce's own earlier accuracy.json on the embedded
+# default rig: a pin that catches any change of the reproduction's figures (the data are
+# embedded and every step deterministic; 1e-6 relative leaves room for summation order only).
+GOLDEN = Path(__file__).resolve().parent / "golden" / "default_accuracy.json"
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_the_readme_reproduction_table(reproduced):
-    """Every figure of the README's table, as printed (two decimals).
-
-    The data are embedded and every step is deterministic, so the only tolerance is the
-    table's rounding: half a unit of the last printed digit (plus 1e-9 for float noise).
-    """
+def test_accuracy_json_matches_the_golden_file(reproduced):
     out, _ = reproduced
     s = json.loads((out / "accuracy.json").read_text())["setups"]
-    tol = 0.005 + 1e-9
-    for setup, ((mean, lo, hi), predicted) in README_TABLE.items():
-        obs = s[setup]["observed"]
-        assert obs["mean_mm"] == pytest.approx(mean, abs=tol), setup
-        assert obs["ci95_mm"] == pytest.approx([lo, hi], abs=tol), setup
-        for model, (err, ratio) in predicted.items():
-            p = s[setup]["predicted"][model]
-            assert p["expected_error_mm"] == pytest.approx(err, abs=tol), (setup, model)
-            assert p["ratio"] == pytest.approx(ratio, abs=tol), (setup, model)
+    golden = json.loads(GOLDEN.read_text())["setups"]
+    assert set(s) == set(golden)
+    for setup, g in golden.items():
+        assert s[setup]["observed"]["mean_mm"] == pytest.approx(g["observed"]["mean_mm"],
+                                                                rel=1e-6)
+        assert s[setup]["observed"]["ci95_mm"] == pytest.approx(g["observed"]["ci95_mm"],
+                                                                rel=1e-6)
+        assert set(s[setup]["predicted"]) == set(g["predicted"])
+        for model, figures in g["predicted"].items():
+            for key, value in figures.items():
+                assert s[setup]["predicted"][model][key] == pytest.approx(value, rel=1e-6), (
+                    setup, model, key)
+
+
+def _readme_accuracy_rows() -> dict[str, list[str]]:
+    """The README's accuracy table ("Results on the default data"): setup -> its cells."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    head = text.index("| setup | observed (95% CI) |")
+    rows = {}
+    for line in text[head:].splitlines()[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_the_readme_accuracy_table_is_the_golden_file():
+    """The README prints the golden figures to two decimals: observed mean [CI], then each
+    model's predicted error (ratio), in the table's column order."""
+    golden = json.loads(GOLDEN.read_text())["setups"]
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    header = text[text.index("| setup | observed (95% CI) |"):].splitlines()[0]
+    models = [c.strip() for c in header.strip("|").split("|")][2:]
+    rows = _readme_accuracy_rows()
+    assert set(rows) == set(golden)
+    for setup, g in golden.items():
+        obs = g["observed"]
+        lo, hi = obs["ci95_mm"]
+        assert rows[setup][0] == f"{obs['mean_mm']:.2f} [{lo:.2f}, {hi:.2f}]", setup
+        for model, cell in zip(models, rows[setup][1:], strict=True):
+            p = g["predicted"][model]
+            assert cell == f"{p['expected_error_mm']:.2f} ({p['ratio']:.2f})", (setup, model)
 
 
 def test_unknown_model_is_a_one_line_error(tmp_path):
