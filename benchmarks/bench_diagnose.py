@@ -7,12 +7,16 @@
 
 The default run times the command as a person runs it (a fresh process, so JAX compiles
 everything) on the embedded default rig (4x4 grid, two arms, gravity sag and backlash) and
-prints one JSON line. The sweeps build each rig from ``tests/generators.py`` (this project's
-simulator and the deliberately different generators), diagnose it from its files alone and
-compare what was named with what was hidden. The rigs are split before anything is chosen:
+prints one JSON line. The sweeps are the validation studies' (``bayesrob validate diagnosis
+diagnosis_chain`` runs them one rig after another, checks their targets and records their
+figures; :mod:`bayesrob.validation.diagnosis`): each rig is built by
+``bayesrob.validation.planar_generators`` (this project's simulator and the deliberately
+different generators) or ``chain_generators``, diagnosed from its files alone and what was
+named compared with what was hidden. The rigs are split before anything is chosen:
 ``--tuning`` runs the rigs the decision rule was chosen on (seeds 21-35), ``--confusion`` the
-report rigs (seeds 501-534), which only report. Rigs are diagnosed as Dask tasks on a
-LocalCluster of ``--workers`` processes (``--scheduler`` for a running cluster).
+report rigs (seeds 501-534), which only report. Here the rigs are diagnosed as Dask tasks on a
+LocalCluster of ``--workers`` processes (``--scheduler`` for a running cluster): the sweep's
+wall time on a cluster is this script's to measure.
 
 Each rig's *strength* is how much its hidden effects raise the base model's mean error at new
 poses (the holdout rows) over the same rig, seed and noise without them: 2 means the effects
@@ -29,23 +33,24 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
-
-from chain_generators import CHAIN_TRUTHS, REPORT_SEEDS, TUNING_SEEDS, chain_cases  # noqa: E402
-from generators import (  # noqa: E402
-    STRONG,
-    TRUTHS,
-    Case,
-    effects_key,
-    exactly_right,
-    report_cases,
-    targets,
-    tuning_cases,
+from bayesrob.validation.chain_generators import (
+    CHAIN_TRUTHS,
+    REPORT_SEEDS,
+    TUNING_SEEDS,
+    chain_cases,
 )
+from bayesrob.validation.diagnosis import (
+    STRONG,
+    breakdown_table,
+    case_line,
+    confusion_table,
+    strength_table,
+    sweep_counts,
+    sweep_details,
+)
+from bayesrob.validation.planar_generators import TRUTHS, Case, report_cases, tuning_cases
 
 LIMIT_S = 30.0  # target for a 4x4 planar rig
 
@@ -73,22 +78,11 @@ def time_command(rig: str | None) -> dict:
 
 
 def run_case(case) -> dict:
-    """One rig's sweep record, planar or chain (a Dask task: it finds ``tests/`` itself)."""
-    if str(ROOT / "tests") not in sys.path:  # a Dask worker starts without it
-        sys.path.insert(0, str(ROOT / "tests"))
-    from chain_generators import ChainCase, diagnose_chain_case
-    from generators import diagnose_case
+    """One rig's sweep record, planar or chain (a Dask task)."""
+    from bayesrob.validation.chain_generators import ChainCase, diagnose_chain_case
+    from bayesrob.validation.planar_generators import diagnose_case
 
     return (diagnose_chain_case if isinstance(case, ChainCase) else diagnose_case)(case)
-
-
-def _line(res: dict) -> str:
-    c = res["case"]
-    where = (f"{c['geometry']:10s} {c['grid']}x{c['grid']} sag {c['sag']:6s}" if "grid" in c
-             else f"{c['geometry']:10s}")
-    return (f"{c['source']:9s} {where} scale {c['scale']:<4g} seed {c['seed']} truth "
-            f"{res['truth']:28s} named {res['named']:28s} strength {res['strength']:4.1f} "
-            f"{res['seconds']:5.1f} s")
 
 
 def run_all(cases: list, workers: int, log: Path | None,
@@ -104,31 +98,15 @@ def run_all(cases: list, workers: int, log: Path | None,
         for fut in as_completed(futures):
             res = fut.result()
             results[futures[fut]] = res
-            print(f"  [{len(results)}/{len(cases)}] {_line(res)}", file=sys.stderr, flush=True)
+            print(f"  [{len(results)}/{len(cases)}] {case_line(res)}", file=sys.stderr, flush=True)
             if log:
                 with log.open("a") as fh:
                     fh.write(json.dumps(res) + "\n")
     return [results[i] for i in range(len(cases))]
 
 
-def confusion_table(results: list[dict], truths_: list | None = None) -> str:
-    """Markdown: hidden effects (rows) against named effects (columns)."""
-    truths = [effects_key("+".join(t) or "none") for t in (truths_ or TRUTHS)]
-    named = sorted({r["named"] for r in results}, key=lambda k: (k not in truths,
-                   truths.index(k) if k in truths else 0, k))
-    count = Counter((effects_key(r["truth"]), r["named"]) for r in results)
-    lines = ["| hidden \\ named | " + " | ".join(named) + " | correct |",
-             "|---" * (len(named) + 2) + "|"]
-    for t in truths:
-        total = sum(count[(t, x)] for x in named)
-        if total:
-            row = [str(count[(t, n)]) for n in named]
-            lines.append(f"| {t} | " + " | ".join(row) + f" | {count[(t, t)]}/{total} |")
-    return "\n".join(lines)
-
-
 def summary(results: list[dict]) -> str:
-    t = targets(results)
+    t = sweep_counts(results)
     lines = [f"{t['exactly_right']}/{t['rigs']} rigs named exactly the hidden effects; "
              f"{t['strong_right']}/{t['strong']} of those whose effects at least double the "
              f"base model's error at new poses (strength >= {STRONG:g}); "
@@ -145,40 +123,15 @@ def summary(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def breakdown(results: list[dict]) -> str:
-    rows = ["| source | geometry | sag in | grid | rigs | correct |", "|---|---|---|---|---|---|"]
-    groups: dict = {}
-    for r in results:
-        c = r["case"]
-        sag = c.get("sag", "joints") if c["source"] == "generator" else "joints"
-        grid = f"{c['grid']}x{c['grid']}" if "grid" in c else "-"
-        groups.setdefault((c["source"], c["geometry"], sag, grid), []).append(
-            exactly_right(r))
-    for (src, geo, sag, grid), oks in sorted(groups.items()):
-        rows.append(f"| {src} | {geo} | {sag} | {grid} | {len(oks)} | {sum(oks)} |")
-    return "\n".join(rows)
-
-
-STRENGTH_BINS = ((0.0, 1.25), (1.25, 1.5), (1.5, 2.0), (2.0, 3.0), (3.0, float("inf")))
-
-
-def by_strength(results: list[dict]) -> str:
-    rows = ["| strength | rigs | correct |", "|---|---|---|"]
-    for lo, hi in STRENGTH_BINS:
-        rs = [r for r in results if r["truth"] != "none" and lo <= r["strength"] < hi]
-        if rs:
-            label = f"{lo:g}-{hi:g}" if hi != float("inf") else f">= {lo:g}"
-            rows.append(f"| {label} | {len(rs)} | {sum(map(exactly_right, rs))} |")
-    return "\n".join(rows)
-
-
 def sweep_report(results: list[dict], truths: list | None = None) -> str:
-    parts = [confusion_table(results, truths), "", summary(results), ""]
+    truths = truths or TRUTHS
+    details = sweep_details(results, truths)
+    parts = [confusion_table(details), "", summary(results), ""]
     for src in ("simulator", "generator"):
         rs = [r for r in results if r["case"]["source"] == src]
         if rs:
-            parts += [f"{src}:", "", confusion_table(rs, truths), ""]
-    parts += [breakdown(results), "", by_strength(results)]
+            parts += [f"{src}:", "", confusion_table(sweep_details(rs, truths)), ""]
+    parts += [breakdown_table(details), "", strength_table(details)]
     return "\n".join(parts)
 
 
@@ -251,7 +204,7 @@ def main() -> int:
             print(sensitivity_table(res) if name == "sensitivity" else
                   sweep_report(res, CHAIN_TRUTHS if args.chain else None))
             print()
-            out[name] = {"results": res, "targets": targets(res)}
+            out[name] = {"results": res, "targets": sweep_counts(res)}
         if args.json:
             args.json.write_text(json.dumps(out, indent=1))
         return 0

@@ -23,15 +23,15 @@ after its other rows, so that gaps are reported where no row was fitted.
 
 Only numpy and the kinematics module are used; nothing reads ``truth.toml``.
 
-Sweeps keep their rigs apart: :data:`TUNING` cases (seeds 21-35) are the ones the decision
-rule and the candidates' priors were chosen on; :data:`REPORT` cases (seeds 501 and up,
-fixed before any diagnosis was run on them) only report.
+Sweeps keep their rigs apart: :func:`tuning_cases` (seeds 21-35) are the rigs the decision
+rule and the candidates' priors were chosen on; :func:`report_cases` (seeds 501-534, fixed
+before any diagnosis was run on them) only report. The validation study
+:mod:`bayesrob.validation.diagnosis` runs them.
 """
 
 from __future__ import annotations
 
 import csv
-import itertools
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -396,7 +396,6 @@ def report_cases() -> list[Case]:
     return cases
 
 
-
 def base_holdout_error(rig) -> float:
     """Mean error of the base model (no effect) at the rig's holdout rows, arms pooled."""
     from bayesrob.diagnosis import ArmData, evaluate_arm
@@ -437,49 +436,12 @@ def diagnose_case(case: Case) -> dict:
             "rounds": [[{k: s[k] for k in keys} for s in r] for r in doc["rounds"]]}
 
 
-def effects_key(label: str) -> str:
-    """A named or hidden set of effects, sorted: "backlash+gravity_sag", or "none"."""
-    return "+".join(sorted(label.split("+"))) if label != "none" else "none"
-
-
-def exactly_right(result: dict) -> bool:
-    """Named exactly the hidden effects (in any order)."""
-    return effects_key(result["truth"]) == result["named"]
-
-
-def right_up_to_rivals(result: dict) -> bool:
-    """Named the hidden effects once each named effect may stand for one of its rivals (the
-    candidates its selection poses could not tell from it; chain rigs only): how many misses
-    the data themselves leave open, beside the exact count the targets are stated in."""
-    if exactly_right(result):
-        return True
-    rivals = result.get("rivals") or {}
-    truth = set(effects_key(result["truth"]).split("+"))
-    order = result.get("order", [])
-    # each named effect stands for one effect, and no two for the same one
-    return any(len(set(pick)) == len(pick) and set(pick) == truth for pick in
-               itertools.product(*([e, *rivals.get(e, [])] for e in order)))
-
-
-STRONG = 2.0  # the strength from which the issue asks for 90% of rigs exactly right
-
-
-def targets(results: list[dict]) -> dict:
-    """A sweep's figures: exactly right where the hidden effects are strong, false alarms on
-    clean rigs, and the error at new poses after / before where effects were named."""
-    strong = [r for r in results if r["truth"] != "none" and r["strength"] >= STRONG]
-    clean = [r for r in results if r["truth"] == "none"]
-    named = [r for r in results if r["truth"] != "none" and r["named"] != "none"]
-    ratio = [r["final_holdout_error_mm"] / r["baseline_holdout_error_mm"] for r in named]
-    return {"rigs": len(results), "exactly_right": sum(map(exactly_right, results)),
-            "strong": len(strong), "strong_right": sum(map(exactly_right, strong)),
-            "strong_right_up_to_rivals": sum(map(right_up_to_rivals, strong)),
-            "clean": len(clean), "false_alarms": sum(r["named"] != "none" for r in clean),
-            "named": len(named),
-            "holdout_ratio": float(np.mean(ratio)) if ratio else None,
-            # the share of the effects' gap (error above the clean twin's) left after
-            # naming, pooled over those rigs: noise's own share cannot be named away
-            "gap_ratio": (sum(r["final_holdout_error_mm"] - r["clean_holdout_error_mm"]
-                              for r in named) /
-                          sum(r["baseline_holdout_error_mm"] - r["clean_holdout_error_mm"]
-                              for r in named)) if named else None}
+def cases_for_seeds(seeds) -> list[Case]:
+    """The report and tuning cases made with any of ``seeds``, in their lists' order; a seed
+    no case uses is an error (a typo would otherwise run a smaller sweep silently)."""
+    wanted = set(seeds)
+    cases = [c for c in report_cases() + tuning_cases() if c.seed in wanted]
+    unused = wanted - {c.seed for c in cases}
+    if unused:
+        raise ValueError(f"no planar case has seed(s) {sorted(unused)}")
+    return cases

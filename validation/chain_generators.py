@@ -28,7 +28,8 @@ noise, and ``train`` / ``validation`` / ``holdout`` rows at different random pos
 file is written.
 
 Sweeps keep their rigs apart: :data:`TUNING_SEEDS` may be used while choosing anything;
-:data:`REPORT_SEEDS` (fixed before any diagnosis ran on them) only report.
+:data:`REPORT_SEEDS` (fixed before any diagnosis ran on them) only report. The validation study
+:mod:`bayesrob.validation.diagnosis_chain` runs them.
 """
 
 from __future__ import annotations
