@@ -15,8 +15,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
-from bayesrob.kinematics import MASS_SOURCES
-from bayesrob.rig import RigError
+from bayesrob.vocabulary import (
+    ALL_GROUPS,
+    CHAIN_EFFECTS,
+    DEFAULT_FUSION,
+    EFFECTS,
+    FUSIONS,
+    MASS_SOURCES,
+)
 
 # name -> (one-line help, add_arguments(parser), run(args) -> exit code)
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
@@ -64,8 +70,6 @@ def _progress(args: argparse.Namespace) -> bool:
 
 
 def _effects_list(text: str) -> tuple[str, ...]:
-    from bayesrob.simulator import EFFECTS
-
     items = tuple(e.strip() for e in text.split(",") if e.strip())
     for e in items:
         if e not in EFFECTS:
@@ -342,8 +346,6 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
-    from bayesrob.kinematics import ALL_GROUPS
-
     items = tuple(g.strip() for g in text.split(",") if g.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one group")
@@ -674,10 +676,7 @@ def _sim_device(args: argparse.Namespace) -> int:
 
 
 def _candidate_effects(text: str) -> tuple[str, ...]:
-    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
-    from bayesrob.effects import effect_names
-
-    known = list(dict.fromkeys([*effect_names(), *CHAIN_EFFECTS]))
+    known = list(dict.fromkeys([*EFFECTS, *CHAIN_EFFECTS]))
     items = tuple(e.strip() for e in text.split(",") if e.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one effect")
@@ -828,8 +827,6 @@ def _sample(args: argparse.Namespace) -> int:
 
 
 def _predict_args(p: argparse.ArgumentParser) -> None:
-    from bayesrob.fusion import DEFAULT_FUSION, FUSIONS
-
     p.add_argument("rig", help="rig directory: the modules' single-arm rows are enough")
     p.add_argument("--config", required=True,
                    help="one arm, or arms linked at their end point joined by '+' (A+B+C)")
@@ -1069,7 +1066,12 @@ def main(argv: list[str] | None = None) -> int:
     _, _, run = COMMANDS[args.command]
     try:
         return run(args)
-    except (RigError, UsageError) as exc:
+    except Exception as exc:
+        # A RigError can only come from the rig module, imported by the commands that read
+        # one: looked up here so that argument errors never import it.
+        rig = sys.modules.get("bayesrob.rig")
+        if not isinstance(exc, UsageError) and not (rig and isinstance(exc, rig.RigError)):
+            raise
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

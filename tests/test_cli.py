@@ -323,3 +323,27 @@ def test_calibrate_handmade_rig_json_to_stdout(handmade_rig_dir, tmp_path):
     assert set(doc["arms"]) == {"left", "right", "middle"}
     assert doc["accuracy"]["left+middle+right"]["test"]["n"] == 2
     assert snapshot(handmade_rig_dir) == before
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["predict", "--help"], ["predict", "--bogus"],
+                                  ["simulate", "x", "--effects", "nope"],
+                                  ["calibrate", "--params", "nope"]])
+def test_help_and_argument_errors_import_no_numerical_library(argv):
+    """``bayesrob --help`` and argument errors answer at once: they import neither JAX nor
+    SciPy, NumPy or arviz (the start-up is timed by benchmarks/bench_startup.py)."""
+    code = ("import sys\nfrom bayesrob.cli import main\ntry:\n    main(sys.argv[1:])\n"
+            "except SystemExit:\n    pass\n"
+            "heavy = sorted(m for m in ('jax', 'numpy', 'scipy', 'arviz', 'matplotlib') "
+            "if m in sys.modules)\nprint('heavy:', heavy, file=sys.stderr)\n")
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1], timeout=60)
+    assert "heavy: []" in r.stderr, r.stderr
+
+
+def test_the_names_the_command_line_checks_are_the_registered_ones():
+    """The command line checks effect names against bayesrob.vocabulary without importing the
+    diagnosis: the planar effects registered there must be exactly those names."""
+    from bayesrob.effects import effect_names
+    from bayesrob.vocabulary import EFFECTS
+
+    assert set(effect_names()) == set(EFFECTS)
