@@ -15,6 +15,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+from bayesrob.output_paths import (
+    DIRECTORY,
+    FILE,
+    OutputPathError,
+    check_output,
+    save_figure,
+    write_text,
+)
 from bayesrob.vocabulary import (
     ALL_GROUPS,
     CHAIN_EFFECTS,
@@ -50,8 +58,7 @@ def _write_json(doc: dict, out: str | None) -> None:
     if out == "-":
         print(text)
     else:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(text + "\n")
+        write_text(out, text + "\n")
         print(f"wrote {out}")
 
 
@@ -390,7 +397,7 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
         out = Path(args.urdf_out)
         write_urdf(rig.robot, cal.x, out, name=rig.name)
         toml_path = out.with_suffix(".rig.toml")
-        toml_path.write_text(dump_toml(calibrated_rig_document(rig, cal, out.name)))
+        write_text(toml_path, dump_toml(calibrated_rig_document(rig, cal, out.name)))
         doc["urdf_out"] = str(out)
         doc["rig_toml_out"] = str(toml_path)
         beyond = [g for g in cal.groups if g in OPTIONAL_GROUPS]
@@ -763,7 +770,7 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         for name, fig in (("ladder.png", ladder_figure(doc, published)),
                           ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"]))):
-            fig.savefig(out / name, dpi=120)
+            save_figure(fig, out / name, dpi=120)
             _wrote(out / name, args.json)
     _write_json(doc, args.json)
     return 0
@@ -881,7 +888,7 @@ def _predict(args: argparse.Namespace) -> int:
         print(pred.format())
     _write_json(pred.document, args.json)
     if args.plot:
-        assembly_figure(pred, rig).savefig(args.plot, dpi=120)
+        save_figure(assembly_figure(pred, rig), args.plot, dpi=120)
         if args.json != "-":
             print(f"wrote {args.plot}")
     return 0
@@ -917,8 +924,7 @@ def _compare(args: argparse.Namespace) -> int:
     if plot is None and args.json not in (None, "-"):
         plot = str(Path(args.json).with_suffix(".png"))
     if plot is not None:
-        Path(plot).parent.mkdir(parents=True, exist_ok=True)
-        comparison_figure(comp).savefig(plot, dpi=120)
+        save_figure(comparison_figure(comp), plot, dpi=120)
         doc["plot"] = plot
     if args.json != "-":
         print(format_comparison(doc))
@@ -969,8 +975,8 @@ def _design(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(result.format(args.top))
-    (out / "design.json").write_text(json.dumps(result.document, indent=1))
-    design_figure(result, modules, min(args.top, 4)).savefig(out / "design.png", dpi=120)
+    write_text(out / "design.json", json.dumps(result.document, indent=1))
+    save_figure(design_figure(result, modules, min(args.top, 4)), out / "design.png", dpi=120)
     written = [out / "design.json", out / "design.png"]
     if result.best is not None:
         written.append(write_candidate_rig(result.best, result, modules, out / "best"))
@@ -1060,17 +1066,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# command -> its outputs: (argument, FILE or DIRECTORY, the name the user typed), checked
+# before any work so that a path the command cannot write never costs a run's results.
+OUTPUTS: dict[str, list[tuple[str, str, str]]] = {
+    "simulate": [("out_dir", DIRECTORY, "OUT_DIR")],
+    "calibrate": [("json", FILE, "--json"), ("urdf_out", FILE, "--urdf-out")],
+    "reproduce": [("out", DIRECTORY, "--out")],
+    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report")],
+    "sample": [("json", FILE, "--json")],
+    "predict": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
+    "compare": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
+    "design": [("out", DIRECTORY, "--out")],
+    "validate": [("out", DIRECTORY, "--out")],
+}
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    for attr, kind, option in OUTPUTS.get(args.command, ()):
+        value = getattr(args, attr, None)
+        if value not in (None, "-"):
+            check_output(value, kind, option)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _, _, run = COMMANDS[args.command]
     try:
+        _check_outputs(args)
         return run(args)
     except Exception as exc:
         # A RigError can only come from the rig module, imported by the commands that read
         # one: looked up here so that argument errors never import it.
         rig = sys.modules.get("bayesrob.rig")
-        if not isinstance(exc, UsageError) and not (rig and isinstance(exc, rig.RigError)):
+        if not isinstance(exc, UsageError | OutputPathError) and not (
+                rig and isinstance(exc, rig.RigError)):
             raise
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2

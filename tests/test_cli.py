@@ -347,3 +347,45 @@ def test_the_names_the_command_line_checks_are_the_registered_ones():
     from bayesrob.vocabulary import EFFECTS
 
     assert set(effect_names()) == set(EFFECTS)
+
+
+_RUN_MAIN = ("import sys\nfrom bayesrob.cli import main\ncode = main(sys.argv[1:])\n"
+             "heavy = sorted(m for m in ('jax', 'scipy', 'arviz') if m in sys.modules)\n"
+             "print('heavy:', heavy, 'exit:', code, file=sys.stderr)\n")
+
+
+def _bad_output_cases(tmp: Path) -> list[tuple[list[str], str]]:
+    """(argv, the option the one-line error must name) for output paths no command can use."""
+    a_dir = tmp / "a_dir"
+    a_dir.mkdir()
+    a_file = tmp / "a_file"
+    a_file.write_text("keep me\n")
+    return [
+        (["calibrate", "--json", str(a_dir)], "--json"),
+        (["calibrate", "--urdf-out", str(a_dir)], "--urdf-out"),
+        (["calibrate", "--json", str(a_file / "cal.json")], "--json"),
+        (["reproduce", "--out", str(a_file)], "--out"),
+        (["diagnose", "--report", str(a_file)], "--report"),
+        (["diagnose", "--json", "/proc/diagnosis.json"], "--json"),
+        (["sample", "--target", "140", "220", "--json", str(a_dir)], "--json"),
+        (["predict", "RIG", "--config", "top", "--grid", "2", "--plot", str(a_dir)], "--plot"),
+        (["predict", "RIG", "--config", "top", "--grid", "2", "--json", "/proc/p.json"],
+         "--json"),
+        (["compare", "--json", str(a_dir)], "--json"),
+        (["design", "design.toml", "--out", str(a_file)], "--out"),
+        (["simulate", str(a_file)], "OUT_DIR"),
+        (["validate", "--out", str(a_file)], "--out"),
+    ]
+
+
+def test_a_bad_output_path_is_refused_before_any_work(tmp_path):
+    """Each command checks its output paths as soon as it has read its arguments: one line
+    naming the option and path, exit 2, no numerical library imported (so no work done),
+    and the file already there untouched."""
+    for argv, option in _bad_output_cases(tmp_path):
+        r = subprocess.run([sys.executable, "-c", _RUN_MAIN, *argv], capture_output=True,
+                           text=True, cwd=Path(__file__).resolve().parents[1], timeout=60)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 2 and lines[-1] == "heavy: [] exit: 2", (argv, r.stderr)
+        assert lines[0].startswith(f"bayesrob {argv[0]}: error: {option} "), (argv, lines[0])
+    assert (tmp_path / "a_file").read_text() == "keep me\n"
