@@ -102,6 +102,40 @@ _positive_int = _int_at_least(2)  # grids, counts of workers and rows: 2 or more
 _at_least_one = _int_at_least(1)
 
 
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    v = _number(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0, got {text}")
+    return v
+
+
+def _seed(text: str) -> int:
+    """A random seed: NumPy's generators take whole numbers from 0 up."""
+    return _int_at_least(0)(text)
+
+
+class _Once(argparse.BooleanOptionalAction):
+    """--flag / --no-flag, refused when both are given (which one was meant is unknown)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = f"_{self.dest}_given"
+        if getattr(namespace, given, None) not in (None, option_string):
+            parser.error(f"{getattr(namespace, given)} and {option_string} contradict each "
+                         "other: give one")
+        setattr(namespace, given, option_string)
+        super().__call__(parser, namespace, values, option_string)
+
+
 def _non_negative_float(text: str) -> float:
     try:
         v = float(text)
@@ -138,10 +172,10 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated physical effects: gravity_sag,backlash,"
                         "servo_nonlinearity (default: none)")
     p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (0)")
-    p.add_argument("--joint-noise-rad", type=float, default=None,
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
+    p.add_argument("--joint-noise-rad", type=_non_negative_float, default=None,
                    help="joint repeatability noise, sd in rad (0.0008)")
-    p.add_argument("--measurement-noise-mm", type=float, default=None,
+    p.add_argument("--measurement-noise-mm", type=_non_negative_float, default=None,
                    help="measurement noise, sd in mm per axis (0.35)")
     p.add_argument("--force", action="store_true",
                    help="replace the rig files (measurements.csv, rig.toml, truth.toml) the "
@@ -153,7 +187,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planned", action="store_true",
                    help="measure the planned rows (empty x, y) of the rig in out_dir with the "
                         "physics of its truth.toml, e.g. a candidate of bayesrob design")
-    p.add_argument("--compliance", action=argparse.BooleanOptionalAction, default=None,
+    p.add_argument("--compliance", action=_Once, default=None,
                    help="arm6: joints give way under gravity (point masses, joint stiffness); "
                         "off by default, on by default with --linked")
     p.add_argument("--play-mrad", type=_non_negative_float, default=None, metavar="MRAD",
@@ -450,7 +484,7 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--calibration", choices=["least-squares", "hill-climb"],
                    default="least-squares", help="calibration method (default least-squares)")
-    p.add_argument("--grid-half-width", type=float, default=30.0,
+    p.add_argument("--grid-half-width", type=_positive_float, default=30.0,
                    help="half width of the prediction grid around each target, mm (30)")
     p.add_argument("--grid-n", type=_positive_int, default=100,
                    help="grid cells per side (100)")
@@ -612,7 +646,7 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
                    help="answer as a Pololu Maestro (compact and Pololu protocol) or an SSC-32")
     p.add_argument("--effects", type=_effects_list, default=None,
                    help="physical effects, overriding the truth's (comma-separated; '' = none)")
-    p.add_argument("--seed", type=int, default=None, help="noise seed (the truth's seed)")
+    p.add_argument("--seed", type=_seed, default=None, help="noise seed (the truth's seed)")
     p.add_argument("--channels", nargs="+", metavar="ARM=CH1,CH2",
                    help="channels of each arm (default: arms in order on 0,1 then 2,3 ...)")
     p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
@@ -704,7 +738,7 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "planar rigs; "
                         "joint_compliance,lateral_compliance,encoder_error,backlash for URDF/DH "
                         "chains, backlash tried once joint_compliance is named)")
-    p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of folds and permutations (0)")
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
                         "ladder.png, e.g. geometric=10.5,joint_compliance=5.64")
@@ -797,7 +831,7 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
                    help="nuts, emcee, grid or all (default); the grid always runs: it is the "
                         "reference of the check (the chains start around the target, never "
                         "from the grid)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
@@ -862,7 +896,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                         "(default; only their products with the compliances are seen, and the "
                         "arms' stiffnesses come from a prior), or held at the URDF's <inertial> "
                         "ones, so the fitted compliances give each arm's stiffnesses")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the draws (0)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
                    help="write the expected-error map and the least accurate target's regions "
@@ -1046,8 +1080,16 @@ class _CommandListFormatter(argparse.HelpFormatter):
             self._action_max_length += 2 * self._indent_increment
 
 
+class _Parser(argparse.ArgumentParser):
+    """Argument errors in one line, as every other error of the command line (the usage is
+    what --help is for)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bayesrob",
         formatter_class=_CommandListFormatter,
         description="Predict how accurately modular robot arms place their end point, alone "

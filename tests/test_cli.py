@@ -389,3 +389,42 @@ def test_a_bad_output_path_is_refused_before_any_work(tmp_path):
         assert len(lines) == 2 and lines[-1] == "heavy: [] exit: 2", (argv, r.stderr)
         assert lines[0].startswith(f"bayesrob {argv[0]}: error: {option} "), (argv, lines[0])
     assert (tmp_path / "a_file").read_text() == "keep me\n"
+
+
+def _design_with_limits(tmp: Path, limits: str) -> Path:
+    """The example design file with its [limits] replaced, its modules read where they are."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "design"
+    text = (example / "design.toml").read_text()
+    text = text.replace('rig = "modules"', f'rig = "{example / "modules"}"')
+    head, _, _ = text.partition("[limits]")
+    path = tmp / "design.toml"
+    path.write_text(head + "[limits]\n" + limits)
+    return path
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["reproduce", "--grid-half-width", "-5"], "--grid-half-width: must be more than 0"),
+    (["reproduce", "--grid-half-width", "nan"], "--grid-half-width: must be finite"),
+    (["simulate", "OUT", "--measurement-noise-mm", "-1"], "--measurement-noise-mm: must be 0"),
+    (["simulate", "OUT", "--joint-noise-rad", "inf"], "--joint-noise-rad: must be 0 or more "
+                                                      "and finite"),
+    (["simulate", "OUT", "--seed", "-3"], "--seed: must be at least 0"),
+    (["simulate", "OUT", "--robot", "arm6", "--compliance", "--no-compliance"],
+     "--compliance and --no-compliance contradict each other"),
+    (["diagnose", "--seed", "x"], "--seed: expected a whole number"),
+    (["design", "DESIGN", "--out", "OUTDIR"], "min_arms = 2 is more than max_arms = 1"),
+])
+def test_numbers_out_of_range_and_contradictions_are_refused_in_one_line(argv, words, tmp_path,
+                                                                          capsys):
+    """Refused as the arguments are read (the design file as it is loaded), before any work:
+    one line, exit 2, nothing written."""
+    design = _design_with_limits(tmp_path, "min_arms = 2\nmax_arms = 1\n")
+    argv = [{"OUT": str(tmp_path / "sim"), "DESIGN": str(design),
+             "OUTDIR": str(tmp_path / "out")}.get(a, a) for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and words in err[0], (argv, err)
+    assert not (tmp_path / "sim").exists() and not (tmp_path / "out").exists()
