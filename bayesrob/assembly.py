@@ -186,6 +186,9 @@ def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
         if not reader.fieldnames or not set(names) <= set(reader.fieldnames):
             raise RigError(f"{path}: needs a header with columns {','.join(names)}, got "
                            f"{reader.fieldnames}")
+        if dim == 2 and "z" in reader.fieldnames:
+            raise RigError(f"{path}: column z: this rig's arms are planar (x, y); a 3-D "
+                           "target cannot be reached or predicted here")
         out = []
         for i, row in enumerate(reader, start=2):
             try:

@@ -428,3 +428,15 @@ def test_numbers_out_of_range_and_contradictions_are_refused_in_one_line(argv, w
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and words in err[0], (argv, err)
     assert not (tmp_path / "sim").exists() and not (tmp_path / "out").exists()
+
+
+def test_a_planar_targets_file_with_z_is_refused(tmp_path, capsys):
+    """A z column would be dropped for planar arms: refused, naming the file and column."""
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y,z\n140,220,5\n")
+    from bayesrob.rig import default_rig_dir
+
+    assert main(["predict", str(default_rig_dir()), "--config", "top+bottom", "--targets",
+                 str(targets)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{targets}: column z" in err[0], err
