@@ -21,6 +21,7 @@ from bayesrob.output_paths import (
     OutputPathError,
     check_output,
     save_figure,
+    staged_directory,
     write_text,
 )
 from bayesrob.vocabulary import (
@@ -511,7 +512,8 @@ def _reproduce(args: argparse.Namespace) -> int:
                                progress=_progress(args))
     except ModelFileError as exc:
         raise UsageError(str(exc)) from None
-    written = write_reproduction(rep, args.out)
+    with staged_directory(args.out) as scratch:
+        written = [Path(args.out) / p.name for p in write_reproduction(rep, scratch)]
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
@@ -774,7 +776,10 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.json != "-":
         print(format_diagnosis(doc))
     if args.report:
-        for path in write_diagnosis_report(diag, args.report):
+        with staged_directory(args.report) as scratch:
+            written = [Path(args.report) / p.name
+                       for p in write_diagnosis_report(diag, scratch)]
+        for path in written:
             _wrote(path, args.json)
     _write_json(doc, args.json)
     return 0
@@ -800,12 +805,13 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
     if args.json != "-":
         print(format_chain_diagnosis(doc))
     if args.report:
-        out = Path(args.report)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, fig in (("ladder.png", ladder_figure(doc, published)),
-                          ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"]))):
-            save_figure(fig, out / name, dpi=120)
-            _wrote(out / name, args.json)
+        figures = (("ladder.png", ladder_figure(doc, published)),
+                   ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"])))
+        with staged_directory(args.report) as scratch:
+            for name, fig in figures:
+                fig.savefig(scratch / name, dpi=120)
+        for name, _ in figures:
+            _wrote(Path(args.report) / name, args.json)
     _write_json(doc, args.json)
     return 0
 
@@ -1007,13 +1013,16 @@ def _design(args: argparse.Namespace) -> int:
     except DesignError as exc:
         raise UsageError(str(exc)) from None
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     print(result.format(args.top))
-    write_text(out / "design.json", json.dumps(result.document, indent=1))
-    save_figure(design_figure(result, modules, min(args.top, 4)), out / "design.png", dpi=120)
-    written = [out / "design.json", out / "design.png"]
-    if result.best is not None:
-        written.append(write_candidate_rig(result.best, result, modules, out / "best"))
+    names = ["design.json", "design.png"]
+    with staged_directory(out) as scratch:
+        (scratch / "design.json").write_text(json.dumps(result.document, indent=1))
+        design_figure(result, modules, min(args.top, 4)).savefig(scratch / "design.png",
+                                                                 dpi=120)
+        if result.best is not None:
+            names.append(write_candidate_rig(result.best, result, modules,
+                                             scratch / "best").name)
+    written = [out / n for n in names]
     print(f"wrote {', '.join(str(w) for w in written)}")
     # exit 1: the search ran and nothing met the requirement (the closest is shown above)
     return 0 if result.met else 1

@@ -68,6 +68,8 @@ import itertools
 import json
 import math
 import os
+import signal
+import threading
 import time
 import tomllib
 from collections.abc import Callable, Iterator, Sequence
@@ -832,10 +834,17 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
         return
     saved = {k: os.environ.get(k) for k in WORKER_ENV}
     os.environ.update(WORKER_ENV)  # the nanny's worker processes inherit them at start
+    # Ctrl-C reaches every process of the terminal's group: workers that took it would each
+    # print a traceback. Started with SIGINT ignored (kept across exec, and Python leaves an
+    # ignored SIGINT alone), they leave it to this process, which closes the cluster.
+    main_thread = threading.current_thread() is threading.main_thread()
+    sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
     try:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=40)
     finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, sigint)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

@@ -15,9 +15,11 @@ new one, never half of either.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -85,3 +87,28 @@ def save_figure(fig: Any, path: str | Path, **kwargs: Any) -> None:
     """``fig.savefig(path, **kwargs)`` whole; the format is taken from ``path``'s suffix."""
     fmt = kwargs.pop("format", None) or Path(path).suffix.lstrip(".") or None
     _atomic(Path(path), lambda tmp: fig.savefig(tmp, format=fmt, **kwargs))
+
+
+@contextlib.contextmanager
+def staged_directory(directory: str | Path) -> Iterator[Path]:
+    """A scratch directory inside ``directory`` to write a command's outputs into; when the
+    block ends without an error they are moved into ``directory`` (each a rename, replacing
+    what had those names), otherwise the scratch goes and ``directory`` is as it was. So a
+    run that fails or is interrupted part-way never leaves its outputs mixed with an earlier
+    run's."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=".bayesrob-staged-", dir=directory))
+    try:
+        yield scratch
+        for item in sorted(scratch.iterdir()):
+            target = directory / item.name
+            if target.is_dir() and not target.is_symlink():
+                old = Path(tempfile.mkdtemp(prefix=".bayesrob-old-", dir=directory))
+                os.replace(target, old / item.name)
+                os.replace(item, target)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(item, target)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)

@@ -12,6 +12,7 @@ from bayesrob.output_paths import (
     OutputPathError,
     check_output,
     save_figure,
+    staged_directory,
     write_text,
 )
 
@@ -62,3 +63,26 @@ def test_a_write_that_fails_part_way_leaves_the_old_file_and_no_scrap(tmp_path):
     write_text(target, "new")
     assert target.read_text() == "new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]
+
+
+def test_a_staged_directory_is_replaced_whole_or_not_at_all(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.json").write_text("old a")
+    (out / "b.png").write_text("old b")
+    (out / "best").mkdir()
+    (out / "best" / "rig.toml").write_text("old rig")
+    (out / "mine.txt").write_text("the user's")
+    with pytest.raises(KeyboardInterrupt), staged_directory(out) as scratch:
+        (scratch / "a.json").write_text("new a")
+        raise KeyboardInterrupt  # before b.png and best/ were written
+    assert sorted(p.name for p in out.iterdir()) == ["a.json", "b.png", "best", "mine.txt"]
+    assert (out / "a.json").read_text() == "old a"
+    with staged_directory(out) as scratch:
+        (scratch / "a.json").write_text("new a")
+        (scratch / "best").mkdir()
+        (scratch / "best" / "measurements.csv").write_text("new rows")
+    assert sorted(p.name for p in out.iterdir()) == ["a.json", "b.png", "best", "mine.txt"]
+    assert (out / "a.json").read_text() == "new a"
+    assert [p.name for p in (out / "best").iterdir()] == ["measurements.csv"]
+    assert (out / "mine.txt").read_text() == "the user's"
