@@ -256,7 +256,11 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
                          "arm6 has one stiffness profile)")
     truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance),
                                       joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
-    out = simulate_chain_rig(out_dir, truth)
+    from bayesrob.progress import progress
+
+    # no steps to count inside: the clock, on the promised five-second beat
+    with progress(None, "simulate", enabled=_progress(args), postfix="arm6"):
+        out = simulate_chain_rig(out_dir, truth)
     _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
@@ -286,8 +290,12 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
     truth = _truth_options(truth, args)
+    from bayesrob.progress import progress
+
     try:
-        out = simulate_linked_chain_rig(out_dir, truth)
+        with progress(None, "simulate", enabled=_progress(args),
+                      postfix=f"arm6 {'+'.join(truth.arms)}"):
+            out = simulate_linked_chain_rig(out_dir, truth)
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
@@ -1157,6 +1165,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
+        if argv is None:
+            # Run as a program: leave at once. The finally blocks on the way here have removed
+            # any partial output; tearing the interpreter down under JAX's compiler threads
+            # could still crash it (seen once in four interrupts of a compiling simulate).
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
     except BrokenPipeError:
         # The reader (e.g. `| head`) went away; point stdout at devnull so the interpreter's
