@@ -70,7 +70,7 @@ def _wrote(path: str | Path, json_out: str | None) -> None:
 
 # Commands that report progress on stderr (a bar on a terminal, lines otherwise).
 PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
-                     "compare", "design")
+                     "compare", "design", "predict")
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -926,10 +926,15 @@ def _predict(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig, chains=True)
     dim = rig.robot.dim
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
+    from bayesrob.progress import progress
+
     try:
-        pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
-                                args.models_dir, args.seed, groups=args.params,
-                                masses=args.masses)
+        # calibration, fits and draws in one call: the clock, every 5 s off a terminal
+        with progress(None, "predict", enabled=_progress(args),
+                      postfix=f"{args.config}, {len(targets)} targets"):
+            pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
+                                    args.models_dir, args.seed, groups=args.params,
+                                    masses=args.masses)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     if args.json != "-":
