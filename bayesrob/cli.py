@@ -377,7 +377,9 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "joint origin), servo (command gains), compliance (joints giving way "
                         "under gravity; link masses fitted too), lateral (joints and links "
                         "bending across their axes under the same torques; link masses "
-                        "fitted too). Default for "
+                        "fitted too), encoder (revolute joints read through an eccentric "
+                        "encoder), backlash (play in the joints, taken up on the side gravity "
+                        "pushes them to). Default for "
                         "URDF/DH rigs: the first four; a planar rig without --params fits its "
                         "eight parameters per arm")
     p.add_argument("--urdf-out", metavar="FILE",

@@ -440,3 +440,13 @@ def test_a_planar_targets_file_with_z_is_refused(tmp_path, capsys):
                  str(targets)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{targets}: column z" in err[0], err
+
+
+def test_calibrate_help_names_every_parameter_group(capsys):
+    from bayesrob.vocabulary import ALL_GROUPS
+
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    missing = [g for g in ALL_GROUPS if f"{g} (" not in text and f"{g}," not in text]
+    assert missing == [], missing
