@@ -24,11 +24,8 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 from pathlib import Path
-
-import jax
-
-jax.config.update("jax_enable_x64", True)
 
 __version__ = "0.1.0"
 
@@ -60,22 +57,56 @@ def compilation_cache_dir() -> Path | None:
     return None if root is None else root / "jax"
 
 
-def _enable_compilation_cache() -> None:
-    if jax.config.jax_compilation_cache_dir:
-        return  # the user configured JAX's cache directly
+# JAX reads its options from JAX_* variables when it is first imported. Setting them here,
+# rather than importing JAX to configure it, keeps ``import bayesrob`` (and so ``bayesrob
+# --help`` and every argument error) free of the numerical stack. _OURS marks the cache
+# directory as this package's choice, so a child process (a Dask worker, a command run by a
+# test) that sees it recomputes it from its own BAYESROB_* variables.
+_OURS = "_BAYESROB_JAX_CACHE_DIR"
+
+
+def _cache_directory() -> Path | None:
+    """The compilation cache's directory, made; None when caching is off or it cannot be."""
     directory = compilation_cache_dir()
     if directory is None:
-        return
+        return None
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError:
-        return  # e.g. a read-only home: run uncached rather than fail on import
-    jax.config.update("jax_compilation_cache_dir", str(directory))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", _CACHE_MIN_COMPILE_SECS)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        return None  # e.g. a read-only home: run uncached rather than fail on import
+    return directory
 
 
-_enable_compilation_cache()
+def _configure_jax() -> None:
+    """64-bit floats, and the persistent cache unless caching is off or the user configured
+    JAX's own cache directory."""
+    jax = sys.modules.get("jax")
+    inherited = os.environ.get(_OURS)
+    current = (jax.config.jax_compilation_cache_dir if jax is not None
+               else os.environ.get("JAX_COMPILATION_CACHE_DIR")) or None
+    user_set = current is not None and current != inherited
+    directory = None if user_set else _cache_directory()
+    options = {"jax_enable_x64": True}
+    if directory is not None:
+        options |= {"jax_compilation_cache_dir": str(directory),
+                    "jax_persistent_cache_min_compile_time_secs": _CACHE_MIN_COMPILE_SECS,
+                    "jax_persistent_cache_min_entry_size_bytes": 0}
+    if jax is not None:  # imported before this package: set its options directly
+        for name, value in options.items():
+            jax.config.update(name, value)
+        if directory is None and current is not None and not user_set:
+            jax.config.update("jax_compilation_cache_dir", None)  # a parent's, off here
+        return
+    for name, value in options.items():
+        os.environ[name.upper()] = str(int(value) if isinstance(value, bool) else value)
+    if directory is not None:
+        os.environ[_OURS] = str(directory)
+    elif not user_set:
+        os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)  # a parent's, off here
+        os.environ.pop(_OURS, None)
+
+
+_configure_jax()
 
 # Where JAX's compiled programs are dropped: the share of the kernel's cap on a process's
 # memory maps. A test worker on the chain tests went from 3,700 to 28,000 maps in two minutes:
@@ -99,8 +130,8 @@ def release_compiled_programs(share: float = RELEASE_MAPS_SHARE) -> bool:
     ``share`` of the memory maps the kernel allows; True when it did. A program used again is
     compiled again, or read back from the persistent cache."""
     counts = memory_maps()
-    if counts is None or counts[0] <= share * counts[1]:
+    if counts is None or counts[0] <= share * counts[1] or "jax" not in sys.modules:
         return False
-    jax.clear_caches()
+    sys.modules["jax"].clear_caches()
     gc.collect()  # the programs' code is unmapped when the last reference goes
     return True

@@ -186,6 +186,9 @@ def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
         if not reader.fieldnames or not set(names) <= set(reader.fieldnames):
             raise RigError(f"{path}: needs a header with columns {','.join(names)}, got "
                            f"{reader.fieldnames}")
+        if dim == 2 and "z" in reader.fieldnames:
+            raise RigError(f"{path}: column z: this rig's arms are planar (x, y); a 3-D "
+                           "target cannot be reached or predicted here")
         out = []
         for i, row in enumerate(reader, start=2):
             try:
@@ -338,17 +341,29 @@ def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     if pred.posterior is None:
         return _draws_figure(pred, rig)
 
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6))
     t = pred.targets
+    bases = np.asarray([rig.arms[a].base for a in pred.config.split("+")], float)
+    shown = np.vstack([t, bases])
+    lo, hi = shown.min(axis=0), shown.max(axis=0)
+    # room for the square markers and the arms' names inside the axes, not cut at the edge
+    pad = np.maximum(0.08 * (hi - lo).max(), 15.0)
+    lo, hi = lo - pad, hi + pad
+    # the map keeps equal scales: its panel is as wide as the workspace is, for its height
+    ratio = float(np.clip((hi - lo)[0] / (hi - lo)[1], 0.3, 3.0))
+    fig = plt.figure(figsize=(4.2 * ratio + 1.6 + 4.6, 4.6), layout="constrained")
+    ax, bx = fig.subplots(1, 2, width_ratios=[4.2 * ratio + 1.6, 4.6])
     sc = ax.scatter(t[:, 0], t[:, 1], c=pred.expected_error_mm, cmap="viridis", s=160,
                     marker="s")
     fig.colorbar(sc, ax=ax, label="expected error (mm)")
-    for a in pred.config.split("+"):
-        base = rig.arms[a].base
+    for a, base in zip(pred.config.split("+"), bases, strict=True):
         ax.plot(*base, "k^")
         ax.annotate(a, base, textcoords="offset points", xytext=(4, 4))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
-    ax.set_title(f"{pred.config}: expected error ({pred.model}, {pred.fusion})")
+    # a single arm has no fusion: naming one would claim a step that did not happen
+    how = f"{pred.model}, {pred.fusion}" if "+" in pred.config else pred.model
+    ax.set_title(f"{pred.config}: expected error ({how})", fontsize=10)
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     post = pred.posterior
@@ -366,7 +381,6 @@ def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
                  "50% (red) / 90% (blue)", fontsize=9)
     bx.set_xlabel("x - target (mm)")
     bx.set_ylabel("y - target (mm)")
-    fig.tight_layout()
     return fig
 
 

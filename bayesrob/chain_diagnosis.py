@@ -42,10 +42,9 @@ from bayesrob.calibration import (
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
+from bayesrob.vocabulary import CHAIN_EFFECTS
 
 # effect name -> the calibration group that models it
-CHAIN_EFFECTS = {"joint_compliance": "compliance", "lateral_compliance": "lateral",
-                 "encoder_error": "encoder", "backlash": "backlash"}
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no
 # side (its columns are zero). Fitted with the compliance in one candidate it only cost time:
 # on the simulator's compliant arm with play (seed 11) it passed in round 1 with less drop

@@ -15,8 +15,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
-from bayesrob.kinematics import MASS_SOURCES
-from bayesrob.rig import RigError
+from bayesrob.output_paths import (
+    DIRECTORY,
+    FILE,
+    OutputPathError,
+    check_output,
+    save_figure,
+    staged_directory,
+    write_text,
+)
+from bayesrob.vocabulary import (
+    ALL_GROUPS,
+    CHAIN_EFFECTS,
+    DEFAULT_FUSION,
+    EFFECTS,
+    FUSIONS,
+    MASS_SOURCES,
+)
 
 # name -> (one-line help, add_arguments(parser), run(args) -> exit code)
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
@@ -44,8 +59,7 @@ def _write_json(doc: dict, out: str | None) -> None:
     if out == "-":
         print(text)
     else:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(text + "\n")
+        write_text(out, text + "\n")
         print(f"wrote {out}")
 
 
@@ -56,7 +70,7 @@ def _wrote(path: str | Path, json_out: str | None) -> None:
 
 # Commands that report progress on stderr (a bar on a terminal, lines otherwise).
 PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
-                     "compare", "design")
+                     "compare", "design", "predict")
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -64,8 +78,6 @@ def _progress(args: argparse.Namespace) -> bool:
 
 
 def _effects_list(text: str) -> tuple[str, ...]:
-    from bayesrob.simulator import EFFECTS
-
     items = tuple(e.strip() for e in text.split(",") if e.strip())
     for e in items:
         if e not in EFFECTS:
@@ -89,6 +101,40 @@ def _int_at_least(low: int):
 
 _positive_int = _int_at_least(2)  # grids, counts of workers and rows: 2 or more
 _at_least_one = _int_at_least(1)
+
+
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    v = _number(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0, got {text}")
+    return v
+
+
+def _seed(text: str) -> int:
+    """A random seed: NumPy's generators take whole numbers from 0 up."""
+    return _int_at_least(0)(text)
+
+
+class _Once(argparse.BooleanOptionalAction):
+    """--flag / --no-flag, refused when both are given (which one was meant is unknown)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = f"_{self.dest}_given"
+        if getattr(namespace, given, None) not in (None, option_string):
+            parser.error(f"{getattr(namespace, given)} and {option_string} contradict each "
+                         "other: give one")
+        setattr(namespace, given, option_string)
+        super().__call__(parser, namespace, values, option_string)
 
 
 def _non_negative_float(text: str) -> float:
@@ -127,10 +173,10 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated physical effects: gravity_sag,backlash,"
                         "servo_nonlinearity (default: none)")
     p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (0)")
-    p.add_argument("--joint-noise-rad", type=float, default=None,
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
+    p.add_argument("--joint-noise-rad", type=_non_negative_float, default=None,
                    help="joint repeatability noise, sd in rad (0.0008)")
-    p.add_argument("--measurement-noise-mm", type=float, default=None,
+    p.add_argument("--measurement-noise-mm", type=_non_negative_float, default=None,
                    help="measurement noise, sd in mm per axis (0.35)")
     p.add_argument("--force", action="store_true",
                    help="replace the rig files (measurements.csv, rig.toml, truth.toml) the "
@@ -142,7 +188,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planned", action="store_true",
                    help="measure the planned rows (empty x, y) of the rig in out_dir with the "
                         "physics of its truth.toml, e.g. a candidate of bayesrob design")
-    p.add_argument("--compliance", action=argparse.BooleanOptionalAction, default=None,
+    p.add_argument("--compliance", action=_Once, default=None,
                    help="arm6: joints give way under gravity (point masses, joint stiffness); "
                         "off by default, on by default with --linked")
     p.add_argument("--play-mrad", type=_non_negative_float, default=None, metavar="MRAD",
@@ -210,7 +256,11 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
                          "arm6 has one stiffness profile)")
     truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance),
                                       joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
-    out = simulate_chain_rig(out_dir, truth)
+    from bayesrob.progress import progress
+
+    # no steps to count inside: the clock, on the promised five-second beat
+    with progress(None, "simulate", enabled=_progress(args), postfix="arm6"):
+        out = simulate_chain_rig(out_dir, truth)
     _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
@@ -240,8 +290,12 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     if args.compliance is not None:
         truth = replace(truth, compliance=args.compliance)
     truth = _truth_options(truth, args)
+    from bayesrob.progress import progress
+
     try:
-        out = simulate_linked_chain_rig(out_dir, truth)
+        with progress(None, "simulate", enabled=_progress(args),
+                      postfix=f"arm6 {'+'.join(truth.arms)}"):
+            out = simulate_linked_chain_rig(out_dir, truth)
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
@@ -323,7 +377,9 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "joint origin), servo (command gains), compliance (joints giving way "
                         "under gravity; link masses fitted too), lateral (joints and links "
                         "bending across their axes under the same torques; link masses "
-                        "fitted too). Default for "
+                        "fitted too), encoder (revolute joints read through an eccentric "
+                        "encoder), backlash (play in the joints, taken up on the side gravity "
+                        "pushes them to). Default for "
                         "URDF/DH rigs: the first four; a planar rig without --params fits its "
                         "eight parameters per arm")
     p.add_argument("--urdf-out", metavar="FILE",
@@ -342,8 +398,6 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
 
 
 def _param_groups(text: str) -> tuple[str, ...]:
-    from bayesrob.kinematics import ALL_GROUPS
-
     items = tuple(g.strip() for g in text.split(",") if g.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one group")
@@ -388,7 +442,7 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
         out = Path(args.urdf_out)
         write_urdf(rig.robot, cal.x, out, name=rig.name)
         toml_path = out.with_suffix(".rig.toml")
-        toml_path.write_text(dump_toml(calibrated_rig_document(rig, cal, out.name)))
+        write_text(toml_path, dump_toml(calibrated_rig_document(rig, cal, out.name)))
         doc["urdf_out"] = str(out)
         doc["rig_toml_out"] = str(toml_path)
         beyond = [g for g in cal.groups if g in OPTIONAL_GROUPS]
@@ -441,7 +495,7 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--calibration", choices=["least-squares", "hill-climb"],
                    default="least-squares", help="calibration method (default least-squares)")
-    p.add_argument("--grid-half-width", type=float, default=30.0,
+    p.add_argument("--grid-half-width", type=_positive_float, default=30.0,
                    help="half width of the prediction grid around each target, mm (30)")
     p.add_argument("--grid-n", type=_positive_int, default=100,
                    help="grid cells per side (100)")
@@ -468,7 +522,8 @@ def _reproduce(args: argparse.Namespace) -> int:
                                progress=_progress(args))
     except ModelFileError as exc:
         raise UsageError(str(exc)) from None
-    written = write_reproduction(rep, args.out)
+    with staged_directory(args.out) as scratch:
+        written = [Path(args.out) / p.name for p in write_reproduction(rep, scratch)]
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
@@ -603,7 +658,7 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
                    help="answer as a Pololu Maestro (compact and Pololu protocol) or an SSC-32")
     p.add_argument("--effects", type=_effects_list, default=None,
                    help="physical effects, overriding the truth's (comma-separated; '' = none)")
-    p.add_argument("--seed", type=int, default=None, help="noise seed (the truth's seed)")
+    p.add_argument("--seed", type=_seed, default=None, help="noise seed (the truth's seed)")
     p.add_argument("--channels", nargs="+", metavar="ARM=CH1,CH2",
                    help="channels of each arm (default: arms in order on 0,1 then 2,3 ...)")
     p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
@@ -674,10 +729,7 @@ def _sim_device(args: argparse.Namespace) -> int:
 
 
 def _candidate_effects(text: str) -> tuple[str, ...]:
-    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
-    from bayesrob.effects import effect_names
-
-    known = list(dict.fromkeys([*effect_names(), *CHAIN_EFFECTS]))
+    known = list(dict.fromkeys([*EFFECTS, *CHAIN_EFFECTS]))
     items = tuple(e.strip() for e in text.split(",") if e.strip())
     if not items:
         raise argparse.ArgumentTypeError("name at least one effect")
@@ -698,7 +750,7 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "planar rigs; "
                         "joint_compliance,lateral_compliance,encoder_error,backlash for URDF/DH "
                         "chains, backlash tried once joint_compliance is named)")
-    p.add_argument("--seed", type=int, default=0, help="seed of folds and permutations (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of folds and permutations (0)")
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
                         "ladder.png, e.g. geometric=10.5,joint_compliance=5.64")
@@ -734,7 +786,10 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.json != "-":
         print(format_diagnosis(doc))
     if args.report:
-        for path in write_diagnosis_report(diag, args.report):
+        with staged_directory(args.report) as scratch:
+            written = [Path(args.report) / p.name
+                       for p in write_diagnosis_report(diag, scratch)]
+        for path in written:
             _wrote(path, args.json)
     _write_json(doc, args.json)
     return 0
@@ -760,12 +815,13 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
     if args.json != "-":
         print(format_chain_diagnosis(doc))
     if args.report:
-        out = Path(args.report)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, fig in (("ladder.png", ladder_figure(doc, published)),
-                          ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"]))):
-            fig.savefig(out / name, dpi=120)
-            _wrote(out / name, args.json)
+        figures = (("ladder.png", ladder_figure(doc, published)),
+                   ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"])))
+        with staged_directory(args.report) as scratch:
+            for name, fig in figures:
+                fig.savefig(scratch / name, dpi=120)
+        for name, _ in figures:
+            _wrote(Path(args.report) / name, args.json)
     _write_json(doc, args.json)
     return 0
 
@@ -791,7 +847,7 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
                    help="nuts, emcee, grid or all (default); the grid always runs: it is the "
                         "reference of the check (the chains start around the target, never "
                         "from the grid)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
@@ -828,8 +884,6 @@ def _sample(args: argparse.Namespace) -> int:
 
 
 def _predict_args(p: argparse.ArgumentParser) -> None:
-    from bayesrob.fusion import DEFAULT_FUSION, FUSIONS
-
     p.add_argument("rig", help="rig directory: the modules' single-arm rows are enough")
     p.add_argument("--config", required=True,
                    help="one arm, or arms linked at their end point joined by '+' (A+B+C)")
@@ -858,7 +912,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                         "(default; only their products with the compliances are seen, and the "
                         "arms' stiffnesses come from a prior), or held at the URDF's <inertial> "
                         "ones, so the fitted compliances give each arm's stiffnesses")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the draws (0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the draws (0)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
                    help="write the expected-error map and the least accurate target's regions "
@@ -874,17 +928,22 @@ def _predict(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig, chains=True)
     dim = rig.robot.dim
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
+    from bayesrob.progress import progress
+
     try:
-        pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
-                                args.models_dir, args.seed, groups=args.params,
-                                masses=args.masses)
+        # calibration, fits and draws in one call: the clock, every 5 s off a terminal
+        with progress(None, "predict", enabled=_progress(args),
+                      postfix=f"{args.config}, {len(targets)} targets"):
+            pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
+                                    args.models_dir, args.seed, groups=args.params,
+                                    masses=args.masses)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     if args.json != "-":
         print(pred.format())
     _write_json(pred.document, args.json)
     if args.plot:
-        assembly_figure(pred, rig).savefig(args.plot, dpi=120)
+        save_figure(assembly_figure(pred, rig), args.plot, dpi=120)
         if args.json != "-":
             print(f"wrote {args.plot}")
     return 0
@@ -920,8 +979,7 @@ def _compare(args: argparse.Namespace) -> int:
     if plot is None and args.json not in (None, "-"):
         plot = str(Path(args.json).with_suffix(".png"))
     if plot is not None:
-        Path(plot).parent.mkdir(parents=True, exist_ok=True)
-        comparison_figure(comp).savefig(plot, dpi=120)
+        save_figure(comparison_figure(comp), plot, dpi=120)
         doc["plot"] = plot
     if args.json != "-":
         print(format_comparison(doc))
@@ -970,13 +1028,16 @@ def _design(args: argparse.Namespace) -> int:
     except DesignError as exc:
         raise UsageError(str(exc)) from None
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     print(result.format(args.top))
-    (out / "design.json").write_text(json.dumps(result.document, indent=1))
-    design_figure(result, modules, min(args.top, 4)).savefig(out / "design.png", dpi=120)
-    written = [out / "design.json", out / "design.png"]
-    if result.best is not None:
-        written.append(write_candidate_rig(result.best, result, modules, out / "best"))
+    names = ["design.json", "design.png"]
+    with staged_directory(out) as scratch:
+        (scratch / "design.json").write_text(json.dumps(result.document, indent=1))
+        design_figure(result, modules, min(args.top, 4)).savefig(scratch / "design.png",
+                                                                 dpi=120)
+        if result.best is not None:
+            names.append(write_candidate_rig(result.best, result, modules,
+                                             scratch / "best").name)
+    written = [out / n for n in names]
     print(f"wrote {', '.join(str(w) for w in written)}")
     # exit 1: the search ran and nothing met the requirement (the closest is shown above)
     return 0 if result.met else 1
@@ -1043,8 +1104,16 @@ class _CommandListFormatter(argparse.HelpFormatter):
             self._action_max_length += 2 * self._indent_increment
 
 
+class _Parser(argparse.ArgumentParser):
+    """Argument errors in one line, as every other error of the command line (the usage is
+    what --help is for)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bayesrob",
         formatter_class=_CommandListFormatter,
         description="Predict how accurately modular robot arms place their end point, alone "
@@ -1063,17 +1132,53 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# command -> its outputs: (argument, FILE or DIRECTORY, the name the user typed), checked
+# before any work so that a path the command cannot write never costs a run's results.
+OUTPUTS: dict[str, list[tuple[str, str, str]]] = {
+    "simulate": [("out_dir", DIRECTORY, "OUT_DIR")],
+    "calibrate": [("json", FILE, "--json"), ("urdf_out", FILE, "--urdf-out")],
+    "reproduce": [("out", DIRECTORY, "--out")],
+    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report")],
+    "sample": [("json", FILE, "--json")],
+    "predict": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
+    "compare": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
+    "design": [("out", DIRECTORY, "--out")],
+    "validate": [("out", DIRECTORY, "--out")],
+}
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    for attr, kind, option in OUTPUTS.get(args.command, ()):
+        value = getattr(args, attr, None)
+        if value not in (None, "-"):
+            check_output(value, kind, option)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _, _, run = COMMANDS[args.command]
     try:
+        _check_outputs(args)
         return run(args)
-    except (RigError, UsageError) as exc:
+    except Exception as exc:
+        # A RigError can only come from the rig module, imported by the commands that read
+        # one: looked up here so that argument errors never import it.
+        rig = sys.modules.get("bayesrob.rig")
+        if not isinstance(exc, UsageError | OutputPathError) and not (
+                rig and isinstance(exc, rig.RigError)):
+            raise
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
+        if argv is None:
+            # Run as a program: leave at once. The finally blocks on the way here have removed
+            # any partial output; tearing the interpreter down under JAX's compiler threads
+            # could still crash it (seen once in four interrupts of a compiling simulate).
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
     except BrokenPipeError:
         # The reader (e.g. `| head`) went away; point stdout at devnull so the interpreter's

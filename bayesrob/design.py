@@ -68,6 +68,8 @@ import itertools
 import json
 import math
 import os
+import signal
+import threading
 import time
 import tomllib
 from collections.abc import Callable, Iterator, Sequence
@@ -298,14 +300,20 @@ def load_design(path: str | Path) -> DesignSpec:
     linked = lim.get("linked", True)
     if not isinstance(linked, bool):
         raise DesignError(f"{path}: [limits] linked must be true or false, got {linked!r}")
+    max_arms = _number(lim, "max_arms", f"{path}: [limits]", int, 3, lo=0)
+    min_arms = _number(lim, "min_arms", f"{path}: [limits]", int, 1, lo=0)
+    if min_arms > (max_arms if linked else 1):
+        # no assembly has that many arms: the search would run and rank nothing
+        raise DesignError(f"{path}: [limits] min_arms = {min_arms} is more than "
+                          + (f"max_arms = {max_arms}" if linked else
+                             "1, the most arms an assembly has with linked = false"))
     return DesignSpec(
         path=path, modules=modules, mounts=mounts, region=region,
         n_targets=_number(task, "targets", f"{path}: [task]", int, 16, lo=0),
         error_mm=_number(req, "error_mm", f"{path}: [requirement]", lo=0),
         quantile=_number(req, "quantile", f"{path}: [requirement]", lo=0, hi=1),
         confidence=_number(req, "confidence", f"{path}: [requirement]", float, 0.9, lo=0, hi=1),
-        max_arms=_number(lim, "max_arms", f"{path}: [limits]", int, 3, lo=0),
-        min_arms=_number(lim, "min_arms", f"{path}: [limits]", int, 1, lo=0),
+        max_arms=max_arms, min_arms=min_arms,
         linked=linked, fusion=fusion,
         seed=_number(doc, "seed", str(path), int, 0, lo=-1),
         draws=_number(doc, "draws", str(path), int, DRAWS, lo=99),
@@ -826,10 +834,17 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
         return
     saved = {k: os.environ.get(k) for k in WORKER_ENV}
     os.environ.update(WORKER_ENV)  # the nanny's worker processes inherit them at start
+    # Ctrl-C reaches every process of the terminal's group: workers that took it would each
+    # print a traceback. Started with SIGINT ignored (kept across exec, and Python leaves an
+    # ignored SIGINT alone), they leave it to this process, which closes the cluster.
+    main_thread = threading.current_thread() is threading.main_thread()
+    sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
     try:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=40)
     finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, sigint)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

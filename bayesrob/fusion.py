@@ -59,6 +59,7 @@ from bayesrob.inference import (
     is_sampleable,
 )
 from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
 
 __all__ = [
     "FUSIONS",
@@ -75,8 +76,6 @@ __all__ = [
     "fused_posterior",
 ]
 
-FUSIONS = ("product", "equilibrium")
-DEFAULT_FUSION = "equilibrium"
 # Prior sd of each joint's log stiffness when the rig does not give it: a factor e^0.4 = 1.5
 # at one sd, about the spread of the simulator's per-seed draws (0.3 per arm and 0.3 per
 # joint: sqrt(2) 0.3 = 0.42 per joint). Chosen on tuning rigs (seeds 101-106, stiffnesses

@@ -54,8 +54,8 @@ from bayesrob.rig import (
     measurement_header,
     rig_toml_dict,
 )
+from bayesrob.vocabulary import EFFECTS
 
-EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
 TRUTH_FILE = "truth.toml"
 G_ACC = 9.81  # m/s^2: with masses in kg and lengths in mm, energies come out in N mm
 STIFF_FACTOR = 1000.0

@@ -323,3 +323,130 @@ def test_calibrate_handmade_rig_json_to_stdout(handmade_rig_dir, tmp_path):
     assert set(doc["arms"]) == {"left", "right", "middle"}
     assert doc["accuracy"]["left+middle+right"]["test"]["n"] == 2
     assert snapshot(handmade_rig_dir) == before
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["predict", "--help"], ["predict", "--bogus"],
+                                  ["simulate", "x", "--effects", "nope"],
+                                  ["calibrate", "--params", "nope"]])
+def test_help_and_argument_errors_import_no_numerical_library(argv):
+    """``bayesrob --help`` and argument errors answer at once: they import neither JAX nor
+    SciPy, NumPy or arviz (the start-up is timed by benchmarks/bench_startup.py)."""
+    code = ("import sys\nfrom bayesrob.cli import main\ntry:\n    main(sys.argv[1:])\n"
+            "except SystemExit:\n    pass\n"
+            "heavy = sorted(m for m in ('jax', 'numpy', 'scipy', 'arviz', 'matplotlib') "
+            "if m in sys.modules)\nprint('heavy:', heavy, file=sys.stderr)\n")
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1], timeout=60)
+    assert "heavy: []" in r.stderr, r.stderr
+
+
+def test_the_names_the_command_line_checks_are_the_registered_ones():
+    """The command line checks effect names against bayesrob.vocabulary without importing the
+    diagnosis: the planar effects registered there must be exactly those names."""
+    from bayesrob.effects import effect_names
+    from bayesrob.vocabulary import EFFECTS
+
+    assert set(effect_names()) == set(EFFECTS)
+
+
+_RUN_MAIN = ("import sys\nfrom bayesrob.cli import main\ncode = main(sys.argv[1:])\n"
+             "heavy = sorted(m for m in ('jax', 'scipy', 'arviz') if m in sys.modules)\n"
+             "print('heavy:', heavy, 'exit:', code, file=sys.stderr)\n")
+
+
+def _bad_output_cases(tmp: Path) -> list[tuple[list[str], str]]:
+    """(argv, the option the one-line error must name) for output paths no command can use."""
+    a_dir = tmp / "a_dir"
+    a_dir.mkdir()
+    a_file = tmp / "a_file"
+    a_file.write_text("keep me\n")
+    return [
+        (["calibrate", "--json", str(a_dir)], "--json"),
+        (["calibrate", "--urdf-out", str(a_dir)], "--urdf-out"),
+        (["calibrate", "--json", str(a_file / "cal.json")], "--json"),
+        (["reproduce", "--out", str(a_file)], "--out"),
+        (["diagnose", "--report", str(a_file)], "--report"),
+        (["diagnose", "--json", "/proc/diagnosis.json"], "--json"),
+        (["sample", "--target", "140", "220", "--json", str(a_dir)], "--json"),
+        (["predict", "RIG", "--config", "top", "--grid", "2", "--plot", str(a_dir)], "--plot"),
+        (["predict", "RIG", "--config", "top", "--grid", "2", "--json", "/proc/p.json"],
+         "--json"),
+        (["compare", "--json", str(a_dir)], "--json"),
+        (["design", "design.toml", "--out", str(a_file)], "--out"),
+        (["simulate", str(a_file)], "OUT_DIR"),
+        (["validate", "--out", str(a_file)], "--out"),
+    ]
+
+
+def test_a_bad_output_path_is_refused_before_any_work(tmp_path):
+    """Each command checks its output paths as soon as it has read its arguments: one line
+    naming the option and path, exit 2, no numerical library imported (so no work done),
+    and the file already there untouched."""
+    for argv, option in _bad_output_cases(tmp_path):
+        r = subprocess.run([sys.executable, "-c", _RUN_MAIN, *argv], capture_output=True,
+                           text=True, cwd=Path(__file__).resolve().parents[1], timeout=60)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 2 and lines[-1] == "heavy: [] exit: 2", (argv, r.stderr)
+        assert lines[0].startswith(f"bayesrob {argv[0]}: error: {option} "), (argv, lines[0])
+    assert (tmp_path / "a_file").read_text() == "keep me\n"
+
+
+def _design_with_limits(tmp: Path, limits: str) -> Path:
+    """The example design file with its [limits] replaced, its modules read where they are."""
+    example = Path(__file__).resolve().parents[1] / "examples" / "design"
+    text = (example / "design.toml").read_text()
+    text = text.replace('rig = "modules"', f'rig = "{example / "modules"}"')
+    head, _, _ = text.partition("[limits]")
+    path = tmp / "design.toml"
+    path.write_text(head + "[limits]\n" + limits)
+    return path
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["reproduce", "--grid-half-width", "-5"], "--grid-half-width: must be more than 0"),
+    (["reproduce", "--grid-half-width", "nan"], "--grid-half-width: must be finite"),
+    (["simulate", "OUT", "--measurement-noise-mm", "-1"], "--measurement-noise-mm: must be 0"),
+    (["simulate", "OUT", "--joint-noise-rad", "inf"], "--joint-noise-rad: must be 0 or more "
+                                                      "and finite"),
+    (["simulate", "OUT", "--seed", "-3"], "--seed: must be at least 0"),
+    (["simulate", "OUT", "--robot", "arm6", "--compliance", "--no-compliance"],
+     "--compliance and --no-compliance contradict each other"),
+    (["diagnose", "--seed", "x"], "--seed: expected a whole number"),
+    (["design", "DESIGN", "--out", "OUTDIR"], "min_arms = 2 is more than max_arms = 1"),
+])
+def test_numbers_out_of_range_and_contradictions_are_refused_in_one_line(argv, words, tmp_path,
+                                                                          capsys):
+    """Refused as the arguments are read (the design file as it is loaded), before any work:
+    one line, exit 2, nothing written."""
+    design = _design_with_limits(tmp_path, "min_arms = 2\nmax_arms = 1\n")
+    argv = [{"OUT": str(tmp_path / "sim"), "DESIGN": str(design),
+             "OUTDIR": str(tmp_path / "out")}.get(a, a) for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and words in err[0], (argv, err)
+    assert not (tmp_path / "sim").exists() and not (tmp_path / "out").exists()
+
+
+def test_a_planar_targets_file_with_z_is_refused(tmp_path, capsys):
+    """A z column would be dropped for planar arms: refused, naming the file and column."""
+    targets = tmp_path / "t.csv"
+    targets.write_text("x,y,z\n140,220,5\n")
+    from bayesrob.rig import default_rig_dir
+
+    assert main(["predict", str(default_rig_dir()), "--config", "top+bottom", "--targets",
+                 str(targets)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{targets}: column z" in err[0], err
+
+
+def test_calibrate_help_names_every_parameter_group(capsys):
+    from bayesrob.vocabulary import ALL_GROUPS
+
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    missing = [g for g in ALL_GROUPS if f"{g} (" not in text and f"{g}," not in text]
+    assert missing == [], missing

@@ -150,3 +150,15 @@ def test_sample_notes_are_under_the_notes_heading():
     i = lines.index(NOTES_HEADING)
     assert lines[i + 1] == "  NUTS divergences are trajectories that left the table's support"
     assert lines[i - 1].startswith("check: no sampler ran; the grid's box holds the posterior")
+
+
+def test_predict_reports_progress_from_its_start_to_done(tmp_path, capsys):
+    """predict had been silent for minutes off a terminal: its first line comes at once, its
+    last says done."""
+    from bayesrob.rig import default_rig_dir
+
+    assert main(["predict", str(default_rig_dir()), "--config", "top", "--grid", "2",
+                 "--json", str(tmp_path / "p.json")]) == 0
+    lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("predict:")]
+    assert lines[0].startswith("predict: 0.0 s, top, 4 targets"), lines
+    assert lines[-1].endswith(", done"), lines

@@ -187,3 +187,49 @@ def test_fig8_panels_hold_every_models_density(built, rep):
         assert shown >= 0.99, f"{ax.get_title()}: only {shown:.3f} of the density in the panel"
         x0, x1 = ax.get_xlim()
         assert ax.images[0].get_extent()[:2] == pytest.approx([x0, x1], abs=0.31)
+
+
+def _clipped_texts(fig: Figure) -> list[str]:
+    """What a saved PNG would cut off: the parts of the drawn artists (titles, labels, the
+    tick labels drawn, annotations, legends, colour bars) that reach past the figure's edge,
+    as 'side by N px'. Figures saved with bbox_inches='tight' grow to hold them instead."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    tight = fig.get_tightbbox(renderer).transformed(fig.dpi_scale_trans)  # to pixels
+    box = fig.bbox
+    out = {"left": box.x0 - tight.x0, "right": tight.x1 - box.x1,
+           "bottom": box.y0 - tight.y0, "top": tight.y1 - box.y1}
+    return [f"{side} by {px:.0f} px" for side, px in out.items() if px > 1]
+
+
+@pytest.mark.parametrize("name", list(MAKERS))
+def test_no_text_of_the_papers_figures_is_cut_off(built, name):
+    """reproduce saves them with bbox_inches='tight', which would hide the check: drawn as
+    they are, nothing of them may lie past the figure's edge."""
+    assert _clipped_texts(built[name]) == []
+
+
+@pytest.mark.parametrize("config", ["top", "top+bottom"])
+def test_the_predict_figure_fits_its_content(config):
+    """Every text inside the figure, every target and arm base inside the map's axes, and a
+    title that names a fusion only for linked arms."""
+    from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly
+    from bayesrob.rig import default_rig_dir, load_rig
+
+    rig = load_rig(default_rig_dir())
+    pred = predict_assembly(rig, config, grid_targets(rig, 3), "ind")
+    fig = assembly_figure(pred, rig)
+    try:
+        assert _clipped_texts(fig) == []
+        ax = fig.axes[0]
+        # each target's square marker whole inside the axes (in pixels, as drawn)
+        half = np.sqrt(ax.collections[0].get_sizes().max()) / 2 * fig.dpi / 72
+        shown = np.vstack([pred.targets, [rig.arms[a].base for a in config.split("+")]])
+        px = ax.transData.transform(shown)
+        box = ax.get_window_extent()
+        inside = ((px[:, 0] - half >= box.x0) & (px[:, 0] + half <= box.x1)
+                  & (px[:, 1] - half >= box.y0) & (px[:, 1] + half <= box.y1))
+        assert inside.all(), shown[~inside]
+        assert ("equilibrium" in ax.get_title()) == ("+" in config), ax.get_title()
+    finally:
+        plt.close(fig)

@@ -210,7 +210,7 @@ def test_rows_are_written_whole_one_write_each_and_fsynced(plant, rig_dir, monke
 
 
 def test_interrupted_run_keeps_every_row_and_resume_matches_an_uninterrupted_run(
-        plant, rig_dir, tmp_path) -> None:
+        plant, rig_dir, tmp_path, capsys) -> None:
     ref = tmp_path / "ref"
     ref.mkdir()
     shutil.copy(rig_dir / "rig.toml", ref / "rig.toml")
@@ -226,10 +226,13 @@ def test_interrupted_run_keeps_every_row_and_resume_matches_an_uninterrupted_run
         ctl, tracker = open_pair(dev)
         with pytest.raises(KeyboardInterrupt):
             collect(rig_dir, ctl, Watching(tracker, dev, ctrl_c), grid=2, settle_s=0,
-                    log=logs.append)
+                    log=logs.append, progress=True)
         ctl.close()
         tracker.link.close()
         assert any("6 rows are safe" in s and "--resume" in s for s in logs)
+        # the progress report stops where the rows did: an interrupted run is not "done"
+        lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("collect:")]
+        assert lines and not any(x.endswith("done") for x in lines), lines
         assert len(load_measurements(rig_dir / "measurements.csv",
                                      load_rig_toml(rig_dir / "rig.toml")["arms"])) == 6
         assert keys(rig_dir) == keys(ref)[:6]

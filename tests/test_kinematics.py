@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -89,3 +90,29 @@ def test_arm_command_lands_in_servo_range():
     np.testing.assert_allclose(np.asarray(arm.forward_u(u)), np.asarray(targets), atol=1e-7)
     # the 2 pi turn nearest mid range is chosen
     assert np.all(np.abs(u - 1500.0) < np.pi / 0.0015)
+
+
+_URDF = """<robot name="r">
+  <link name="base"/><link name="l1"/><link name="tip"/>
+  <joint name="j1" type="revolute"><parent link="{p1}"/><child link="l1"/>
+    <axis xyz="0 0 1"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="tip"/>
+    <axis xyz="0 0 1"/>{mimic}</joint>
+</robot>"""
+
+
+@pytest.mark.parametrize("p1, mimic, words", [
+    ("bse", "", "joint 'j1' names parent link 'bse', which is not a link"),
+    ("base", '<mimic joint="j9"/>', "joint 'j2' mimics 'j9', which is not a joint"),
+])
+def test_a_urdf_naming_what_it_does_not_have_is_refused(tmp_path, p1, mimic, words):
+    """Checked whatever chain is asked for: a misspelt link would silently cut a tree."""
+    from bayesrob.kinematics import KinematicsError, urdf_chain
+
+    path = tmp_path / "r.urdf"
+    path.write_text(_URDF.format(p1=p1, mimic=mimic))
+    with pytest.raises(KinematicsError) as err:
+        urdf_chain(path, "l1", "tip", "arm")
+    assert str(err.value) == f"{path}: {words} of this URDF"
+    path.write_text(_URDF.format(p1="base", mimic=""))
+    assert urdf_chain(path, "base", "tip", "arm") is not None

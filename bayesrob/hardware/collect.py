@@ -542,6 +542,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
             result.recorded += 1
             bar.update(1)
 
+        finished = False  # "done" on the progress line only when every row was taken
         try:
             index = 0
             for name in names:
@@ -573,6 +574,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                     if not done:
                         run(step, index)
                     index += 1
+            finished = True
         except KeyboardInterrupt:
             log(f"interrupted: {len(mlog.rows)} rows are safe in {result.path}; continue with "
                 "--resume")
@@ -581,7 +583,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
             raise type(exc)(f"{exc}; {len(mlog.rows)} rows are safe in {result.path}, continue "
                             "with --resume") from exc
         finally:
-            bar.close()
+            bar.close(done=finished)
     result.complete = True
     try:
         errs = controller.errors()

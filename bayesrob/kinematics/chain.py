@@ -30,20 +30,19 @@ import numpy as np
 
 import bayesrob.kinematics.transforms as tf
 
+# The parameter groups (the optional ones: joints that give way under gravity, see
+# Robot.deflections; revolute joints read through an eccentric encoder, see Robot.joint_values;
+# play in the joints that gravity takes up, see Robot.sag) and the links' mass sources are
+# names the command line checks before it imports this module: they are defined there.
+from bayesrob.vocabulary import ALL_GROUPS, GROUPS, MASS_SOURCES, OPTIONAL_GROUPS  # noqa: F401
+
 JOINT_KINDS = ("revolute", "prismatic")
-GROUPS = ("frames", "offsets", "geometric", "servo")
-# Fitted only when asked for: joints that give way under gravity (see Robot.deflections),
-# revolute joints read through an eccentric encoder (see Robot.joint_values), and play in
-# the joints that gravity takes up (see Robot.sag).
-OPTIONAL_GROUPS = ("compliance", "lateral", "encoder", "backlash")
-ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 SAG_GROUPS = ("compliance", "lateral", "backlash")  # the groups gravity's torques drive
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
-# Where a compliance fit takes the links' masses from: fitted with the compliances (only their
-# products are seen), or held at the description's (a URDF's <inertial>). The first is the
-# default everywhere the choice is offered.
-MASS_SOURCES = ("fitted", "description")
+# MASS_SOURCES: the links' masses fitted with the compliances (only their products are seen),
+# or held at the description's (a URDF's <inertial>). The first is the default everywhere the
+# choice is offered.
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 # A joint's play is taken on the side its gravity deflection points to, as
 # tanh(deflection / PLAY_SIDE_RAD): a deflection of 0.1 mrad, the joints' repeatability on the

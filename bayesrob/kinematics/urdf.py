@@ -45,7 +45,34 @@ def _parse(path: Path) -> ET.Element:
         raise KinematicsError(f"{path}: malformed URDF (XML): {exc}") from None
     if root.tag != "robot":
         raise KinematicsError(f"{path}: not a URDF (root element is <{root.tag}>, not <robot>)")
+    _check_references(root, path)
     return root
+
+
+def _check_references(root: ET.Element, path: Path) -> None:
+    """Every name a joint refers to exists, whether or not the chain asked for passes it: a
+    misspelt link or joint is a mistake in the file, and read as is it would silently cut a
+    tree or drop a coupling."""
+    links = [el.get("name") for el in root.findall("link")]
+    joints = [el.get("name") for el in root.findall("joint")]
+    for kind, names in (("link", links), ("joint", joints)):
+        if None in names:
+            raise KinematicsError(f"{path}: a <{kind}> has no name")
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise KinematicsError(f"{path}: {kind} {twice[0]!r} is defined more than once")
+    for j in root.findall("joint"):
+        for end in ("parent", "child"):
+            el = j.find(end)
+            if el is None or not el.get("link"):
+                raise KinematicsError(f"{path}: joint {j.get('name')!r} has no <{end} link>")
+            if el.get("link") not in links:
+                raise KinematicsError(f"{path}: joint {j.get('name')!r} names {end} link "
+                                      f"{el.get('link')!r}, which is not a link of this URDF")
+        mimic = j.find("mimic")
+        if mimic is not None and mimic.get("joint") not in joints:
+            raise KinematicsError(f"{path}: joint {j.get('name')!r} mimics "
+                                  f"{mimic.get('joint')!r}, which is not a joint of this URDF")
 
 
 def _origin_matrix(joint: ET.Element, where: str) -> np.ndarray:
