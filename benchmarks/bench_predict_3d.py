@@ -45,50 +45,39 @@ above, and a third, front, facing the targets from the side:
 ``chain_simulator.three_linked_chain_truth``), MANY_LINKED points per rig, with the prior
 ``predict`` uses as it stands: THREE_TUNING_SEEDS checked that it runs, THREE_REPORT_SEEDS
 (fixed before any of them ran) report it.
+
+The coverage code and the seeds live in ``bayesrob.validation.linked_chain``; the report rigs'
+studies run by ``bayesrob validate linked_chain linked_chain_described linked_chain_three``.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from bayesrob.validation.linked_chain import (
+    DESCRIPTION_REPORT_SEEDS,
+    MANY_DESCRIPTION_REPORT_SEEDS,
+    MANY_LINKED,
+    MANY_RECHOSEN_REPORT_SEEDS,
+    MANY_REPORT_SEEDS,
+    MANY_SAG_REPORT_SEEDS,
+    MANY_TUNING_SEEDS,
+    REPORT_SEEDS,
+    THREE_REPORT_SEEDS,
+    THREE_TUNING_SEEDS,
+    TUNING_SEEDS,
+    chosen_prior,
+    coverage,
+)
 
 from bayesrob.kinematics import MASS_SOURCES
 
 WARM_TARGET_S = 60.0
-TUNING_SEEDS = (201, 202, 203, 204, 205, 206)
-REPORT_SEEDS = (211, 212, 213, 214)
-# The report rigs of --masses description (stiffnesses from compliances fitted under the URDF's
-# masses), fixed before its first report run: 211-214 had been run with a variant of it
-# (docs/fusion.md), so they no longer report it untouched.
-DESCRIPTION_REPORT_SEEDS = (221, 222, 223, 224)
-# The same 96 points spread over twelve rigs (--many-rigs), fixed before their first run.
-MANY_REPORT_SEEDS = tuple(range(231, 243))
-MANY_DESCRIPTION_REPORT_SEEDS = tuple(range(251, 263))
-# The prior chosen again in that design (--coverage tuning --many-rigs): its tuning rigs, and
-# the rigs that report the choice (--coverage report --many-rigs --rechosen), both fixed before
-# their first run; 231-242 had shown the previous prior's error ratio, so they cannot report a
-# prior chosen after it.
-MANY_TUNING_SEEDS = tuple(range(271, 283))
-MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
-# The rigs that report the arm term centred on the fitted sags (--coverage report --many-rigs
-# --sag-report), fixed before their first run: 291-302 led to it (their worst rigs were read
-# arm by arm), so they cannot report it.
-MANY_SAG_REPORT_SEEDS = tuple(range(311, 323))
-MANY_LINKED = 8
-# Three arms joined at one point (``chain_simulator.three_linked_chain_truth``: left, right and
-# front), predicted with the prior ``predict`` uses, chosen on the two-arm tuning rigs; nothing
-# is chosen on these. THREE_TUNING_SEEDS only checked that the study runs (its figures are
-# printed, not published); THREE_REPORT_SEEDS were fixed before any of them ran.
-THREE_TUNING_SEEDS = (901, 902, 903, 904, 905, 906)
-THREE_REPORT_SEEDS = tuple(range(341, 353))
-GROUPS = ("frames", "offsets", "geometric", "compliance")
 # (centre, per-joint log sd, arm term's centre, arm term's log sd), as chosen_prior() names them
 VARIANTS = [(c, j, "equal", a) for c in ("equal", "effort") for j in (0.25, 0.5, 0.75)
             for a in (0.0, 0.25, 0.5)]
@@ -98,125 +87,6 @@ VARIANTS = [(c, j, "equal", a) for c in ("equal", "effort") for j in (0.25, 0.5,
 SAG_VARIANTS = [("effort", 0.5, "equal", 0.25)] + [
     ("effort", j, "sags", a) for j in (0.25, 0.35, 0.4, 0.45, 0.5)
     for a in (0.0, 0.15, 0.25, 0.35, 0.5)]
-
-
-def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float = 0.0,
-            sag_steps: int = 1, n_linked: int | None = None, three: bool = False):
-    """The rig of ``seed`` and its modules fitted on single-arm rows, kept in ``where`` so a
-    second sweep of priors skips the fits (the fits do not depend on the prior). ``masses``:
-    the calibration's (fitted, or held at the description's); ``mass_log_sd``: how far each
-    simulated arm's true link masses stray from the description's; ``sag_steps``: the
-    calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
-    simulator's default); ``three``: three arms joined (left, right and front)."""
-    import pickle
-
-    import bayesrob.chain_prediction as cp
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        simulate_linked_chain_rig,
-        three_linked_chain_truth,
-    )
-    from bayesrob.rig import load_rig
-
-    if n_linked is None:
-        n_linked = LinkedChainTruth.n_linked
-    # rigs of the default size keep the names their caches were written under
-    linked = "" if n_linked == LinkedChainTruth.n_linked else f"-linked{n_linked}"
-    tag = f"{'three-' if three else ''}{seed}-{masses}-{mass_log_sd:g}{linked}"
-    rig_dir = where / f"rig-{tag}"
-    kept = where / f"modules-{tag}{'' if sag_steps == 1 else f'-steps{sag_steps}'}.pkl"
-    if kept.is_file():
-        return load_rig(rig_dir), pickle.loads(kept.read_bytes())
-    truth = (three_linked_chain_truth if three else LinkedChainTruth)(
-        seed=seed, mass_log_sd=mass_log_sd, n_linked=n_linked)
-    rig = load_rig(simulate_linked_chain_rig(rig_dir, truth))
-    mods = cp.fit_chain_modules(rig, list(truth.arms), "ind", groups=GROUPS, seed=seed,
-                                masses=masses, sag_steps=sag_steps)
-    kept.write_bytes(pickle.dumps(mods))
-    return rig, mods
-
-
-_PRIOR_CONSTANTS = ("CHAIN_STIFFNESS_CENTRE", "CHAIN_STIFFNESS_LOG_SD",
-                    "CHAIN_STIFFNESS_ARM_CENTRE", "CHAIN_STIFFNESS_ARM_LOG_SD",
-                    "SAG_SCALED_LOG_SD", "SAG_SCALED_ARM_LOG_SD")
-
-
-def chosen_prior() -> tuple[str, float, str, float]:
-    """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, arm term's
-    centre, arm term's log sd), as VARIANTS names them (the sds the arms' fitted sags
-    bring with them where the arm term is centred on them)."""
-    import bayesrob.chain_prediction as cp
-
-    if cp.CHAIN_STIFFNESS_ARM_CENTRE == "sags":
-        return cp.CHAIN_STIFFNESS_CENTRE, cp.SAG_SCALED_LOG_SD, "sags", cp.SAG_SCALED_ARM_LOG_SD
-    return (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
-            cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD)
-
-
-@contextlib.contextmanager
-def _prior(centre: str, joint_sd: float, arm_centre: str, arm_sd: float) -> Iterator[None]:
-    """The module's prior set to a variant for the block, and put back after it: a sweep
-    must not leave its last variant behind for whatever runs next in the process."""
-    import bayesrob.chain_prediction as cp
-
-    before = {name: getattr(cp, name) for name in _PRIOR_CONSTANTS}
-    cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_ARM_CENTRE = centre, arm_centre
-    if arm_centre == "sags":
-        cp.SAG_SCALED_LOG_SD, cp.SAG_SCALED_ARM_LOG_SD = joint_sd, arm_sd
-    else:
-        cp.CHAIN_STIFFNESS_LOG_SD, cp.CHAIN_STIFFNESS_ARM_LOG_SD = joint_sd, arm_sd
-    try:
-        yield
-    finally:
-        for name, value in before.items():
-            setattr(cp, name, value)
-
-
-def coverage(seeds: tuple[int, ...], variants: list[tuple[str, float, str, float]],
-             cache: Path | None = None, masses: str = "fitted", mass_log_sd: float = 0.0,
-             sag_steps: int = 1, n_linked: int | None = None, three: bool = False) -> dict:
-    import jax
-
-    import bayesrob.chain_prediction as cp
-
-    pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": []} for v in variants}
-    with tempfile.TemporaryDirectory() as tmp:
-        where = cache if cache is not None else Path(tmp)
-        where.mkdir(parents=True, exist_ok=True)
-        for seed in seeds:
-            rig, mods = _fitted(seed, where, masses, mass_log_sd, sag_steps, n_linked, three)
-            arms = rig.robot.measured_arms()
-            m = rig.measurements.mask("+".join(arms), "test")
-            commands = [rig.measurements.commands[a][m] for a in arms]
-            seen, target = rig.measurements.observed[m], rig.measurements.target[m]
-            obs = np.linalg.norm(seen - target, axis=1)
-            row: dict = {"seed": seed}
-            for variant in variants:
-                # the prior is read when the stiffnesses are set and again when drawn
-                with _prior(*variant):
-                    mods.stiffness = cp.stiffness_priors(rig, arms, mods.calibration)
-                    draws = cp.chain_draws(mods, arms, commands, seed=seed)
-                level = cp.hdr_levels(draws, seen)
-                pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
-                p = pooled[variant]
-                p["in50"] += (level < 0.5).tolist()
-                p["in90"] += (level < 0.9).tolist()
-                p["pred"] += pred.tolist()
-                p["obs"] += obs.tolist()
-                row["/".join(map(str, variant))] = [
-                    float(np.mean(level < 0.5)), float(np.mean(level < 0.9)),
-                    float(pred.mean() / obs.mean())]
-            row["observed_mean_error_mm"] = float(obs.mean())
-            print(json.dumps(row), flush=True)
-            # each variant's draws compile programs of their own, whose code stays mapped until
-            # released: a sweep of 26 variants ran the process out of memory maps on its sixth
-            # rig (LLVM: cannot allocate memory)
-            jax.clear_caches()
-    return {"/".join(map(str, v)): {
-        "points": len(p["in50"]), "coverage50": float(np.mean(p["in50"])),
-        "coverage90": float(np.mean(p["in90"])),
-        "error_ratio": float(np.mean(p["pred"]) / np.mean(p["obs"]))}
-            for v, p in pooled.items()}
 
 
 def main() -> None:

@@ -1,60 +1,37 @@
 """Equilibrium fusion of linked arms (bayesrob.fusion) and predictions of assemblies before they
 are built (bayesrob.assembly, ``bayesrob predict``).
 
-Rigs: the simulator at seeds 601-606 (gravity sag and backlash, each arm's stiffnesses drawn
-per seed with log sd 0.3) are the report rigs of the linked coverage figures, fixed before they
-were first run; the stiffness prior was chosen on seeds 101-106 (drawn the same way), which no
-test uses.
+How often the linked predictions hold on report rigs is measured by the validation suite
+(``bayesrob validate linked_planar linked_planar_three linked_planar_physics``), not here.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import json
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
+from bayesrob.validation.linked_planar import single_arm_copy
 
 from bayesrob import fusion
 from bayesrob import kinematics as kin
 from bayesrob.assembly import predict_assembly, read_targets
 from bayesrob.calibration import calibrate
 from bayesrob.cli import main
-from bayesrob.comparison import score_points
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import setup_rows
 from bayesrob.rig import RigError, default_rig_dir, load_rig
-from bayesrob.simulator import PhysicalRig, paper_truth, simulate_rig, three_arm_truth
+from bayesrob.simulator import PhysicalRig, paper_truth, simulate_rig
 
 ALPHA = 0.01
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-IMPROVED = ("ind", "corr", "cond")
-REPORT_SEEDS = range(601, 607)
-# Two arms are not equally stiff: with one stiffness for every arm a prior that linked arms are
-# alike would be right by construction (docs/fusion.md, "a trap")
-REPORT_STIFFNESS_LOG_SD = 0.3
-# Seed 1 was the check's first rig; 2 and 3 were added when one rig proved a noisy check, and
-# 4-6 to reach the issue's 96 linked points per model (each fixed before it was first run)
-THREE_ARM_SEEDS = (1, 2, 3, 4, 5, 6)
 
 
 @pytest.fixture(scope="module")
 def sag_rig(tmp_path_factory):
     d = tmp_path_factory.mktemp("sag1")
     return simulate_rig(d, paper_truth(("gravity_sag", "backlash"), seed=1))
-
-
-@pytest.fixture(scope="module")
-def three_rigs(tmp_path_factory):
-    """Three-arm rigs (sag and backlash, stiffnesses drawn), seeds ``THREE_ARM_SEEDS``."""
-    return [simulate_rig(tmp_path_factory.mktemp(f"three{seed}"),
-                         three_arm_truth(("gravity_sag", "backlash"), seed=seed,
-                                         stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
-            for seed in THREE_ARM_SEEDS]
 
 
 def _fitted(rig, name):
@@ -181,26 +158,11 @@ def test_compare_scores_both_fusions(tmp_path):
 # ------------------------------------------------------------------------------ predict
 
 
-@functools.cache
-def _bench_predict():
-    """``benchmarks/bench_predict.py`` (the three-arm study), loaded once from its file so the
-    tests' import path stays as it was."""
-    spec = importlib.util.spec_from_file_location("bench_predict", BENCHMARKS / "bench_predict.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
-
-
-def _single_arm_copy(rig_dir, out):
-    """The rig with every linked row removed (the three-arm study's own helper)."""
-    return _bench_predict().single_arm_copy(rig_dir, out)
-
-
 def test_predict_needs_no_linked_rows_and_gives_the_same_answer(tmp_path):
     """The default rig without its linked rows predicts the linked assembly exactly as the
     full rig does (same seed): nothing linked is read."""
     full = default_rig_dir()
-    single = _single_arm_copy(full, tmp_path / "single")
+    single = single_arm_copy(full, tmp_path / "single")
     targets = tmp_path / "t.csv"
     targets.write_text("x,y\n150,150\n200,220\n")
     docs = []
@@ -316,159 +278,3 @@ def test_read_targets_needs_x_and_y(tmp_path):
     p.write_text("a,b\n1,2\n")
     with pytest.raises(RigError, match="columns x,y"):
         read_targets(p)
-
-
-# ------------------------------------------------------------------------------ coverage
-
-
-def _levels_and_errors(rig_dir, config, model, fusion_rule):
-    rig = load_rig(rig_dir)
-    arms, fitted = _fitted(rig, model)
-    rows = setup_rows(rig, arms, config)
-    members = config.split("+")
-    scores, post = score_points([fitted[a] for a in members], [arms[a] for a in members],
-                                [rows["commands"][a] for a in members], rows["targets"],
-                                rows["observed"], fusion_rule)
-    dist = np.linalg.norm(post.points() - rows["targets"][:, None, :], axis=-1)
-    predicted = np.einsum("tm,tm->t", post.prob, dist)
-    observed = np.linalg.norm(rows["observed"] - rows["targets"], axis=1)
-    return scores.hdr_level, predicted, observed
-
-
-@pytest.fixture(scope="module")
-def three_arm_results(three_rigs, tmp_path_factory):
-    """Three arms linked at one point, predicted from the modules' single-arm rows only
-    (``predict_assembly`` on a copy without linked rows) and compared with the simulator's
-    measurements of the assembly on six rigs (96 test points): per model, the points' HDR
-    levels and the predicted / observed mean error."""
-    tmp = tmp_path_factory.mktemp("three_single")
-    levels = {"ind": [], "cond": []}
-    predicted, observed = {"ind": [], "cond": []}, {"ind": [], "cond": []}
-    for k, rig_dir in enumerate(three_rigs):
-        single = _single_arm_copy(rig_dir, tmp / f"rig{k}")
-        rows = load_rig(rig_dir).config_rows("top+bottom+side", "test")
-        for model in levels:
-            pred = predict_assembly(load_rig(single), "top+bottom+side", rows["target"], model)
-            lvl, _, obs = _levels_and_errors(rig_dir, "top+bottom+side", model, "equilibrium")
-            levels[model].append(lvl)
-            predicted[model].append(pred.expected_error_mm)
-            observed[model].append(obs)
-    ratios = {m: float(np.concatenate(predicted[m]).mean() / np.concatenate(observed[m]).mean())
-              for m in levels}
-    return {m: np.concatenate(v) for m, v in levels.items()}, ratios
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("model", [
-    "ind",
-    pytest.param("cond", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured on three-arm rigs 1-6: the 50% / 90% regions hold 0.49 / 0.80 of 96 points; "
-        "three arms are predicted a little too accurate there (six three-arm tuning rigs: "
-        "0.59 / 0.92); through their fitted physics they meet it "
-        "(test_three_arms_predicted_through_their_fitted_physics)")))])
-def test_three_arms_predicted_from_single_arm_rows_cover(three_arm_results, model,
-                                                         record_property):
-    """Issue target, as for two arms: the 50% / 90% regions hold 0.40-0.60 / 0.84-0.96 of the
-    96 linked points (ind measured 0.458 / 0.844)."""
-    levels = three_arm_results[0][model]
-    cov = (float(np.mean(levels <= 0.5)), float(np.mean(levels <= 0.9)))
-    record_property(f"three_arm_coverage_{model}", json.dumps(cov))
-    assert levels.size == 96
-    assert 0.40 <= cov[0] <= 0.60 and 0.84 <= cov[1] <= 0.96, cov
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("model", [
-    pytest.param("ind", marks=pytest.mark.xfail(strict=True, reason=(
-        "measured on three-arm rigs 1-6: predicted / observed mean error 0.840; through "
-        "their fitted physics 1.083 (test_three_arms_predicted_through_their_fitted_physics)"))),
-    "cond"])
-def test_three_arms_predicted_from_single_arm_rows_error(three_arm_results, model,
-                                                         record_property):
-    """Issue target: each model's mean predicted error within [0.85, 1.15] of the observed
-    (cond measured 0.926)."""
-    _, ratios = three_arm_results
-    record_property(f"three_arm_error_ratio_{model}", json.dumps(ratios[model]))
-    assert 0.85 <= ratios[model] <= 1.15, ratios
-
-
-@pytest.mark.slow
-def test_three_arms_predicted_through_their_fitted_physics():
-    """Item 4's three-arm check on the route that meets it: ``predict --params
-    frames,offsets,geometric,servo,compliance,backlash`` from single-arm rows, the assembly
-    then measured at predict's own commands (``bench_predict.py --three-arms report``: six
-    report rigs fixed before their first run, 96 linked points; about 5 minutes on two cores).
-    The groups were chosen on the tuning rigs 101-106 (compliance alone over-predicted there,
-    1.25). Issue targets: 0.40-0.60 / 0.84-0.96 at 96 points and an error ratio in
-    [0.85, 1.15]; the published figures (docs/fusion.md) to 2.5 points of 96 (a point at its
-    region's edge flips with the compiled programs' rounding) and the ratio to 0.002.
-    One test, so the study runs once whichever worker takes it."""
-    bench = _bench_predict()
-    got = bench.three_arm_study(bench.THREE_ARM_REPORT_SEEDS)
-    assert got["points"] == 96
-    assert got["coverage50"] == pytest.approx(0.531, abs=2.5 / 96)
-    assert got["coverage90"] == pytest.approx(0.948, abs=2.5 / 96)
-    assert got["error_ratio"] == pytest.approx(1.083, abs=2e-3)
-    assert 0.40 <= got["coverage50"] <= 0.60 and 0.84 <= got["coverage90"] <= 0.96, got
-    assert 0.85 <= got["error_ratio"] <= 1.15, got
-
-
-@pytest.fixture(scope="module")
-def report_levels(tmp_path_factory):
-    """Equilibrium fusion on the report rigs (seeds 601-606, sag and backlash, stiffnesses
-    drawn per seed): HDR levels and predicted / observed linked errors of the 96 linked end
-    points, per improved model."""
-    out = {m: ([], [], []) for m in IMPROVED}
-    for seed in REPORT_SEEDS:
-        d = simulate_rig(tmp_path_factory.mktemp(f"eq{seed}"),
-                         paper_truth(("gravity_sag", "backlash"), seed=seed,
-                                     stiffness_log_sd=REPORT_STIFFNESS_LOG_SD))
-        for m in IMPROVED:
-            for acc, x in zip(out[m], _levels_and_errors(d, "top+bottom", m, "equilibrium"),
-                              strict=True):
-                acc.append(x)
-    return {m: tuple(np.concatenate(x) for x in v) for m, v in out.items()}
-
-
-REPORT_SHORT = {
-    "corr": "measured on the report rigs: the 50% / 90% regions hold 60.4% / 92.7% of the 96 "
-            "linked end points, one point over the 50% range's 57 (the product: 43.8% / "
-            "89.6%)",
-}
-RATIO_SHORT = {
-    "cond": "measured on the report rigs: mean predicted linked error 0.972 mm against 0.841 "
-            "observed, ratio 1.156 (the product: 1.18); the balance of independently drawn "
-            "free points is a little too wide",
-}
-
-
-def _xfails(short: dict) -> list:
-    return [pytest.param(m, marks=pytest.mark.xfail(strict=True, reason=short[m]))
-            if m in short else m for m in IMPROVED]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("model", _xfails(RATIO_SHORT))
-def test_equilibrium_fusion_predicts_the_linked_error_on_report_rigs(report_levels, model,
-                                                                     record_property):
-    """Issue target: the mean predicted linked error within [0.85, 1.15] of the observed mean
-    over the 96 linked end points (measured: ind 0.925 / 0.841 mm = 1.10, corr 0.962 / 0.841
-    = 1.14)."""
-    _, predicted, observed = report_levels[model]
-    ratio = predicted.mean() / observed.mean()
-    record_property(f"equilibrium_error_{model}",
-                    json.dumps([float(predicted.mean()), float(observed.mean())]))
-    assert 0.85 <= ratio <= 1.15, ratio
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("model", _xfails(REPORT_SHORT))
-def test_equilibrium_fusion_covers_linked_points_on_report_rigs(report_levels, model,
-                                                                record_property):
-    """Issue target: pooled over the 96 linked end points, the 50% region holds 0.40-0.60 of
-    them and the 90% region 0.84-0.96 (binomial 95% ranges of n = 96 around nominal)."""
-    levels, _, _ = report_levels[model]
-    cov = (float(np.mean(levels <= 0.5)), float(np.mean(levels <= 0.9)))
-    record_property(f"equilibrium_coverage_{model}", json.dumps(cov))
-    assert levels.size == 96
-    assert 0.40 <= cov[0] <= 0.60 and 0.84 <= cov[1] <= 0.96, cov
