@@ -3,21 +3,19 @@ is at hand, else a simulated 6-joint arm stands in (the benchmarks' case names s
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = ROOT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
+from bayesrob.validation.justin import DATA as DEFAULT_DATA
+from bayesrob.validation.justin import convert
+
+__all__ = ["DEFAULT_DATA", "justin_or_simulated"]
 
 
 def justin_or_simulated(data: Path, rig_dir: Path, truth: Any) -> bool:
     """Write the rig into ``rig_dir``: Justin's from ``data`` if it exists (True), else the
     simulator's arm with ``truth`` (a ``ChainTruth``; False)."""
     if data.is_file():
-        sys.path.insert(0, str(ROOT / "examples" / "agile_justin"))
-        from convert import convert
-
         convert(data, rig_dir)
         return True
     from bayesrob.chain_simulator import simulate_chain_rig

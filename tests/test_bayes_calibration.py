@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+from bayesrob.validation.calibration_sbc import narrowed_ranks
 
 from bayesrob import bayes_calibration as bc
 from bayesrob.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
@@ -164,24 +165,15 @@ def test_calibrate_command_bayes_json(clean, tmp_path):
 # numpyro prior predictive of the model), not from the physical simulator: only then must the
 # rank of each true value among its posterior draws be uniform, whatever the data. A wrong
 # likelihood, prior, parameter transform or a sampler that has not converged shows up as
-# non-uniform ranks. Both tests use the sampler settings of the calibration itself (500 warm-up
-# + 500 draws, dense mass), one chain per data set, thinned to 49 draws (ranks 0..49).
-
-
-def _sbc(clean, n_datasets, seed):
-    rig, _, _ = clean
-    u, _ = rig.arm_rows("top", "train")
-    return bc.sbc(rig.arms["top"], u, n_datasets, n_draws=49, seed=seed)
-
-
-def _overconfident_ranks(res, factor):
-    """Ranks under a posterior shrunk about its mean (sd x factor): what SBC must catch."""
-    m = res.draws.mean(axis=1, keepdims=True)
-    return np.sum(m + factor * (res.draws - m) < res.truth[:, None, :], axis=1)
+# non-uniform ranks. The test uses the sampler settings of the calibration itself (500 warm-up
+# + 500 draws, dense mass), one chain per data set, thinned to 49 draws (ranks 0..49). The full
+# check, 200 data sets, is the validation suite's study calibration_sbc.
 
 
 def test_sbc_quick(clean):
-    res = _sbc(clean, n_datasets=25, seed=1)
+    rig, _, _ = clean
+    u, _ = rig.arm_rows("top", "train")
+    res = bc.sbc(rig.arms["top"], u, 25, n_draws=49, seed=1)
     un = res.uniformity(bins=5)
     # 25 data sets, 5 bins of 10 rank values (5 expected per bin), a chi-square test per
     # quantity (8 parameters + noise sd) Bonferroni-combined: a correct sampler fails at the
@@ -189,18 +181,6 @@ def test_sbc_quick(clean):
     assert un["p_bonferroni"] > 0.01, un
     # ... such as a posterior 2.5 times too narrow, which it does reject (seeds 1, 3, 4:
     # p = 0.004, 0.0005, 0.003; half as wide is caught only about half the time at n = 25).
-    assert res.uniformity(5, _overconfident_ranks(res, 0.4))["p_bonferroni"] < 0.01
+    assert res.uniformity(5, narrowed_ranks(res, 0.4))["p_bonferroni"] < 0.01
     # draws from the prior include near-noiseless data sets; still (almost) no divergences
     assert res.divergences.sum() <= 0.001 * 25 * 500, res.divergences
-
-
-@pytest.mark.slow
-def test_sbc_full(clean):
-    res = _sbc(clean, n_datasets=200, seed=2)
-    un = res.uniformity(bins=10)
-    # 200 data sets, 10 bins of 5 rank values (20 expected per bin), chi-square with 9 dof
-    # per quantity, Bonferroni over the 9 quantities at the 1 % level.
-    assert un["p_bonferroni"] > 0.01, (un["p"], un["counts"])
-    # the test has power: posteriors 30 % too narrow are rejected
-    assert res.uniformity(10, _overconfident_ranks(res, 0.7))["p_bonferroni"] < 0.01
-    assert res.divergences.sum() <= 0.001 * 200 * 500, res.divergences

@@ -9,56 +9,21 @@ hand). Rows keep the file's order (the authors shuffled it): the first ``--split
 per hand marker (config ``right`` / ``left``), in mm, each with the whole pose (the torso's
 three joint columns and both arms' seven: the other arm's weight bends the torso); rig.toml
 (this directory's, from the published nominal values) is copied beside it. The data carries
-no license: it is read from where the user keeps it, never shipped.
+no license: it is read from where the user keeps it, never shipped. The conversion itself is
+``bayesrob.validation.justin.convert``, which the validation suite's Justin studies run.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import shutil
 import sys
 from pathlib import Path
 
-import numpy as np
+# Run from a checkout, the examples use its bayesrob (and its validation/ studies), not an
+# installed copy that may predate them.
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-HERE = Path(__file__).resolve().parent
-TORSO, RIGHT, LEFT = slice(0, 3), slice(3, 10), slice(10, 17)
-
-
-def _array(text: str, shape: tuple[int, ...], where: str) -> np.ndarray:
-    try:
-        values = np.array(text.replace("[", " ").replace("]", " ").split(), float)
-    except ValueError:
-        raise SystemExit(f"{where}: not a numeric array: {text[:40]!r}...") from None
-    if values.size != int(np.prod(shape)) or not np.all(np.isfinite(values)):
-        raise SystemExit(f"{where}: expected {np.prod(shape)} finite numbers, got {values.size}")
-    return values.reshape(shape)
-
-
-def convert(src: Path, out: Path, split: int = 300) -> int:
-    with open(src, newline="") as f:
-        rows = list(csv.reader(f))
-    header = [h.strip() for h in rows[0]]
-    if header[1:] != ["joints", "markers"]:
-        raise SystemExit(f"{src}: header must be ',joints,markers', got {','.join(header)!r}")
-    out.mkdir(parents=True, exist_ok=True)
-    cols = ([f"torso_u{k + 1}" for k in range(3)] + [f"right_u{k + 1}" for k in range(7)]
-            + [f"left_u{k + 1}" for k in range(7)])
-    lines = [["config", "set", *cols, "x", "y", "z", "pose"]]
-    for i, row in enumerate(rows[1:]):
-        where = f"{src}: line {i + 2}"
-        q = _array(row[1], (19,), where + ": joints")
-        markers = _array(row[2], (2, 3), where + ": markers") * 1000.0  # m -> mm
-        st = "train" if i < split else "validation"
-        # every row carries the whole pose: the other arm's weight bends the shared torso
-        u = [f"{v:.10g}" for v in (*q[TORSO], *q[RIGHT], *q[LEFT])]
-        for arm, m in (("right", markers[0]), ("left", markers[1])):
-            lines.append([arm, st, *u, *(f"{v:.4f}" for v in m), row[0]])
-    with open(out / "measurements.csv", "w", newline="") as f:
-        csv.writer(f).writerows(lines)
-    shutil.copy(HERE / "rig.toml", out / "rig.toml")
-    return len(rows) - 1
+from bayesrob.validation.justin import convert  # noqa: E402
 
 
 def source_arguments(p: argparse.ArgumentParser) -> None:
