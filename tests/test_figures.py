@@ -193,6 +193,10 @@ def _clipped_texts(fig: Figure) -> list[str]:
     """What a saved PNG would cut off: the parts of the drawn artists (titles, labels, the
     tick labels drawn, annotations, legends, colour bars) that reach past the figure's edge,
     as 'side by N px'. Figures saved with bbox_inches='tight' grow to hold them instead."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    if not hasattr(fig.canvas, "get_renderer"):  # a bare Figure(), as the commands save
+        FigureCanvasAgg(fig)
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     tight = fig.get_tightbbox(renderer).transformed(fig.dpi_scale_trans)  # to pixels
@@ -233,3 +237,16 @@ def test_the_predict_figure_fits_its_content(config):
         assert ("equilibrium" in ax.get_title()) == ("+" in config), ax.get_title()
     finally:
         plt.close(fig)
+
+
+def test_the_chain_residual_figure_fits_its_content():
+    """Justin's figure had its last title cut ('mean 3.21 m'): long model labels, two arms."""
+    from bayesrob.plots.diagnosis import chain_residual_figure
+
+    rng = np.random.default_rng(0)
+    pts = {a: (rng.normal(0, 300, (40, 3)), rng.normal(0, 3, (40, 3))) for a in ("left", "right")}
+    residuals = {"geometric": pts, "+ joint_compliance + lateral_compliance": pts}
+    fig = chain_residual_figure(residuals, "justin")
+    assert _clipped_texts(fig) == []
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["left", "right"]
