@@ -250,3 +250,10 @@ def test_the_chain_residual_figure_fits_its_content():
     assert _clipped_texts(fig) == []
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == ["left", "right"]
+
+
+def test_fig8_has_a_colour_scale_for_each_model(built):
+    """Colour is density: each model's row says on what scale."""
+    bars = [ax for ax in built["fig8"].axes if _is_colorbar(ax)]
+    assert len(bars) == len(MODELS)
+    assert all("density" in ax.get_ylabel() for ax in bars)
