@@ -257,3 +257,18 @@ def test_fig8_has_a_colour_scale_for_each_model(built):
     bars = [ax for ax in built["fig8"].axes if _is_colorbar(ax)]
     assert len(bars) == len(MODELS)
     assert all("density" in ax.get_ylabel() for ax in bars)
+
+
+def test_a_design_with_no_candidate_draws_a_figure_that_says_so():
+    from bayesrob.design import design_figure
+
+    region = np.array([[120.0, 220.0], [140.0, 240.0]])
+    result = SimpleNamespace(candidates=[], design=SimpleNamespace(region=region),
+                             targets=np.array([[125.0, 225.0], [135.0, 235.0]]))
+    fig = design_figure(result, {})
+    try:
+        (ax,) = fig.axes
+        assert "no assembly" in ax.get_title() and _shows_data(ax)
+        assert _clipped_texts(fig) == []
+    finally:
+        plt.close(fig)
