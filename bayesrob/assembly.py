@@ -385,45 +385,67 @@ def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
 
 
 def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
-    """A chain assembly: expected error seen from above (left), and the least accurate
-    target's draws in and out of its 50% / 90% regions, projected on two planes (3-D) or in
-    the arms' plane (planar arms predicted as chains)."""
+    """A chain assembly: the targets coloured by their expected error, seen from above and,
+    in 3-D, from the side (x-z) on the same scale, with each arm's base; then the least
+    accurate target's draws in and out of its 50% / 90% regions, on the same planes."""
     import matplotlib.pyplot as plt
 
     from bayesrob.chain_prediction import hdr_levels
 
-    planes = [(0, 1), (0, 2)] if pred.targets.shape[1] == 3 else [(0, 1)]
-    fig, axs = plt.subplots(1, 1 + len(planes), figsize=(5 * (1 + len(planes)), 4.6))
     t = pred.targets
-    sc = axs[0].scatter(t[:, 0], t[:, 1], c=pred.expected_error_mm, cmap="viridis", s=90)
-    fig.colorbar(sc, ax=axs[0], label="expected error (mm)")
+    planes = [(0, 1), (0, 2)] if t.shape[1] == 3 else [(0, 1)]
     x = rig.robot.layout.nominal
-    for a in pred.config.split("+"):
-        # a planar arm's base is its chain's first joint origin, not an instrument pose
-        base = (np.asarray(rig.robot.instrument_pose(x, a))[:3, 3] if rig.is_chain
-                else np.asarray(rig.arms[a].base, float))
-        axs[0].plot(base[0], base[1], "k^")
-        axs[0].annotate(a, base[:2], textcoords="offset points", xytext=(4, 4))
-    axs[0].set_aspect("equal")
-    axs[0].set_title(f"{pred.config}: expected error ({pred.model}, {pred.fusion})", fontsize=9)
-    axs[0].set_xlabel("x (mm)")
-    axs[0].set_ylabel("y (mm)")
+    arms = pred.config.split("+")
+    # a planar arm's base is its chain's first joint origin, not an instrument pose
+    bases = np.asarray([np.asarray(rig.robot.instrument_pose(x, a))[:3, 3][:t.shape[1]]
+                        if rig.is_chain else np.asarray(rig.arms[a].base, float)
+                        for a in arms])
+    shown = np.vstack([t, bases])
+    lo, hi = shown.min(axis=0), shown.max(axis=0)
+    pad = np.maximum(0.1 * (hi - lo).max(), 30.0)  # room for markers and the arms' names
+    lo, hi = lo - pad, hi + pad
+    # one scale for the views: the same x range, and vertical ranges of one length (the longer
+    # of y's and z's) centred on each view's points, so both panels take the same shape
+    tall = max(hi[j] - lo[j] for _, j in planes)
+    for _, j in planes:
+        centre = (hi[j] + lo[j]) / 2
+        lo[j], hi[j] = centre - tall / 2, centre + tall / 2
+    fig = plt.figure(figsize=(4.3 * 2 * len(planes) + 0.8, 4.6), layout="constrained")
+    axs = fig.subplots(1, 2 * len(planes))
+    maps, clouds = axs[:len(planes)], axs[len(planes):]
+    names = "xyz"
+    how = f"{pred.model}, {pred.fusion}" if "+" in pred.config else pred.model
+    vmin, vmax = float(pred.expected_error_mm.min()), float(pred.expected_error_mm.max())
+    for ax, (i, j) in zip(maps, planes, strict=True):
+        sc = ax.scatter(t[:, i], t[:, j], c=pred.expected_error_mm, cmap="viridis", s=60,
+                        vmin=vmin, vmax=vmax)
+        for a, base in zip(arms, bases, strict=True):
+            ax.plot(base[i], base[j], "k^")
+            ax.annotate(a, (base[i], base[j]), textcoords="offset points", xytext=(4, 4),
+                        fontsize=8)
+        ax.set_xlim(lo[i], hi[i])
+        ax.set_ylim(lo[j], hi[j])
+        ax.set_aspect("equal")  # the views share one scale: distances read alike in both
+        ax.set_xlabel(f"{names[i]} (mm)")
+        ax.set_ylabel(f"{names[j]} (mm)")
+        ax.set_title(f"targets, {names[i]}-{names[j]} view", fontsize=9)
+    fig.colorbar(sc, ax=list(maps), label="expected error (mm)", shrink=0.8)
     worst = int(np.argmax(pred.expected_error_mm))
     draws = pred.draws[:, worst: worst + 1]
     sub = draws[:1500]
     level = hdr_levels(draws, sub)[:, 0]
     dev = sub[:, 0] - t[worst]
-    for ax, (i, j) in zip(axs[1:], planes, strict=True):
-        for lo, hi, colour, label in ((0.9, 1.01, "0.8", "outside 90%"),
-                                      (0.5, 0.9, "C0", "50-90%"), (0.0, 0.5, "C3", "50%")):
-            m = (level >= lo) & (level < hi)
+    for ax, (i, j) in zip(clouds, planes, strict=True):
+        for low, high, colour, label in ((0.9, 1.01, "0.8", "outside 90%"),
+                                         (0.5, 0.9, "C0", "50-90%"), (0.0, 0.5, "C3", "50%")):
+            m = (level >= low) & (level < high)
             ax.scatter(dev[m, i], dev[m, j], s=3, color=colour, label=label)
         ax.plot(0, 0, "k+", ms=12)
         ax.set_aspect("equal")
-        ax.set_xlabel(f"{'xyz'[i]} - target (mm)")
-        ax.set_ylabel(f"{'xyz'[j]} - target (mm)")
-    axs[1].legend(fontsize=7, markerscale=3)
-    axs[1].set_title(f"least accurate target ({', '.join(f'{v:.0f}' for v in t[worst])}): "
-                     "draws by region", fontsize=9)
-    fig.tight_layout()
+        ax.set_xlabel(f"{names[i]} - target (mm)")
+        ax.set_ylabel(f"{names[j]} - target (mm)")
+        ax.set_title(f"least accurate target's draws, {names[i]}-{names[j]}", fontsize=9)
+    clouds[0].legend(fontsize=7, markerscale=3)
+    fig.suptitle(f"{pred.config}: expected error ({how}); least accurate target "
+                 f"({', '.join(f'{v:.0f}' for v in t[worst])})", fontsize=10)
     return fig

@@ -266,7 +266,11 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
             before, n_before = best["_after"], n_before + best["parameters"]
         # the selection is over: what is left is known, a ladder fit per step and the base
+        planned = bar.total
         bar.total = bar.n + len(named) + 1
+        if bar.total < planned:  # say why the count fell rather than let it jump
+            bar.set_postfix(f"{planned - bar.total} planned fits not needed: the selection "
+                            f"named {len(named)} of {len(candidates)} candidates")
         # the ladder: every step refitted on all train rows, reported on the validation rows
         steps, ladder = [], [BASE_GROUPS]
         for eff in named:

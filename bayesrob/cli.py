@@ -1011,18 +1011,26 @@ def _design_args(p: argparse.ArgumentParser) -> None:
                    "accuracy over a task region (Dask)")(
     _design_args)
 def _design(args: argparse.Namespace) -> int:
-    from bayesrob.design import (
-        DesignError,
-        design_figure,
-        load_design,
-        load_modules,
-        run_design,
-        write_candidate_rig,
-    )
+    from bayesrob.progress import progress
 
+    # the first line before the numerical stack loads and the modules are calibrated (tens of
+    # seconds); the search's own count follows
+    with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules"):
+        from bayesrob.design import (
+            DesignError,
+            design_figure,
+            load_design,
+            load_modules,
+            run_design,
+            write_candidate_rig,
+        )
+
+        try:
+            design = load_design(args.design)
+            modules = load_modules(design)
+        except DesignError as exc:
+            raise UsageError(str(exc)) from None
     try:
-        design = load_design(args.design)
-        modules = load_modules(design)
         result = run_design(design, modules, scheduler=args.scheduler, workers=args.workers,
                             progress=_progress(args))
     except DesignError as exc:

@@ -929,7 +929,21 @@ def design_figure(result: DesignResult, modules: dict[str, Module] | dict[str, C
     import matplotlib.pyplot as plt
 
     cands = result.candidates[:top]
-    n = max(len(cands), 1)
+    if not cands:
+        # nothing to rank (every assembly failed to reach the region): say so, with the task
+        # region drawn so the reader sees what was asked, rather than leave an empty frame
+        fig, ax = plt.subplots(figsize=(6.0, 4.2), layout="constrained")
+        lo, hi = result.design.region.min(axis=0), result.design.region.max(axis=0)
+        ax.fill([lo[0], hi[0], hi[0], lo[0]], [lo[1], lo[1], hi[1], hi[1]], color="0.9")
+        ax.plot(result.targets[:, 0], result.targets[:, 1], "k.", ms=4)
+        ax.set_aspect("equal")
+        ax.margins(0.3)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_title("no assembly reaches every target of the task region (grey)\n"
+                     "nothing to rank: see the command's output for why", fontsize=10)
+        return fig
+    n = len(cands)
     fig, axs = plt.subplots(1, n, figsize=(3.6 * n + 1.2, 4.2), squeeze=False, sharex=True,
                             sharey=True, layout="constrained")
     t = result.targets

@@ -874,7 +874,9 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             cache[(a, names)] = evaluate_arm(data[a], names, start, k_folds=k_folds,
                                              seed=seed)
             if bar.n + 1 > bar.total:
+                # pairs of effects are tried when no single one pays: more fits than planned
                 bar.total = bar.n + 1
+                bar.set_postfix("more fits than planned: pairs of effects tried")
             bar.update()
         return cache[(a, names)]
 
@@ -935,6 +937,12 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             break
         best = max(passing, key=lambda s: s["elpd_diff"])
         take(best["effect"], best["arms"], fitted[best["effect"]])
+    if bar.total and bar.n < bar.total:
+        # the plan counted a step for every candidate; the search stops at the first round in
+        # which none passes, so the fits it did not need are dropped from the count
+        bar.set_postfix(f"{bar.total - bar.n} planned fits not needed: no further effect "
+                        "passed")
+        bar.total = bar.n
     bar.close()
     tests_after = {a: residual_tests(data[a], current[a], candidates, seed=seed) for a in arms}
     return Diagnosis(rig.name, arms, rule, candidates, baseline, current, history, steps,

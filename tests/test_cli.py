@@ -412,7 +412,8 @@ def _design_with_limits(tmp: Path, limits: str) -> Path:
     (["simulate", "OUT", "--robot", "arm6", "--compliance", "--no-compliance"],
      "--compliance and --no-compliance contradict each other"),
     (["diagnose", "--seed", "x"], "--seed: expected a whole number"),
-    (["design", "DESIGN", "--out", "OUTDIR"], "min_arms = 2 is more than max_arms = 1"),
+    (["design", "DESIGN", "--out", "OUTDIR", "--no-progress"],
+     "min_arms = 2 is more than max_arms = 1"),
 ])
 def test_numbers_out_of_range_and_contradictions_are_refused_in_one_line(argv, words, tmp_path,
                                                                           capsys):

@@ -193,6 +193,10 @@ def _clipped_texts(fig: Figure) -> list[str]:
     """What a saved PNG would cut off: the parts of the drawn artists (titles, labels, the
     tick labels drawn, annotations, legends, colour bars) that reach past the figure's edge,
     as 'side by N px'. Figures saved with bbox_inches='tight' grow to hold them instead."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    if not hasattr(fig.canvas, "get_renderer"):  # a bare Figure(), as the commands save
+        FigureCanvasAgg(fig)
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     tight = fig.get_tightbbox(renderer).transformed(fig.dpi_scale_trans)  # to pixels
@@ -231,5 +235,86 @@ def test_the_predict_figure_fits_its_content(config):
                   & (px[:, 1] - half >= box.y0) & (px[:, 1] + half <= box.y1))
         assert inside.all(), shown[~inside]
         assert ("equilibrium" in ax.get_title()) == ("+" in config), ax.get_title()
+    finally:
+        plt.close(fig)
+
+
+def test_the_chain_residual_figure_fits_its_content():
+    """Justin's figure had its last title cut ('mean 3.21 m'): long model labels, two arms."""
+    from bayesrob.plots.diagnosis import chain_residual_figure
+
+    rng = np.random.default_rng(0)
+    pts = {a: (rng.normal(0, 300, (40, 3)), rng.normal(0, 3, (40, 3))) for a in ("left", "right")}
+    residuals = {"geometric": pts, "+ joint_compliance + lateral_compliance": pts}
+    fig = chain_residual_figure(residuals, "justin")
+    assert _clipped_texts(fig) == []
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == ["left", "right"]
+
+
+def test_fig8_has_a_colour_scale_for_each_model(built):
+    """Colour is density: each model's row says on what scale."""
+    bars = [ax for ax in built["fig8"].axes if _is_colorbar(ax)]
+    assert len(bars) == len(MODELS)
+    assert all("density" in ax.get_ylabel() for ax in bars)
+
+
+def test_a_design_with_no_candidate_draws_a_figure_that_says_so():
+    from bayesrob.design import design_figure
+
+    region = np.array([[120.0, 220.0], [140.0, 240.0]])
+    result = SimpleNamespace(candidates=[], design=SimpleNamespace(region=region),
+                             targets=np.array([[125.0, 225.0], [135.0, 235.0]]))
+    fig = design_figure(result, {})
+    try:
+        (ax,) = fig.axes
+        assert "no assembly" in ax.get_title() and _shows_data(ax)
+        assert _clipped_texts(fig) == []
+    finally:
+        plt.close(fig)
+
+
+def _fake_3d_prediction(config: str = "left+right"):
+    rng = np.random.default_rng(1)
+    targets = np.array([[x, y, z] for x in (300.0, 500.0) for y in (-200.0, 200.0)
+                        for z in (100.0, 400.0)])
+    draws = targets[None] + rng.normal(0, 2.0, (2000, len(targets), 3))
+    pred = SimpleNamespace(targets=targets, draws=draws, config=config, model="ind",
+                           fusion="equilibrium",
+                           expected_error_mm=np.linspace(2.0, 3.0, len(targets)))
+    bases = {"left": [0.0, -600.0, 0.0], "right": [0.0, 600.0, 0.0], "front": [900.0, 0, 0]}
+
+    def instrument_pose(x, arm):
+        pose = np.eye(4)
+        pose[:3, 3] = bases[arm]
+        return pose
+
+    rig = SimpleNamespace(is_chain=True, robot=SimpleNamespace(
+        layout=SimpleNamespace(nominal=None), instrument_pose=instrument_pose))
+    return pred, rig
+
+
+@pytest.mark.parametrize("config", ["left+right", "left+right+front"])
+def test_the_3d_predict_figure_shows_the_targets_in_views_of_equal_scale(config):
+    """Seen from above and from the side on one scale, every target and arm base inside
+    its view, every panel titled, nothing cut off at the figure's edge."""
+    from bayesrob.assembly import assembly_figure
+
+    pred, rig = _fake_3d_prediction(config)
+    pred.posterior = None
+    fig = assembly_figure(pred, rig)
+    try:
+        assert _clipped_texts(fig) == []
+        views = [ax for ax in fig.axes if ax.get_title().startswith("targets")]
+        assert [ax.get_title() for ax in views] == ["targets, x-y view", "targets, x-z view"]
+        scales = [np.diff(ax.transData.transform([[0, 0], [1, 1]]), axis=0)[0] for ax in views]
+        assert np.allclose(scales[0], scales[1], rtol=1e-6)  # pixels per mm, both axes, both
+        for ax, (i, j) in zip(views, [(0, 1), (0, 2)], strict=True):
+            (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+            pts = np.vstack([pred.targets, [rig.robot.instrument_pose(None, a)[:3, 3]
+                                            for a in config.split("+")]])
+            assert np.all((pts[:, i] > x0) & (pts[:, i] < x1) & (pts[:, j] > y0)
+                          & (pts[:, j] < y1))
+        assert all(ax.get_title() for ax in fig.axes if not _is_colorbar(ax))
     finally:
         plt.close(fig)

@@ -155,16 +155,16 @@ def chain_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.nd
                 c = f"C{arms.index(a)}"
                 ax.plot(o[:, i], o[:, j], ".", color=c, ms=2)
                 q = ax.quiver(o[:, i], o[:, j], r[:, i] * mag, r[:, j] * mag, color=c,
-                              angles="xy", scale_units="xy", scale=1, width=0.003,
-                              label=f"marker of {a}")
+                              angles="xy", scale_units="xy", scale=1, width=0.003, label=a)
             ax.set_aspect("equal")
             ax.set_xlabel(f"{names[i]} (mm)")
             ax.set_ylabel(f"{names[j]} (mm)")
-            ax.set_title(f"{label}: {names[i]}-{names[j]} plane, mean {mean:.2f} mm",
+            # two lines: a long model label on one would run past a narrow panel's edge
+            ax.set_title(f"{label}\n{names[i]}-{names[j]} plane, mean {mean:.2f} mm",
                          fontsize=10)
         row[-1].quiverkey(q, 0.80, 0.04, key * mag, f"{key:g} mm", labelpos="E",
                           coordinates="axes")
-    axes[0][0].legend(fontsize=8, loc="upper left")
+    axes[0][0].legend(fontsize=8, loc="upper left", title="markers on", title_fontsize=8)
     fig.suptitle(f"{rig}: validation residuals, observed - model (arrows x{mag:.0f})",
                  fontsize=11)
     return fig
