@@ -26,18 +26,9 @@ from tempfile import TemporaryDirectory
 from typing import Any
 
 import numpy as np
+from bayesrob.validation.study import repository
 
-
-def _checkout() -> Path:
-    """The repository: the one this file lies in, else the current directory (an installed
-    copy run from a checkout, as CI runs ``bayesrob validate``)."""
-    for root in (Path(__file__).resolve().parents[1], Path.cwd()):
-        if (root / "examples" / "agile_justin" / "rig.toml").is_file():
-            return root
-    return Path.cwd()
-
-
-CHECKOUT = _checkout()
+CHECKOUT = repository()
 DATA = CHECKOUT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
 # the rig description from the published nominal values (the examples' own)
 RIG_TOML = CHECKOUT / "examples" / "agile_justin" / "rig.toml"
