@@ -41,10 +41,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bayesrob.validation.study import repository
 
 # The worked example: the proof designs with its file. It is read from the checkout, as the
 # validation suite and the benchmarks run there.
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "design"
+EXAMPLE = repository() / "examples" / "design"
 REPORT_SEEDS = tuple(range(101, 111))
 # The second report set, fixed on 2026-11-26 with its criterion before its first run: only
 # one of the first ten designs had a candidate predicted to miss.

@@ -26,18 +26,9 @@ from tempfile import TemporaryDirectory
 from typing import Any
 
 import numpy as np
+from bayesrob.validation.study import repository
 
-
-def _checkout() -> Path:
-    """The repository: the one this file lies in, else the current directory (an installed
-    copy run from a checkout, as CI runs ``bayesrob validate``)."""
-    for root in (Path(__file__).resolve().parents[1], Path.cwd()):
-        if (root / "examples" / "agile_justin" / "rig.toml").is_file():
-            return root
-    return Path.cwd()
-
-
-CHECKOUT = _checkout()
+CHECKOUT = repository()
 DATA = CHECKOUT.parent / "shared" / "data" / "agile-justin" / "measurements.csv"
 # the rig description from the published nominal values (the examples' own)
 RIG_TOML = CHECKOUT / "examples" / "agile_justin" / "rig.toml"
@@ -217,7 +208,8 @@ COVERAGE_GROUPS = ("frames", "geometric", "compliance", "lateral")
 
 def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: int = 0,
              sag_steps: int = 1, say: Callable[[str], None] | None = None,
-             polish: bool = True, max_nfev: int = 300) -> list[dict]:
+             polish: bool = True, max_nfev: int = 300,
+             hands: Sequence[str] = HANDS) -> list[dict]:
     """Per hand: the share of its validation points inside the predicted 50% and 90% regions
     and the predicted / observed mean error (observed: distance from the predicted mean
     point). The other arm's pose is given: its weight bends the torso. ``polish`` and
@@ -236,9 +228,9 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     if say:
         say(f"calibrated ({','.join(groups)}): validation "
             f"{cal.errors['validation']['all']['mean_mm']:.2f} mm")
-    mods = fit_chain_modules(rig, HANDS, model, groups, seed=seed, calibration=cal)
+    mods = fit_chain_modules(rig, list(hands), model, groups, seed=seed, calibration=cal)
     out = []
-    for k, hand in enumerate(HANDS):
+    for k, hand in enumerate(hands):
         u, obs = rig.chain_rows(hand, "validation")
         draws = chain_draws(mods, [hand], [u], seed=seed + k,
                             side=rig.chain_side_rows(hand, "validation"))
@@ -264,9 +256,11 @@ def run_coverage(seeds: list[int], *, quick: bool, say: Callable[[str], None]
         raise ValueError(f"the coverage study is one seeded run on the real data, not {seeds}")
     with TemporaryDirectory(prefix="bayesrob-justin-") as tmp:
         convert(justin_data(), Path(tmp) / "rig")
-        # quick: the rigid model (no gravity steps), so the whole route runs in seconds
+        # quick: the rigid model (no gravity steps) and one hand, so the whole route runs in
+        # a fraction of the time; the other hand's figures are "not run"
         rows = coverage(Path(tmp) / "rig", ("frames", "geometric") if quick else COVERAGE_GROUPS,
-                        seed=seeds[0], say=say, **(QUICK_FIT if quick else {}))
+                        seed=seeds[0], say=say, hands=HANDS[:1] if quick else HANDS,
+                        **(QUICK_FIT if quick else {}))
     figures: dict[str, Any] = {}
     for r in rows:
         figures |= {f"{r['hand']}.{k}": r[k] for k in (
