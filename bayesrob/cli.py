@@ -1083,7 +1083,8 @@ def _validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a directory")
-    report = run_suite(studies, quick=args.quick)
+    report = run_suite(studies, quick=args.quick,
+                       after_each=lambda so_far: write_report(so_far, out))
     json_path, md_path = write_report(report, out)
     passed = sum(s["status"] == "pass" for s in report["studies"].values())
     print(f"validation {report['status']}: {passed}/{len(studies)} studies passed in "

@@ -103,9 +103,11 @@ def run_study(study: Study, quick: bool, say: Callable[[str], None]) -> dict[str
     }
 
 
-def run_suite(studies: list[Study], quick: bool = False,
-              stream: TextIO | None = None) -> dict[str, Any]:
-    """Run ``studies`` in order, a line on ``stream`` (stderr) as each starts and ends."""
+def run_suite(studies: list[Study], quick: bool = False, stream: TextIO | None = None,
+              after_each: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+    """Run ``studies`` in order, a line on ``stream`` (stderr) as each starts and ends.
+    ``after_each(report)`` is called with the report so far (``status`` "running") after
+    each study, so an hour's run that is stopped keeps what it measured."""
     stream = stream if stream is not None else sys.stderr
 
     def say(text: str) -> None:
@@ -130,6 +132,9 @@ def run_suite(studies: list[Study], quick: bool = False,
               + (f" ({entry['error']})" if entry["error"] else "")
               + (f"; missed: {', '.join(misses)}" if misses and not entry["error"] else ""),
               file=stream, flush=True)
+        if after_each is not None:
+            after_each({**report, "seconds": round(time.monotonic() - t0, 1),
+                        "status": "running"})
     report["seconds"] = round(time.monotonic() - t0, 1)
     report["status"] = ("fail" if any(s["status"] == "fail" for s in report["studies"].values())
                         else "pass")
