@@ -10,7 +10,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -71,6 +73,11 @@ def _wrote(path: str | Path, json_out: str | None) -> None:
 # Commands that report progress on stderr (a bar on a terminal, lines otherwise).
 PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
                      "compare", "design", "predict")
+
+
+# A long command's clock starts printing after this long: within the 2 s a person waits for a
+# sign of life, yet after the input checks, so bad input gives its one error line alone.
+FIRST_LINE_S = 1.0
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -259,7 +266,8 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     from bayesrob.progress import progress
 
     # no steps to count inside: the clock, on the promised five-second beat
-    with progress(None, "simulate", enabled=_progress(args), postfix="arm6"):
+    with progress(None, "simulate", enabled=_progress(args), postfix="arm6",
+                  first_after=FIRST_LINE_S):
         out = simulate_chain_rig(out_dir, truth)
     _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
@@ -294,7 +302,7 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
 
     try:
         with progress(None, "simulate", enabled=_progress(args),
-                      postfix=f"arm6 {'+'.join(truth.arms)}"):
+                      postfix=f"arm6 {'+'.join(truth.arms)}", first_after=FIRST_LINE_S):
             out = simulate_linked_chain_rig(out_dir, truth)
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
@@ -933,7 +941,7 @@ def _predict(args: argparse.Namespace) -> int:
     try:
         # calibration, fits and draws in one call: the clock, every 5 s off a terminal
         with progress(None, "predict", enabled=_progress(args),
-                      postfix=f"{args.config}, {len(targets)} targets"):
+                      postfix=f"{args.config}, {len(targets)} targets", first_after=FIRST_LINE_S):
             pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
                                     args.models_dir, args.seed, groups=args.params,
                                     masses=args.masses)
@@ -1015,7 +1023,8 @@ def _design(args: argparse.Namespace) -> int:
 
     # the first line before the numerical stack loads and the modules are calibrated (tens of
     # seconds); the search's own count follows
-    with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules"):
+    with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules",
+                  first_after=FIRST_LINE_S):
         from bayesrob.design import (
             DesignError,
             design_figure,
@@ -1163,10 +1172,34 @@ def _check_outputs(args: argparse.Namespace) -> None:
             check_output(value, kind, option)
 
 
+def _deliver_ctrl_c_surely() -> threading.Event:
+    """Ctrl-C as a KeyboardInterrupt that cannot be lost: one raised inside a garbage
+    collector's callback (JAX has one) is printed and dropped by Python, and the command then
+    ran on to its end. So each Ctrl-C is raised again after half a second until ``main`` has
+    caught one (the returned event)."""
+    caught = threading.Event()
+
+    def again() -> None:
+        if not caught.is_set():
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def on_sigint(signum, frame):
+        if not caught.is_set():
+            timer = threading.Timer(0.5, again)
+            timer.daemon = True
+            timer.start()
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_sigint)
+    return caught
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _, _, run = COMMANDS[args.command]
+    caught = (_deliver_ctrl_c_surely() if argv is None and signal.getsignal(signal.SIGINT)
+              is signal.default_int_handler else threading.Event())
     try:
         _check_outputs(args)
         return run(args)
@@ -1180,6 +1213,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        caught.set()
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
         if argv is None:
             # Run as a program: leave at once. The finally blocks on the way here have removed

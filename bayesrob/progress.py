@@ -42,7 +42,7 @@ class Progress:
                  enabled: bool = True, stream: IO[str] | None = None,
                  interval: float = INTERVAL_S, tty: bool | None = None, initial: int = 0,
                  clock: Callable[[], float] = time.monotonic, heartbeat: bool = True,
-                 postfix: str = "") -> None:
+                 postfix: str = "", first_after: float = 0.0) -> None:
         self._total, self.desc, self.unit = total, desc, unit
         self.n = initial
         self.enabled = enabled
@@ -66,6 +66,10 @@ class Progress:
 
             self._bar = tqdm(total=total, initial=initial, desc=desc, unit=unit,
                              file=self._stream, leave=False, postfix=postfix or None)
+        elif first_after > 0 and heartbeat:
+            # the first line when the work has run ``first_after`` seconds: an error in the
+            # input, found at once, is then the only line the command prints
+            self._last = self._t0 - self._interval + first_after
         else:
             self._emit()
         if heartbeat:

@@ -160,5 +160,7 @@ def test_predict_reports_progress_from_its_start_to_done(tmp_path, capsys):
     assert main(["predict", str(default_rig_dir()), "--config", "top", "--grid", "2",
                  "--json", str(tmp_path / "p.json")]) == 0
     lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("predict:")]
-    assert lines[0].startswith("predict: 0.0 s, top, 4 targets"), lines
+    # a warm run may end before its first clock line: then the done line alone
+    assert all(re.fullmatch(r"predict: \d+\.\d s, top, 4 targets(, done)?", x)
+               for x in lines), lines
     assert lines[-1].endswith(", done"), lines

@@ -24,8 +24,11 @@ def _interrupt(argv: list[str], cwd: Path) -> tuple[int, list[str]]:
     # the checkout's code, as the other tests run it, whatever copy is installed
     env = {**os.environ, "PYTHONUNBUFFERED": "1",
            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    # an xdist worker may ignore SIGINT, and an ignored signal stays ignored across exec:
+    # the command starts with it as a person's shell would give it
     proc = subprocess.Popen([sys.executable, "-m", "bayesrob", *argv], cwd=cwd, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     deadline = time.monotonic() + 240
     assert proc.stderr is not None
