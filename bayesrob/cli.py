@@ -268,7 +268,10 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     # no steps to count inside: the clock, on the promised five-second beat
     with progress(None, "simulate", enabled=_progress(args), postfix="arm6",
                   first_after=FIRST_LINE_S):
-        out = simulate_chain_rig(out_dir, truth)
+        # written whole or not at all: Ctrl-C part-way leaves out_dir as it was
+        with staged_directory(out_dir) as scratch:
+            simulate_chain_rig(scratch, truth)
+        out = out_dir
     _say_replaced(existing)
     print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
@@ -303,7 +306,9 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     try:
         with progress(None, "simulate", enabled=_progress(args),
                       postfix=f"arm6 {'+'.join(truth.arms)}", first_after=FIRST_LINE_S):
-            out = simulate_linked_chain_rig(out_dir, truth)
+            with staged_directory(out_dir) as scratch:
+                simulate_linked_chain_rig(scratch, truth)
+            out = out_dir
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
@@ -359,7 +364,9 @@ def _simulate(args: argparse.Namespace) -> int:
     make = three_arm_truth if args.robot == "three-arm" else paper_truth
     truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid,
                                 stiffness_log_sd=args.stiffness_spread or 0.0), args)
-    out = simulate_rig(args.out_dir, truth, progress=_progress(args))
+    with staged_directory(out_dir) as scratch:
+        simulate_rig(scratch, truth, progress=_progress(args))
+    out = out_dir
     effects = ",".join(truth.effects) or "none"
     _say_replaced(existing)
     spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
@@ -1190,6 +1197,13 @@ def _deliver_ctrl_c_surely() -> threading.Event:
             timer.start()
         raise KeyboardInterrupt
 
+    def unraisable(info) -> None:
+        # the dropped one prints a traceback as it goes: silent, since it is raised again
+        if not isinstance(info.exc_value, KeyboardInterrupt):
+            default_hook(info)
+
+    default_hook = sys.unraisablehook
+    sys.unraisablehook = unraisable
     signal.signal(signal.SIGINT, on_sigint)
     return caught
 
