@@ -36,10 +36,12 @@ def documents(root: Path) -> list[Path]:
             if p.exists()]
 
 
-def render(key: str, report: dict[str, Any]) -> str:
-    """The table ``study.table`` from ``report``; a one-line error if either is unknown."""
+def render(key: str, report: dict[str, Any], studies: dict[str, Any] | None = None) -> str:
+    """The table ``study.table`` from ``report``; a one-line error if either is unknown.
+    ``studies``: name -> study, when the caller has read the targets files already."""
     study_name, _, table = key.partition(".")
-    studies = {s.name: s for s in discover_studies()}
+    if studies is None:
+        studies = {s.name: s for s in discover_studies()}
     if study_name not in studies:
         raise KeyError(f"no study {study_name!r}")
     if study_name not in report["studies"]:
@@ -54,12 +56,13 @@ def render(key: str, report: dict[str, Any]) -> str:
 def sync(root: Path, report: dict[str, Any], write: bool = False) -> list[str]:
     """Blocks that differ from the report, as 'file: key'; ``write`` rewrites them."""
     stale = []
+    studies = {s.name: s for s in discover_studies()}  # read once for every block
     for path in documents(root):
         text = path.read_text(encoding="utf-8")
 
         def replace(m: re.Match, path: Path = path) -> str:
             try:
-                body = render(m["key"], report)
+                body = render(m["key"], report, studies)
             except KeyError as exc:
                 stale.append(f"{path.relative_to(root)}: {m['key']}: {exc.args[0]}")
                 return m[0]
