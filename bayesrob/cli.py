@@ -26,6 +26,7 @@ from bayesrob.output_paths import (
     staged_directory,
     write_text,
 )
+from bayesrob.progress import FIRST_LINE_S
 from bayesrob.vocabulary import (
     ALL_GROUPS,
     CHAIN_EFFECTS,
@@ -75,9 +76,6 @@ PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose"
                      "compare", "design", "predict")
 
 
-# A long command's clock starts printing after this long: within the 2 s a person waits for a
-# sign of life, yet after the input checks, so bad input gives its one error line alone.
-FIRST_LINE_S = 1.0
 
 
 def _progress(args: argparse.Namespace) -> bool:
@@ -874,10 +872,16 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
 @command("sample", "sample the end point of one arm or linked arms with NUTS and emcee, and "
                    "check both against the grid")(_sample_args)
 def _sample(args: argparse.Namespace) -> int:
-    from bayesrob.inference import format_sample, sample_linked
-    from bayesrob.noise_models import ModelFileError
+    from bayesrob.progress import progress
 
-    rig = _load_rig_arg(args.rig)
+    # the samplers' libraries take a second or two to import: a clock until sample_linked's own
+    with progress(None, "sample", enabled=_progress(args), postfix="loading",
+                  first_after=FIRST_LINE_S) as loading:
+        from bayesrob.inference import format_sample, sample_linked
+        from bayesrob.noise_models import ModelFileError
+
+        rig = _load_rig_arg(args.rig)
+        loading.close(done=False)
     config = args.config
     if config is None:
         if not rig.linked_configs:

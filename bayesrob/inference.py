@@ -53,6 +53,7 @@ from bayesrob import kinematics as kin
 from bayesrob.kde import guided_histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.prediction import Grid
+from bayesrob.progress import FIRST_LINE_S
 from bayesrob.report import grouped_notes
 from bayesrob.rig import Rig
 
@@ -809,10 +810,11 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
 
 
 def _progress(total: int | None, enabled: bool, desc: str, unit: str = "step",
-              postfix: str = ""):
+              postfix: str = "", first_after: float = 0.0):
     from bayesrob.progress import progress
 
-    return progress(total, desc, unit, enabled=enabled, postfix=postfix)
+    return progress(total, desc, unit, enabled=enabled, postfix=postfix,
+                    first_after=first_after)
 
 
 def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
@@ -982,24 +984,25 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         raise ValueError(f"config {config!r}: no arm {unknown[0]!r} in the rig "
                          f"(arms: {', '.join(rig.arms)})")
     specs = discover_models(models_dir, [model])
-    cal = calibrate(rig)  # about a second: the reach is checked before anything reports
-    arms = {a: cal[a].arm for a in members}
-    target = np.asarray(target, float).reshape(1, 2)
-    commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
-    for a, u in zip(members, commands, strict=True):
-        check_reach(arms[a], target[0], u[0])
-    # The steps before the samplers, which report on their own bars.
-    bar = _progress(3, progress, "sample", "steps", "calibrated")
-    bar.update()
-    bar.set_postfix(f"fitting {model}")
-    fitted = fit_noise_models(rig, arms, specs)[model]
-    models = [fitted[a] for a in members]
-    arm_list = [arms[a] for a in members]
-    bar.update()
-    bar.set_postfix("grid posterior")
-    grid = grid_posterior(models, arm_list, commands, target)
-    bar.update()
-    bar.close()
+    # The steps before the samplers, which report on their own bars. The first line waits a
+    # second: a target out of reach, found after the calibration, is then the only line.
+    with _progress(3, progress, "sample", "steps", "calibrating",
+                   first_after=FIRST_LINE_S) as bar:
+        cal = calibrate(rig)
+        arms = {a: cal[a].arm for a in members}
+        target = np.asarray(target, float).reshape(1, 2)
+        commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
+        for a, u in zip(members, commands, strict=True):
+            check_reach(arms[a], target[0], u[0])
+        bar.update()
+        bar.set_postfix(f"fitting {model}")
+        fitted = fit_noise_models(rig, arms, specs)[model]
+        models = [fitted[a] for a in members]
+        arm_list = [arms[a] for a in members]
+        bar.update()
+        bar.set_postfix("grid posterior")
+        grid = grid_posterior(models, arm_list, commands, target)
+        bar.update()
     truncated = bool(np.any(grid.edge_mass > tol.edge_mass))
     doc: dict[str, Any] = {
         "target": [float(x) for x in target[0]],

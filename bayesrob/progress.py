@@ -27,6 +27,9 @@ from collections.abc import Callable
 from typing import IO, Any
 
 INTERVAL_S = 5.0
+# A long command's clock starts printing after this long: within the 2 s a person waits for a
+# sign of life, yet after the input checks, so bad input gives its one error line alone.
+FIRST_LINE_S = 1.0
 BAR_REFRESH_S = 1.0
 
 

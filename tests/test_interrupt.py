@@ -48,6 +48,11 @@ def _interrupt(argv: list[str], cwd: Path) -> tuple[int, list[str]]:
     ["compare", "--json", "OUT/compare.json"],
     ["simulate", "OUT", "--robot", "arm6", "--linked"],
     ["design", str(ROOT / "examples" / "design" / "design.toml"), "--out", "OUT"],
+    ["predict", str(ROOT / "bayesrob" / "data" / "default_rig"), "--config", "top+bottom",
+     "--grid", "30", "--json", "OUT/p.json", "--plot", "OUT/p.png"],
+    ["calibrate", "--method", "bayes", "--json", "OUT/c.json"],
+    ["sample", "--target", "140", "220", "--json", "OUT/s.json"],
+    ["validate", "linked_planar", "--quick", "--out", "OUT"],
 ], ids=lambda a: a[0])
 def test_ctrl_c_is_one_line_and_exit_130_with_nothing_left(argv, tmp_path):
     out = tmp_path / "out"

@@ -53,3 +53,27 @@ def test_the_studies_name_the_missing_data_in_one_line(tmp_path):
     with pytest.raises(FileNotFoundError) as err:
         justin_data(missing)
     assert str(missing) in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("script", ["convert.py", "ladder.py", "coverage.py"])
+def test_the_examples_run_from_any_directory(script, tmp_path):
+    """The README runs them from the checkout's root, the docs from elsewhere: each finds its
+    neighbours and the checkout's bayesrob wherever it is started, and a missing source file
+    is one line naming it, exit 2 (convert.py is then run on a small file to the end)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / script
+    missing = tmp_path / "no" / "measurements.csv"
+    args = [str(missing), str(tmp_path / "rig")] if script == "convert.py" else [str(missing)]
+    r = subprocess.run([sys.executable, str(path), *args], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.splitlines() == [f"{missing}: file not found"], \
+        r.stderr
+    if script == "convert.py":
+        _authors_file(tmp_path / "m.csv", 4)
+        r = subprocess.run([sys.executable, str(path), "m.csv", "rig"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert load_rig(tmp_path / "rig").measurements.observed.shape == (8, 3)
