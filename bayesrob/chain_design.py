@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -41,11 +41,9 @@ from bayesrob.chain_prediction import (
     sag_scaled_priors,
     stiffness_draws,
 )
+from bayesrob.design_file import DesignError, DesignSpec, ModuleSpec
 from bayesrob.latent_errors import joint_jacobian
 from bayesrob.rig import Rig, RigError
-
-if TYPE_CHECKING:
-    from bayesrob.design import DesignSpec, ModuleSpec
 
 __all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "linked_priors",
            "chain_stiffness_record", "chain_candidate_draws", "write_chain_candidate_rig"]
@@ -78,7 +76,6 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
     joint-error population on its own train rows (``by_rig``: the modules of each rig)."""
     from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
     from bayesrob.chain_prediction import _stiffness_prior
-    from bayesrob.design import DesignError
     from bayesrob.latent_errors import check_latent_model, fit_latent_errors
 
     out: dict[str, ChainModule] = {}

@@ -1030,23 +1030,25 @@ def _design_args(p: argparse.ArgumentParser) -> None:
                    "accuracy over a task region (Dask)")(
     _design_args)
 def _design(args: argparse.Namespace) -> int:
+    from bayesrob.design_file import DesignError, load_design
     from bayesrob.progress import progress
 
+    try:  # the whole file is checked before the numerical stack is imported
+        design = load_design(args.design)
+    except DesignError as exc:
+        raise UsageError(str(exc)) from None
     # the first line before the numerical stack loads and the modules are calibrated (tens of
     # seconds); the search's own count follows
     with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules",
                   first_after=FIRST_LINE_S):
         from bayesrob.design import (
-            DesignError,
             design_figure,
-            load_design,
             load_modules,
             run_design,
             write_candidate_rig,
         )
 
         try:
-            design = load_design(args.design)
             modules = load_modules(design)
         except DesignError as exc:
             raise UsageError(str(exc)) from None

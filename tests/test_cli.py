@@ -451,3 +451,50 @@ def test_calibrate_help_names_every_parameter_group(capsys):
     text = " ".join(capsys.readouterr().out.split())
     missing = [g for g in ALL_GROUPS if f"{g} (" not in text and f"{g}," not in text]
     assert missing == [], missing
+
+
+@pytest.fixture(scope="module")
+def arm6_rig_dir(tmp_path_factory) -> Path:
+    """A simulated 6-joint URDF rig (read only: copy it to change it)."""
+    out = tmp_path_factory.mktemp("arm6") / "rig"
+    assert main(["simulate", str(out), "--robot", "arm6", "--no-progress"]) == 0
+    return out
+
+
+@pytest.mark.parametrize("old, new, words", [
+    ('<parent link="shoulder_link"/>', '<parent link="shoulder_lnk"/>',
+     "names parent link 'shoulder_lnk', which is not a link of this URDF"),
+    ('<child link="forearm_link"/>', '<child link="forearm_link"/><mimic joint="elbo"/>',
+     "mimics 'elbo', which is not a joint of this URDF"),
+])
+def test_a_rig_whose_urdf_names_what_it_lacks_is_refused(arm6_rig_dir, tmp_path, capsys, old,
+                                                         new, words):
+    """A misspelt link would silently cut the chain: calibrate refuses the rig in one line
+    naming the URDF, exit 2, and writes nothing."""
+    rig = tmp_path / "rig"
+    shutil.copytree(arm6_rig_dir, rig)
+    urdf = rig / "arm6.urdf"
+    text = urdf.read_text()
+    assert old in text
+    urdf.write_text(text.replace(old, new, 1))
+    before = snapshot(rig)
+    capsys.readouterr()
+    code = main(["calibrate", str(rig), "--json", str(tmp_path / "c.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("bayesrob calibrate: error: ") and str(urdf) in err[0] \
+        and words in err[0], err
+    assert snapshot(rig) == before and not (tmp_path / "c.json").exists()
+
+
+def test_a_design_file_mistake_is_found_before_the_numerical_stack(tmp_path):
+    """The whole design file is checked first: its one-line error comes with no numerical
+    library imported, so before any module is calibrated."""
+    design = _design_with_limits(tmp_path, "min_arms = 2\nmax_arms = 1\n")
+    r = subprocess.run([sys.executable, "-c", _RUN_MAIN, "design", str(design), "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1], timeout=60)
+    lines = r.stderr.strip().splitlines()
+    assert lines == [f"bayesrob design: error: {design}: [limits] min_arms = 2 is more than "
+                     "max_arms = 1", "heavy: [] exit: 2"], r.stderr
+    assert not (tmp_path / "out").exists()
