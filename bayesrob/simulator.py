@@ -279,19 +279,6 @@ def _mass_points(params: kin.ArmParams, theta: jax.Array) -> jax.Array:
     return jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
 
 
-def gravity_torques(arm: ArmTruth, theta: jax.Array, gravity: Sequence[float]) -> jax.Array:
-    """Torque (N mm) that gravity exerts about each joint at configuration theta."""
-    p = arm.params
-    pts = _mass_points(p, theta)
-    m = _arm_arrays(arm, ()).masses
-    force = G_ACC * m[:, None] * jnp.asarray(gravity)[None, :]  # N
-    joints = jnp.stack([p.base, kin.elbow_point(p, theta)])
-    distal = jnp.array([[1, 1, 1, 1], [0, 0, 1, 1]], dtype=float)  # masses beyond each joint
-    r = pts[None, :, :] - joints[:, None, :]
-    tz = r[..., 0] * force[None, :, 1] - r[..., 1] * force[None, :, 0]
-    return jnp.sum(distal * tz, axis=-1)
-
-
 def _deadzone(x: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sign(x) * jnp.maximum(jnp.abs(x) - b, 0.0)
 
