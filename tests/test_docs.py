@@ -131,3 +131,29 @@ def test_documented_command_lines_parse():
             parser.parse_args(shlex.split(line)[1:])
         except SystemExit as exc:  # argparse's way of rejecting a command line
             pytest.fail(f"{name}: `{line}` does not parse (exit {exc.code})")
+
+
+def test_result_tables_agree_with_the_committed_validation():
+    """Every result table in the README and docs/ is what the committed full validation run
+    renders: a figure cannot move without a new run, nor be edited by hand (regenerate with
+    ``python -m bayesrob.validation.tables --write``)."""
+    from bayesrob.validation.suite import load_committed
+    from bayesrob.validation.tables import BLOCK, documents, sync
+
+    report = load_committed()
+    assert report["quick"] is False, "the committed report is a --quick run"
+    blocks = [m["key"] for p in documents(ROOT) for m in BLOCK.finditer(p.read_text())]
+    assert len(blocks) >= 5, blocks
+    assert sync(ROOT, report) == []
+
+
+def test_the_committed_validation_covers_every_study():
+    """The committed run holds every study the suite has, each passed (a known miss is
+    reported as such inside a passing study), so no study is published without its run."""
+    from bayesrob.validation.study import discover_studies
+    from bayesrob.validation.suite import load_committed
+
+    report = load_committed()
+    assert set(report["studies"]) == {s.name for s in discover_studies()}
+    failed = {name: s["status"] for name, s in report["studies"].items() if s["status"] != "pass"}
+    assert failed == {}, failed

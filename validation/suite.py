@@ -168,6 +168,7 @@ def markdown(report: dict[str, Any]) -> str:
         f"{report['machine']['cores']} cores ({report['machine']['platform']}): "
         f"**{report['status']}** in {_duration(report['seconds'])}.",
         "",
+        *([report["note"] + ".", ""] if report.get("note") else []),
         "| study | seeds | status | time |",
         "| --- | --- | --- | --- |",
     ]
