@@ -27,7 +27,7 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import calibrate
-from bayesrob.fusion import DEFAULT_FUSION, FUSIONS, fused_posterior
+from bayesrob.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
 from bayesrob.inference import GridPosterior, check_reach
 from bayesrob.latent_errors import LATENT_MODELS
 from bayesrob.noise_models import discover_models, fit_noise_models
@@ -295,15 +295,27 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
                    fusion: str, seed: int, t0: float, groups: tuple[str, ...],
                    masses: str = "fitted") -> AssemblyPrediction:
-    from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.chain_prediction import (
+        aim_chain,
+        chain_draws,
+        check_module_arms,
+        fit_chain_modules,
+        hdr_sizes,
+    )
 
     try:
-        mods = fit_chain_modules(rig, members, model, groups, seed=seed, masses=masses)
+        check_module_arms(rig, members, model)
+        cal = calibrate_chain(rig, groups, masses=masses)
+        # aimed before the joint-error fits, which take most of the time: a target out of
+        # reach or off the servos' range is refused after the calibration alone
+        commands = {a: aim_chain(rig, cal.robot, cal.x, a, targets) for a in members}
+        mods = fit_chain_modules(rig, members, model, groups, seed=seed, calibration=cal)
     except RigError:
         raise
     except ValueError as e:
         raise RigError(f"{rig.path}: {e}") from None
-    commands, draws = predict_chain_points(mods, rig, members, targets, fusion, seed)
+    draws = chain_draws(mods, members, [commands[a] for a in members], fusion, DRAWS, seed)
     sizes = hdr_sizes(draws)
     pred = AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),

@@ -23,7 +23,7 @@ Linked arms share one point:
   end-point densities. Every arm's joint errors and the shared point are latent and sampled
   together with NUTS: p ~ flat, e_a ~ N(0, Sigma_a), p ~ N(f_a(e_a), s_a^2) for each arm a.
 
-Densities of draws are Gaussian KDEs (Scott's rule, :func:`bayesrob.fusion.kde_log_density`);
+Densities of draws are Gaussian KDEs (Scott's rule, :func:`bayesrob.kde.kde_log_density`);
 region sizes are the volumes (areas in 2-D) of the 50% / 90% highest-density regions, by
 Monte Carlo: vol{p > c} = E_p[1{p > c} / p].
 """
@@ -43,8 +43,9 @@ from numpyro.infer import MCMC, NUTS, Predictive
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
-from bayesrob.fusion import DRAWS, FUSIONS, kde_bandwidth, kde_log_density
+from bayesrob.fusion import DRAWS, FUSIONS
 from bayesrob.inference import check_pulse_limits
+from bayesrob.kde import kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
     LatentJointErrors,
     check_latent_model,
@@ -119,6 +120,20 @@ class ChainModules:
         return self.calibration.x
 
 
+def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
+    """Refuse, in one line, a joint-error model or an arm :func:`fit_chain_modules` cannot fit
+    (not measured, or without train rows of its own)."""
+    check_latent_model(model)
+    measured = rig.robot.measured_arms()
+    for a in arms:
+        if a not in measured:
+            raise RigError(f"{rig.path}: {a!r} is not a measured arm of the rig (measured: "
+                           f"{', '.join(measured)})")
+        if not rig.measurements.mask(a, "train").any():
+            raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
+                           "and fit its joint-error model on")
+
+
 def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                       groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
                       calibration: ChainCalibration | None = None,
@@ -136,15 +151,7 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
     use the calibration's robot, so its sag model too).
     """
-    check_latent_model(model)  # before the calibration, which takes the time
-    measured = rig.robot.measured_arms()
-    for a in arms:
-        if a not in measured:
-            raise RigError(f"{rig.path}: {a!r} is not a measured arm of the rig (measured: "
-                           f"{', '.join(measured)})")
-        if not rig.measurements.mask(a, "train").any():
-            raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
-                           "and fit its joint-error model on")
+    check_module_arms(rig, arms, model)  # before the calibration, which takes the time
     cal = (calibration if calibration is not None
            else calibrate_chain(rig, groups, masses=masses, sag_steps=sag_steps))
     n_free = int(cal.ident.free.sum())

@@ -42,9 +42,9 @@ import xarray as xr
 
 from bayesrob import kinematics as kin
 from bayesrob.calibration import calibrate, calibrate_arm, predicted_points
-from bayesrob.fusion import fused_posterior, kde_log_density
+from bayesrob.fusion import fused_posterior
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
-from bayesrob.kde import KDE, ConditionalKDE
+from bayesrob.kde import KDE, ConditionalKDE, kde_log_density
 from bayesrob.noise_models import (
     FittedNoiseModel,
     ModelSpec,

@@ -46,7 +46,6 @@ import numpyro
 import numpyro.distributions as dist
 import scipy.signal
 from numpyro.infer import Predictive
-from scipy.special import logsumexp
 
 from bayesrob import kinematics as kin
 from bayesrob.inference import (
@@ -58,6 +57,7 @@ from bayesrob.inference import (
     grid_posterior,
     is_sampleable,
 )
+from bayesrob.kde import kde_bandwidth
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
 
@@ -71,8 +71,6 @@ __all__ = [
     "equilibrium_program",
     "equilibrium_draws",
     "draws_posterior",
-    "kde_log_density",
-    "kde_bandwidth",
     "fused_posterior",
 ]
 
@@ -234,30 +232,6 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
     springs = [cartesian_stiffness(a.params, th, jnp.exp(log_k[:, i, None, :]))
                for i, (a, th) in enumerate(zip(arms, thetas, strict=True))]
     return np.asarray(equilibrium_point(jnp.asarray(np.stack(frees)), jnp.stack(springs)))
-
-
-def kde_bandwidth(draws: np.ndarray) -> np.ndarray:
-    """Scott's rule per target: H = n^(-2 / (d + 4)) cov for d-dimensional draws (T, d, d)
-    (n^(-1/3) in the plane)."""
-    n, d = draws.shape[0], draws.shape[-1]
-    dev = draws - draws.mean(axis=0)
-    cov = np.einsum("sti,stj->tij", dev, dev) / (n - 1)
-    return cov * n ** (-2.0 / (d + 4))
-
-
-def kde_log_density(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Exact Gaussian-KDE log density (per mm^d) of draws (S, T, d) at points (T, d), or at
-    several points per target (K, T, d) giving (K, T)."""
-    h = kde_bandwidth(draws)
-    hinv = np.linalg.inv(h)
-    d = draws.shape[-1]
-    log_norm = -0.5 * d * np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(h)[1]
-    pts = np.asarray(points, float)
-    if pts.ndim == 2:
-        dev = pts[None] - draws  # (S, T, d)
-        q = np.einsum("sti,tij,stj->st", dev, hinv, dev)
-        return logsumexp(-0.5 * q, axis=0) - np.log(draws.shape[0]) + log_norm
-    return np.stack([kde_log_density(draws, p) for p in pts])
 
 
 def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> GridPosterior:

@@ -8,6 +8,7 @@ How often the linked predictions hold on report rigs is measured by the validati
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +21,7 @@ from bayesrob import kinematics as kin
 from bayesrob.assembly import predict_assembly, read_targets
 from bayesrob.calibration import calibrate
 from bayesrob.cli import main
+from bayesrob.kde import kde_log_density
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import setup_rows
 from bayesrob.rig import RigError, default_rig_dir, load_rig
@@ -93,7 +95,7 @@ def test_kde_density_is_scipys_gaussian_kde():
     rng = np.random.default_rng(3)
     draws = rng.normal(size=(500, 2, 2)) @ np.array([[1.0, 0.3], [0.0, 0.5]])
     pts = np.array([[0.2, -0.1], [1.0, 0.4]])
-    ours = fusion.kde_log_density(draws, pts)
+    ours = kde_log_density(draws, pts)
     for t in range(2):
         ref = scipy.stats.gaussian_kde(draws[:, t].T, bw_method="scott")
         assert ours[t] == pytest.approx(np.log(ref(pts[t][:, None])[0]), rel=1e-9)
@@ -112,10 +114,10 @@ def test_draws_posterior_is_normalised_and_agrees_with_the_exact_kde():
     pts = post.points()[0]
     dens = post.prob[0] / (post.cell_mm[0, 0] * post.cell_mm[0, 1])
     big = dens > 0.1 * dens.max()
-    exact = np.array([fusion.kde_log_density(draws[:, :1], p[None])[0] for p in pts[big][::50]])
+    exact = np.array([kde_log_density(draws[:, :1], p[None])[0] for p in pts[big][::50]])
     np.testing.assert_allclose(dens[big][::50], np.exp(exact), rtol=0.03)
     fresh = rng.normal(size=(400, 3, 2)) * [1.0, 0.4] + [[[10.0, 0.0]]]
-    levels = np.concatenate([post.hdr_level(fusion.kde_log_density(draws, f)) for f in fresh])
+    levels = np.concatenate([post.hdr_level(kde_log_density(draws, f)) for f in fresh])
     assert scipy.stats.kstest(levels, "uniform").pvalue > ALPHA
 
 
@@ -137,15 +139,21 @@ def test_equilibrium_program_and_grid_draws_agree_for_a_sampleable_model(sag_rig
     np.testing.assert_allclose(program.std(0), grid.std(0), rtol=0.10)
 
 
-def test_compare_scores_both_fusions(tmp_path):
-    """``compare --json``: a product entry per model and an equilibrium entry per model, each
-    saying its fusion; single arms are the same prediction under both."""
-    out = tmp_path / "c.json"
-    assert main(["compare", "--models", "ind", "cond", "--json", str(out),
-                 "--no-progress"]) == 0
-    doc = json.loads(out.read_text())
+def test_compare_scores_both_fusions(clean_rig_dir):
+    """``compare``'s document (what ``compare --json`` writes): a product entry per model and
+    an equilibrium entry per model, each saying its fusion; single arms are the same
+    prediction under both. From the library on the session's clean rig: the command's own
+    JSON, plot and holdout rows are test_inference_compare's (its two models each get both
+    fusions there too), and the leave-one-out refits of the calibration (recalibrate), which
+    only the LOO scores see, are left out: every entry checked here is a held-out score."""
+    from bayesrob.comparison import compare_models
+
+    comparison = compare_models(load_rig(clean_rig_dir), ["ind", "cond"], recalibrate=False)
+    doc = json.loads(json.dumps(comparison.document(), allow_nan=True))  # as the command writes
     models = doc["models"]
-    assert models["ind"]["fusion"] == "product"
+    assert {name: m["fusion"] for name, m in models.items()} == {
+        "ind": "product", "cond": "product", "ind:equilibrium": "equilibrium",
+        "cond:equilibrium": "equilibrium"}
     eq = models["ind:equilibrium"]
     assert eq["fusion"] == "equilibrium" and eq["model"] == "ind"
     for cfg in ("top", "bottom"):
@@ -242,16 +250,33 @@ def test_predict_bad_input_is_one_line_and_exit_2(tmp_path, capsys, args, messag
     assert len(err) == 1 and message in err[0], err
 
 
-def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys):
+def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monkeypatch):
     """``--params`` on a planar rig predicts its arms as 2-joint chains with those groups:
     aimed through the calibrated physics (each arm's own point within 1 um of the target under
     its fitted model), the latent ``ind`` errors by default, stiffnesses from the prior
     scaled by the arms' fitted sags, and the draws' figure in the arms' plane. Beside the
     eight-parameter route at the same targets, the commands differ by what the fitted sag
-    and play move (a few us, not tens) and the expected errors agree within a factor 2."""
-    from bayesrob.calibration import calibrate_chain
+    and play move (a few us, not tens) and the expected errors agree within a factor 2.
+
+    The calibrated model the commands are checked under is the one the command fitted, kept
+    as it returns (not fitted a second time): the command must have made exactly one
+    calibration, of the default rig with the groups asked and otherwise calibrate_chain's
+    defaults, i.e. the fit ``calibrate_chain(rig, groups)`` computes (it is deterministic)."""
+    import inspect
+
+    import bayesrob.calibration
+    import bayesrob.chain_prediction
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
 
+    real, fits = bayesrob.calibration.calibrate_chain, []
+
+    def kept(*args, **kwargs):
+        fits.append((inspect.signature(real).bind(*args, **kwargs), real(*args, **kwargs)))
+        return fits[-1][1]
+
+    # wherever the prediction calls it from: the module that defines it, or one that imported it
+    for module in (bayesrob.calibration, bayesrob.chain_prediction):
+        monkeypatch.setattr(module, "calibrate_chain", kept)
     targets = tmp_path / "t.csv"
     targets.write_text("x,y\n160,240\n200,200\n")
     out, png = tmp_path / "p.json", tmp_path / "p.png"
@@ -265,7 +290,13 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys):
     assert {v["from"] for v in doc["stiffness"].values()} == {STIFFNESS_SOURCES[3]}
     assert "by its fitted sag" in text
     rig = load_rig(default_rig_dir())
-    cal = calibrate_chain(rig, tuple(groups.split(",")))
+    ((call, cal),) = fits
+    call.apply_defaults()
+    expected = inspect.signature(real).bind(rig, tuple(groups.split(",")))
+    expected.apply_defaults()
+    same_rig = [Path(b.arguments.pop("rig").path).resolve() for b in (call, expected)]
+    assert same_rig[0] == same_rig[1], same_rig
+    assert call.arguments == expected.arguments
     plain = predict_assembly(rig, "top+bottom", read_targets(targets), "ind")
     for arm in ("top", "bottom"):
         u = np.array([t["commands"][arm] for t in doc["targets"]])
