@@ -431,10 +431,20 @@ def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     for ax, (i, j) in zip(maps, planes, strict=True):
         sc = ax.scatter(t[:, i], t[:, j], c=pred.expected_error_mm, cmap="viridis", s=60,
                         vmin=vmin, vmax=vmax)
+        # bases one behind the other in this view share one marker and one label (drawn
+        # apart, "left" over "right" read "lefight" in the x-z view of a symmetric pair)
+        marks: list[tuple[np.ndarray, list[str]]] = []
         for a, base in zip(arms, bases, strict=True):
-            ax.plot(base[i], base[j], "k^")
-            ax.annotate(a, (base[i], base[j]), textcoords="offset points", xytext=(4, 4),
-                        fontsize=8)
+            point = np.array([base[i], base[j]])
+            near = [m for m in marks if np.hypot(*(m[0] - point)) < 0.03 * tall]
+            if near:
+                near[0][1].append(a)
+            else:
+                marks.append((point, [a]))
+        for point, at in marks:
+            ax.plot(*point, "k^")
+            ax.annotate(", ".join(at), tuple(point), textcoords="offset points",
+                        xytext=(4, 4), fontsize=8)
         ax.set_xlim(lo[i], hi[i])
         ax.set_ylim(lo[j], hi[j])
         ax.set_aspect("equal")  # the views share one scale: distances read alike in both

@@ -316,5 +316,9 @@ def test_the_3d_predict_figure_shows_the_targets_in_views_of_equal_scale(config)
             assert np.all((pts[:, i] > x0) & (pts[:, i] < x1) & (pts[:, j] > y0)
                           & (pts[:, j] < y1))
         assert all(ax.get_title() for ax in fig.axes if not _is_colorbar(ax))
+        # the x-z view sees left and right one behind the other: one label names both
+        labels = [[tx.get_text() for tx in ax.texts] for ax in views]
+        assert sorted(labels[0]) == sorted(config.split("+")), labels
+        assert sorted(labels[1]) == sorted(["left, right", *config.split("+")[2:]]), labels
     finally:
         plt.close(fig)
