@@ -76,8 +76,6 @@ PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose"
                      "compare", "design", "predict")
 
 
-
-
 def _progress(args: argparse.Namespace) -> bool:
     return not getattr(args, "no_progress", False)
 
@@ -269,9 +267,8 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
         # written whole or not at all: Ctrl-C part-way leaves out_dir as it was
         with staged_directory(out_dir) as scratch:
             simulate_chain_rig(scratch, truth)
-        out = out_dir
     _say_replaced(existing)
-    print(f"wrote {out}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
+    print(f"wrote {out_dir}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
           f"play {args.play_mrad or 0:g} mrad, seed {args.seed}): measurements.csv, rig.toml, "
           "arm6.urdf, truth.toml")
@@ -306,11 +303,10 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
                       postfix=f"arm6 {'+'.join(truth.arms)}", first_after=FIRST_LINE_S):
             with staged_directory(out_dir) as scratch:
                 simulate_linked_chain_rig(scratch, truth)
-            out = out_dir
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
-    print(f"wrote {out}/ (arm6 {'+'.join(truth.arms)}, {truth.n_train}/{truth.n_validation}/"
+    print(f"wrote {out_dir}/ (arm6 {'+'.join(truth.arms)}, {truth.n_train}/{truth.n_validation}/"
           f"{truth.n_holdout} train/validation/holdout poses per arm, {truth.n_linked} linked "
           f"test rows, compliance {'on' if truth.compliance else 'off'}, seed {args.seed}): "
           "measurements.csv, rig.toml, arm6.urdf, truth.toml")
@@ -364,12 +360,11 @@ def _simulate(args: argparse.Namespace) -> int:
                                 stiffness_log_sd=args.stiffness_spread or 0.0), args)
     with staged_directory(out_dir) as scratch:
         simulate_rig(scratch, truth, progress=_progress(args))
-    out = out_dir
     effects = ",".join(truth.effects) or "none"
     _say_replaced(existing)
     spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
               if args.stiffness_spread else "")
-    print(f"wrote {out}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}"
+    print(f"wrote {out_dir}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}"
           f"{spread}): {', '.join(names)}")
     return 0
 

@@ -30,7 +30,8 @@ The pure functions :func:`kde_logpdf`, :func:`conditional_kde_logpdf` and
 
 Draws of a prediction (S draws at each of T targets) are smoothed differently: one full
 bandwidth matrix per target by Scott's rule, in NumPy (:func:`kde_bandwidth`,
-:func:`kde_log_density`; scipy's ``gaussian_kde`` per target, batched over the targets).
+:func:`kde_log_density`): the density scipy's ``gaussian_kde`` gives each target, computed
+for all the targets at once.
 """
 
 from __future__ import annotations

@@ -50,14 +50,15 @@ from typing import Any
 TARGETS_DIR = Path(__file__).resolve().parent / "targets"
 
 
-def repository(marker: str = "examples") -> Path:
+def repository() -> Path:
     """The repository whose files a study reads (``examples/``, ``../shared/data``): the one
     this package lies in, else the current directory, as when an installed copy is run from a
     checkout (CI runs ``bayesrob validate`` so)."""
     for root in (Path(__file__).resolve().parents[1], Path.cwd()):
-        if (root / marker).is_dir() and (root / "pyproject.toml").is_file():
+        if (root / "examples").is_dir() and (root / "pyproject.toml").is_file():
             return root
     return Path.cwd()
+
 
 # The outcome of one figure against its target.
 PASS, FAIL, KNOWN_MISS, NEWLY_MET = "pass", "fail", "known miss", "met, was a known miss"
