@@ -14,6 +14,7 @@ module, and :func:`bayesrob.outputs.calibrate_rig` chooses among the three.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Literal
 
 import jax
@@ -390,45 +391,53 @@ def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
             for a, (_, r) in chain_residuals(rig, robot, x, set).items()}
 
 
+@partial(jax.jit, static_argnames=("robot", "arms"))
+def _fit_residuals(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
+                   ) -> jax.Array:
+    return jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
+                            for a, (u, d, side) in zip(arms, data, strict=True)])
+
+
+@partial(jax.jit, static_argnames=("robot", "arms"))
+def _fit_jacobian(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
+                  ) -> jax.Array:
+    return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
+        -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
+
+
+@partial(jax.jit, static_argnames=("robot", "arms"))
+def _fit_exact_jacobian(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
+                        ) -> jax.Array:
+    # Reverse mode, row by row: a row's marker depends on the parameters through its own
+    # pose alone, so each row costs a pull-back per measured coordinate (2-3), where forward
+    # mode costs a push-forward per fitted column (Justin: 127-192) for every row at once (on
+    # Justin about thirty times the cost: docs/diagnose.md); and one compiled program serves
+    # every set of fitted columns.
+    def rows(a, u, side):
+        def one(u1, side1):
+            s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}
+            return jax.jacrev(lambda x: robot.marker_points(x, a, u1[None],
+                                                             side=s1)[0])(x)
+        return jax.vmap(one)(u, side).reshape(-1, x.shape[0])
+    return jnp.concatenate([rows(a, u, side)
+                            for a, (u, _, side) in zip(arms, data, strict=True)])
+
+
 def _residual_function(rig: Rig, robot: kin.Robot, set: str):
     """Residuals and their Jacobian as functions of the parameters alone, compiled once per
-    robot (the rows are arguments, so a second calibration of the same rig is warm)."""
+    process for all robots equal to ``robot`` (the rows are arguments, so a second
+    calibration of the same rig, or of another rig of the same robot, is warm)."""
     arms = tuple(a for a in robot.measured_arms() if len(rig.chain_rows(a, set)[0]))
     data = tuple((jnp.asarray(u), jnp.asarray(d), side_rows(rig, robot, a, set))
                  for a, (u, d) in ((a, rig.chain_rows(a, set)) for a in arms))
-    key = (arms, tuple(side is not None for *_, side in data))
-    cache = robot.__dict__.setdefault("_compiled_fits", {})
-    if key not in cache:
-        def residuals(x, data):
-            return jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
-                                    for a, (u, d, side) in zip(arms, data, strict=True)])
-
-        def jacobian(x, data):
-            return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
-                -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
-        def exact(x, data):
-            # Reverse mode, row by row: a row's marker depends on the parameters through its
-            # own pose alone, so each row costs a pull-back per measured coordinate (2-3),
-            # where forward mode costs a push-forward per fitted column (Justin: 127-192) for
-            # every row at once (on Justin about thirty times the cost: docs/diagnose.md); and
-            # one compiled program serves every set of fitted columns.
-            def rows(a, u, side):
-                def one(u1, side1):
-                    s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}
-                    return jax.jacrev(lambda x: robot.marker_points(x, a, u1[None],
-                                                                     side=s1)[0])(x)
-                return jax.vmap(one)(u, side).reshape(-1, x.shape[0])
-            return jnp.concatenate([rows(a, u, side)
-                                    for a, (u, _, side) in zip(arms, data, strict=True)])
-        cache[key] = (jax.jit(residuals), jax.jit(jacobian), jax.jit(exact))
-    res, jac, exact = cache[key]
     n_res = sum(int(d.size) for _, d, _ in data)
 
     def exact_columns(x, idx):
         # the columns picked on the host: indexing the device array would compile a gather
         # for every count of fitted columns
-        return np.asarray(exact(x, data))[:, np.asarray(idx)]
-    return (lambda x: res(x, data)), (lambda x: jac(x, data)), n_res, exact_columns
+        return np.asarray(_fit_exact_jacobian(robot, arms, x, data))[:, np.asarray(idx)]
+    return (lambda x: _fit_residuals(robot, arms, x, data)), (
+        lambda x: _fit_jacobian(robot, arms, x, data)), n_res, exact_columns
 
 
 # A lateral compliance of one typical size (1e-7 rad per N mm) costs as much as a marker
@@ -454,16 +463,12 @@ POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way unde
 
 
 def _with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
-    """The rig's robot with its gravity model on, one object per robot and gravity: the
-    compiled residuals and Jacobians are cached on the robot object, so every calibration of
-    a diagnosis (and of a rig that shares the robot) reuses them instead of compiling anew."""
+    """The rig's robot with its gravity model on. A new object each call, equal to the last:
+    the compiled residuals and Jacobians are keyed by the robot's value, so every
+    calibration of a diagnosis (and of a rig that shares the robot) reuses them."""
     gravity = np.zeros(3)
     gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
-    cache = rig.robot.__dict__.setdefault("_with_gravity", {})
-    key = (*gravity.tolist(), sag_steps)
-    if key not in cache:
-        cache[key] = replace(rig.robot, gravity=gravity, sag_steps=sag_steps)
-    return cache[key]
+    return replace(rig.robot, gravity=gravity, sag_steps=sag_steps)
 
 
 def calibrate_chain(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
@@ -627,7 +632,7 @@ def sag_convergence(rig: Rig, x: np.ndarray, sag_steps: int = 1) -> dict:
     whose free masses and compliances absorb the rest (docs/robots.md); when more steps were
     asked for and the last still moves a marker by more than SAG_CONVERGED_MM, a note says
     that the iteration did not reach the torque equilibrium."""
-    # the rig's cached gravity robots: their compiled residuals serve every fit
+    # the rig's gravity robots: equal to the fit's, so its compiled residuals serve here
     robot = _with_gravity(rig, sag_steps)
     now, *_ = _residual_function(rig, robot, "train")
     nxt, *_ = _residual_function(rig, _with_gravity(rig, sag_steps + 1), "train")

@@ -30,8 +30,9 @@ Monte Carlo: vol{p > c} = E_p[1{p > c} / p].
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -312,18 +313,20 @@ def stiffness_priors(rig: Rig, arms: Sequence[str], cal: ChainCalibration
     return sag_scaled_priors(rig, cal, {a: _stiffness_prior(rig, a, cal) for a in arms})
 
 
-def _column_jacobian(robot: kin.Robot, arm: str):
-    """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c))."""
-    cache = robot.__dict__.setdefault("_column_jacobians", {})
-    if arm not in cache:
-        def point(x, row):
-            return robot.marker_points(x, arm, row[None])[0]
+@partial(jax.jit, static_argnames=("robot", "arm"))
+def _column_jacobian_program(robot: kin.Robot, arm: str, x: jax.Array, u: jax.Array
+                             ) -> tuple[jax.Array, jax.Array]:
+    def point(x, row):
+        return robot.marker_points(x, arm, row[None])[0]
 
-        def both(x, u):
-            return jax.vmap(lambda r: point(x, r))(u), jax.vmap(
-                lambda r: jax.jacfwd(lambda v: point(x, v))(r))(u)
-        cache[arm] = jax.jit(both)
-    return cache[arm]
+    return jax.vmap(lambda r: point(x, r))(u), jax.vmap(
+        lambda r: jax.jacfwd(lambda v: point(x, v))(r))(u)
+
+
+def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
+    """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c)), compiled once
+    per process for all robots equal to ``robot``."""
+    return partial(_column_jacobian_program, robot, arm)
 
 
 def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
@@ -505,14 +508,18 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
     return np.asarray(pts + eps)
 
 
-def _points_with_errors(robot: kin.Robot, arm: str):
-    """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim)."""
-    cache = robot.__dict__.setdefault("_points_with_errors", {})
-    if arm not in cache:
-        cache[arm] = jax.jit(jax.vmap(
-            lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
-            in_axes=(0, None, 0, None)))
-    return cache[arm]
+@partial(jax.jit, static_argnames=("robot", "arm"))
+def _points_with_errors_program(robot: kin.Robot, arm: str, xs: jax.Array, u: jax.Array,
+                                e: jax.Array, side: dict[str, jax.Array] | None
+                                ) -> jax.Array:
+    return jax.vmap(lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
+                    in_axes=(0, None, 0, None))(xs, u, e, side)
+
+
+def _points_with_errors(robot: kin.Robot, arm: str) -> Callable:
+    """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim),
+    compiled once per process for all robots equal to ``robot``."""
+    return partial(_points_with_errors_program, robot, arm)
 
 
 def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],

@@ -18,8 +18,9 @@ arm (``front``) and joins all three.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
@@ -120,13 +121,17 @@ def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) ->
     return -np.arctan2(eccentricity * np.sin(d), 1.0 + eccentricity * np.cos(d))
 
 
-def _frames_program(robot: Robot, arm: str):
-    """``robot.element_frames`` of one arm, compiled once per robot and arm: the fixed-point
-    steps below call it repeatedly, and run eagerly it took most of a simulation's time."""
-    cache = robot.__dict__.setdefault("_simulator_frames", {})
-    if arm not in cache:
-        cache[arm] = jax.jit(lambda x, u: robot.element_frames(x, arm, u))
-    return cache[arm]
+@partial(jax.jit, static_argnames=("robot", "arm"))
+def _element_frames(robot: Robot, arm: str, x: jax.Array, u: jax.Array
+                    ) -> tuple[jax.Array, jax.Array]:
+    return robot.element_frames(x, arm, u)
+
+
+def _frames_program(robot: Robot, arm: str) -> Callable:
+    """``robot.element_frames`` of one arm, compiled once per process for all robots equal to
+    ``robot``: the fixed-point steps below call it repeatedly, and run eagerly it took most
+    of a simulation's time."""
+    return partial(_element_frames, robot, arm)
 
 
 def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
@@ -367,12 +372,12 @@ def _gravity_forces(masses_kg: np.ndarray | None, gravity: Sequence[float] | Non
     return np.asarray(masses_kg, float)[:, None] * (G_N_PER_KG * g / np.linalg.norm(g))[None]
 
 
-def _arm_program(robot: Robot, arm: str):
-    """A compiled ``(x, u, u0, k, weight) -> dict`` of one arm over rows u (N, n), built once
-    per robot and arm: the energy of springs (stiffness k, N mm/rad) holding the joint columns
-    at u0 plus the potential of the link weights (N, at the links' centres as in
-    :func:`gravity_deflection`), its gradient and Hessian, and the marker with its first and
-    second derivatives.
+def _arm_program(robot: Robot, arm: str) -> Callable:
+    """A compiled ``(x, u, u0, k, weight) -> dict`` of one arm over rows u (N, n), compiled
+    once per process for all robots equal to ``robot``: the energy of springs (stiffness k,
+    N mm/rad) holding the joint columns at u0 plus the potential of the link weights (N, at
+    the links' centres as in :func:`gravity_deflection`), its gradient and Hessian, and the
+    marker with its first and second derivatives.
 
     The derivatives are closed forms on the frames of one forward pass (no automatic
     differentiation through the chain's scan, which took seconds to compile): a point r
@@ -380,44 +385,44 @@ def _arm_program(robot: Robot, arm: str):
     d2 r / du_i du_j = a_i x (a_j x (r - o_j)) for i <= j, since joint i carries axis j and
     its origin along.
     """
-    cache = robot.__dict__.setdefault("_linked_arm_programs", {})
-    if arm in cache:
-        return cache[arm]
     chain = robot.chains[arm]
     if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
         raise ValueError(f"arm {arm!r}: linked equilibria are computed for arms of revolute "
                          "joints standing on their own (not mounted on another arm)")
+    return partial(_arm_evaluate, robot, arm)
+
+
+@partial(jax.jit, static_argnames=("robot", "arm"))
+def _arm_evaluate(robot: Robot, arm: str, x: jax.Array, u: jax.Array, u0: jax.Array,
+                  k: jax.Array, weight: jax.Array) -> dict[str, jax.Array]:
+    # _arm_program's function, for an arm it has checked
+    chain = robot.chains[arm]
     n = chain.n_joints
     half = jnp.asarray(np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]]))
     axes = jnp.asarray(chain.axes)
     marker = robot.layout.slices[(arm, "marker")]
     upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
     ordered = jnp.asarray(upper[:, :, None] & upper[None, :, :])  # [i, j, k]: i <= j <= k
-
-    def evaluate(x, u, u0, k, weight):
-        joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
-        a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
-        o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
-        centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
-        tip = links[-1]
-        p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
-        jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
-        hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
-        hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
-        # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
-        s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
-        torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
-        t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
-                       weight, ordered)
-        hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
-        d = u - u0
-        return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
-                - jnp.einsum("nkd,kd->n", centres, weight),
-                "grad": k * d - torque, "hess": jnp.diag(k)[None] + hv,
-                "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
-
-    cache[arm] = jax.jit(evaluate)
-    return cache[arm]
+    joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
+    a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
+    o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
+    centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
+    tip = links[-1]
+    p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
+    jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
+    hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
+    hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
+    # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
+    s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
+    torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
+    t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
+                   weight, ordered)
+    hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
+    d = u - u0
+    return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
+            - jnp.einsum("nkd,kd->n", centres, weight),
+            "grad": k * d - torque, "hess": jnp.diag(k)[None] + hv,
+            "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
 
 
 def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np.ndarray],

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import pickle
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -165,17 +166,43 @@ def test_planar_modules_refuse_3d_mounts(tmp_path, capsys):
 # ------------------------------------------------------------------------- the pieces
 
 
-def test_a_robot_pickles_without_its_compiled_programs(rig_dir):
-    """Dask ships modules to its workers by pickling: the jitted programs a robot caches
-    stay behind and are rebuilt there, with the same results."""
-    robot = load_rig(rig_dir).robot
-    x = jnp.asarray(robot.layout.nominal)
+def test_equal_robots_built_apart_share_one_compiled_program(rig_dir, monkeypatch):
+    """Robots are values: two loads of one rig, and a copy pickled as Dask ships a module to
+    its workers, are equal and hash equal, so the second's call runs the program the first
+    traced; the unmoved robot, one joint origin apart, is another value with its own."""
+    from bayesrob import kinematics as kin
+
+    traced = []
+    marker_points = kin.Robot.marker_points
+
+    def counted(self, *args, **kwargs):
+        traced.append(self)
+        return marker_points(self, *args, **kwargs)
+    monkeypatch.setattr(kin.Robot, "marker_points", counted)
+
+    def moved():
+        # a base joint 0.3125 mm along x from the rig's: a value no other test traces
+        robot = load_rig(rig_dir).robot
+        origins = robot.chains["left"].origins.copy()
+        origins[0, 0] += 0.3125
+        left = replace(robot.chains["left"], origins=origins)
+        return robot, replace(robot, chains={**robot.chains, "left": left})
+
+    base, one = moved()
+    _, two = moved()
+    assert one is not two and one == two and hash(one) == hash(two)
+    x = jnp.asarray(one.layout.nominal)
     u = jnp.zeros((2, 6))
-    before = np.asarray(robot.compiled_points("left")(x, u))
-    assert "_compiled" in robot.__dict__
-    copy = pickle.loads(pickle.dumps(robot))
-    assert not [k for k in copy.__dict__ if k.startswith("_")]
-    np.testing.assert_array_equal(np.asarray(copy.compiled_points("left")(x, u)), before)
+    first = np.asarray(one.compiled_points("left")(x, u))
+    assert len(traced) == 1
+    copy = pickle.loads(pickle.dumps(two))
+    assert copy == one and hash(copy) == hash(one)
+    for robot in (two, copy):
+        np.testing.assert_array_equal(np.asarray(robot.compiled_points("left")(x, u)), first)
+    assert len(traced) == 1
+    assert base != one
+    np.testing.assert_allclose(first - np.asarray(base.compiled_points("left")(x, u)),
+                               [[0.3125, 0.0, 0.0]] * 2, atol=1e-9)
 
 
 def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeypatch):

@@ -20,8 +20,10 @@ Units: mm and rad (URDF metres are converted when read).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+import functools
+import hashlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 
 import jax
@@ -60,9 +62,67 @@ class KinematicsError(ValueError):
     """A robot description is inconsistent; the message says where and what."""
 
 
+def _canonical(v: object, ordered: bool = False) -> object:
+    """A hashable, comparable form of a field's value: arrays by dtype, shape and bytes (the
+    values a traced program bakes in, so equal forms trace equal programs), dicts as item
+    tuples (sorted unless their order means something: ``ordered``), sequences as tuples."""
+    if isinstance(v, np.ndarray):
+        return ("ndarray", v.dtype.str, v.shape, v.tobytes())
+    if isinstance(v, dict):
+        items = tuple((repr(k), _canonical(x)) for k, x in v.items())
+        return ("dict", items if ordered else tuple(sorted(items)))
+    if isinstance(v, (list, tuple)):
+        return (type(v).__name__, tuple(_canonical(x) for x in v))
+    if isinstance(v, Chain):
+        return v._value
+    if v is None or isinstance(v, (str, bool, int, float, np.generic)):
+        return (type(v).__name__, repr(v))
+    raise TypeError(f"no canonical form for a {type(v).__name__}")
+
+
+def _digest(value: object) -> int:
+    # from the canonical form's repr, not hash(): str hashes differ between processes, and a
+    # robot shipped to a Dask worker keeps the hash it cached where it was computed
+    return int.from_bytes(hashlib.blake2b(repr(value).encode(), digest_size=8).digest(), "big")
+
+
+class _ByValue:
+    """Equality and hash from every dataclass field's canonical form, so that equal robots
+    built apart are one static argument to ``jax.jit`` (one compiled program per process).
+
+    The fields are taken as immutable once built: the form and its hash are cached on first
+    use, and a program traced for a robot bakes its nominal values in. Nothing in this
+    package changes a chain's arrays or a robot's chains in place."""
+
+    _ordered_fields: tuple[str, ...] = ()  # dict fields whose order is part of the value
+
+    @cached_property
+    def _value(self) -> tuple:
+        return (type(self).__name__,
+                tuple(_canonical(getattr(self, f.name), f.name in self._ordered_fields)
+                      for f in fields(self)))
+
+    @cached_property
+    def _hash(self) -> int:
+        return _digest(self._value)
+
+    def __eq__(self, other: object) -> bool:
+        if other is self:
+            return True
+        if type(other) is not type(self):
+            return NotImplemented
+        return self._hash == other._hash and self._value == other._value
+
+    def __hash__(self) -> int:
+        return self._hash
+
+
 @dataclass(frozen=True, eq=False)
-class Chain:
-    """A serial chain's structure and nominal values (mm, rad)."""
+class Chain(_ByValue):
+    """A serial chain's structure and nominal values (mm, rad), equal to another with the same
+    fields (``source`` included: it does not enter the kinematics, but the masses and torque
+    limits read from it do enter fits and predictions, and a calibrated URDF is written from
+    it, so two chains differing there are not interchangeable)."""
 
     name: str
     joint_names: tuple[str, ...]
@@ -260,8 +320,14 @@ def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
 
 
 @dataclass(frozen=True, eq=False)
-class Robot:
-    """Chains (parents first) and the dimension of the measured points (2 or 3)."""
+class Robot(_ByValue):
+    """Chains (parents first) and the dimension of the measured points (2 or 3).
+
+    Equal to another robot with equal fields (the chains in the same order: it is the
+    parameter vector's), and hashed by them: a static argument of the compiled programs,
+    which equal robots share."""
+
+    _ordered_fields = ("chains",)  # their order is the parameter vector's
 
     chains: dict[str, Chain]
     dim: int = 3
@@ -291,11 +357,6 @@ class Robot:
     @cached_property
     def layout(self) -> ParamLayout:
         return _layout(self.chains)
-
-    def __getstate__(self) -> dict:
-        # The caches of compiled programs ("_compiled", ...) hold jitted closures over this
-        # robot: they are rebuilt wherever it is unpickled (a Dask worker), not shipped.
-        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
 
     def path(self, arm: str) -> list[Chain]:
         """The chains from the robot base to ``arm``'s tip, base first."""
@@ -334,40 +395,7 @@ class Robot:
         """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
         a tool is an element whose motion is nothing), for one ``lax.scan``: a loop the
         compiler sees once, however many joints the robot has."""
-        cache = self.__dict__.setdefault("_element_cache", {})
-        if arm in cache:
-            return cache[arm]
-        sl = self.layout.slices
-        zero = len(self.layout.params)  # index of a zero appended to x: tools have no mass
-        nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
-        compliance_idx, link_idx, lateral_idx, across, play_idx = [], [], [], [], []
-        n_q = 0
-        for chain in self.path(arm):
-            start = sl[(chain.name, "origins")].start
-            c0, l0 = sl[(chain.name, "compliance")].start, sl[(chain.name, "links")].start
-            b0 = sl[(chain.name, "lateral")].start
-            p0 = sl[(chain.name, "backlash")].start
-            for i in range(chain.n_joints + 1):
-                nominal.append(tf.np_pose_matrix(chain.origins[i]))
-                delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
-                last = i == chain.n_joints
-                axes.append(np.zeros(3) if last else chain.axes[i])
-                prismatic.append(0.0 if last else float(chain.kinds[i] == "prismatic"))
-                q_idx.append(-1 if last else n_q + i)
-                compliance_idx.append(zero if last else c0 + i)
-                play_idx.append(zero if last else p0 + i)
-                link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
-                lateral_idx.append([zero] * 2 if last else [b0 + 2 * i, b0 + 2 * i + 1])
-                across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
-            n_q += chain.n_joints
-        q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
-        out = {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
-               "axes": np.stack(axes), "prismatic": np.array(prismatic),
-               "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
-               "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
-               "across": np.stack(across), "play_idx": np.array(play_idx)}
-        cache[arm] = out
-        return out
+        return _element_table(self, arm)
 
     def _element_values(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """Joint values (N, E) of the path's elements for rows u (zero on tools)."""
@@ -761,13 +789,10 @@ class Robot:
         p = t[:, :3, :3] @ m + t[:, :3, 3]
         return p[:, : self.dim]
 
-    def compiled_points(self, arm: str):
-        """A jitted ``(x, u) -> marker points`` for one arm, built once per robot and arm."""
-        cache = self.__dict__.setdefault("_compiled", {})
-        if arm not in cache:
-            cache[arm] = jax.jit(lambda x, u, side=None: self.marker_points(x, arm, u,
-                                                                            side=side))
-        return cache[arm]
+    def compiled_points(self, arm: str) -> Callable[..., jax.Array]:
+        """A jitted ``(x, u, side=None) -> marker points`` for one arm, compiled once per
+        process for all robots equal to this one."""
+        return functools.partial(_compiled_points, self, arm)
 
     def with_values(self, x: np.ndarray) -> Robot:
         """A robot whose nominal values are those of the parameter vector x (deltas folded in).
@@ -806,3 +831,43 @@ class Robot:
         """Chains that carry a marker (the leaves of the tree)."""
         parents = {c.mount for c in self.chains.values()}
         return [c for c in self.chains if c not in parents]
+
+
+@functools.lru_cache(maxsize=256)
+def _element_table(robot: Robot, arm: str) -> dict[str, np.ndarray]:
+    # Robot._elements, shared by equal robots; bounded, as a sweep builds robot after robot
+    sl = robot.layout.slices
+    zero = len(robot.layout.params)  # index of a zero appended to x: tools have no mass
+    nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
+    compliance_idx, link_idx, lateral_idx, across, play_idx = [], [], [], [], []
+    n_q = 0
+    for chain in robot.path(arm):
+        start = sl[(chain.name, "origins")].start
+        c0, l0 = sl[(chain.name, "compliance")].start, sl[(chain.name, "links")].start
+        b0 = sl[(chain.name, "lateral")].start
+        p0 = sl[(chain.name, "backlash")].start
+        for i in range(chain.n_joints + 1):
+            nominal.append(tf.np_pose_matrix(chain.origins[i]))
+            delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
+            last = i == chain.n_joints
+            axes.append(np.zeros(3) if last else chain.axes[i])
+            prismatic.append(0.0 if last else float(chain.kinds[i] == "prismatic"))
+            q_idx.append(-1 if last else n_q + i)
+            compliance_idx.append(zero if last else c0 + i)
+            play_idx.append(zero if last else p0 + i)
+            link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
+            lateral_idx.append([zero] * 2 if last else [b0 + 2 * i, b0 + 2 * i + 1])
+            across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
+        n_q += chain.n_joints
+    q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
+    return {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
+            "axes": np.stack(axes), "prismatic": np.array(prismatic),
+            "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
+            "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
+            "across": np.stack(across), "play_idx": np.array(play_idx)}
+
+
+@functools.partial(jax.jit, static_argnames=("robot", "arm"))
+def _compiled_points(robot: Robot, arm: str, x: jax.Array, u: jax.Array,
+                     side: dict[str, jax.Array] | None = None) -> jax.Array:
+    return robot.marker_points(x, arm, u, side=side)

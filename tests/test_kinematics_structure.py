@@ -1,0 +1,100 @@
+"""Robots and chains are values: equal when built apart from the same description, unequal when
+any field differs, and hashed alike in every process (the compiled programs take the robot as a
+static argument, so equality decides which program a robot runs)."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayesrob import kinematics as kin
+from bayesrob.rig import default_rig_dir, load_rig
+
+
+def _robot() -> kin.Robot:
+    return load_rig(default_rig_dir()).robot
+
+
+def _with_chain(robot: kin.Robot, name: str, **changes) -> kin.Robot:
+    return replace(robot, chains={**robot.chains, name: replace(robot.chains[name], **changes)})
+
+
+def test_robots_built_apart_from_one_description_are_equal():
+    a, b = _robot(), _robot()
+    assert a is not b and a == b and hash(a) == hash(b)
+    assert {a: 1}[b] == 1
+    for name in a.chains:
+        assert a.chains[name] == b.chains[name]
+    copy = pickle.loads(pickle.dumps(a))
+    assert copy == a and hash(copy) == hash(a)
+
+
+def _one_value_changed(robot: kin.Robot) -> dict[str, kin.Robot]:
+    name = next(iter(robot.chains))
+    c = robot.chains[name]
+
+    def bumped(a: np.ndarray, index: tuple) -> np.ndarray:
+        a = a.copy()
+        a[index] = np.nextafter(a[index], np.inf)  # the smallest change a float can make
+        return a
+
+    return {
+        "origin": _with_chain(robot, name, origins=bumped(c.origins, (1, 0))),
+        "axis": _with_chain(robot, name, axes=bumped(c.axes, (0, 0))),
+        "gain": _with_chain(robot, name, gain=bumped(c.gain, (0,))),
+        "offset": _with_chain(robot, name, offset=bumped(c.offset, (0,))),
+        "coupling": _with_chain(robot, name, coupling=bumped(c.coupling, (0, 0))),
+        "marker": _with_chain(robot, name, marker=bumped(c.marker, (0,))),
+        "instrument": _with_chain(robot, name, instrument=bumped(c.instrument, (2,))),
+        "float32 origins": _with_chain(robot, name, origins=c.origins.astype(np.float32)),
+        "source": _with_chain(robot, name, source={**c.source, "kind": "dh"}),
+        "gravity": replace(robot, gravity=np.array([0.0, -1.0, 0.0])),
+        "sag steps": replace(robot, sag_steps=2),
+        "dim": replace(robot, dim=3),
+        "chain order": replace(robot, chains=dict(reversed(robot.chains.items()))),
+    }
+
+
+@pytest.mark.parametrize("what", list(_one_value_changed(_robot())))
+def test_robots_differing_in_one_value_are_unequal(what):
+    base = _robot()
+    other = _one_value_changed(base)[what]
+    assert other != base and base != other
+    assert hash(other) != hash(base)  # 64 bits of a digest: a collision is not expected
+    assert len({base, other}) == 2
+
+
+def test_a_changed_nominal_value_changes_what_the_compiled_program_computes():
+    """The program of a robot one origin apart is its own, not one traced for the first."""
+    import jax.numpy as jnp
+
+    base = _robot()
+    name = next(iter(base.chains))
+    origins = base.chains[name].origins.copy()
+    origins[0, 0] += 1.0  # the base joint 1 mm along the instrument's x
+    moved = _with_chain(base, name, origins=origins)
+    x = jnp.asarray(base.layout.nominal)
+    u = jnp.zeros((1, base.chains[name].n_columns))
+    shift = (np.asarray(moved.compiled_points(name)(x, u))
+             - np.asarray(base.compiled_points(name)(x, u)))
+    np.testing.assert_allclose(shift, [[1.0, 0.0]], atol=1e-9)
+
+
+def test_a_robots_hash_is_the_same_in_every_process():
+    """A robot pickled to a Dask worker carries its cached hash: it must be what the worker
+    would compute itself, whatever its string hashing seed."""
+    code = ("from bayesrob.rig import default_rig_dir, load_rig; "
+            "print(hash(load_rig(default_rig_dir()).robot))")
+    hashes = set()
+    for seed in ("1", "2"):
+        env = {**os.environ, "PYTHONHASHSEED": seed}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, check=True)
+        hashes.add(int(out.stdout.strip()))
+    assert hashes == {hash(_robot())}
