@@ -26,9 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
+from bayesrob.aiming import check_reach
 from bayesrob.calibration import calibrate
 from bayesrob.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
-from bayesrob.inference import GridPosterior, check_reach
+from bayesrob.inference import GridPosterior
 from bayesrob.latent_errors import LATENT_MODELS
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import hdr_area
@@ -295,9 +296,9 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
                    fusion: str, seed: int, t0: float, groups: tuple[str, ...],
                    masses: str = "fitted") -> AssemblyPrediction:
+    from bayesrob.aiming import aim_chain
     from bayesrob.calibration import calibrate_chain
     from bayesrob.chain_prediction import (
-        aim_chain,
         chain_draws,
         check_module_arms,
         fit_chain_modules,

@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
+from bayesrob.aiming import aim_chain
 from bayesrob.chain_prediction import (
     ChainModules,
     StiffnessPrior,
-    aim_chain,
     chain_equilibrium,
     free_draws,
     parameter_draws,

@@ -43,9 +43,9 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS, Predictive
 
 from bayesrob import kinematics as kin
+from bayesrob.aiming import aim_chain
 from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
 from bayesrob.fusion import DRAWS, FUSIONS
-from bayesrob.inference import check_pulse_limits
 from bayesrob.kde import kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
     LatentJointErrors,
@@ -60,12 +60,6 @@ __all__ = ["ChainModules", "StiffnessPrior", "fit_chain_modules", "aim_chain", "
            "arm_sags", "sag_scaled_priors", "stiffness_priors",
            "hdr_levels", "hdr_sizes", "product_draws_nuts", "predict_chain_points"]
 
-IK_TOL_MM = 1e-3
-IK_ITERATIONS = 60
-# Train poses (nearest first) an aim may start from while its solution leaves the train
-# range: enough for a target near the range's edge to find a neighbour on the calibrated
-# branch, few enough that a target truly beyond it costs at most that many solves
-AIM_SEEDS = 8
 VOLUME_POINTS = 800  # draws at which the region-volume estimator is evaluated
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
 # call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
@@ -311,103 +305,6 @@ def stiffness_priors(rig: Rig, arms: Sequence[str], cal: ChainCalibration
     (:func:`_stiffness_prior`), their arm terms then centred on their fitted sags
     (:func:`sag_scaled_priors`)."""
     return sag_scaled_priors(rig, cal, {a: _stiffness_prior(rig, a, cal) for a in arms})
-
-
-@partial(jax.jit, static_argnames=("robot", "arm"))
-def _column_jacobian_program(robot: kin.Robot, arm: str, x: jax.Array, u: jax.Array
-                             ) -> tuple[jax.Array, jax.Array]:
-    def point(x, row):
-        return robot.marker_points(x, arm, row[None])[0]
-
-    return jax.vmap(lambda r: point(x, r))(u), jax.vmap(
-        lambda r: jax.jacfwd(lambda v: point(x, v))(r))(u)
-
-
-def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
-    """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c)), compiled once
-    per process for all robots equal to ``robot``."""
-    return partial(_column_jacobian_program, robot, arm)
-
-
-def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
-              ) -> np.ndarray:
-    """Columns (T, c) putting ``arm``'s marker on each target under the calibrated model.
-
-    Damped minimum-norm Gauss-Newton steps from the train pose whose observed point is
-    nearest, so the redundant arm stays on the branch of poses it was calibrated on. Where
-    that lands outside the range of the train commands (a column beyond its train minimum or
-    maximum: another branch, where the calibration extrapolates), the next nearest train
-    poses are tried in turn, up to AIM_SEEDS, and the first solution inside the range is
-    taken, else the one least beyond it. A target it does not reach within IK_TOL_MM from
-    any of them is refused with one line, and so is one a planar arm's pulse limits refuse.
-    """
-    targets = np.atleast_2d(np.asarray(targets, float))
-    u_train, d_train = rig.chain_rows(arm, "train")
-    lo, hi = u_train.min(axis=0), u_train.max(axis=0)
-    order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
-    f = _column_jacobian(robot, arm)
-    xj = jnp.asarray(x)
-    per_rad = _radians_per_unit(robot, arm)
-    best = np.zeros((len(targets), u_train.shape[1]))
-    best_beyond = np.full(len(targets), np.inf)
-    best_miss = np.full(len(targets), np.inf)
-    for k in range(min(AIM_SEEDS, order.shape[1])):
-        # targets already aimed inside the range start from their solution, where Gauss-Newton
-        # stops at once, so a later seed costs the steps of the targets still outside only
-        # (and every call keeps the shape its program was compiled for)
-        settled = (best_beyond == 0.0)[:, None]
-        u, miss = _aim_from(f, xj, targets, np.where(settled, best, u_train[order[:, k]]),
-                            per_rad)
-        beyond = np.where(miss < IK_TOL_MM, (np.maximum(lo - u, 0.0)
-                                             + np.maximum(u - hi, 0.0)).sum(axis=1), np.inf)
-        # a later seed replaces a solution only where it is strictly further inside the range
-        # (or the first to reach the target): where the nearest seed's is inside, it stays
-        better = (beyond < best_beyond) | (np.isinf(best_beyond) & (miss < best_miss))
-        best[better], best_beyond[better], best_miss[better] = u[better], beyond[better], \
-            miss[better]
-        if np.all(best_beyond == 0.0):
-            break
-    for t, m in zip(targets, best_miss, strict=True):
-        if not m < IK_TOL_MM:
-            where = (f"its calibrated model gets no closer than {m:.1f} mm" if np.isfinite(m)
-                     else "its calibrated model's inverse kinematics did not converge")
-            raise RigError(f"target ({', '.join(f'{v:g}' for v in t)}) is out of reach of arm "
-                           f"{arm!r}: {where}")
-    limits = getattr(rig.arms[arm], "pulse_limits", None)  # planar arms: servo pulse limits
-    if limits is not None:
-        for t, ut in zip(targets, best, strict=True):
-            check_pulse_limits(arm, t, ut, limits)
-    return best
-
-
-def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
-    """Joint units (rad; mm on a prismatic joint) per command unit of each of ``arm``'s
-    columns, from the description's gains: the servo gain on planar arms, whose columns are
-    pulse widths (so a step limit in radians does not read as 0.3 us, which never reaches a
-    target), 1 on URDF/DH joints unless the rig gives a ``gain``. The nominal gains, not the
-    calibrated ones, so the steps do not depend on the fit. Couplings are left out: a column
-    moving its joints by +-1 (the usual coupling) is limited as its joint."""
-    return np.concatenate([np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
-                           for c in robot.path(arm)])
-
-
-def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`aim_chain`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
-    each target is missed (mm). ``per_rad`` (c,): radians per unit of each column."""
-    for _ in range(IK_ITERATIONS):
-        p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))
-        r = targets - p
-        err = np.linalg.norm(r, axis=1)
-        if np.all(err < IK_TOL_MM):
-            break
-        # the step is limited to 0.3 rad per column, so far targets are approached, not jumped
-        jjt = np.einsum("tic,tjc->tij", jac, jac) + 1e-6 * np.eye(jac.shape[1])
-        step = np.einsum("tic,ti->tc", jac, np.linalg.solve(jjt, r[..., None])[..., 0])
-        big = np.abs(step * per_rad).max(axis=1, keepdims=True)
-        u = u + step * np.minimum(1.0, 0.3 / np.maximum(big, 1e-12))
-    p = np.asarray(f(xj, jnp.asarray(u))[0])
-    return u, np.linalg.norm(targets - p, axis=1)
 
 
 def _log_stiffness_prior(priors: Sequence[StiffnessPrior]) -> None:

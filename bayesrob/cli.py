@@ -848,8 +848,8 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
     p.add_argument("--config", default=None,
                    help="one arm or arms joined by '+' (default: the rig's first linked config)")
-    p.add_argument("--target", nargs=2, type=_target, required=True, metavar=("X", "Y"),
-                   help="where every arm of the config is aimed, mm")
+    p.add_argument("--target", nargs="+", type=_target, required=True, metavar="X",
+                   help="where every arm of the config is aimed: X Y (X Y Z on a 3-D rig), mm")
     p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
     p.add_argument("--sampler", choices=["nuts", "emcee", "grid", "all"], default="all",
                    help="nuts, emcee, grid or all (default); the grid always runs: it is the "
@@ -857,6 +857,9 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
                         "from the grid)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="URDF/DH rigs: the parameter groups the arms are calibrated with, as "
+                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
                 "0.1 mm, covariance within 10% Frobenius, r_hat <= 1.01, bulk ESS >= 400), "
@@ -875,8 +878,15 @@ def _sample(args: argparse.Namespace) -> int:
         from bayesrob.inference import format_sample, sample_linked
         from bayesrob.noise_models import ModelFileError
 
-        rig = _load_rig_arg(args.rig)
+        rig = _load_rig_arg(args.rig, chains=True)
         loading.close(done=False)
+    dim = rig.robot.dim if rig.is_chain else 2
+    if len(args.target) != dim:
+        raise UsageError(f"--target needs {dim} numbers on this {dim}-D rig "
+                         f"({' '.join('XYZ'[:dim])}), got {len(args.target)}")
+    if args.params is not None and not rig.is_chain:
+        raise UsageError("--params is for rigs of URDF/DH arms: the planar arms' calibration "
+                         "is the paper's eight parameters")
     config = args.config
     if config is None:
         if not rig.linked_configs:
@@ -885,7 +895,7 @@ def _sample(args: argparse.Namespace) -> int:
     try:
         report = sample_linked(rig, config, args.target, args.model, args.sampler,
                                seed=args.seed, progress=_progress(args),
-                               models_dir=args.models_dir)
+                               models_dir=args.models_dir, groups=args.params)
     except (ModelFileError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     if args.json != "-":
@@ -971,6 +981,9 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", nargs="+", metavar="NAME",
                    help="model names to compare (default: every file in models/)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="URDF/DH rigs: the parameter groups the arms are calibrated with, as "
+                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo)")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
                    help="write the comparison plot (PNG) here (default: next to --json OUT, "
@@ -982,11 +995,16 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
 def _compare(args: argparse.Namespace) -> int:
     from bayesrob.comparison import compare_models, comparison_figure, format_comparison
     from bayesrob.noise_models import ModelFileError
+    from bayesrob.rig import RigError
 
-    rig = _load_rig_arg(args.rig)
+    rig = _load_rig_arg(args.rig, chains=True)
+    if args.params is not None and not rig.is_chain:
+        raise UsageError("--params is for rigs of URDF/DH arms: the planar arms' calibration "
+                         "is the paper's eight parameters")
     try:
-        comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args))
-    except ModelFileError as exc:
+        comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args),
+                              groups=args.params)
+    except (ModelFileError, RigError) as exc:
         raise UsageError(str(exc)) from None
     doc = comp.document()
     plot = args.plot

@@ -314,6 +314,10 @@ class ModelComparison:
     # the same setups with linked ones fused by the equilibrium rule (model -> setup -> scores)
     fused: dict[str, dict[str, PointScores]] = field(default_factory=dict)
     fused_holdout: dict[str, dict[str, PointScores]] = field(default_factory=dict)
+    # URDF/DH rigs: what each model is on their arms (bayesrob.marker_density), and the score
+    kinds: dict[str, str] = field(default_factory=dict)
+    score: str = ("log predictive density per mm^2 of the observed end point, normalised "
+                  "over the grid box; elpd = sum over points")
 
     def heldout_pointwise(self, model: str) -> np.ndarray:
         return np.concatenate([s.lpd for s in self.heldout[model].values()])
@@ -336,6 +340,8 @@ class ModelComparison:
                 "holdout": _score_summary(self.holdout[name]) if self.holdout else None,
                 "fusion": "product",
             }
+            if name in self.kinds:
+                models[name]["marker_model"] = self.kinds[name]
             if self.fused.get(name) and any("+" in c for c in self.fused[name]):
                 models[f"{name}:{EQUILIBRIUM}"] = {
                     "model": name, "fusion": EQUILIBRIUM,
@@ -350,8 +356,7 @@ class ModelComparison:
         runner_up = held[1] if len(held) > 1 else None
         return {
             "rig": self.rig.name,
-            "score": "log predictive density per mm^2 of the observed end point, normalised "
-                     "over the grid box; elpd = sum over points",
+            "score": self.score,
             "heldout_rows": {c: int(s.lpd.size) for c, s in
                              self.heldout[self.specs[0].name].items()},
             "models": models,
@@ -386,16 +391,21 @@ def heldout_scores(rig: Rig, specs: Sequence[ModelSpec], arms: dict[str, kin.Arm
 
 def compare_models(rig: Rig, models: Sequence[str] | None = None,
                    models_dir: str | Path | None = None, progress: bool = False,
-                   recalibrate: bool = True) -> ModelComparison:
+                   recalibrate: bool = True, groups: tuple[str, ...] | None = None
+                   ) -> ModelComparison:
     """Fit every model on the training rows and score it on held-out and LOO points.
 
     Held out are the validation/test rows and, when the rig has them, the ``holdout`` rows
     (scored separately). ``recalibrate``: leave-one-out refits each arm's calibration without
-    the left-out row as well (see :func:`loo_training_scores`).
+    the left-out row as well (see :func:`loo_training_scores`). A rig of URDF/DH arms is
+    calibrated over ``groups`` (default :data:`bayesrob.kinematics.GROUPS`) and scored by its
+    markers' densities (:func:`_compare_marker_models`).
     """
     from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
+    if rig.is_chain:
+        return _compare_marker_models(rig, models, models_dir, progress, groups)
     specs = discover_models(models_dir, models)
     bar = progress_report(len(specs), "compare", "models", enabled=progress,
                           postfix="calibrating")
@@ -461,9 +471,87 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
                            fused, fused_holdout)
 
 
+def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
+                           models_dir: str | Path | None, progress: bool,
+                           groups: tuple[str, ...] | None) -> ModelComparison:
+    """:func:`compare_models` on a rig of URDF/DH arms: every measured arm's validation rows
+    (and holdout rows) scored by :class:`bayesrob.marker_density.MarkerDensity`, and
+    leave-one-out over its train rows with the calibration kept."""
+    from bayesrob.calibration import calibrate_chain, side_rows
+    from bayesrob.marker_density import fit_marker_model, loo_marker_scores, marker_model_kind
+    from bayesrob.progress import progress as progress_report
+
+    t0 = time.perf_counter()
+    if models:
+        specs = discover_models(models_dir, models)
+    else:  # the paper's estimators are planar: a URDF/DH rig compares the improved ones
+        specs = [s for s in discover_models(models_dir) if not s.paper]
+    kinds = {s.name: marker_model_kind(s) for s in specs}
+    bar = progress_report(len(specs), "compare", "models", enabled=progress,
+                          postfix="calibrating")
+    cal = calibrate_chain(rig, groups if groups is not None else kin.GROUPS)
+    arms = [a for a in cal.robot.measured_arms() if rig.measurements.mask(a, "train").any()]
+    hold_arms = [a for a in arms if rig.measurements.mask(a, HOLDOUT).any()]
+
+    def scored(model, arm: str, set: str) -> PointScores:
+        u, d = rig.chain_rows(arm, set)
+        density = model.density(u, side_rows(rig, cal.robot, arm, set))
+        return PointScores(density.logpdf(d), density.hdr_level(d), observed=d)
+
+    heldout, holdout, loo, in_sample = {}, {}, {}, {}
+    for spec in specs:
+        bar.set_postfix_str(spec.name)
+        fitted = {a: fit_marker_model(rig, cal, a, spec, seed=i) for i, a in enumerate(arms)}
+        heldout[spec.name] = {a: scored(fitted[a], a, "validation") for a in arms}
+        if hold_arms:
+            holdout[spec.name] = {a: scored(fitted[a], a, HOLDOUT) for a in hold_arms}
+        pairs = [loo_marker_scores(rig, fitted[a]) for a in arms]
+        loo[spec.name] = np.concatenate([p[0] for p in pairs])
+        in_sample[spec.name] = np.concatenate([p[1] for p in pairs])
+        bar.update()
+    bar.close()
+    notes = [
+        "held out: validation rows of each measured arm; models fitted on train rows",
+        "score: log density per mm^3 (per mm^2 on a 2-D rig) of the observed marker under the "
+        "arm's marker density at its commands (bayesrob.marker_density): ind and corr the "
+        "latent joint-error population, cond the kernel conditional of the marker residuals "
+        "given the commands",
+        "loo_train: leave-one-out over each arm's train residuals (scaled for the calibration's "
+        "degrees of freedom), calibration kept: exact for cond, Pareto-smoothed importance "
+        "sampling (arviz loo) over the population's posterior draws for ind and corr",
+        "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
+        f"calibrated with --params {','.join(cal.groups)}",
+    ]
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The inplace keyword")
+        held = az.compare({s.name: _elpd_data(np.concatenate(
+            [x.lpd for x in heldout[s.name].values()]), float("nan")) for s in specs},
+            method="stacking")
+        loos = az.compare({s.name: _elpd_data(loo[s.name], float(in_sample[s.name].sum()
+                                                                 - loo[s.name].sum()))
+                           for s in specs}, method="stacking")
+        hold_table = None
+        if hold_arms:
+            notes.append("holdout: rows at poses no other set has, scored like the held-out rows")
+            hold_table = az.compare(
+                {s.name: _elpd_data(np.concatenate([x.lpd for x in holdout[s.name].values()]),
+                                    float("nan")) for s in specs}, method="stacking")
+    linked = [c for c in rig.linked_configs if rig.measurements.mask(c).any()]
+    if linked:
+        notes.append(f"linked rows ({', '.join(linked)}) are not scored on a URDF/DH rig: "
+                     "'bayesrob predict' gives their coverage")
+    dim = rig.robot.dim
+    return ModelComparison(rig, list(specs), heldout, loo, in_sample, held, loos,
+                           time.perf_counter() - t0, notes, holdout, hold_table, False,
+                           kinds=kinds, score=(
+                               f"log predictive density per mm^{dim} of the observed marker "
+                               "under the arm's marker density; elpd = sum over points"))
+
+
 def format_comparison(doc: dict) -> str:
     """Terminal tables of a comparison document."""
     parts = []
+    unit = "mm^3" if "mm^3" in doc["score"] else "mm^2"
     tables = [("heldout_compare", "heldout", "held-out points"),
               ("loo_compare", "loo_train", "leave-one-out over training rows")]
     if doc.get("holdout_compare"):
@@ -473,7 +561,7 @@ def format_comparison(doc: dict) -> str:
                  f"{r['elpd_diff']:.1f}", f"{r['dse']:.1f}", f"{r['weight']:.2f}"]
                 for r in doc[key]]
         n = next(iter(doc["models"].values()))[summary]["n"]
-        parts.append(f"{title} (n = {n}; elpd = sum of log density per mm^2)")
+        parts.append(f"{title} (n = {n}; elpd = sum of log density per {unit})")
         parts.append(format_table(["model", "rank", "elpd", "se", "elpd_diff", "dse", "weight"],
                                   rows))
         parts.append("")

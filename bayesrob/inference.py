@@ -50,6 +50,7 @@ from scipy.special import logsumexp, softmax
 from threadpoolctl import threadpool_limits
 
 from bayesrob import kinematics as kin
+from bayesrob.aiming import check_pulse_limits, check_reach
 from bayesrob.kde import guided_histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.prediction import Grid
@@ -84,6 +85,10 @@ __all__ = [
     "run_emcee",
     "cross_check",
     "cov_rel_error",
+    "DensityGrid",
+    "density_grid",
+    "nuts_density",
+    "emcee_density",
     "sample_linked",
     "format_sample",
 ]
@@ -874,6 +879,130 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
 
 
 # --------------------------------------------------------------------------------------------
+# Any log density of one point (a URDF/DH rig's linked markers): the samplers and the grid
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Box:
+    half_width_mm: float
+
+
+@dataclass
+class DensityGrid:
+    """A point's posterior by the midpoint rule on a regular grid in 2-D or 3-D: the zoomed
+    grid over the box a coarse one found holding all but ``1e-9`` of the mass. The fields
+    :func:`cross_check` reads, with one target."""
+
+    targets: np.ndarray  # (1, dim)
+    lo: np.ndarray  # (1, dim)
+    cell_mm: np.ndarray  # (1, dim)
+    n: int
+    mean: np.ndarray  # (1, dim)
+    cov: np.ndarray  # (1, dim, dim)
+    edge_mass: np.ndarray  # (1,) the coarse grid's mass in its outermost layer of cells
+    coarse: Box
+    seconds: float = 0.0
+
+
+def _grid_mass(log_density: Callable, lo: np.ndarray, cell: np.ndarray, n: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Cell centres (n^dim, dim) and their normalised masses."""
+    axes = [lo[i] + (np.arange(n) + 0.5) * cell[i] for i in range(len(lo))]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(lo))
+    # compiled whole: dispatched op by op, a mixture of a few hundred components in 3-D
+    # stalled XLA's CPU runtime for minutes
+    lp = np.asarray(jax.jit(lambda p: jax.lax.map(log_density, p, batch_size=1024))(
+        jnp.asarray(pts)))
+    w = np.exp(lp - lp.max())
+    return pts, w / w.sum()
+
+
+def density_grid(log_density: Callable, centre: np.ndarray, half_width_mm: float,
+                 n: int = 41) -> DensityGrid:
+    """The posterior of ``log_density`` (a JAX function of one point) by the midpoint rule:
+    a coarse n^dim grid of +-``half_width_mm`` about ``centre`` finds the mass, a second over
+    the box holding all but 1e-9 of it (plus a cell) gives mean and covariance."""
+    t0 = time.perf_counter()
+    centre = np.asarray(centre, float)
+    dim = len(centre)
+    cell = np.full(dim, 2 * half_width_mm / n)
+    lo = centre - half_width_mm
+    pts, mass = _grid_mass(log_density, lo, cell, n)
+    idx = np.stack(np.unravel_index(np.arange(n**dim), (n,) * dim), -1)
+    edge = float(mass[np.any((idx == 0) | (idx == n - 1), axis=1)].sum())
+    keep = mass > 1e-9 * mass.max()
+    lo2 = pts[keep].min(0) - cell
+    hi2 = pts[keep].max(0) + cell
+    cell2 = (hi2 - lo2) / n
+    pts, mass = _grid_mass(log_density, lo2, cell2, n)
+    mean = mass @ pts
+    dev = pts - mean
+    cov = np.einsum("k,ki,kj->ij", mass, dev, dev)
+    return DensityGrid(centre[None], lo2[None], cell2[None], n, mean[None], cov[None],
+                       np.array([edge]), Box(half_width_mm), time.perf_counter() - t0)
+
+
+def _point_idata(d: np.ndarray, stats: dict | None = None) -> az.InferenceData:
+    """(chain, draw, dim) draws of one point as InferenceData with d: (chain, draw, 1, dim)."""
+    dim = d.shape[-1]
+    coords = {"xy": ["x", "y", "z"][:dim]}
+    return az.from_dict(posterior={"d": d[:, :, None, :]},
+                        sample_stats={k: v[:, :, None] for k, v in (stats or {}).items()},
+                        dims={**_DIMS, **{k: ["target"] for k in stats or {}}}, coords=coords)
+
+
+def nuts_density(log_density: Callable, init: np.ndarray, *, seed: int = 0,
+                 num_warmup: int = NUTS_WARMUP, num_samples: int = NUTS_SAMPLES,
+                 progress: bool = False) -> SamplerResult:
+    """numpyro's NUTS (dense mass matrix) on ``log_density`` of one point, one chain per row
+    of ``init`` (C, dim), the chains side by side."""
+    from numpyro.infer import MCMC, NUTS
+
+    init = np.asarray(init, float)
+    kernel = NUTS(potential_fn=lambda z: -log_density(z), dense_mass=True,
+                  target_accept_prob=NUTS_TARGET_ACCEPT)
+    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
+                num_chains=len(init), chain_method="vectorized", progress_bar=False)
+    with _progress(None, progress, "nuts", postfix="compiling and sampling"):
+        t0 = time.perf_counter()
+        mcmc.run(jax.random.PRNGKey(seed), init_params=jnp.asarray(init),
+                 extra_fields=("diverging",))
+        d = np.asarray(mcmc.get_samples(group_by_chain=True))
+    seconds = time.perf_counter() - t0
+    div = np.asarray(mcmc.get_extra_fields(group_by_chain=True)["diverging"])
+    idata = _point_idata(d, {"diverging": div})
+    # numpyro's run compiles and samples in one call: its seconds include the compilation
+    return SamplerResult("nuts", idata, seconds, _summary(idata), 0.0)
+
+
+def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 2500,
+                  burn: int = 500, seed: int = 0, progress: bool = False) -> SamplerResult:
+    """emcee's EnsembleSampler on ``log_density`` of one point, walkers starting at ``init``
+    (W, dim), with :func:`run_emcee`'s moves and burn-in."""
+    init = np.asarray(init, float)
+    w, dim = init.shape
+    batch = jax.jit(jax.vmap(log_density))
+    t0 = time.perf_counter()
+    for k in {w, w // 2, w - w // 2}:
+        jax.block_until_ready(batch(jnp.asarray(init[:k])))
+    compile_seconds = time.perf_counter() - t0
+    moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
+    sampler = emcee.EnsembleSampler(w, dim, lambda x: np.asarray(batch(jnp.asarray(x))),
+                                    vectorize=True, moves=moves)
+    sampler.random_state = np.random.RandomState(seed).get_state()
+    t0 = time.perf_counter()
+    with threadpool_limits(limits=1, user_api="blas"), \
+            _progress(n_steps, progress, "emcee", "steps", "sampling") as bar:
+        for _ in sampler.sample(init, iterations=n_steps):
+            bar.update()
+    seconds = time.perf_counter() - t0
+    d = np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]  # (walker, draw, dim)
+    idata = _point_idata(d)
+    return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
+
+
+# --------------------------------------------------------------------------------------------
 # The cross-check
 # --------------------------------------------------------------------------------------------
 
@@ -958,8 +1087,8 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                   num_chains: int = 4, num_warmup: int = NUTS_WARMUP,
                   num_samples: int = NUTS_SAMPLES,
                   walkers: int = 32, steps: int = 2500, burn: int = 500,
-                  tol: CheckTolerances = CheckTolerances(), models_dir: Any = None
-                  ) -> SampleReport:
+                  tol: CheckTolerances = CheckTolerances(), models_dir: Any = None,
+                  groups: tuple[str, ...] | None = None) -> SampleReport:
     """Sample the end point of a setup aimed at ``target`` and check the samplers on the grid.
 
     ``config``: one arm or arms joined by '+'. Each arm is commanded through its own
@@ -972,12 +1101,21 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     judges the grid itself (a box whose edge holds mass truncates the posterior: then no
     sampler is run, there being nothing valid to compare with) and every sampler that ran;
     the document's ``check`` says whether it passed and lists every failure.
+
+    A rig of URDF/DH arms (2-D or 3-D) is calibrated over ``groups`` (default
+    :data:`bayesrob.kinematics.GROUPS`), each arm aimed by :func:`bayesrob.aiming.aim_chain`,
+    and the point sampled under its arms' marker densities (:func:`_sample_markers`).
     """
     from bayesrob.calibration import calibrate
     from bayesrob.noise_models import discover_models, fit_noise_models
 
     if sampler not in (*SAMPLERS, "all"):
         raise ValueError(f"sampler must be one of {SAMPLERS} or 'all', got {sampler!r}")
+    if rig.is_chain:
+        return _sample_markers(rig, config, target, model, sampler, seed=seed,
+                               progress=progress, groups=groups, models_dir=models_dir,
+                               num_chains=num_chains, walkers=walkers, steps=steps, burn=burn,
+                               tol=tol)
     members = config.split("+")
     unknown = [a for a in members if a not in rig.arms]
     if unknown:
@@ -1066,30 +1204,113 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     return SampleReport(doc, grid, results)
 
 
-def check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
-    """Refuse a target the arm cannot be aimed at: one line naming target, arm and reach."""
-    l1, l2 = (float(x) for x in np.asarray(arm.params.links))
-    base = np.asarray(arm.params.base, float)
-    r = float(np.linalg.norm(target - base))
-    lo, hi = abs(l1 - l2), l1 + l2
-    where = f"target ({target[0]:g}, {target[1]:g})"
-    if not lo <= r <= hi:
-        raise ValueError(f"{where} is out of reach of arm {arm.name!r}: it is {r:.1f} mm from "
-                         f"the arm's base ({base[0]:.1f}, {base[1]:.1f}), which reaches "
-                         f"{lo:.1f} to {hi:.1f} mm")
-    check_pulse_limits(arm.name, target, u, arm.pulse_limits,
-                       f" (reach {lo:.1f} to {hi:.1f} mm from its base)")
+def _side(robot: kin.Robot, arm: str, commands: dict[str, np.ndarray]) -> dict | None:
+    """The rest of a linked pose, where the robot's gravity model weighs it."""
+    if robot.gravity is None:
+        return None
+    others = robot.side_arms(arm)
+    if not others or any(b not in commands for b in others):
+        return None
+    return {b: jnp.asarray(commands[b]) for b in others}
 
 
-def check_pulse_limits(name: str, target: np.ndarray, u: np.ndarray,
-                       limits: Sequence[tuple[float, float]], note: str = "") -> None:
-    """Refuse pulses ``u`` aimed at ``target`` beyond an arm's pulse limits: one line naming
-    target, arm, pulse and limits (``note`` appended)."""
-    for j, (p, (a, b)) in enumerate(zip(u, limits, strict=True)):
-        if not a <= p <= b:
-            raise ValueError(f"target ({', '.join(f'{v:g}' for v in target)}) is outside the "
-                             f"workspace of arm {name!r}: aiming at it needs pulse {j + 1} = "
-                             f"{p:.1f} us, outside its pulse_limits [{a:g}, {b:g}]{note}")
+def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, sampler: str,
+                    *, seed: int, progress: bool, groups: tuple[str, ...] | None,
+                    models_dir: Any, num_chains: int, walkers: int, steps: int, burn: int,
+                    tol: CheckTolerances) -> SampleReport:
+    """:func:`sample_linked` on a rig of URDF/DH arms: the shared point of arms aimed at
+    ``target`` has the density prod_a p_a(point | u_a) of the arms' marker densities
+    (:class:`bayesrob.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample it and
+    a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
+    from bayesrob.aiming import aim_chain
+    from bayesrob.calibration import calibrate_chain
+    from bayesrob.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
+    from bayesrob.noise_models import discover_models
+    from bayesrob.rig import RigError
+
+    members = config.split("+")
+    measured = rig.robot.measured_arms()
+    unknown = [a for a in members if a not in measured]
+    if unknown:
+        raise RigError(f"config {config!r}: {unknown[0]!r} is not a measured arm of the rig "
+                       f"(measured: {', '.join(measured)})")
+    spec = discover_models(models_dir, [model])[0]
+    kind = marker_model_kind(spec)
+    dim = rig.robot.dim
+    target = np.asarray(target, float).reshape(1, dim)
+    with _progress(3, progress, "sample", "steps", "calibrating") as bar:
+        cal = calibrate_chain(rig, groups if groups is not None else kin.GROUPS)
+        commands = {a: aim_chain(rig, cal.robot, cal.x, a, target) for a in members}
+        bar.update()
+        bar.set_postfix(f"fitting {model}")
+        densities = [fit_marker_model(rig, cal, a, spec, seed=i).density(
+            commands[a], _side(cal.robot, a, commands)) for i, a in enumerate(members)]
+        arrays = [d.arrays() for d in densities]
+        bar.update()
+        bar.set_postfix("grid")
+
+        def log_density(p):
+            return sum(mixture_logpdf(p[None], *a)[0] for a in arrays)
+
+        draws = [d.sample(seed + 7 + i, 2000)[:, 0] for i, d in enumerate(densities)]
+        spread = max(float(np.sqrt(np.linalg.eigvalsh(np.cov(x.T)).max())) for x in draws)
+        centres = np.array([d.centre[0] for d in densities])
+        half = 10.0 * spread + float(np.ptp(centres, axis=0).max())
+        grid = density_grid(log_density, centres.mean(0), half)
+        bar.update()
+    truncated = bool(grid.edge_mass[0] > tol.edge_mass)
+    rng = np.random.default_rng(seed)
+
+    def start(n: int) -> np.ndarray:
+        # the target plus over-dispersed draws of the arms' own spread, never the grid's
+        dev = np.concatenate([x - x.mean(0) for x in draws])
+        return target[0] + INIT_OVERDISPERSION * dev[rng.choice(len(dev), n, replace=False)]
+
+    results = {}
+    if sampler in ("nuts", "all") and not truncated:
+        results["nuts"] = nuts_density(log_density, start(num_chains), seed=seed,
+                                       progress=progress)
+    if sampler in ("emcee", "all") and not truncated:
+        results["emcee"] = emcee_density(log_density, start(walkers), n_steps=steps,
+                                         burn=burn, seed=seed, progress=progress)
+    doc = {
+        "target": [float(v) for v in target[0]], "config": config, "model": model,
+        "marker_model": kind,
+        "commands": {a: [float(v) for v in u[0]] for a, u in commands.items()},
+        "prior": f"flat in {dim}-D (numpyro potential of the arms' marker densities); the "
+                 "grid's box holds all but edge_mass of the posterior",
+        "init": f"NUTS chains and emcee walkers start at the target plus draws of "
+                f"{INIT_OVERDISPERSION:g} x the arms' own spread about their centres, not at "
+                "the grid",
+        "params": list(cal.groups),
+        "samplers": {"grid": {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
+                              "cell_mm": [float(v) for v in grid.cell_mm[0]], "n": grid.n,
+                              "box_lo": [float(v) for v in grid.lo[0]],
+                              "box_half_width_mm": half,
+                              "edge_mass": float(grid.edge_mass[0])}},
+    }
+    for name, res in results.items():
+        entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
+                 "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
+                 "compile_seconds": res.compile_seconds, "ess_per_s": res.ess_per_s,
+                 "chains": int(res.idata.posterior.sizes["chain"]),
+                 "draws": int(res.idata.posterior.sizes["draw"])}
+        if name == "nuts":
+            entry["divergences"] = int(res.idata.sample_stats["diverging"].values.sum())
+        else:
+            entry["burn"] = burn
+        doc["samplers"][name] = entry
+    check = cross_check(grid, list(results.values()), tol)
+    check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel, "r_hat": tol.r_hat,
+                           "ess_bulk": tol.ess_bulk, "edge_mass": tol.edge_mass}
+    check["compared"] = list(results)
+    doc["check"] = check
+    doc["notes"] = [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
+                    "calibrated inverse kinematics"]
+    if truncated and sampler != "grid":
+        doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
+                            "so there is nothing valid to check a sampler against")
+    return SampleReport(doc, grid, results)
 
 
 def format_sample(report: SampleReport) -> str:
@@ -1097,7 +1318,8 @@ def format_sample(report: SampleReport) -> str:
     from bayesrob.report import format_table
 
     doc = report.document
-    parts = [f"{doc['config']} aimed at ({doc['target'][0]:.2f}, {doc['target'][1]:.2f}) mm, "
+    dim = len(doc["target"])
+    parts = [f"{doc['config']} aimed at ({', '.join(f'{v:.2f}' for v in doc['target'])}) mm, "
              f"model {doc['model']}"]
     for name, res in report.results.items():
         parts.append(f"\n{name}: az.summary ({res.seconds:.1f} s sampling, "
@@ -1106,17 +1328,21 @@ def format_sample(report: SampleReport) -> str:
     rows = []
     for name, s in doc["samplers"].items():
         sd = np.sqrt(np.diag(np.asarray(s["cov"])))
-        corr = s["cov"][0][1] / (sd[0] * sd[1])
-        rows.append([name, f"{s['mean'][0]:.3f}", f"{s['mean'][1]:.3f}", f"{sd[0]:.3f}",
-                     f"{sd[1]:.3f}", f"{corr:+.3f}",
+        # a plane's one correlation; in 3-D the three would crowd the table
+        corr = [f"{s['cov'][0][1] / (sd[0] * sd[1]):+.3f}"] if dim == 2 else []
+        rows.append([name, *(f"{v:.3f}" for v in s["mean"]), *(f"{v:.3f}" for v in sd), *corr,
                      f"{s['ess_bulk']:.0f}" if "ess_bulk" in s else "-",
                      f"{s['r_hat']:.4f}" if "r_hat" in s else "-", f"{s['seconds']:.2f}"])
     parts.append("")
-    parts.append(format_table(["sampler", "mean x", "mean y", "sd x", "sd y", "corr",
+    axes = "xyz"[:dim]
+    parts.append(format_table(["sampler", *(f"mean {a}" for a in axes),
+                               *(f"sd {a}" for a in axes), *(["corr"] if dim == 2 else []),
                                "ess_bulk", "r_hat", "seconds"], rows))
     g = doc["samplers"]["grid"]
-    parts.append(f"grid: zoomed {g['n']}x{g['n']} cells of {g['cell_mm'][0]:.4f} x "
-                 f"{g['cell_mm'][1]:.4f} mm; mass on the +-30 mm box edge {g['edge_mass']:.1e}")
+    half = g.get("box_half_width_mm", 30)
+    parts.append(f"grid: zoomed {'x'.join([str(g['n'])] * dim)} cells of "
+                 f"{' x '.join(f'{c:.4f}' for c in g['cell_mm'])} mm; mass on the +-{half:g} mm "
+                 f"box edge {g['edge_mass']:.1e}")
     check = doc["check"]
     if not check["passed"]:
         parts.append("check FAILED:")

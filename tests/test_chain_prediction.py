@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+import bayesrob.aiming as aiming
 import bayesrob.chain_prediction as cp
 from bayesrob import kinematics as kin
 from bayesrob.assembly import grid_targets, predict_assembly, read_targets
@@ -104,7 +105,6 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
     the same points as one call, to rounding (1e-9 mm: the same operations per draw)."""
     import dataclasses
 
-    import bayesrob.chain_prediction as cp
 
     rig, mods = arm6_modules
     mods = dataclasses.replace(mods, param_cov=1e-8 * np.eye(len(mods.x)))
@@ -179,11 +179,11 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
                          for t in range(len(targets))])
         return u, miss
 
-    monkeypatch.setattr(cp, "_aim_from", fake)
-    monkeypatch.setattr(cp, "_column_jacobian", lambda robot, arm: None)
-    monkeypatch.setattr(cp, "_radians_per_unit", lambda robot, arm: np.ones(2))
+    monkeypatch.setattr(aiming, "_aim_from", fake)
+    monkeypatch.setattr(aiming, "_column_jacobian", lambda robot, arm: None)
+    monkeypatch.setattr(aiming, "_radians_per_unit", lambda robot, arm: np.ones(2))
     targets = np.array([[1.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0]])
-    u = cp.aim_chain(rig, None, np.zeros(1), "arm", targets)
+    u = aiming.aim_chain(rig, None, np.zeros(1), "arm", targets)
     np.testing.assert_array_equal(u, [[0.5, 0.5], [0.4, 0.4], [1.05, 0.0]])
     # seeds nearest first: target 1 (x = 12) starts from the train pose at x = 10
     np.testing.assert_array_equal(calls[0][1], u_train[1])
@@ -193,18 +193,18 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     np.testing.assert_array_equal(calls[1][0], u[0])
     # everything inside at once: the nearest seeds alone, one solve
     calls.clear()
-    assert cp.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.5, 0.5]]
+    assert aiming.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.5, 0.5]]
     assert len(calls) == 1
     # a seed that misses the target is passed over for a later one that reaches it
     calls.clear()
     answers[0] = [[5.0, 5.0], [0.6, 0.6], [0.2, 0.3], [0.1, 0.1]]
     reach[0] = [False, True, True, True]
-    assert cp.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.6, 0.6]]
+    assert aiming.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.6, 0.6]]
     assert len(calls) == 2
     calls.clear()
     answers[3] = answers[0]
     with pytest.raises(RigError, match=r"target \(25, 0, 0\) is out of reach"):
-        cp.aim_chain(rig, None, np.zeros(1), "arm", np.array([[1.0, 0, 0], [12.0, 0, 0],
+        aiming.aim_chain(rig, None, np.zeros(1), "arm", np.array([[1.0, 0, 0], [12.0, 0, 0],
                                                               [19.0, 0, 0], [25.0, 0, 0]]))
 
 
@@ -314,7 +314,6 @@ def test_linked_arms_prior_is_centred_on_their_fitted_sags(linked_calibration, m
 
     import jax
 
-    import bayesrob.chain_prediction as cp
 
     rig, cal = linked_calibration
     prior = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
@@ -365,7 +364,6 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
 
     import jax
 
-    import bayesrob.chain_prediction as cp
     from bayesrob.chain_design import (
         ChainModule,
         _log_stiffness,
@@ -456,7 +454,6 @@ def test_stiffness_from_compliances_fitted_under_the_described_masses(arm6_modul
     1% of that error; no joint takes the prior's shared arm term."""
     from types import SimpleNamespace
 
-    import bayesrob.chain_prediction as cp
 
     rig, mods = arm6_modules
     lay = mods.robot.layout
@@ -502,7 +499,6 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     each correlation within about 0.01 (sd (1 - r^2) / sqrt(n)); tolerance 0.03."""
     import jax
 
-    import bayesrob.chain_prediction as cp
 
     monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
     unknown = cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool), "the prior")
@@ -527,7 +523,6 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
 
     import jax.numpy as jnp
 
-    import bayesrob.chain_prediction as cp
 
     asked = []
 

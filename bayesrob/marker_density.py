@@ -1,0 +1,252 @@
+"""The predictive density of an arm's measured marker at given commands, for IND, CORR and COND
+on any robot: a Gaussian mixture per row, scored, sampled and multiplied the same way for all.
+
+IND and CORR (joint errors not observed: more joints than measured coordinates). The latent
+population of :mod:`bayesrob.latent_errors` is the density: e ~ N(0, Sigma), the marker
+r = J e + eps. Integrated over e, row t's residual is N(0, J_t Sigma_s J_t^T + s_s^2 I) for each
+posterior draw s of (Sigma, s), and the predictive is their equal-weight mixture.
+
+COND: the paper's COND conditions the error on the commands through a Parzen kernel in
+command space. On a chain the per-row quantity the rows observe is the marker residual (the
+joint errors are not), so COND is the kernel-conditional KDE of the train residuals given the
+path's commands, :class:`bayesrob.kde.ConditionalKDE` (LOO-ML widths, the command widths at
+least ``command_bandwidth_floor`` nearest-neighbour spacings, as the planar COND's file
+says): row t's residual is sum_i w_i(u_t) N(r_i, diag(bw^2)).
+
+Both are fitted on the calibrated model's train residuals scaled by sqrt(N / (N - p)) for the
+p parameters the calibration took (:func:`bayesrob.latent_errors.fit_latent_errors`), so a
+residual of a row no fit has seen is scored against the spread such rows have.
+
+The mixture is centred on the calibrated model's marker at each row's commands; its
+log-density is a JAX function (NUTS differentiates it) and its draws serve the HDR levels.
+Leave-one-out over the train rows keeps the calibration: exact for COND (row i's own
+component dropped from its mixture, the widths kept), Pareto-smoothed importance sampling
+(arviz ``loo``) over the population's posterior draws for IND and CORR.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.special
+from jax.scipy.special import logsumexp
+
+from bayesrob.calibration import ChainCalibration, side_rows
+from bayesrob.kde import ConditionalKDE
+from bayesrob.latent_errors import LatentJointErrors, fit_latent_errors, joint_jacobian
+from bayesrob.noise_models import ModelSpec
+from bayesrob.rig import Rig, RigError
+
+__all__ = ["MarkerDensity", "MarkerModel", "fit_marker_model", "marker_model_kind",
+           "loo_marker_scores"]
+
+# Posterior draws of the population a latent density mixes over: the mixture's spread
+# settles within a few per cent by 100 draws; 200 keep the HDR levels' Monte Carlo error below
+# the binomial error of 200 rows.
+LATENT_COMPONENTS = 200
+HDR_DRAWS = 4000  # draws of the mixture against which a point's HDR level is read
+
+
+def marker_model_kind(spec: ModelSpec) -> str:
+    """"ind", "corr" or "cond": the model a spec is on a chain arm; one-line error otherwise."""
+    if spec.paper:
+        raise RigError(f"model {spec.name!r}: the paper's estimators read joint errors off a "
+                       "planar arm's residual; a URDF/DH arm takes ind, corr and cond")
+    if spec.family == "COND" and spec.conditioning != "kernel":
+        raise RigError(f"model {spec.name!r}: a URDF/DH arm's COND is the kernel conditional "
+                       f"of its marker residuals, not conditioning = {spec.conditioning!r}")
+    return spec.family.lower()
+
+
+@dataclass(frozen=True)
+class MarkerDensity:
+    """p(marker | commands) at T rows: row t is sum_k exp(log_w[t, k]) N(centre[t] +
+    means[t, k], chol[t, k] chol[t, k]^T). Arrays may broadcast over K (COND's shared kernel)."""
+
+    centre: np.ndarray  # (T, dim)
+    log_w: np.ndarray  # (T, K) normalised
+    means: np.ndarray  # (T | 1, K, dim)
+    chol: np.ndarray  # (T | 1, K | 1, dim, dim) lower triangular
+
+    @property
+    def dim(self) -> int:
+        return int(self.centre.shape[-1])
+
+    def arrays(self) -> tuple[jax.Array, ...]:
+        """(centre, log weights with each component's normaliser, means, inverse Cholesky
+        factors): what :func:`mixture_logpdf` takes. Inverted once here, the density is
+        products and sums alone (XLA's CPU runtime stalled on batched triangular solves)."""
+        dim = self.dim
+        inv = np.linalg.inv(self.chol)
+        log_det = np.sum(np.log(np.abs(np.diagonal(self.chol, axis1=-2, axis2=-1))), axis=-1)
+        log_c = self.log_w - log_det - 0.5 * dim * math.log(2 * math.pi)
+        return tuple(jnp.asarray(a) for a in (self.centre, log_c, self.means, inv))
+
+    def logpdf(self, points: np.ndarray) -> np.ndarray:
+        """Log density (per mm^dim) of points (T, dim) -> (T,), or (M, T, dim) -> (M, T)."""
+        return np.asarray(_logpdf_blocks(jnp.asarray(points, float), *self.arrays()))
+
+    def sample(self, seed: int, n: int) -> np.ndarray:
+        """n draws (n, T, dim) of the marker at every row."""
+        key = jax.random.PRNGKey(seed)
+        return np.asarray(_sample(key, *(jnp.asarray(a) for a in (
+            self.centre, self.log_w, self.means, self.chol)), n))
+
+    def hdr_level(self, points: np.ndarray, seed: int = 0) -> np.ndarray:
+        """Mass denser than each point (T,): a point lies in the m region when <= m."""
+        ref = self.logpdf(self.sample(seed, HDR_DRAWS))  # (M, T)
+        return np.mean(ref > self.logpdf(points)[None], axis=0)
+
+
+def mixture_logpdf(points: jax.Array, centre: jax.Array, log_c: jax.Array, means: jax.Array,
+                   inv_chol: jax.Array) -> jax.Array:
+    """A MarkerDensity's log density as a JAX function of its :meth:`MarkerDensity.arrays`:
+    points (..., T, dim) -> (..., T)."""
+    dev = points[..., None, :] - centre[:, None, :] - means  # (..., T, K, dim)
+    z = jnp.einsum("...ij,...j->...i", inv_chol, dev)
+    return logsumexp(log_c - 0.5 * jnp.sum(z**2, -1), axis=-1)
+
+
+@jax.jit
+def _logpdf_blocks(points, centre, log_w, means, chol):
+    if points.ndim == 2:
+        return mixture_logpdf(points, centre, log_w, means, chol)
+    # draws one at a time: (M, T, K, dim, dim) at once would not fit for a few thousand draws
+    return jax.lax.map(lambda p: mixture_logpdf(p, centre, log_w, means, chol), points,
+                       batch_size=64)
+
+
+def _sample_impl(key, centre, log_w, means, chol, n):
+    t, k = log_w.shape
+    dim = centre.shape[-1]
+    k1, k2 = jax.random.split(key)
+    pick = jax.random.categorical(k1, log_w, shape=(n, t))  # (n, T)
+    rows = jnp.arange(t)[None, :]
+    mu = jnp.broadcast_to(means, (t, k, dim))[rows, pick]
+    lower = jnp.broadcast_to(chol, (t, k, dim, dim))[rows, pick]
+    z = jax.random.normal(k2, (n, t, dim))
+    return centre[None] + mu + jnp.einsum("ntij,ntj->nti", lower, z)
+
+
+_sample = jax.jit(_sample_impl, static_argnames=("n",))
+
+
+def _lse(a: np.ndarray) -> np.ndarray:
+    return scipy.special.logsumexp(a, axis=-1)
+
+
+# ---------------------------------------------------------------------------------- fitting
+
+
+@dataclass
+class MarkerModel:
+    """One arm's fitted joint-error model on a chain, ready to give its marker density."""
+
+    arm: str
+    kind: str  # "ind", "corr" or "cond"
+    calibration: ChainCalibration
+    dof_scale: float
+    train_residuals: np.ndarray  # (N, dim) scaled
+    train_commands: np.ndarray  # (N, c)
+    latent: LatentJointErrors | None = None
+    conditional: ConditionalKDE | None = None
+
+    def centre(self, u: np.ndarray, side: dict | None = None) -> np.ndarray:
+        cal = self.calibration
+        return np.asarray(cal.robot.compiled_points(self.arm)(
+            jnp.asarray(cal.x), jnp.asarray(u), side))
+
+    def density(self, u: np.ndarray, side: dict | None = None) -> MarkerDensity:
+        """The marker's density at commands u (T, c) (``side``: the rest of each pose)."""
+        u = np.atleast_2d(np.asarray(u, float))
+        centre = self.centre(u, side)
+        dim = centre.shape[1]
+        if self.kind == "cond":
+            c = self.conditional
+            w = np.asarray(c.weights(u)).reshape(len(u), -1)
+            with np.errstate(divide="ignore"):
+                log_w = np.log(w)
+            chol = np.diag(c.bw_x)[None, None]
+            return MarkerDensity(centre, log_w, c.x_data[None], chol)
+        cal = self.calibration
+        jac = np.asarray(joint_jacobian(cal.robot, jnp.asarray(cal.x), self.arm,
+                                        jnp.asarray(u), side))  # (T, dim, n)
+        cov_e, noise = _population(self.latent)
+        cov = (np.einsum("tij,sjk,tlk->tsil", jac, cov_e, jac)
+               + noise[None, :, None, None] ** 2 * np.eye(dim))
+        chol = np.linalg.cholesky(cov)
+        k = len(noise)
+        return MarkerDensity(centre, np.full((len(u), k), -math.log(k)),
+                             np.zeros((1, k, dim)), chol)
+
+
+def _population(latent: LatentJointErrors) -> tuple[np.ndarray, np.ndarray]:
+    """LATENT_COMPONENTS evenly spaced posterior draws: (Sigma (K, n, n), s (K,))."""
+    cov = latent.covariance
+    pick = np.unique(np.linspace(0, len(cov) - 1, LATENT_COMPONENTS).round().astype(int))
+    return cov[pick], latent.noise_sd[pick]
+
+
+def fit_marker_model(rig: Rig, cal: ChainCalibration, arm: str, spec: ModelSpec,
+                     seed: int = 0) -> MarkerModel:
+    """Fit ``spec`` (as :func:`marker_model_kind` reads it) to ``arm``'s train rows."""
+    kind = marker_model_kind(spec)
+    robot, x = cal.robot, jnp.asarray(cal.x)
+    u, d = rig.chain_rows(arm, "train")
+    side = side_rows(rig, robot, arm, "train")
+    res = d - np.asarray(robot.compiled_points(arm)(x, jnp.asarray(u), side))
+    n_coords = sum(rig.chain_rows(a, "train")[1].size for a in robot.measured_arms())
+    n_free = int(cal.ident.free.sum())
+    scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
+    model = MarkerModel(arm, kind, cal, scale, res * scale, u)
+    if kind == "cond":
+        model.conditional = ConditionalKDE.fit(
+            res * scale, u, "kernel", "loo-ml-diag", warn_on_bound=False,
+            z_spacing_floor=spec.command_bandwidth_floor)
+    else:
+        model.latent = fit_latent_errors(rig, robot, cal.x, arm, kind, n_free, seed=seed)
+    return model
+
+
+def loo_marker_scores(rig: Rig, model: MarkerModel) -> tuple[np.ndarray, np.ndarray]:
+    """(leave-one-out, in-sample) log density (N,) of each train row's scaled residual,
+    the calibration kept (see the module docstring)."""
+    r, u = model.train_residuals, model.train_commands
+    if model.kind == "cond":
+        c = model.conditional
+        w = np.asarray(c.weights(u)).reshape(len(u), -1)
+        dev = (r[:, None, :] - c.x_data[None]) / c.bw_x
+        comp = (-0.5 * np.sum(dev**2, -1) - np.sum(np.log(c.bw_x))
+                - 0.5 * r.shape[1] * math.log(2 * math.pi))
+        with np.errstate(divide="ignore"):
+            log_w = np.log(w)
+        in_sample = _lse(comp + log_w)
+        loo_w = w.copy()
+        np.fill_diagonal(loo_w, 0.0)
+        with np.errstate(divide="ignore"):
+            loo_log_w = np.log(loo_w / loo_w.sum(1, keepdims=True))
+        return _lse(comp + loo_log_w), in_sample
+    import arviz as az
+
+    cal = model.calibration
+    side = side_rows(rig, cal.robot, model.arm, "train")
+    jac = np.asarray(joint_jacobian(cal.robot, jnp.asarray(cal.x), model.arm,
+                                    jnp.asarray(u), side))
+    lat = model.latent
+    dim = r.shape[1]
+    cov = (np.einsum("tij,sjk,tlk->stil", jac, lat.covariance, jac)
+           + lat.noise_sd[:, None, None, None] ** 2 * np.eye(dim))  # (S, N, dim, dim)
+    chol = np.linalg.cholesky(cov)
+    z = np.linalg.solve(chol, np.broadcast_to(r, cov.shape[:-1])[..., None])[..., 0]
+    log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), -1)
+    loglik = -0.5 * np.sum(z**2, -1) - log_det - 0.5 * dim * math.log(2 * math.pi)  # (S, N)
+    in_sample = _lse(loglik.T) - math.log(loglik.shape[0])
+    chains = 2 if loglik.shape[0] % 2 == 0 else 1
+    idata = az.from_dict(posterior={"noise_sd": lat.noise_sd.reshape(chains, -1)},
+                         log_likelihood={"r": loglik.reshape(chains, -1, loglik.shape[1])})
+    loo = az.loo(idata, pointwise=True)
+    return np.asarray(loo.loo_i.values, float), in_sample
