@@ -29,6 +29,36 @@ from pathlib import Path
 
 __version__ = "0.1.0"
 
+# The objects a user needs, as ``bayesrob.<name>``: the rig (from a directory or from arrays),
+# the robot model, calibration, prediction, comparison, sampling and diagnosis. Each is
+# imported on first use, so ``import bayesrob`` (and every command's argument errors) stays
+# free of JAX and the rest of the numerical stack. docs/api.md walks through them.
+_API = {
+    "Rig": "rig", "Measurements": "rig", "ArmSpec": "rig", "RigError": "rig",
+    "load_rig": "rig", "default_rig_dir": "rig",
+    "Robot": "kinematics", "Chain": "kinematics", "urdf_chain": "kinematics",
+    "dh_chain": "kinematics", "GROUPS": "kinematics",
+    "calibrate": "calibration", "calibrate_chain": "calibration",
+    "predict_assembly": "assembly", "compare_models": "comparison",
+    "sample_linked": "inference", "diagnose_rig": "diagnosis",
+    "diagnose_chain": "chain_diagnosis", "discover_models": "noise_models",
+}
+__all__ = ["__version__", "cache_dir", "release_compiled_programs", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        import importlib
+
+        value = getattr(importlib.import_module(f"bayesrob.{_API[name]}"), name)
+        globals()[name] = value  # later lookups skip this function
+        return value
+    raise AttributeError(f"module 'bayesrob' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))
+
 # In a checkout, the top-level models/ and validation/ are this package's bayesrob.models and
 # bayesrob.validation, as an install lays them out (pyproject's package-dir): the tests and the
 # validation suite then run the checkout's files, not an installed copy's.

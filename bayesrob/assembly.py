@@ -77,6 +77,10 @@ class AssemblyPrediction:
         """Unit of the region sizes: ``mm2`` (areas) or ``mm3`` (volumes)."""
         return f"mm{self.targets.shape[1]}"
 
+    def to_dict(self) -> dict:
+        """The ``bayesrob predict --json`` document (as :attr:`document`)."""
+        return self.document
+
     @property
     def document(self) -> dict:
         """The ``bayesrob predict --json`` document."""

@@ -46,6 +46,10 @@ class ArmCalibration:
     iterations: int = 0
     extra: dict = field(default_factory=dict)
 
+    def to_dict(self) -> dict:
+        """This arm's entry of ``bayesrob calibrate --json`` (as :meth:`to_json`)."""
+        return self.to_json()
+
     def to_json(self) -> dict:
         se = kin.ArmParams.from_vector(jnp.asarray(self.params_se))
         out = {
@@ -337,6 +341,11 @@ class ChainCalibration:
     # (URDF <inertial>), so the compliances are the joints' own; "fitted": free, only their
     # products with the compliances seen
     masses: str = "fitted"
+
+    def to_dict(self) -> dict:
+        """``bayesrob calibrate RIG --params ... --json``'s document but the rig's name, which
+        the command adds (as :meth:`to_json`)."""
+        return self.to_json()
 
     def to_json(self) -> dict:
         layout = self.robot.layout

@@ -93,6 +93,10 @@ class ChainDiagnosis:
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
         default_factory=dict, repr=False)
 
+    def to_dict(self) -> dict:
+        """``bayesrob diagnose RIG --json``'s document on a chain rig (as :meth:`to_json`)."""
+        return self.to_json()
+
     def to_json(self) -> dict:
         last = self.steps[-1] if self.steps else self.baseline
         return {

@@ -325,6 +325,10 @@ class ModelComparison:
     def holdout_pointwise(self, model: str) -> np.ndarray:
         return np.concatenate([s.lpd for s in self.holdout[model].values()])
 
+    def to_dict(self) -> dict:
+        """The ``bayesrob compare --json`` document (as :meth:`document`)."""
+        return self.document()
+
     def document(self) -> dict:
         """The ``bayesrob compare --json`` document."""
         models = {}

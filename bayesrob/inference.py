@@ -1077,6 +1077,10 @@ class SampleReport:
     def passed(self) -> bool:
         return bool(self.document["check"]["passed"])
 
+    def to_dict(self) -> dict:
+        """The ``bayesrob sample --json`` document."""
+        return self.document
+
 
 def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}

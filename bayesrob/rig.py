@@ -15,9 +15,10 @@ import json
 import math
 import re
 import tomllib
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -97,6 +98,40 @@ class Measurements:
     def __len__(self) -> int:
         return len(self.config)
 
+    @classmethod
+    def from_arrays(cls, config: Sequence[str], set: Sequence[str], observed: Any,
+                    commands: dict[str, Any], target: Any | None = None) -> Measurements:
+        """Rows built in memory, as ``measurements.csv`` would give them: ``config`` (the arm
+        measured, or arms joined by '+') and ``set`` (train, validation, test, holdout) per
+        row, ``observed`` (N, 2 or 3) mm, ``commands`` arm -> (N, columns) (NaN where a row
+        does not use the arm), ``target`` (N, dim) or None. A malformed argument is refused
+        with one line naming it (row numbers count from 0)."""
+        config = np.asarray(config, dtype=str).reshape(-1)
+        sets = np.asarray(set, dtype=str).reshape(-1)
+        obs = np.asarray(observed, float)
+        n = len(config)
+        if obs.ndim != 2 or obs.shape[1] not in (2, 3) or len(obs) != n:
+            raise RigError(f"observed: expected ({n}, 2) or ({n}, 3) mm, got {obs.shape}")
+        if len(sets) != n:
+            raise RigError(f"set: expected {n} values (one per row), got {len(sets)}")
+        bad = [i for i, v in enumerate(sets) if v not in SETS]
+        if bad:
+            raise RigError(f"set: row {bad[0]}: {str(sets[bad[0]])!r} is not one of "
+                           f"{', '.join(SETS)}")
+        bad = np.flatnonzero(~np.isfinite(obs).all(axis=1))
+        if len(bad):
+            raise RigError(f"observed: row {bad[0]} is not finite")
+        cmds = {}
+        for arm, u in commands.items():
+            u = np.asarray(u, float)
+            if u.ndim != 2 or len(u) != n:
+                raise RigError(f"commands[{arm!r}]: expected ({n}, columns), got {u.shape}")
+            cmds[arm] = u
+        tgt = np.full_like(obs, np.nan) if target is None else np.asarray(target, float)
+        if tgt.shape != obs.shape:
+            raise RigError(f"target: expected {obs.shape}, got {tgt.shape}")
+        return cls(config, sets, tgt, cmds, obs, np.arange(n))
+
     def mask(self, config: str | None = None, set: str | None = None) -> np.ndarray:
         m = np.ones(len(self), bool)
         if config is not None:
@@ -119,6 +154,54 @@ class Rig:
     # The kinematic model of every arm: planar arms as 2-joint planar chains, or the rig's
     # URDF/DH chains (a tree when arms are mounted on each other).
     robot: Robot | None = None
+
+    @classmethod
+    def from_arrays(cls, arms: dict[str, ArmSpec | Chain], measurements: Measurements,
+                    name: str = "rig", gravity: Sequence[float] | None = None,
+                    stiffness: dict[str, Sequence[float]] | None = None) -> Rig:
+        """A rig built in memory, no directory needed: ``arms`` the paper's planar arms
+        (:class:`ArmSpec`) or chains (:func:`bayesrob.kinematics.urdf_chain` with a file or
+        ``text=``, :func:`~bayesrob.kinematics.dh_chain`), and their rows
+        (:meth:`Measurements.from_arrays`). ``gravity`` as rig.toml's (default straight down:
+        -y in the plane, -z in 3-D); ``stiffness``: joint stiffnesses per chain, where known.
+        Checked as :func:`load_rig` checks a directory: every config names arms of the rig,
+        every arm has its command columns, every measured arm train rows."""
+        chain_arms = [n for n, a in arms.items() if isinstance(a, Chain)]
+        if chain_arms and len(chain_arms) != len(arms):
+            raise RigError("arms: planar arms (ArmSpec) and chains cannot share a rig")
+        dim = measurements.observed.shape[1]
+        if chain_arms:
+            specs = {n: ChainSpec(n, c, None if not stiffness or n not in stiffness
+                                  else np.asarray(stiffness[n], float))
+                     for n, c in arms.items()}
+            chains = _ordered_chains(specs, "arms")
+            specs = {n: specs[n] for n in chains}
+            robot = Robot(chains, dim)
+        else:
+            specs = dict(arms)
+            robot = Robot({n: planar_chain(n, a) for n, a in arms.items()}, 2)
+        for n, c in robot.chains.items():
+            u = measurements.commands.get(n)
+            if u is None or u.shape[1] != c.n_columns:
+                raise RigError(f"commands[{n!r}]: arm {n!r} needs {c.n_columns} command "
+                               "columns")
+        known = robot.measured_arms()
+        for cfg in sorted(str(c) for c in set(measurements.config)):
+            for a in cfg.split("+"):
+                if a not in known:
+                    raise RigError(f"config {cfg!r} names {a!r}, not a measured arm of the rig "
+                                   f"({', '.join(known)})")
+        down = gravity if gravity is not None else ((0.0, 0.0, -1.0) if dim == 3
+                                                   else (0.0, -1.0))
+        norm = math.hypot(*down)
+        if len(down) != dim or norm == 0:
+            raise RigError(f"gravity: expected a non-zero {dim}-vector, got {list(down)}")
+        rig = cls(name, specs, measurements, tuple(float(g) / norm for g in down), None, None,
+                  robot)
+        for a in known:
+            if not measurements.mask(a, "train").any():
+                raise RigError(f"arm {a!r} has no train rows")
+        return rig
 
     @property
     def is_chain(self) -> bool:

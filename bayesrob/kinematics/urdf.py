@@ -36,11 +36,11 @@ def _floats(text: str | None, n: int, default: list[float], where: str) -> np.nd
     return v
 
 
-def _parse(path: Path) -> ET.Element:
-    if not path.is_file():
+def _parse(path: Path, text: str | None = None) -> ET.Element:
+    if text is None and not path.is_file():
         raise KinematicsError(f"{path}: URDF file not found")
     try:
-        root = ET.parse(path).getroot()
+        root = ET.parse(path).getroot() if text is None else ET.fromstring(text)
     except ET.ParseError as exc:
         raise KinematicsError(f"{path}: malformed URDF (XML): {exc}") from None
     if root.tag != "robot":
@@ -125,10 +125,12 @@ def _joint_path(root_el: ET.Element, root: str, tip: str, path: Path) -> list[ET
     return chain[::-1]
 
 
-def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs) -> Chain:
-    """The chain of ``path`` from link ``root`` to link ``tip`` (mm, rad)."""
+def urdf_chain(path: str | Path, root: str, tip: str, name: str, *, text: str | None = None,
+               **chain_kwargs) -> Chain:
+    """The chain of ``path`` from link ``root`` to link ``tip`` (mm, rad). ``text``: the URDF
+    itself, read instead of the file (``path`` then only names it in messages)."""
     path = Path(path)
-    root_el = _parse(path)
+    root_el = _parse(path, text)
     joints = _joint_path(root_el, root, tip, path)
     fixed = np.eye(4)
     prefix: list[str] = []  # fixed joints folded into the next movable joint's origin
@@ -213,7 +215,8 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, **chain_kwargs)
                 raise KinematicsError(f"{path}: joint {m!r} mimics {mim[0]!r}, which is not an "
                                       f"actuated joint between {root!r} and {tip!r}")
             coupling[i, actuated.index(mim[0])] = mim[1]
-    source = {"kind": "urdf", "path": str(path), "root": root, "tip": tip,
+    source = {"kind": "urdf", "path": str(path), **({"text": text} if text is not None else {}),
+              "root": root, "tip": tip,
               "efforts": None if None in efforts else efforts,
               # every movable joint's link weighed, or nothing: a chain half described
               # cannot be trusted for its torques
@@ -239,8 +242,9 @@ def _set_origin(joint: ET.Element, t: np.ndarray) -> None:
 
 def _patched(robot: Robot, calibrated: Robot) -> ET.ElementTree:
     """The robot's own URDF with every chain joint's origin replaced by its calibrated one."""
-    files = {c.source["path"] for c in robot.chains.values()}
-    tree = ET.parse(next(iter(files)))
+    first = next(iter(robot.chains.values())).source
+    tree = (ET.ElementTree(ET.fromstring(first["text"])) if "text" in first
+            else ET.parse(first["path"]))
     by_name = {j.get("name"): j for j in tree.getroot().findall("joint")}
     for c in calibrated.chains.values():
         src = c.source
