@@ -150,20 +150,28 @@ def _non_negative_float(text: str) -> float:
     return v
 
 
-def _load_rig_arg(path: str | None, chains: bool = False):
+def _chain_params_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="the parameter groups the arms are calibrated with, as 'bayesrob "
+                        "calibrate --params' (URDF/DH default frames,offsets,geometric,servo). "
+                        "Given for a planar rig, its arms are taken as the 2-joint chains they "
+                        "are (the models as marker densities) instead of the eight-parameter "
+                        "fit")
+
+
+def _load_rig_arg(path: str | None, chains: bool = True):
     """Load the rig a command was given, or the embedded default rig.
 
-    Commands other than calibrate work on the paper's planar arms so far: a URDF/DH rig is
-    refused with one line rather than failing deep inside.
+    ``chains`` False: the command is the paper's (reproduce: its Figures 3-8 are of planar
+    arms), and a URDF/DH rig is refused with one line rather than failing deep inside.
     """
     from bayesrob.rig import default_rig_dir, load_rig
 
     rig = load_rig(path if path is not None else default_rig_dir())
     if rig.is_chain and not chains:
-        raise UsageError(f"{rig.path}: arms described by URDF or DH tables can be "
-                         "calibrated, predicted and diagnosed ('bayesrob calibrate', 'bayesrob "
-                         "predict', 'bayesrob diagnose') but not yet sampled or compared by "
-                         "this version")
+        raise UsageError(f"{rig.path}: the paper's reproduction (Figures 3-8) is of planar "
+                         "arms; arms described by URDF or DH tables are calibrated, predicted, "
+                         "compared, sampled and diagnosed by those commands")
     return rig
 
 
@@ -474,7 +482,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from bayesrob.progress import progress
     from bayesrob.report import format_calibration
 
-    rig = _load_rig_arg(args.rig, chains=True)
+    rig = _load_rig_arg(args.rig)
     if rig.is_chain or args.params is not None or args.urdf_out:
         return _calibrate_chain(args, rig)
     if args.sag_steps != 1 or args.masses != "fitted":
@@ -523,7 +531,7 @@ def _reproduce(args: argparse.Namespace) -> int:
         run_reproduction,
     )
 
-    rig = _load_rig_arg(args.rig)
+    rig = _load_rig_arg(args.rig, chains=False)
     try:
         rep = run_reproduction(rig, args.models, args.models_dir,
                                Grid(args.grid_half_width, args.grid_n), args.calibration,
@@ -776,7 +784,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     from bayesrob.effects import resolve_effects
     from bayesrob.outputs import write_diagnosis_report
 
-    rig = _load_rig_arg(args.rig, chains=True)
+    rig = _load_rig_arg(args.rig)
     if rig.is_chain:
         return _diagnose_chain(rig, args)
     if args.published:
@@ -857,9 +865,7 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
                         "from the grid)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="URDF/DH rigs: the parameter groups the arms are calibrated with, as "
-                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo)")
+    _chain_params_arg(p)
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
                 "0.1 mm, covariance within 10% Frobenius, r_hat <= 1.01, bulk ESS >= 400), "
@@ -878,15 +884,12 @@ def _sample(args: argparse.Namespace) -> int:
         from bayesrob.inference import format_sample, sample_linked
         from bayesrob.noise_models import ModelFileError
 
-        rig = _load_rig_arg(args.rig, chains=True)
+        rig = _load_rig_arg(args.rig)
         loading.close(done=False)
-    dim = rig.robot.dim if rig.is_chain else 2
+    dim = rig.robot.dim
     if len(args.target) != dim:
         raise UsageError(f"--target needs {dim} numbers on this {dim}-D rig "
                          f"({' '.join('XYZ'[:dim])}), got {len(args.target)}")
-    if args.params is not None and not rig.is_chain:
-        raise UsageError("--params is for rigs of URDF/DH arms: the planar arms' calibration "
-                         "is the paper's eight parameters")
     config = args.config
     if config is None:
         if not rig.linked_configs:
@@ -949,7 +952,7 @@ def _predict(args: argparse.Namespace) -> int:
     from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly, read_targets
     from bayesrob.noise_models import ModelFileError
 
-    rig = _load_rig_arg(args.rig, chains=True)
+    rig = _load_rig_arg(args.rig)
     dim = rig.robot.dim
     targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
     from bayesrob.progress import progress
@@ -981,9 +984,7 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", nargs="+", metavar="NAME",
                    help="model names to compare (default: every file in models/)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="URDF/DH rigs: the parameter groups the arms are calibrated with, as "
-                        "'bayesrob calibrate --params' (default frames,offsets,geometric,servo)")
+    _chain_params_arg(p)
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
                    help="write the comparison plot (PNG) here (default: next to --json OUT, "
@@ -997,10 +998,7 @@ def _compare(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
     from bayesrob.rig import RigError
 
-    rig = _load_rig_arg(args.rig, chains=True)
-    if args.params is not None and not rig.is_chain:
-        raise UsageError("--params is for rigs of URDF/DH arms: the planar arms' calibration "
-                         "is the paper's eight parameters")
+    rig = _load_rig_arg(args.rig)
     try:
         comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args),
                               groups=args.params)
@@ -1228,6 +1226,9 @@ def _deliver_ctrl_c_surely() -> threading.Event:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # The commands draw figures into files only: matplotlib's file backend, unless the user
+    # chose one (a library caller's backend is left alone: only the command sets this).
+    os.environ.setdefault("MPLBACKEND", "Agg")
     parser = build_parser()
     args = parser.parse_args(argv)
     _, _, run = COMMANDS[args.command]

@@ -403,12 +403,13 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     (scored separately). ``recalibrate``: leave-one-out refits each arm's calibration without
     the left-out row as well (see :func:`loo_training_scores`). A rig of URDF/DH arms is
     calibrated over ``groups`` (default :data:`bayesrob.kinematics.GROUPS`) and scored by its
-    markers' densities (:func:`_compare_marker_models`).
+    markers' densities (:func:`_compare_marker_models`); so is a planar rig given ``groups``,
+    its arms as the 2-joint chains they are.
     """
     from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
-    if rig.is_chain:
+    if rig.is_chain or groups is not None:
         return _compare_marker_models(rig, models, models_dir, progress, groups)
     specs = discover_models(models_dir, models)
     bar = progress_report(len(specs), "compare", "models", enabled=progress,
@@ -599,9 +600,6 @@ def comparison_figure(comparison: ModelComparison) -> Figure:
     symmetric-log axis: the histogram COND can trail by thousands where the others differ
     by a few units, and a linear axis would flatten them into one point.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
     k = len(comparison.specs)

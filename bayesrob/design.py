@@ -111,8 +111,6 @@ __all__ = ["DesignError", "DesignSpec", "ModuleSpec", "Module", "Candidate", "De
            "evaluate_batch", "run_design", "design_figure", "write_candidate_rig",
            "mounted_truth"]
 
-jax.config.update("jax_enable_x64", True)  # draws are compared at 0.01 mm over 300 mm arms
-
 BATCH = 25  # candidates per Dask task: enough to hide a task's overhead, small to spread well
 MAX_CANDIDATES = 200_000
 # Keeps a parameter covariance with an unidentified direction sampleable, in each parameter's

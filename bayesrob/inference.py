@@ -1082,6 +1082,28 @@ class SampleReport:
         return self.document
 
 
+def _judge(doc: dict, grid: GridPosterior | DensityGrid, results: dict[str, SamplerResult],
+           tol: CheckTolerances, burn: int) -> None:
+    """Each sampler's entry of ``doc["samplers"]`` and the ``check`` against the grid."""
+    for name, res in results.items():
+        entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
+                 "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
+                 "compile_seconds": res.compile_seconds, "ess_per_s": res.ess_per_s,
+                 "chains": int(res.idata.posterior.sizes["chain"]),
+                 "draws": int(res.idata.posterior.sizes["draw"])}
+        if name == "nuts":
+            entry["divergences"] = int(res.idata.sample_stats["diverging"].values.sum())
+        else:
+            entry["burn"] = burn
+        doc["samplers"][name] = entry
+    check = cross_check(grid, list(results.values()), tol)
+    check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel,
+                           "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk,
+                           "edge_mass": tol.edge_mass}
+    check["compared"] = list(results)
+    doc["check"] = check
+
+
 def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
 
@@ -1108,14 +1130,15 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
 
     A rig of URDF/DH arms (2-D or 3-D) is calibrated over ``groups`` (default
     :data:`bayesrob.kinematics.GROUPS`), each arm aimed by :func:`bayesrob.aiming.aim_chain`,
-    and the point sampled under its arms' marker densities (:func:`_sample_markers`).
+    and the point sampled under its arms' marker densities (:func:`_sample_markers`); so is a
+    planar rig given ``groups``, its arms as the 2-joint chains they are.
     """
     from bayesrob.calibration import calibrate
     from bayesrob.noise_models import discover_models, fit_noise_models
 
     if sampler not in (*SAMPLERS, "all"):
         raise ValueError(f"sampler must be one of {SAMPLERS} or 'all', got {sampler!r}")
-    if rig.is_chain:
+    if rig.is_chain or groups is not None:
         return _sample_markers(rig, config, target, model, sampler, seed=seed,
                                progress=progress, groups=groups, models_dir=models_dir,
                                num_chains=num_chains, walkers=walkers, steps=steps, burn=burn,
@@ -1176,25 +1199,9 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                                      initial_points(models, arm_list, commands, target,
                                                     walkers, seed + 1),
                                      n_steps=steps, burn=burn, seed=seed, progress=progress)
-    for name, res in results.items():
-        entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
-                 "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
-                 "compile_seconds": res.compile_seconds, "ess_per_s": res.ess_per_s,
-                 "chains": int(res.idata.posterior.sizes["chain"]),
-                 "draws": int(res.idata.posterior.sizes["draw"])}
-        if name == "nuts":
-            entry["divergences"] = int(res.idata.sample_stats["diverging"].values.sum())
-        else:
-            entry["burn"] = burn
-        doc["samplers"][name] = entry
     # Always judged, --sampler grid included: a grid whose box truncates the posterior is a
     # wrong answer whoever asked for it.
-    check = cross_check(grid, list(results.values()), tol)
-    check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel,
-                           "r_hat": tol.r_hat, "ess_bulk": tol.ess_bulk,
-                           "edge_mass": tol.edge_mass}
-    check["compared"] = list(results)
-    doc["check"] = check
+    _judge(doc, grid, results, tol, burn)
     doc["notes"] = []
     if truncated and sampler != "grid":
         doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
@@ -1293,22 +1300,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                               "box_half_width_mm": half,
                               "edge_mass": float(grid.edge_mass[0])}},
     }
-    for name, res in results.items():
-        entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
-                 "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
-                 "compile_seconds": res.compile_seconds, "ess_per_s": res.ess_per_s,
-                 "chains": int(res.idata.posterior.sizes["chain"]),
-                 "draws": int(res.idata.posterior.sizes["draw"])}
-        if name == "nuts":
-            entry["divergences"] = int(res.idata.sample_stats["diverging"].values.sum())
-        else:
-            entry["burn"] = burn
-        doc["samplers"][name] = entry
-    check = cross_check(grid, list(results.values()), tol)
-    check["tolerances"] = {"mean_mm": tol.mean_mm, "cov_rel": tol.cov_rel, "r_hat": tol.r_hat,
-                           "ess_bulk": tol.ess_bulk, "edge_mass": tol.edge_mass}
-    check["compared"] = list(results)
-    doc["check"] = check
+    _judge(doc, grid, results, tol, burn)
     doc["notes"] = [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
                     "calibrated inverse kinematics"]
     if truncated and sampler != "grid":

@@ -54,9 +54,6 @@ def calibration_report(rig: Rig, method: str = "least-squares") -> dict:
 
 def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
     """Write accuracy.json and Figures 3-8 into ``out``; returns the paths written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from bayesrob.plots import paper as figs
@@ -83,9 +80,6 @@ def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
 
 def write_diagnosis_report(diag: Diagnosis, directory: str | Path) -> list[Path]:
     """Save the diagnosis figures (PNG) into ``directory``; returns the files written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
 
     out = Path(directory)

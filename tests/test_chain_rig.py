@@ -158,4 +158,4 @@ def test_unknown_parameter_group_is_a_usage_error(chain_rig_dir, capsys):
 def test_planar_only_commands_refuse_a_chain_rig_in_one_line(chain_rig_dir, capsys):
     assert main(["reproduce", str(chain_rig_dir), "--out", "/nonexistent/x"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "can be calibrated" in err
+    assert len(err.splitlines()) == 1 and "Figures 3-8) is of planar arms" in err

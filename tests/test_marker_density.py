@@ -109,3 +109,18 @@ def test_sample_needs_three_coordinates_on_a_3d_rig(small_arm6, capsys):
     assert main(["sample", str(small_arm6), "--config", "arm", "--target", "850", "-400"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--target needs 3 numbers" in err[0]
+
+
+def test_a_planar_rig_given_params_is_compared_and_sampled_as_2_joint_chains(tmp_path):
+    from bayesrob.comparison import compare_models
+    from bayesrob.inference import sample_linked
+    from bayesrob.rig import default_rig_dir, load_rig
+
+    rig = load_rig(default_rig_dir())
+    groups = ("frames", "offsets", "geometric", "servo")
+    doc = compare_models(rig, ["cond"], groups=groups).to_dict()
+    assert doc["heldout_rows"] == {"top": 16, "bottom": 16}
+    assert doc["models"]["cond"]["marker_model"] == "cond" and "per mm^2" in doc["score"]
+    report = sample_linked(rig, "top+bottom", [140.0, 220.0], model="cond", groups=groups)
+    assert report.passed, report.document["check"]["failures"]
+    assert len(report.document["samplers"]["nuts"]["mean"]) == 2
