@@ -400,28 +400,35 @@ def chain_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
             for a, (_, r) in chain_residuals(rig, robot, x, set).items()}
 
 
-@partial(jax.jit, static_argnames=("robot", "arms"))
-def _fit_residuals(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
-                   ) -> jax.Array:
+# The fit's programs are specialised on the robot's structure alone; its nominal values are
+# an argument (``values``), so the fits of every robot of one design (simulated rigs of other
+# seeds, a calibrated robot refitted, another rig's copy of the URDF) share them.
+@partial(jax.jit, static_argnames=("structure", "arms"))
+def _fit_residuals(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
+                   x: jax.Array, data: tuple) -> jax.Array:
+    robot = structure.robot(values)
     return jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
                             for a, (u, d, side) in zip(arms, data, strict=True)])
 
 
-@partial(jax.jit, static_argnames=("robot", "arms"))
-def _fit_jacobian(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
-                  ) -> jax.Array:
+@partial(jax.jit, static_argnames=("structure", "arms"))
+def _fit_jacobian(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
+                  x: jax.Array, data: tuple) -> jax.Array:
+    robot = structure.robot(values)
     return jnp.concatenate([robot.marker_jacobian(x, a, u, side).reshape(
         -1, x.shape[0]) for a, (u, _, side) in zip(arms, data, strict=True)])
 
 
-@partial(jax.jit, static_argnames=("robot", "arms"))
-def _fit_exact_jacobian(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
-                        ) -> jax.Array:
+@partial(jax.jit, static_argnames=("structure", "arms"))
+def _fit_exact_jacobian(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
+                        x: jax.Array, data: tuple) -> jax.Array:
     # Reverse mode, row by row: a row's marker depends on the parameters through its own
     # pose alone, so each row costs a pull-back per measured coordinate (2-3), where forward
     # mode costs a push-forward per fitted column (Justin: 127-192) for every row at once (on
     # Justin about thirty times the cost: docs/diagnose.md); and one compiled program serves
     # every set of fitted columns.
+    robot = structure.robot(values)
+
     def rows(a, u, side):
         def one(u1, side1):
             s1 = None if side1 is None else {b: v[None] for b, v in side1.items()}
@@ -434,8 +441,10 @@ def _fit_exact_jacobian(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, d
 
 def _residual_function(rig: Rig, robot: kin.Robot, set: str):
     """Residuals and their Jacobian as functions of the parameters alone, compiled once per
-    process for all robots equal to ``robot`` (the rows are arguments, so a second
-    calibration of the same rig, or of another rig of the same robot, is warm)."""
+    process for all robots of ``robot``'s structure (the rows and the nominal values are
+    arguments, so a second calibration of the same rig, or of another rig of a robot of the
+    same design, is warm)."""
+    structure, values = robot.structure, robot.nominal_values
     arms = tuple(a for a in robot.measured_arms() if len(rig.chain_rows(a, set)[0]))
     data = tuple((jnp.asarray(u), jnp.asarray(d), side_rows(rig, robot, a, set))
                  for a, (u, d) in ((a, rig.chain_rows(a, set)) for a in arms))
@@ -444,9 +453,10 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
     def exact_columns(x, idx):
         # the columns picked on the host: indexing the device array would compile a gather
         # for every count of fitted columns
-        return np.asarray(_fit_exact_jacobian(robot, arms, x, data))[:, np.asarray(idx)]
-    return (lambda x: _fit_residuals(robot, arms, x, data)), (
-        lambda x: _fit_jacobian(robot, arms, x, data)), n_res, exact_columns
+        return np.asarray(_fit_exact_jacobian(structure, arms, values, x, data))[
+            :, np.asarray(idx)]
+    return (lambda x: _fit_residuals(structure, arms, values, x, data)), (
+        lambda x: _fit_jacobian(structure, arms, values, x, data)), n_res, exact_columns
 
 
 # A lateral compliance of one typical size (1e-7 rad per N mm) costs as much as a marker
@@ -473,8 +483,8 @@ POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way unde
 
 def _with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
     """The rig's robot with its gravity model on. A new object each call, equal to the last:
-    the compiled residuals and Jacobians are keyed by the robot's value, so every
-    calibration of a diagnosis (and of a rig that shares the robot) reuses them."""
+    the compiled residuals and Jacobians are keyed by the robot's structure, so every
+    calibration of a diagnosis (and of any rig of a robot of the same design) reuses them."""
     gravity = np.zeros(3)
     gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
     return replace(rig.robot, gravity=gravity, sag_steps=sag_steps)

@@ -405,18 +405,19 @@ def free_draws(mods: ChainModules, arm: str, u: np.ndarray, xs: jax.Array, key: 
     return np.asarray(pts + eps)
 
 
-@partial(jax.jit, static_argnames=("robot", "arm"))
-def _points_with_errors_program(robot: kin.Robot, arm: str, xs: jax.Array, u: jax.Array,
-                                e: jax.Array, side: dict[str, jax.Array] | None
-                                ) -> jax.Array:
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _points_with_errors_program(structure: kin.RobotStructure, arm: str, values: dict,
+                                xs: jax.Array, u: jax.Array, e: jax.Array,
+                                side: dict[str, jax.Array] | None) -> jax.Array:
+    robot = structure.robot(values)
     return jax.vmap(lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
                     in_axes=(0, None, 0, None))(xs, u, e, side)
 
 
 def _points_with_errors(robot: kin.Robot, arm: str) -> Callable:
     """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim),
-    compiled once per process for all robots equal to ``robot``."""
-    return partial(_points_with_errors_program, robot, arm)
+    compiled once per process for all robots of ``robot``'s structure."""
+    return partial(_points_with_errors_program, robot.structure, arm, robot.nominal_values)
 
 
 def chain_draws(mods: ChainModules, arms: Sequence[str], commands: Sequence[np.ndarray],

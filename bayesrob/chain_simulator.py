@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.kinematics import Robot, RobotStructure, urdf_chain
 from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import dump_toml
 from bayesrob.simulator import draw_stiffnesses
@@ -121,17 +121,17 @@ def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) ->
     return -np.arctan2(eccentricity * np.sin(d), 1.0 + eccentricity * np.cos(d))
 
 
-@partial(jax.jit, static_argnames=("robot", "arm"))
-def _element_frames(robot: Robot, arm: str, x: jax.Array, u: jax.Array
-                    ) -> tuple[jax.Array, jax.Array]:
-    return robot.element_frames(x, arm, u)
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _element_frames(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
+                    u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return structure.robot(values).element_frames(x, arm, u)
 
 
 def _frames_program(robot: Robot, arm: str) -> Callable:
-    """``robot.element_frames`` of one arm, compiled once per process for all robots equal to
-    ``robot``: the fixed-point steps below call it repeatedly, and run eagerly it took most
-    of a simulation's time."""
-    return partial(_element_frames, robot, arm)
+    """``robot.element_frames`` of one arm, compiled once per process for all robots of
+    ``robot``'s structure: the fixed-point steps below call it repeatedly, and run eagerly
+    it took most of a simulation's time."""
+    return partial(_element_frames, robot.structure, arm, robot.nominal_values)
 
 
 def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
@@ -374,7 +374,7 @@ def _gravity_forces(masses_kg: np.ndarray | None, gravity: Sequence[float] | Non
 
 def _arm_program(robot: Robot, arm: str) -> Callable:
     """A compiled ``(x, u, u0, k, weight) -> dict`` of one arm over rows u (N, n), compiled
-    once per process for all robots equal to ``robot``: the energy of springs (stiffness k,
+    once per process for all robots of ``robot``'s structure: the energy of springs (stiffness k,
     N mm/rad) holding the joint columns at u0 plus the potential of the link weights (N, at
     the links' centres as in :func:`gravity_deflection`), its gradient and Hessian, and the
     marker with its first and second derivatives.
@@ -389,16 +389,18 @@ def _arm_program(robot: Robot, arm: str) -> Callable:
     if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
         raise ValueError(f"arm {arm!r}: linked equilibria are computed for arms of revolute "
                          "joints standing on their own (not mounted on another arm)")
-    return partial(_arm_evaluate, robot, arm)
+    return partial(_arm_evaluate, robot.structure, arm, robot.nominal_values)
 
 
-@partial(jax.jit, static_argnames=("robot", "arm"))
-def _arm_evaluate(robot: Robot, arm: str, x: jax.Array, u: jax.Array, u0: jax.Array,
-                  k: jax.Array, weight: jax.Array) -> dict[str, jax.Array]:
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _arm_evaluate(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
+                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array
+                  ) -> dict[str, jax.Array]:
     # _arm_program's function, for an arm it has checked
+    robot = structure.robot(values)
     chain = robot.chains[arm]
     n = chain.n_joints
-    half = jnp.asarray(np.array([np.r_[0.5 * o[:3], 1.0] for o in chain.origins[1:]]))
+    half = jnp.concatenate([0.5 * chain.origins[1:, :3], jnp.ones((n, 1))], axis=1)
     axes = jnp.asarray(chain.axes)
     marker = robot.layout.slices[(arm, "marker")]
     upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j

@@ -168,8 +168,11 @@ def test_planar_modules_refuse_3d_mounts(tmp_path, capsys):
 
 def test_equal_robots_built_apart_share_one_compiled_program(rig_dir, monkeypatch):
     """Robots are values: two loads of one rig, and a copy pickled as Dask ships a module to
-    its workers, are equal and hash equal, so the second's call runs the program the first
-    traced; the unmoved robot, one joint origin apart, is another value with its own."""
+    its workers, are equal and hash equal. The compiled programs are keyed by the robot's
+    structure, its nominal values being arguments: so the unmoved robot, one joint origin
+    apart (another value, of the same structure), runs the program the first traced and
+    computes its own points, while a robot one axis apart (another structure) traces its
+    own."""
     from bayesrob import kinematics as kin
 
     traced = []
@@ -181,7 +184,7 @@ def test_equal_robots_built_apart_share_one_compiled_program(rig_dir, monkeypatc
     monkeypatch.setattr(kin.Robot, "marker_points", counted)
 
     def moved():
-        # a base joint 0.3125 mm along x from the rig's: a value no other test traces
+        # a base joint 0.3125 mm along x from the rig's
         robot = load_rig(rig_dir).robot
         origins = robot.chains["left"].origins.copy()
         origins[0, 0] += 0.3125
@@ -191,18 +194,26 @@ def test_equal_robots_built_apart_share_one_compiled_program(rig_dir, monkeypatc
     base, one = moved()
     _, two = moved()
     assert one is not two and one == two and hash(one) == hash(two)
+    assert base != one and base.structure == one.structure
+    assert hash(base.structure) == hash(one.structure)
     x = jnp.asarray(one.layout.nominal)
     u = jnp.zeros((2, 6))
+    jax.clear_caches()  # programs an earlier test traced for this structure would serve here
     first = np.asarray(one.compiled_points("left")(x, u))
     assert len(traced) == 1
     copy = pickle.loads(pickle.dumps(two))
     assert copy == one and hash(copy) == hash(one)
     for robot in (two, copy):
         np.testing.assert_array_equal(np.asarray(robot.compiled_points("left")(x, u)), first)
-    assert len(traced) == 1
-    assert base != one
     np.testing.assert_allclose(first - np.asarray(base.compiled_points("left")(x, u)),
                                [[0.3125, 0.0, 0.0]] * 2, atol=1e-9)
+    assert len(traced) == 1
+    axes = one.chains["left"].axes.copy()
+    axes[0] = np.roll(axes[0], 1)  # a unit axis, turned to another
+    tilted = replace(one, chains={**one.chains, "left": replace(one.chains["left"], axes=axes)})
+    assert tilted.structure != one.structure
+    tilted.compiled_points("left")(x, u)
+    assert len(traced) == 2
 
 
 def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeypatch):

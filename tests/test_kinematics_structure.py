@@ -1,6 +1,8 @@
 """Robots and chains are values: equal when built apart from the same description, unequal when
-any field differs, and hashed alike in every process (the compiled programs take the robot as a
-static argument, so equality decides which program a robot runs)."""
+any field differs, and hashed alike in every process. The compiled programs take the robot's
+structure as their static argument and its nominal values as arrays: robots of one structure
+share a program whatever their numbers, and the structure's equality decides which program a
+robot runs."""
 
 from __future__ import annotations
 
@@ -55,6 +57,9 @@ def _one_value_changed(robot: kin.Robot) -> dict[str, kin.Robot]:
         "float32 origins": _with_chain(robot, name, origins=c.origins.astype(np.float32)),
         "source": _with_chain(robot, name, source={**c.source, "kind": "dh"}),
         "gravity": replace(robot, gravity=np.array([0.0, -1.0, 0.0])),
+        # against the rig's robot without gravity a change of structure; against one with
+        # gravity along -y (test_only_a_change_of_structure...), of a value
+        "gravity direction": replace(robot, gravity=np.array([1.0, 0.0, 0.0])),
         "sag steps": replace(robot, sag_steps=2),
         "dim": replace(robot, dim=3),
         "chain order": replace(robot, chains=dict(reversed(robot.chains.items()))),
@@ -70,8 +75,62 @@ def test_robots_differing_in_one_value_are_unequal(what):
     assert len({base, other}) == 2
 
 
+# what the compiled programs are specialised on; every other field is a nominal value, an
+# argument of the program (or, as ``source``, read by none)
+STRUCTURAL = {"axis", "coupling", "gravity", "sag steps", "dim", "chain order"}
+
+
+@pytest.mark.parametrize("what", list(_one_value_changed(_robot())))
+def test_only_a_change_of_structure_changes_the_structure(what):
+    base = _robot()
+    other = _one_value_changed(base)[what]
+    if what == "gravity direction":
+        base = replace(base, gravity=np.array([0.0, -1.0, 0.0]))
+    if what in STRUCTURAL:
+        assert other.structure != base.structure
+        assert hash(other.structure) != hash(base.structure)
+    else:
+        assert other.structure == base.structure
+        assert hash(other.structure) == hash(base.structure)
+
+
+def test_robots_of_one_structure_share_one_program_and_compute_their_own_points(monkeypatch):
+    """Robots of one structure, whatever their nominal values (a URDF at another path, a
+    calibrated robot), run one compiled program; a robot of another structure traces its
+    own."""
+    import jax
+    import jax.numpy as jnp
+
+    traced = []
+    marker_points = kin.Robot.marker_points
+    monkeypatch.setattr(kin.Robot, "marker_points", lambda self, *a, **k: (
+        traced.append(1), marker_points(self, *a, **k))[1])
+    base = _robot()
+    name = next(iter(base.chains))
+    x = jnp.asarray(base.layout.nominal)
+    u = jnp.full((3, base.chains[name].n_columns), 100.0)
+    calibrated = base.with_values(np.asarray(x) + 1e-3 * base.layout.scales)
+    jax.clear_caches()  # programs an earlier test traced for this structure would serve here
+    points = {}
+    for what, robot in {"base": base, "calibrated": calibrated,
+                        **_one_value_changed(base)}.items():
+        if robot.structure == base.structure and all(
+                c.origins.dtype == np.float64 for c in robot.chains.values()):
+            points[what] = np.asarray(robot.compiled_points(name)(x, u))
+            # the same as the robot computes outside any compiled program
+            np.testing.assert_allclose(points[what],
+                                       np.asarray(robot.marker_points(x, name, u)),
+                                       rtol=0, atol=1e-9)
+    assert len(traced) == 1 + len(points)  # one trace, and the eager calls
+    assert not np.allclose(points["calibrated"], points["base"])
+    other = _one_value_changed(base)["sag steps"]
+    other.compiled_points(name)(x, u)
+    assert len(traced) == 2 + len(points)
+
+
 def test_a_changed_nominal_value_changes_what_the_compiled_program_computes():
-    """The program of a robot one origin apart is its own, not one traced for the first."""
+    """A robot one origin apart runs the program of the first (one structure) with its own
+    nominal values, not the first's."""
     import jax.numpy as jnp
 
     base = _robot()
@@ -90,11 +149,11 @@ def test_a_robots_hash_is_the_same_in_every_process():
     """A robot pickled to a Dask worker carries its cached hash: it must be what the worker
     would compute itself, whatever its string hashing seed."""
     code = ("from bayesrob.rig import default_rig_dir, load_rig; "
-            "print(hash(load_rig(default_rig_dir()).robot))")
+            "r = load_rig(default_rig_dir()).robot; print(hash(r), hash(r.structure))")
     hashes = set()
     for seed in ("1", "2"):
         env = {**os.environ, "PYTHONHASHSEED": seed}
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                              text=True, check=True)
-        hashes.add(int(out.stdout.strip()))
-    assert hashes == {hash(_robot())}
+        hashes.add(tuple(int(v) for v in out.stdout.split()))
+    assert hashes == {(hash(_robot()), hash(_robot().structure))}

@@ -17,6 +17,7 @@ from bayesrob.kinematics.chain import (
     KinematicsError,
     ParamLayout,
     Robot,
+    RobotStructure,
 )
 from bayesrob.kinematics.dh import dh_chain
 from bayesrob.kinematics.planar import (
@@ -40,8 +41,8 @@ from bayesrob.kinematics.urdf import urdf_chain, write_urdf
 __all__ = [
     "ALL_GROUPS", "GROUPS", "MASS_SOURCES", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD",
     "SAG_GROUPS",
-    "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout",
-    "Robot", "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
+    "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout", "Robot", "RobotStructure",
+    "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",
 ]

@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 import hashlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 
 import jax
@@ -73,7 +73,7 @@ def _canonical(v: object, ordered: bool = False) -> object:
         return ("dict", items if ordered else tuple(sorted(items)))
     if isinstance(v, (list, tuple)):
         return (type(v).__name__, tuple(_canonical(x) for x in v))
-    if isinstance(v, Chain):
+    if isinstance(v, _ByValue):
         return v._value
     if v is None or isinstance(v, (str, bool, int, float, np.generic)):
         return (type(v).__name__, repr(v))
@@ -87,12 +87,14 @@ def _digest(value: object) -> int:
 
 
 class _ByValue:
-    """Equality and hash from every dataclass field's canonical form, so that equal robots
-    built apart are one static argument to ``jax.jit`` (one compiled program per process).
+    """Equality and hash from every dataclass field's canonical form: robots and chains are
+    values (equal when built apart from one description), and a :class:`RobotStructure`, so
+    compared, is the static argument of ``jax.jit`` (one compiled program per process for
+    every robot of one design).
 
     The fields are taken as immutable once built: the form and its hash are cached on first
-    use, and a program traced for a robot bakes its nominal values in. Nothing in this
-    package changes a chain's arrays or a robot's chains in place."""
+    use, as are a robot's structure and nominal values. Nothing in this package changes a
+    chain's arrays or a robot's chains in place."""
 
     _ordered_fields: tuple[str, ...] = ()  # dict fields whose order is part of the value
 
@@ -311,6 +313,13 @@ def _revolute(chain: Chain) -> np.ndarray:
     return np.array([k == "revolute" for k in chain.kinds], dtype=float)
 
 
+def _times_rigid(nominal: jax.Array, t: jax.Array) -> jax.Array:
+    """``nominal @ t`` for a rigid transform t (last row 0, 0, 0, 1), written as XLA computes
+    it when ``nominal`` is a constant (it splits the product at t's constant row), so that
+    a nominal transform passed in as an argument gives the bits it gave as a constant."""
+    return nominal[:, :3] @ t[:3, :] + nominal[:, 3:] * jnp.array([0.0, 0.0, 0.0, 1.0])
+
+
 def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
     if kind == "revolute":
         rot = tf.rot_axis(axis, q)
@@ -324,8 +333,9 @@ class Robot(_ByValue):
     """Chains (parents first) and the dimension of the measured points (2 or 3).
 
     Equal to another robot with equal fields (the chains in the same order: it is the
-    parameter vector's), and hashed by them: a static argument of the compiled programs,
-    which equal robots share."""
+    parameter vector's), and hashed by them. The compiled programs take its
+    :attr:`structure` as their static argument and its :attr:`nominal_values` as arrays, so
+    robots of one design share them whatever their numbers."""
 
     _ordered_fields = ("chains",)  # their order is the parameter vector's
 
@@ -394,8 +404,13 @@ class Robot(_ByValue):
     def _elements(self, arm: str) -> dict[str, np.ndarray]:
         """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
         a tool is an element whose motion is nothing), for one ``lax.scan``: a loop the
-        compiler sees once, however many joints the robot has."""
-        return _element_table(self, arm)
+        compiler sees once, however many joints the robot has. The indices and axes are the
+        structure's (shared by robots of one design); ``nominal``, the origins' transforms,
+        is this robot's (arguments of a compiled program, not constants in it)."""
+        parts = [self._matrices["origins"][c.name] for c in self.path(arm)]
+        concrete = all(isinstance(p, np.ndarray) for p in parts)
+        return {**_element_table(self.structure, arm),
+                "nominal": np.concatenate(parts) if concrete else jnp.concatenate(parts)}
 
     def _element_values(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
         """Joint values (N, E) of the path's elements for rows u (zero on tools)."""
@@ -409,8 +424,8 @@ class Robot(_ByValue):
     def instrument_pose(self, x: jax.Array, arm: str) -> jax.Array:
         """The 4x4 pose of ``arm``'s root in the instrument frame under parameters x."""
         root = self.path(arm)[0]
-        return tf.np_pose_matrix(root.instrument) @ tf.perturbation(
-            x[self.layout.slices[(root.name, "instrument")]])
+        return _times_rigid(self._matrices["instrument"][root.name], tf.perturbation(
+            x[self.layout.slices[(root.name, "instrument")]]))
 
     def element_frames(self, x: jax.Array, arm: str, u: jax.Array,
                        deflection: jax.Array | None = None, bend: jax.Array | None = None
@@ -705,7 +720,7 @@ class Robot(_ByValue):
         motions = tf.homogeneous(turn, (q * prismatic[:, None])[..., None] * axes[:, None, :])
         if self.gravity is not None:
             motions = _bend(jnp.swapaxes(bend, 0, 1)) @ motions
-        inst_nominal = tf.np_pose_matrix(path[0].instrument)
+        inst_nominal = self._matrices["instrument"][path[0].name]
         inst_delta = x[sl[(path[0].name, "instrument")]]
         t0 = jnp.broadcast_to(self.instrument_pose(x, arm), (n_rows, 4, 4))
 
@@ -791,8 +806,40 @@ class Robot(_ByValue):
 
     def compiled_points(self, arm: str) -> Callable[..., jax.Array]:
         """A jitted ``(x, u, side=None) -> marker points`` for one arm, compiled once per
-        process for all robots equal to this one."""
-        return functools.partial(_compiled_points, self, arm)
+        process for all robots of this one's structure (its nominal values are arguments)."""
+        return functools.partial(_compiled_points, self.structure, arm, self.nominal_values)
+
+    @cached_property
+    def structure(self) -> RobotStructure:
+        """What the compiled programs are specialised on: everything but the numbers that
+        differ between two robots of one design (see :class:`RobotStructure`)."""
+        return RobotStructure(
+            tuple(ChainStructure(c.name, c.joint_names, c.kinds, np.asarray(c.axes),
+                                 np.asarray(c.coupling), c.mount)
+                  for c in self.chains.values()),
+            self.dim, self.gravity is not None, self.sag_steps)
+
+    @cached_property
+    def _matrices(self) -> dict[str, dict[str, np.ndarray]]:
+        # the nominal transforms, taken on the host in numpy as they were when they were
+        # constants of the programs, so that the programs compute the same numbers
+        return {"origins": {c.name: np.stack([tf.np_pose_matrix(o) for o in c.origins])
+                            for c in self.chains.values()},
+                "instrument": {c.name: tf.np_pose_matrix(c.instrument)
+                               for c in self.chains.values()}}
+
+    @cached_property
+    def nominal_values(self) -> dict:
+        """The robot's numbers apart from its structure, as a pytree of arrays: what a
+        compiled program of :attr:`structure` takes beside the parameter vector
+        (:meth:`RobotStructure.robot` puts them back together inside it). On the device
+        once, rather than copied there at every call."""
+        chains = {c.name: {"origins": c.origins, "gain": c.gain, "offset": c.offset,
+                           "marker": c.marker, "instrument": c.instrument}
+                  for c in self.chains.values()}
+        return jax.device_put({
+            "chains": chains, "matrices": self._matrices,
+            "gravity": None if self.gravity is None else np.asarray(self.gravity, float)})
 
     def with_values(self, x: np.ndarray) -> Robot:
         """A robot whose nominal values are those of the parameter vector x (deltas folded in).
@@ -833,12 +880,78 @@ class Robot(_ByValue):
         return [c for c in self.chains if c not in parents]
 
 
+@dataclass(frozen=True, eq=False)
+class ChainStructure(_ByValue):
+    """A chain's part of a :class:`RobotStructure`. The axes are structure: no parameter
+    group corrects them (an origin's rotation does), the simulator does not vary them, a
+    calibrated robot keeps them, and the element tables' frames across each axis (an argmin)
+    and the sag's projections are taken from them on the host."""
+
+    name: str
+    joint_names: tuple[str, ...]
+    kinds: tuple[str, ...]
+    axes: np.ndarray
+    coupling: np.ndarray
+    mount: str | None
+
+
+@dataclass(frozen=True, eq=False)
+class RobotStructure(_ByValue):
+    """The static part of a robot, the key of its compiled programs: chain names and order,
+    joint names and kinds, axes, couplings, mounts, the points' dimension, whether gravity is
+    modelled and its sag steps, and so the parameter layout. The origins, instrument poses,
+    markers, gains, offsets and gravity's direction are :attr:`Robot.nominal_values`,
+    arguments of the programs; ``source`` (a URDF's path, masses, limits) is in neither, as
+    no program reads it."""
+
+    chains: tuple[ChainStructure, ...]
+    dim: int
+    gravity: bool
+    sag_steps: int
+
+    @cached_property
+    def skeleton(self) -> Robot:
+        """A robot of this structure with placeholder numbers, for what depends on the
+        structure alone (paths, slices, element indices)."""
+        chains = {c.name: Chain(c.name, c.joint_names, c.kinds, c.axes,
+                                np.zeros((len(c.joint_names) + 1, 6)), c.coupling,
+                                np.ones(c.coupling.shape[1]), np.zeros(c.coupling.shape[1]),
+                                mount=c.mount)
+                  for c in self.chains}
+        return Robot(chains, self.dim, np.zeros(3) if self.gravity else None, self.sag_steps)
+
+    @cached_property
+    def layout(self) -> ParamLayout:
+        """The parameter layout's names, groups and slices; nominal values and scales are
+        NaN, as they are a robot's numbers, which a program must take from its arguments."""
+        sk = self.skeleton.layout
+        return ParamLayout(tuple(replace(p, nominal=np.nan, scale=np.nan) for p in sk.params),
+                           sk.slices)
+
+    def robot(self, values: dict) -> Robot:
+        """The robot of this structure with ``values`` (:attr:`Robot.nominal_values`, traced
+        inside a compiled program): it computes what the robot the values came from does, but
+        is no value to hash or compare (its arrays may be tracers)."""
+        chains = {}
+        for c in self.chains:
+            v = values["chains"][c.name]
+            chains[c.name] = Chain(c.name, c.joint_names, c.kinds, c.axes, v["origins"],
+                                   c.coupling, v["gain"], v["offset"], v["marker"], c.mount,
+                                   v["instrument"], {})
+        robot = Robot(chains, self.dim, values["gravity"], self.sag_steps)
+        robot.__dict__.update(structure=self, layout=self.layout,
+                              _matrices=values["matrices"])
+        return robot
+
+
 @functools.lru_cache(maxsize=256)
-def _element_table(robot: Robot, arm: str) -> dict[str, np.ndarray]:
-    # Robot._elements, shared by equal robots; bounded, as a sweep builds robot after robot
+def _element_table(structure: RobotStructure, arm: str) -> dict[str, np.ndarray]:
+    # Robot._elements but the nominal transforms, shared by robots of one structure; bounded,
+    # as a sweep may build structure after structure
+    robot = structure.skeleton
     sl = robot.layout.slices
     zero = len(robot.layout.params)  # index of a zero appended to x: tools have no mass
-    nominal, delta_idx, axes, prismatic, q_idx = [], [], [], [], []
+    delta_idx, axes, prismatic, q_idx = [], [], [], []
     compliance_idx, link_idx, lateral_idx, across, play_idx = [], [], [], [], []
     n_q = 0
     for chain in robot.path(arm):
@@ -847,7 +960,6 @@ def _element_table(robot: Robot, arm: str) -> dict[str, np.ndarray]:
         b0 = sl[(chain.name, "lateral")].start
         p0 = sl[(chain.name, "backlash")].start
         for i in range(chain.n_joints + 1):
-            nominal.append(tf.np_pose_matrix(chain.origins[i]))
             delta_idx.append(np.arange(start + 6 * i, start + 6 * i + 6))
             last = i == chain.n_joints
             axes.append(np.zeros(3) if last else chain.axes[i])
@@ -860,14 +972,14 @@ def _element_table(robot: Robot, arm: str) -> dict[str, np.ndarray]:
             across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
         n_q += chain.n_joints
     q_idx = [n_q if k < 0 else k for k in q_idx]  # a zero column appended after the joints
-    return {"nominal": np.stack(nominal), "delta_idx": np.stack(delta_idx),
+    return {"delta_idx": np.stack(delta_idx),
             "axes": np.stack(axes), "prismatic": np.array(prismatic),
             "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
             "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
             "across": np.stack(across), "play_idx": np.array(play_idx)}
 
 
-@functools.partial(jax.jit, static_argnames=("robot", "arm"))
-def _compiled_points(robot: Robot, arm: str, x: jax.Array, u: jax.Array,
-                     side: dict[str, jax.Array] | None = None) -> jax.Array:
-    return robot.marker_points(x, arm, u, side=side)
+@functools.partial(jax.jit, static_argnames=("structure", "arm"))
+def _compiled_points(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
+                     u: jax.Array, side: dict[str, jax.Array] | None = None) -> jax.Array:
+    return structure.robot(values).marker_points(x, arm, u, side=side)
