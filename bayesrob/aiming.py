@@ -28,9 +28,11 @@ IK_ITERATIONS = 60
 # branch, few enough that a target truly beyond it costs at most that many solves
 AIM_SEEDS = 8
 
-@partial(jax.jit, static_argnames=("robot", "arm"))
-def _column_jacobian_program(robot: kin.Robot, arm: str, x: jax.Array, u: jax.Array
-                             ) -> tuple[jax.Array, jax.Array]:
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _column_jacobian_program(structure: kin.RobotStructure, arm: str, values: dict,
+                             x: jax.Array, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    robot = structure.robot(values)
+
     def point(x, row):
         return robot.marker_points(x, arm, row[None])[0]
 
@@ -40,8 +42,8 @@ def _column_jacobian_program(robot: kin.Robot, arm: str, x: jax.Array, u: jax.Ar
 
 def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
     """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c)), compiled once
-    per process for all robots equal to ``robot``."""
-    return partial(_column_jacobian_program, robot, arm)
+    per process for all robots of ``robot``'s structure."""
+    return partial(_column_jacobian_program, robot.structure, arm, robot.nominal_values)
 
 
 def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray

@@ -302,10 +302,13 @@ def identifiability(jac: np.ndarray, layout: kin.ParamLayout, candidates: np.nda
             dropped.append(i)
     kept = np.flatnonzero(free)
     unident = []
-    for i in dropped:
-        coef, *_ = np.linalg.lstsq(js[:, kept], js[:, i], rcond=None)
+    # every dropped column at once: one factorisation of the kept columns (one solve per
+    # column took 8.6 s of a compliance fit's 11 s on a linked 6-joint pair)
+    coefs = (np.linalg.lstsq(js[:, kept], js[:, dropped], rcond=None)[0] if dropped
+             else np.zeros((len(kept), 0)))
+    for col, i in enumerate(dropped):
         # back to parameter units: J_i ~ sum_k coef_k (s_k / s_i) J_k
-        coef = coef * layout.scales[kept] / layout.scales[i]
+        coef = coefs[:, col] * layout.scales[kept] / layout.scales[i]
         big = np.argsort(-np.abs(coef))[:3]
         unident.append({
             "name": layout.params[i].name, "group": layout.params[i].group,

@@ -292,12 +292,6 @@ def _energy(theta: jax.Array, theta_cmd: jax.Array, a: _ArmArrays, gravity: jax.
     return spring + grav
 
 
-def arm_energy(arm: ArmTruth, theta: jax.Array, theta_cmd: jax.Array, effects: Sequence[str],
-               gravity: Sequence[float]) -> jax.Array:
-    """Potential energy (N mm) of one arm at joint angles theta."""
-    return _energy(theta, theta_cmd, _arm_arrays(arm, effects), jnp.asarray(gravity, float))
-
-
 _arm_energy_vg = jax.jit(jax.value_and_grad(_energy))
 
 
