@@ -59,7 +59,7 @@ def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.n
     any of them is refused with one line, and so is one a planar arm's pulse limits refuse.
     """
     targets = np.atleast_2d(np.asarray(targets, float))
-    u_train, d_train = rig.chain_rows(arm, "train")
+    u_train, d_train = rig.rows(arm, "train")
     lo, hi = u_train.min(axis=0), u_train.max(axis=0)
     order = np.argsort(np.linalg.norm(d_train[None] - targets[:, None], axis=-1), axis=1)
     f = _column_jacobian(robot, arm)

@@ -366,8 +366,8 @@ def calibrate_bayes(rig: Rig, priors: Priors = Priors(),
     """Bayesian calibration of every arm of a rig on its ``train`` rows."""
     out = {}
     for name, spec in rig.arms.items():
-        u, d = rig.arm_rows(name, "train")
-        uv, dv = rig.arm_rows(name, "validation")
+        u, d = rig.rows(name, "train")
+        uv, dv = rig.rows(name, "validation")
         out[name] = calibrate_arm_bayes(spec, u, d, uv, dv, priors, settings, seed)
     return out
 

@@ -197,8 +197,8 @@ def calibrate(rig: Rig, method: Method = "least-squares") -> dict[str, ArmCalibr
     """Calibrate every arm of a rig on its single-arm ``train`` rows."""
     out = {}
     for name, spec in rig.arms.items():
-        u, d = rig.arm_rows(name, "train")
-        uv, dv = rig.arm_rows(name, "validation")
+        u, d = rig.rows(name, "train")
+        uv, dv = rig.rows(name, "validation")
         out[name] = calibrate_arm(spec, u, d, method, uv, dv)
     return out
 
@@ -388,7 +388,7 @@ def chain_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
     observed - model (n, 3), row by row."""
     out = {}
     for arm in robot.measured_arms():
-        u, d = rig.chain_rows(arm, set)
+        u, d = rig.rows(arm, set)
         if len(u):
             p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u),
                                                       side_rows(rig, robot, arm, set)))
@@ -448,9 +448,9 @@ def _residual_function(rig: Rig, robot: kin.Robot, set: str):
     arguments, so a second calibration of the same rig, or of another rig of a robot of the
     same design, is warm)."""
     structure, values = robot.structure, robot.nominal_values
-    arms = tuple(a for a in robot.measured_arms() if len(rig.chain_rows(a, set)[0]))
+    arms = tuple(a for a in robot.measured_arms() if len(rig.rows(a, set)[0]))
     data = tuple((jnp.asarray(u), jnp.asarray(d), side_rows(rig, robot, a, set))
-                 for a, (u, d) in ((a, rig.chain_rows(a, set)) for a in arms))
+                 for a, (u, d) in ((a, rig.rows(a, set)) for a in arms))
     n_res = sum(int(d.size) for _, d, _ in data)
 
     def exact_columns(x, idx):

@@ -202,7 +202,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     if sag_steps < 1:
         raise ChainDiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     candidates = resolve_effects(effects)
-    if not len(rig.chain_rows(rig.robot.measured_arms()[0], "validation")[0]):
+    if not len(rig.rows(rig.robot.measured_arms()[0], "validation")[0]):
         raise ChainDiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
                                   "ladder on")
     split = _split(rig, seed)

@@ -256,7 +256,7 @@ def arm_sags(rig: Rig, cal: ChainCalibration, arms: Sequence[str]) -> dict[str, 
             or len({robot.n_path_joints(a) for a in arms}) > 1):
         return None
     shared = set.intersection(*({c.name for c in robot.path(a)} for a in arms))
-    u = jnp.asarray(np.concatenate([rig.chain_rows(a, "train")[0] for a in arms]))
+    u = jnp.asarray(np.concatenate([rig.rows(a, "train")[0] for a in arms]))
     sags = {}
     for a in arms:
         rigid = np.array(cal.x, float)

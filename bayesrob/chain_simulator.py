@@ -651,7 +651,7 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
     targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
     commands = {}
     for arm in truth.arms:
-        u_train, p_train = rig.chain_rows(arm, "train")
+        u_train, p_train = rig.rows(arm, "train")
         nearest = np.argsort(np.linalg.norm(p_train[None] - targets[:, None], axis=2), axis=1)
         u = position_ik(cal.robot, cal.x, arm, targets, u_train[nearest])
         # Ten significant digits, as written: the springs hold what the file says.

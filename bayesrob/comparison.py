@@ -211,8 +211,8 @@ def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel
 
 def loo_calibrations(rig: Rig, arm: str) -> list[kin.Arm]:
     """The arm calibrated (least squares, as :func:`calibrate`) without each training row."""
-    u, d = rig.arm_rows(arm, "train")
-    uv, dv = rig.arm_rows(arm, "validation")
+    u, d = rig.rows(arm, "train")
+    uv, dv = rig.rows(arm, "validation")
     spec = rig.arms[arm]
     return [calibrate_arm(spec, u[np.arange(len(u)) != i], d[np.arange(len(u)) != i],
                           "least-squares", uv, dv).arm for i in range(len(u))]
@@ -230,7 +230,7 @@ def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel,
     ``calibrations``: :func:`loo_calibrations` of the arm, when already computed (they do not
     depend on the model).
     """
-    u, d = rig.arm_rows(arm.name, "train")
+    u, d = rig.rows(arm.name, "train")
     if recalibrate and calibrations is None:
         calibrations = loo_calibrations(rig, arm.name)
     out = np.empty(len(u))
@@ -248,7 +248,7 @@ def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel,
 
 
 def _in_sample_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel) -> np.ndarray:
-    u, d = rig.arm_rows(arm.name, "train")
+    u, d = rig.rows(arm.name, "train")
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
     scores, _ = score_points([model], [arm], [u], target, d)
     return scores.lpd
@@ -499,7 +499,7 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
     hold_arms = [a for a in arms if rig.measurements.mask(a, HOLDOUT).any()]
 
     def scored(model, arm: str, set: str) -> PointScores:
-        u, d = rig.chain_rows(arm, set)
+        u, d = rig.rows(arm, set)
         density = model.density(u, side_rows(rig, cal.robot, arm, set))
         return PointScores(density.logpdf(d), density.hdr_level(d), observed=d)
 

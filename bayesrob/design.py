@@ -222,7 +222,7 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
                 raise DesignError(f"{design.path}: [modules.{m.name}]: unknown model "
                                   f"{m.model!r}")
             arm = cal[m.arm].arm
-            u, d = rig.arm_rows(m.arm, "train")
+            u, d = rig.rows(m.arm, "train")
             errors = joint_errors(arm, u, d)
             spec = specs[m.model][0]
             # equilibrium draws add the tracker's noise to the measured point: the density

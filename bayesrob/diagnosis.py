@@ -123,9 +123,9 @@ class ArmData:
 
     @classmethod
     def from_rig(cls, rig: Rig, name: str) -> ArmData:
-        u, d = rig.arm_rows(name, "train")
-        uv, dv = rig.arm_rows(name, "validation")
-        uh, dh = rig.arm_rows(name, "holdout")
+        u, d = rig.rows(name, "train")
+        uv, dv = rig.rows(name, "validation")
+        uh, dh = rig.rows(name, "holdout")
         return cls(name, rig.arms[name], u, d, uv, dv,
                    fx.EffectContext.from_commands(u, rig.gravity), uh, dh)
 

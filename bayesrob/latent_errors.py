@@ -154,11 +154,11 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
 
     check_latent_model(model)
     t0 = time.perf_counter()
-    u, d = rig.chain_rows(arm, "train")
+    u, d = rig.rows(arm, "train")
     xj, uj = jnp.asarray(x), jnp.asarray(u)
     side = side_rows(rig, robot, arm, "train")
     res = d - np.asarray(robot.compiled_points(arm)(xj, uj, side))
-    n_coords = sum(rig.chain_rows(a, "train")[1].size for a in robot.measured_arms())
+    n_coords = sum(rig.rows(a, "train")[1].size for a in robot.measured_arms())
     scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
     jac = joint_jacobian(robot, xj, arm, uj, side)
     mcmc = MCMC(NUTS(_model, target_accept_prob=0.9), num_warmup=warmup, num_samples=samples,

@@ -196,10 +196,10 @@ def fit_marker_model(rig: Rig, cal: ChainCalibration, arm: str, spec: ModelSpec,
     """Fit ``spec`` (as :func:`marker_model_kind` reads it) to ``arm``'s train rows."""
     kind = marker_model_kind(spec)
     robot, x = cal.robot, jnp.asarray(cal.x)
-    u, d = rig.chain_rows(arm, "train")
+    u, d = rig.rows(arm, "train")
     side = side_rows(rig, robot, arm, "train")
     res = d - np.asarray(robot.compiled_points(arm)(x, jnp.asarray(u), side))
-    n_coords = sum(rig.chain_rows(a, "train")[1].size for a in robot.measured_arms())
+    n_coords = sum(rig.rows(a, "train")[1].size for a in robot.measured_arms())
     n_free = int(cal.ident.free.sum())
     scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
     model = MarkerModel(arm, kind, cal, scale, res * scale, u)

@@ -276,7 +276,7 @@ def fit_noise_models(rig: Rig, arms: dict[str, kin.Arm], specs: Sequence[ModelSp
     """
     data = {}
     for name, arm in arms.items():
-        u, d = rig.arm_rows(name, "train")
+        u, d = rig.rows(name, "train")
         data[name] = (joint_errors(arm, u, d), u)
     out: dict[str, dict[str, FittedNoiseModel]] = {}
     for s in specs:

@@ -30,8 +30,8 @@ def calibrate_rig(rig: Rig, method: str = "least-squares") -> dict[str, ArmCalib
         return calibrate(rig, method)
     out = {}
     for name, spec in rig.arms.items():
-        u, d = rig.arm_rows(name, "train")
-        uv, dv = rig.arm_rows(name, "validation")
+        u, d = rig.rows(name, "train")
+        uv, dv = rig.rows(name, "validation")
         out[name] = calibrate_arm_bayes(spec, u, d, uv, dv)
     return out
 

@@ -51,7 +51,7 @@ class Reproduction:
 
     def training_errors(self, arm: str) -> tuple[np.ndarray, np.ndarray]:
         """Joint errors (N, 2) and commands (N, 2) of an arm's training rows."""
-        u, d = self.rig.arm_rows(arm, "train")
+        u, d = self.rig.rows(arm, "train")
         return joint_errors(self.arms[arm], u, d), u
 
 

@@ -208,8 +208,10 @@ class Rig:
         """True when the arms are URDF/DH chains rather than the paper's planar arms."""
         return any(isinstance(a, ChainSpec) for a in self.arms.values())
 
-    def chain_rows(self, arm: str, set: str) -> tuple[np.ndarray, np.ndarray]:
-        """A measured arm's rows in a set: its path's columns (N, c) and observed points."""
+    def rows(self, arm: str, set: str) -> tuple[np.ndarray, np.ndarray]:
+        """A measured arm's single-arm rows in a set: the columns of its path (N, c; a planar
+        arm's two pulse widths, a mounted arm's mounts' columns first) and the observed points
+        (N, dim)."""
         meas = self.measurements
         m = meas.mask(arm, set)
         cols = [meas.commands[c.name][m] for c in self.robot.path(arm)]
@@ -234,11 +236,6 @@ class Rig:
     @property
     def linked_configs(self) -> list[str]:
         return [c for c in self.configs if "+" in c]
-
-    def arm_rows(self, arm: str, set: str) -> tuple[np.ndarray, np.ndarray]:
-        """Commands (N, 2) and observed end points (N, 2) of a single arm's rows in a set."""
-        m = self.measurements.mask(arm, set)
-        return self.measurements.commands[arm][m], self.measurements.observed[m]
 
     def config_rows(self, config: str, set: str) -> dict[str, np.ndarray]:
         """Rows of a config and set: ``commands`` per arm, ``target`` and ``observed``."""

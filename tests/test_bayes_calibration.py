@@ -172,7 +172,7 @@ def test_calibrate_command_bayes_json(clean, tmp_path):
 
 def test_sbc_quick(clean):
     rig, _, _ = clean
-    u, _ = rig.arm_rows("top", "train")
+    u, _ = rig.rows("top", "train")
     res = bc.sbc(rig.arms["top"], u, 25, n_draws=49, seed=1)
     un = res.uniformity(bins=5)
     # 25 data sets, 5 bins of 10 rank values (5 expected per bin), a chi-square test per

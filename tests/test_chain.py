@@ -270,7 +270,7 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
         x = jnp.asarray(x)
         idx = np.flatnonzero(lay.group_mask(kin.SAG_GROUPS))
         for arm in robot.measured_arms():
-            u = jnp.asarray(rig.chain_rows(arm, "train")[0])
+            u = jnp.asarray(rig.rows(arm, "train")[0])
             frames = robot._sag_frames(x, arm, u, calibration.side_rows(rig, robot, arm,
                                                                         "train"))
             defl = np.asarray(robot._sag_at(x.at[np.flatnonzero(play)].set(0.0), arm,
@@ -425,7 +425,7 @@ def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
     x_true = np.array([truth[n] for n in rig.robot.layout.names])
     cal = calibrate_chain(rig, ("frames", "geometric"))
     for s in ("validation", "holdout"):
-        u, obs = rig.chain_rows("arm", s)
+        u, obs = rig.rows("arm", s)
         floor = np.linalg.norm(np.asarray(rig.robot.marker_points(x_true, "arm", u)) - obs,
                                axis=1).mean()
         # the floor is what noise alone leaves with the true geometry; 60 fitted numbers from
@@ -461,7 +461,7 @@ def test_calibrated_urdf_loads_back_as_the_same_robot(arm6_rig, tmp_path):
     (out / "rig.toml").write_text(dump_toml(calibrated_rig_document(rig, cal, "cal.urdf")))
     shutil.copy(arm6_rig / "measurements.csv", out)
     back = load_rig(out)
-    u, _ = rig.chain_rows("arm", "validation")
+    u, _ = rig.rows("arm", "validation")
     np.testing.assert_allclose(back.robot.marker_points(back.robot.layout.nominal, "arm", u),
                                rig.robot.marker_points(cal.x, "arm", u), atol=1e-6)
     # the URDF kept what calibration does not touch
@@ -501,7 +501,7 @@ def test_chain_path_calibrates_the_planar_default_rig_like_the_planar_fit():
     cal = calibrate_chain(rig)
     assert cal.ident.free.sum() == 8 * len(rig.arms)
     for arm in rig.arms:
-        u, _ = rig.arm_rows(arm, "validation")
+        u, _ = rig.rows(arm, "validation")
         np.testing.assert_allclose(rig.robot.marker_points(cal.x, arm, u),
                                    planar[arm].arm.forward_u(u), atol=1e-6)
 
@@ -657,7 +657,7 @@ def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
     side = rig.chain_side_rows("right", "train")
     assert set(side) == {"left"} and side["left"].shape == (2, 10)
     assert rig.chain_side_rows("left", "train")["right"].shape == (1, 10)
-    assert rig.chain_rows("right", "train")[0].shape == (2, 10)
+    assert rig.rows("right", "train")[0].shape == (2, 10)
 
 
 def test_lateral_compliance_alone_fits_the_links_masses(arm6_rig):

@@ -163,7 +163,7 @@ def test_residual_figure_draws_every_validation_marker_on_two_planes(compliant_r
     rig = load_rig(compliant_rig)
     diag = diagnose_chain(rig)
     assert list(diag.residuals) == ["geometric", "+ joint_compliance"]
-    n = len(rig.chain_rows(rig.robot.measured_arms()[0], "validation")[0])
+    n = len(rig.rows(rig.robot.measured_arms()[0], "validation")[0])
     res = [r for by_arm in diag.residuals.values() for _, r in by_arm.values()]
     assert [r.shape for r in res] == [(n, 3), (n, 3)]
     # the final model's residuals are the ones its ladder step reports

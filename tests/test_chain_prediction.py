@@ -88,7 +88,7 @@ def test_latent_population_and_coverage_on_new_poses(arm6_modules):
     assert le.diagnostics["max_r_hat"] < 1.05
     sds = le.joint_sd.mean(0)
     assert np.all((sds[:3] > 0.25e-3) & (sds[:3] < 1e-3)), sds
-    us, ds = zip(*(rig.chain_rows("arm", s) for s in ("validation", "holdout")), strict=True)
+    us, ds = zip(*(rig.rows("arm", s) for s in ("validation", "holdout")), strict=True)
     u, d = np.concatenate(us), np.concatenate(ds)
     draws = chain_draws(mods, ["arm"], [u], num_samples=2000, seed=3)
     levels = hdr_levels(draws, d)
@@ -108,7 +108,7 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
 
     rig, mods = arm6_modules
     mods = dataclasses.replace(mods, param_cov=1e-8 * np.eye(len(mods.x)))
-    u, _ = rig.chain_rows("arm", "validation")
+    u, _ = rig.rows("arm", "validation")
     whole = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
     monkeypatch.setattr(cp, "POINTS_PER_CALL", 45 * len(u))  # 7 calls: 6 of 43 draws, 42
     sizes = []
@@ -128,7 +128,7 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
 
 def test_aim_reaches_targets_and_refuses_what_it_cannot(arm6_modules):
     rig, mods = arm6_modules
-    _, d = rig.chain_rows("arm", "holdout")
+    _, d = rig.rows("arm", "holdout")
     targets = d[:6] + np.array([5.0, -5.0, 5.0])
     u = aim_chain(rig, mods.robot, mods.x, "arm", targets)
     got = np.asarray(mods.robot.compiled_points("arm")(mods.x, u))
@@ -163,7 +163,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     target no seed reaches is refused. (Gauss-Newton stubbed: seed k's solution is given.)"""
     u_train = np.array([[0.0, 0.0], [1.0, 1.0], [0.5, 0.2], [0.9, 0.9]])
     d_train = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0], [30.0, 0, 0]])
-    rig = SimpleNamespace(chain_rows=lambda arm, s: (u_train, d_train), arms={"arm": None})
+    rig = SimpleNamespace(rows=lambda arm, s: (u_train, d_train), arms={"arm": None})
     # per target (rows) and seed rank (columns): the solution, and whether it reaches
     answers = {0: [[0.5, 0.5], [1.4, 0.5], [0.2, 0.3], [0.1, 0.1]],  # in range at once
                1: [[1.3, 0.0], [1.2, 0.5], [0.4, 0.4], [0.3, 0.3]],  # third seed is inside
@@ -212,7 +212,7 @@ def test_predict_command_on_a_chain_rig(arm6_rig, tmp_path, capsys):
     """``bayesrob predict`` on a 3-D rig: x,y,z targets, volumes in the JSON, a figure; a
     planar-only model and 2-D targets are refused with one line and exit 2."""
     rig = load_rig(arm6_rig)
-    _, d = rig.chain_rows("arm", "holdout")
+    _, d = rig.rows("arm", "holdout")
     tfile = tmp_path / "t.csv"
     tfile.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.3f}" for v in p) for p in d[:4]))
     out, png = tmp_path / "p.json", tmp_path / "p.png"
@@ -224,7 +224,7 @@ def test_predict_command_on_a_chain_rig(arm6_rig, tmp_path, capsys):
     assert 0 < t0["hdr50_mm3"] < t0["hdr90_mm3"]
     assert 0 < t0["expected_error_mm"] < 2.0
     # how far each target's joint commands leave the train rows' range, column by column
-    u_train = rig.chain_rows("arm", "train")[0]
+    u_train = rig.rows("arm", "train")[0]
     for t in doc["targets"]:
         u = np.asarray(t["commands"]["arm"])
         excess = np.maximum(u_train.min(0) - u, 0) + np.maximum(u - u_train.max(0), 0)

@@ -212,7 +212,7 @@ def test_predict_says_where_commands_leave_the_calibrated_range(tmp_path, capsys
     doc = json.loads(out.read_text())
     inside, outside = (t["beyond_train_range"]["top"] for t in doc["targets"])
     assert inside == [0.0, 0.0]
-    u = rig.arm_rows("top", "train")[0]
+    u = rig.rows("top", "train")[0]
     elbow = doc["targets"][1]["commands"]["top"][1]
     assert outside[0] == 0.0 and outside[1] == pytest.approx(elbow - u[:, 1].max())
     assert outside[1] > 50  # tens of us beyond: not rounding at the range's edge

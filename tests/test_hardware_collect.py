@@ -165,7 +165,7 @@ def test_collect_produces_a_rig_that_calibrates(plant, rig_dir, protocol, wire) 
     assert m.set.tolist() == (["train"] * 9 + ["validation"] * 9) * 2 + ["test"] * 9
     # Validation repeats the train commands exactly.
     for arm in ("top", "bottom"):
-        assert np.array_equal(rig.arm_rows(arm, "train")[0], rig.arm_rows(arm, "validation")[0])
+        assert np.array_equal(rig.rows(arm, "train")[0], rig.rows(arm, "validation")[0])
     # The device settled each row's commands, linked exactly for the test rows.
     assert [p.arms for p in poses] == [("top",)] * 18 + [("bottom",)] * 18 + \
         [("top", "bottom")] * 9

@@ -50,7 +50,7 @@ def arms(rig):
 def errors(rig, arms):
     out = {}
     for name, arm in arms.items():
-        u, d = rig.arm_rows(name, "train")
+        u, d = rig.rows(name, "train")
         out[name] = (joint_errors(arm, u, d), u)
     return out
 
@@ -69,7 +69,7 @@ def cond(rig, arms):
 
 
 def _train(rig, arm):
-    u, d = rig.arm_rows(arm.name, "train")
+    u, d = rig.rows(arm.name, "train")
     return joint_errors(arm, u, d), u
 
 
@@ -122,7 +122,7 @@ def test_histogram_cond_is_scored_only(small_models, arms):
 
 @pytest.mark.parametrize("kind", ["IND", "CORR", "COND", "HIST"])
 def test_arm_log_density_matches_the_grid_likelihood(small_models, arms, rig, kind):
-    u, _ = rig.arm_rows("bottom", "validation")
+    u, _ = rig.rows("bottom", "validation")
     arm = arms["bottom"]
     model = small_models[kind]["bottom"]
     target = np.asarray(arm.forward_u(jnp.asarray(u[:4])))
@@ -145,7 +145,7 @@ def test_prior_predictive_draws_match_the_grid_density(small_models, arms, rig, 
     model = small_models[kind]["top"]
     assert model.spec.jacobian
     arm = arms["top"]
-    u, _ = rig.arm_rows("top", "validation")
+    u, _ = rig.rows("top", "validation")
     u = u[[0, 5, 10, 15]]
     draws = inf.prior_predictive(model, arm, u, 20000, seed=3)["d"]  # (S, 4, 2)
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
@@ -160,7 +160,7 @@ def test_prior_predictive_draws_match_the_grid_density(small_models, arms, rig, 
 
 def test_prior_predictive_with_measurement_noise_adds_its_variance(small_models, arms, rig):
     model, arm = small_models["CORR"]["top"], arms["top"]
-    u = rig.arm_rows("top", "validation")[0][:1]
+    u = rig.rows("top", "validation")[0][:1]
     clean = inf.prior_predictive(model, arm, u, 20000, seed=4)["d"][:, 0]
     noisy = inf.prior_predictive(model, arm, u, 20000, seed=4, measurement_noise_mm=1.0)
     assert set(noisy) >= {"d", "d_true", "theta_err"}
@@ -239,7 +239,7 @@ def _bimodal_models(rig):
     rng = np.random.default_rng(0)
 
     def fit(arm, x, bw):
-        u, _ = rig.arm_rows(arm, "train")
+        u, _ = rig.rows(arm, "train")
         c = ConditionalKDE.fit(x, u, "kernel", bandwidth=[*bw, 1e4, 1e4])
         return FittedNoiseModel(spec, x, u, conditional=c)
 
@@ -306,7 +306,7 @@ def _far_bimodal_models(rig):
     rng = np.random.default_rng(1)
 
     def fit(arm, x, bw):
-        u, _ = rig.arm_rows(arm, "train")
+        u, _ = rig.rows(arm, "train")
         c = ConditionalKDE.fit(x, u, "kernel", bandwidth=[*bw, 1e4, 1e4])
         return FittedNoiseModel(spec, x, u, conditional=c)
 

@@ -54,7 +54,7 @@ def test_leave_one_out_drops_exactly_one_training_row():
     np.testing.assert_array_equal(m3.theta_err, model.theta_err[keep])
     np.testing.assert_array_equal(m3.bandwidth, model.bandwidth)  # bandwidths are kept
     loo = loo_training_scores(rig, arm, model, recalibrate=False)
-    u, d = rig.arm_rows("top", "train")
+    u, d = rig.rows("top", "train")
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
     full, _ = score_points([model], [arm], [u], target, d)
     assert loo.shape == (16,) and np.all(np.isfinite(loo))
@@ -72,8 +72,8 @@ def test_leave_one_out_refits_the_calibration_without_the_row():
     arm = calibrate(rig)["bottom"].arm
     spec = discover_models(names=["corr"])[0]
     model = fit_noise_models(rig, {"bottom": arm}, [spec])["corr"]["bottom"]
-    u, d = rig.arm_rows("bottom", "train")
-    uv, dv = rig.arm_rows("bottom", "validation")
+    u, d = rig.rows("bottom", "train")
+    uv, dv = rig.rows("bottom", "validation")
     loo = loo_training_scores(rig, arm, model)
     kept_cal = loo_training_scores(rig, arm, model, recalibrate=False)
     i = 5
@@ -104,7 +104,7 @@ def test_histogram_cond_leave_one_out_keeps_its_bin_margin():
     inside_all = []
     for name, arm in arms.items():
         model = fitted[name]
-        u, d = rig.arm_rows(name, "train")
+        u, d = rig.rows(name, "train")
         cals = loo_calibrations(rig, name)
         loo = loo_training_scores(rig, arm, model, calibrations=cals)
         for i, arm_i in enumerate(cals):

@@ -35,7 +35,7 @@ def test_convert_splits_the_poses_into_two_marker_rows_each(tmp_path):
     assert list(m.set) == ["train"] * 6 + ["validation"] * 4
     np.testing.assert_allclose(m.observed.reshape(5, 2, 3), markers * 1000.0, atol=1e-4)
     # each hand's rows carry the other arm's columns too: its weight bends the torso
-    _, obs = rig.chain_rows("left", "validation")
+    _, obs = rig.rows("left", "validation")
     assert obs.shape == (2, 3)
     assert rig.chain_side_rows("left", "validation")
 

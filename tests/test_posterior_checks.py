@@ -88,7 +88,7 @@ def test_hdr_levels_of_the_models_own_draws_are_uniform():
     400 draws: 25 at each of 16 commands of the default rig's top arm."""
     rig = load_rig(default_rig_dir())
     arm = calibrate(rig)["top"].arm
-    u, d = rig.arm_rows("top", "train")
+    u, d = rig.rows("top", "train")
     model = ModelSpec("corr_fixed", "CORR", bandwidth=(0.003, 0.004)).fit(
         joint_errors(arm, u, d), u)
     draws = inf.prior_predictive(model, arm, u, 25, seed=11)["d"]  # (25, 16, 2)

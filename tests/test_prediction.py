@@ -62,7 +62,7 @@ def test_new_variant_is_a_file_not_code(tmp_path, default):
 def test_joint_errors_invert_the_forward_model(default):
     rig, arms = default
     arm = arms["top"]
-    u, _ = rig.arm_rows("top", "train")
+    u, _ = rig.rows("top", "train")
     err_true = np.random.default_rng(0).normal(0, 0.004, u.shape)
     d = np.asarray(kin.forward(arm.params, kin.servo(arm.params, jnp.asarray(u)) + err_true))
     np.testing.assert_allclose(joint_errors(arm, u, d), err_true, atol=1e-9)
@@ -79,7 +79,7 @@ def test_tracker_noise_is_taken_out_of_the_joint_errors(default):
     """
     rig, arms = default
     arm = arms["top"]
-    u, _ = rig.arm_rows("top", "train")
+    u, _ = rig.rows("top", "train")
     u = np.tile(u, (400, 1))
     rng = np.random.default_rng(4)
     e = rng.normal(0, 0.0008, u.shape)
@@ -163,7 +163,7 @@ def test_mass_cut_off_by_the_grid_is_reported(default):
 def test_histogram_margin_keeps_every_training_point_inside(tmp_path, default):
     rig, arms = default
     (spec,) = discover_models(names=["cond_paper"])
-    u, d = rig.arm_rows("bottom", "train")
+    u, d = rig.rows("bottom", "train")
     err = joint_errors(arms["bottom"], u, d)
     widths = np.asarray(spec._bin_widths(err, u))
     x = np.hstack([err, u])

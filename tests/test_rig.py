@@ -118,7 +118,7 @@ def test_clean_rig_loads(clean_rig_dir):
     assert np.isnan(meas.target[single]).all() and np.isfinite(meas.target[~single]).all()
     assert np.isnan(meas.commands["bottom"][meas.config == "top"]).all()
     assert np.isfinite(meas.observed).all()
-    u, d = rig.arm_rows("top", "train")
+    u, d = rig.rows("top", "train")
     assert u.shape == d.shape == (16, 2) and np.isfinite(u).all()
     rows = rig.config_rows("top+bottom", "test")
     assert set(rows["commands"]) == {"top", "bottom"}

@@ -57,7 +57,7 @@ def bayes_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     ls = calibrate_chain(rig, groups)
     p = post.extra["posterior"]
     free = post.ident.free
-    u, _ = rig.chain_rows("arm", "validation")
+    u, _ = rig.rows("arm", "validation")
     true_points = np.asarray(rig.robot.marker_points(true_vector(d, rig), "arm", u))
     points = np.stack([np.asarray(rig.robot.marker_points(x, "arm", u))
                        for x in post.draws[::4]])  # (200, poses, 3)
@@ -112,7 +112,7 @@ def compliance_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     rig = load_rig(d)
     geometric = calibrate_chain(rig, ("frames", "geometric"))
     compliant = calibrate_chain(rig, ("frames", "geometric", "compliance"))
-    u, obs = rig.chain_rows("arm", "validation")
+    u, obs = rig.rows("arm", "validation")
     floor = noise_floor(rig, true_vector(d, rig), truth, u, obs)
     doc = compliant.to_json()
     return {"seed": seed, "floor_mm": floor,

@@ -49,7 +49,7 @@ def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[st
     with TemporaryDirectory(prefix="bayesrob-sbc-") as tmp:
         rig = load_rig(simulate_rig(Path(tmp) / "clean", paper_truth((), seed=0, grid=4),
                                     holdout=False))
-    u, _ = rig.arm_rows("top", "train")
+    u, _ = rig.rows("top", "train")
     batches = []
     for i, seed in enumerate(seeds, 1):
         batches.append(bc.sbc(rig.arms["top"], u, BATCH, n_draws=DRAWS, seed=seed))

@@ -231,7 +231,7 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     mods = fit_chain_modules(rig, list(hands), model, groups, seed=seed, calibration=cal)
     out = []
     for k, hand in enumerate(hands):
-        u, obs = rig.chain_rows(hand, "validation")
+        u, obs = rig.rows(hand, "validation")
         draws = chain_draws(mods, [hand], [u], seed=seed + k,
                             side=rig.chain_side_rows(hand, "validation"))
         level = hdr_levels(draws, obs)

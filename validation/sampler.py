@@ -55,7 +55,7 @@ def check_model(rig: Rig, arms: dict[str, Arm], name: str, target_index: Sequenc
     (spec,) = discover_models(names=[name])
     fitted = {}
     for a in ("top", "bottom"):
-        u, d = rig.arm_rows(a, "train")
+        u, d = rig.rows(a, "train")
         fitted[a] = spec.fit(joint_errors(arms[a], u, d), u)
     targets = rig.config_rows("top+bottom", "test")["target"][list(target_index)]
     am = [arms["top"], arms["bottom"]]
