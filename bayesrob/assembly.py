@@ -220,7 +220,7 @@ def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
 def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
     """(T, c): how far each row of ``commands`` lies beyond the range of ``arm``'s train
     commands, per column (0 inside), in the columns' own units."""
-    u = rig.rows(arm, "train")[0] if rig.is_chain else rig.rows(arm, "train")[0]
+    u = rig.rows(arm, "train")[0]
     lo, hi = u.min(axis=0), u.max(axis=0)
     c = np.asarray(commands, float)
     return np.maximum(lo - c, 0.0) + np.maximum(c - hi, 0.0)

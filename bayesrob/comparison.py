@@ -265,6 +265,28 @@ def _elpd_data(pointwise: np.ndarray, p: float) -> Any:
     )
 
 
+def _elpd_tables(specs: Sequence[ModelSpec], heldout: dict[str, dict[str, PointScores]],
+                 loo: dict[str, np.ndarray], in_sample: dict[str, np.ndarray],
+                 holdout: dict[str, dict[str, PointScores]]) -> tuple[Any, Any, Any]:
+    """arviz's stacking comparisons of every model's held-out, leave-one-out (p: in-sample
+    minus LOO) and holdout elpd (None without holdout rows)."""
+    def table(pointwise: dict[str, np.ndarray], p: dict[str, float] | None = None) -> Any:
+        return az.compare({s.name: _elpd_data(pointwise[s.name],
+                                              float("nan") if p is None else p[s.name])
+                           for s in specs}, method="stacking")
+
+    def pooled(scores: dict[str, dict[str, PointScores]]) -> dict[str, np.ndarray]:
+        return {n: np.concatenate([x.lpd for x in by_setup.values()])
+                for n, by_setup in scores.items()}
+
+    with warnings.catch_warnings():
+        # arviz 0.23 calls a pandas sort_values(inplace=True) that pandas deprecates.
+        warnings.filterwarnings("ignore", message="The inplace keyword")
+        return (table(pooled(heldout)),
+                table(loo, {n: float(in_sample[n].sum() - loo[n].sum()) for n in loo}),
+                table(pooled(holdout)) if holdout else None)
+
+
 def _table(compared: Any) -> list[dict]:
     rows = []
     for name, r in compared.iterrows():
@@ -408,9 +430,9 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     """
     from bayesrob.progress import progress as progress_report
 
-    t0 = time.perf_counter()
     if rig.is_chain or groups is not None:
         return _compare_marker_models(rig, models, models_dir, progress, groups)
+    t0 = time.perf_counter()
     specs = discover_models(models_dir, models)
     bar = progress_report(len(specs), "compare", "models", enabled=progress,
                           postfix="calibrating")
@@ -444,10 +466,6 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
             [_in_sample_scores(rig, arms[a], fitted[a]) for a in arms])
         bar.update()
     bar.close()
-    held = {s.name: _elpd_data(np.concatenate([x.lpd for x in heldout[s.name].values()]),
-                               float("nan")) for s in specs}
-    loos = {s.name: _elpd_data(loo[s.name], float(in_sample[s.name].sum() - loo[s.name].sum()))
-            for s in specs}
     notes = [
         "held out: validation rows of each arm + linked test rows; models fitted on train rows",
         "loo_train: exact leave-one-out over each arm's train rows: "
@@ -456,22 +474,15 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
         + "; bandwidths kept from the full fit (flatters the LOO-ML variants slightly)",
         "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
     ]
-    with warnings.catch_warnings():
-        # arviz 0.23 calls a pandas sort_values(inplace=True) that pandas deprecates.
-        warnings.filterwarnings("ignore", message="The inplace keyword")
-        tables = az.compare(held, method="stacking"), az.compare(loos, method="stacking")
-        hold_table = None
-        if hold_configs:
-            notes.append("holdout: rows at poses and targets no other set has; models fitted "
-                         "on train rows, scored like the held-out rows")
-            hold_table = az.compare(
-                {s.name: _elpd_data(np.concatenate([x.lpd for x in holdout[s.name].values()]),
-                                    float("nan")) for s in specs}, method="stacking")
+    held_table, loo_table, hold_table = _elpd_tables(specs, heldout, loo, in_sample, holdout)
+    if hold_configs:
+        notes.append("holdout: rows at poses and targets no other set has; models fitted "
+                     "on train rows, scored like the held-out rows")
     if any("+" in c for c in configs):
         notes.append(f"linked setups are scored under both fusion rules: models.<name> by the "
                      f"product of likelihoods (the paper's), models.<name>:{EQUILIBRIUM} by the "
                      "arms' stiffness balance (bayesrob.fusion); elpd tables use the product")
-    return ModelComparison(rig, list(specs), heldout, loo, in_sample, *tables,
+    return ModelComparison(rig, list(specs), heldout, loo, in_sample, held_table, loo_table,
                            time.perf_counter() - t0, notes, holdout, hold_table, recalibrate,
                            fused, fused_holdout)
 
@@ -527,24 +538,13 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
         "weights: arviz stacking; dse: sqrt(n) * sd of pointwise differences to the best model",
         f"calibrated with --params {','.join(cal.groups)}",
     ]
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="The inplace keyword")
-        held = az.compare({s.name: _elpd_data(np.concatenate(
-            [x.lpd for x in heldout[s.name].values()]), float("nan")) for s in specs},
-            method="stacking")
-        loos = az.compare({s.name: _elpd_data(loo[s.name], float(in_sample[s.name].sum()
-                                                                 - loo[s.name].sum()))
-                           for s in specs}, method="stacking")
-        hold_table = None
-        if hold_arms:
-            notes.append("holdout: rows at poses no other set has, scored like the held-out rows")
-            hold_table = az.compare(
-                {s.name: _elpd_data(np.concatenate([x.lpd for x in holdout[s.name].values()]),
-                                    float("nan")) for s in specs}, method="stacking")
+    held, loos, hold_table = _elpd_tables(specs, heldout, loo, in_sample, holdout)
+    if hold_arms:
+        notes.append("holdout: rows at poses no other set has, scored like the held-out rows")
     linked = [c for c in rig.linked_configs if rig.measurements.mask(c).any()]
     if linked:
-        notes.append(f"linked rows ({', '.join(linked)}) are not scored on a URDF/DH rig: "
-                     "'bayesrob predict' gives their coverage")
+        notes.append(f"linked rows ({', '.join(linked)}) are not scored by the marker "
+                     "densities: 'bayesrob predict' gives their coverage")
     dim = rig.robot.dim
     return ModelComparison(rig, list(specs), heldout, loo, in_sample, held, loos,
                            time.perf_counter() - t0, notes, holdout, hold_table, False,

@@ -822,6 +822,11 @@ def _progress(total: int | None, enabled: bool, desc: str, unit: str = "step",
                     first_after=first_after)
 
 
+def _emcee_moves() -> list:
+    """:func:`run_emcee`'s default moves: 70% differential evolution, 30% ``KDEMove``."""
+    return [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
+
+
 def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
               commands: Sequence[np.ndarray], init: np.ndarray, *, n_steps: int = 2500,
               burn: int = 500, seed: int = 0, progress: bool = False,
@@ -842,7 +847,7 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     lp = linked_log_density(models, arms)
     if moves is None:
-        moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
+        moves = _emcee_moves()
     rng = np.random.default_rng(seed)
     bar = _progress(t_count * n_steps, progress, "emcee", "steps", "compiling")
     t0 = time.perf_counter()
@@ -987,9 +992,8 @@ def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 250
     for k in {w, w // 2, w - w // 2}:
         jax.block_until_ready(batch(jnp.asarray(init[:k])))
     compile_seconds = time.perf_counter() - t0
-    moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
     sampler = emcee.EnsembleSampler(w, dim, lambda x: np.asarray(batch(jnp.asarray(x))),
-                                    vectorize=True, moves=moves)
+                                    vectorize=True, moves=_emcee_moves())
     sampler.random_state = np.random.RandomState(seed).get_state()
     t0 = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"), \
@@ -1083,8 +1087,9 @@ class SampleReport:
 
 
 def _judge(doc: dict, grid: GridPosterior | DensityGrid, results: dict[str, SamplerResult],
-           tol: CheckTolerances, burn: int) -> None:
-    """Each sampler's entry of ``doc["samplers"]`` and the ``check`` against the grid."""
+           tol: CheckTolerances, burn: int, sampler: str, notes: Sequence[str] = ()) -> None:
+    """Each sampler's entry of ``doc["samplers"]``, the ``check`` against the grid, and
+    ``notes`` with, when the grid truncates the posterior, why no sampler ran."""
     for name, res in results.items():
         entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
                  "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
@@ -1102,6 +1107,10 @@ def _judge(doc: dict, grid: GridPosterior | DensityGrid, results: dict[str, Samp
                            "edge_mass": tol.edge_mass}
     check["compared"] = list(results)
     doc["check"] = check
+    doc["notes"] = list(notes)
+    if np.any(grid.edge_mass > tol.edge_mass) and sampler != "grid":
+        doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
+                            "so there is nothing valid to check a sampler against")
 
 
 def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
@@ -1201,11 +1210,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                                      n_steps=steps, burn=burn, seed=seed, progress=progress)
     # Always judged, --sampler grid included: a grid whose box truncates the posterior is a
     # wrong answer whoever asked for it.
-    _judge(doc, grid, results, tol, burn)
-    doc["notes"] = []
-    if truncated and sampler != "grid":
-        doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
-                            "so there is nothing valid to check a sampler against")
+    _judge(doc, grid, results, tol, burn, sampler)
     if "nuts" in results and any(not is_sampleable(m) for m in models):
         doc["notes"].append(
             "the histogram COND is piecewise constant in the joint errors and zero outside its "
@@ -1300,12 +1305,9 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                               "box_half_width_mm": half,
                               "edge_mass": float(grid.edge_mass[0])}},
     }
-    _judge(doc, grid, results, tol, burn)
-    doc["notes"] = [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
-                    "calibrated inverse kinematics"]
-    if truncated and sampler != "grid":
-        doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
-                            "so there is nothing valid to check a sampler against")
+    _judge(doc, grid, results, tol, burn, sampler,
+           [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
+            "calibrated inverse kinematics"])
     return SampleReport(doc, grid, results)
 
 

@@ -38,7 +38,7 @@ from bayesrob.calibration import side_rows
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",
-           "joint_jacobian", "joint_names"]
+           "joint_jacobian", "joint_names", "scaled_train_residuals"]
 
 LATENT_MODELS = ("ind", "corr")
 # Prior scale of a joint's error sd (rad, or mm for prismatic joints): weakly informative,
@@ -142,6 +142,20 @@ class LatentJointErrors:
                 **self.diagnostics}
 
 
+def scaled_train_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, n_free: int
+                           ) -> tuple[np.ndarray, np.ndarray, float, dict | None]:
+    """``arm``'s train commands (N, c), its residuals under parameters x (N, dim) scaled by
+    sqrt(n / (n - p)) for the p = ``n_free`` parameters the calibration fitted on the n
+    coordinates of every arm's train rows, the scale, and the rest of each pose (or None):
+    the spread a row no fit has seen has, which every joint-error model is fitted to."""
+    u, d = rig.rows(arm, "train")
+    side = side_rows(rig, robot, arm, "train")
+    res = d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u), side))
+    n_coords = sum(rig.rows(a, "train")[1].size for a in robot.measured_arms())
+    scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
+    return u, res * scale, scale, side
+
+
 def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model: str = "ind",
                       n_free: int = 0, seed: int = 0, warmup: int = WARMUP,
                       samples: int = SAMPLES, chains: int = CHAINS) -> LatentJointErrors:
@@ -154,16 +168,11 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
 
     check_latent_model(model)
     t0 = time.perf_counter()
-    u, d = rig.rows(arm, "train")
-    xj, uj = jnp.asarray(x), jnp.asarray(u)
-    side = side_rows(rig, robot, arm, "train")
-    res = d - np.asarray(robot.compiled_points(arm)(xj, uj, side))
-    n_coords = sum(rig.rows(a, "train")[1].size for a in robot.measured_arms())
-    scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
-    jac = joint_jacobian(robot, xj, arm, uj, side)
+    u, res, scale, side = scaled_train_residuals(rig, robot, x, arm, n_free)
+    jac = joint_jacobian(robot, jnp.asarray(x), arm, jnp.asarray(u), side)
     mcmc = MCMC(NUTS(_model, target_accept_prob=0.9), num_warmup=warmup, num_samples=samples,
                 num_chains=chains, chain_method="sequential", progress_bar=False)
-    mcmc.run(jax.random.PRNGKey(seed), jac, jnp.asarray(res * scale), model)
+    mcmc.run(jax.random.PRNGKey(seed), jac, jnp.asarray(res), model)
     draws = mcmc.get_samples()
     idata = az.from_numpyro(mcmc)
     var_names = ["joint_sd", "noise_sd"]

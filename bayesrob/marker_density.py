@@ -27,7 +27,7 @@ component dropped from its mixture, the widths kept), Pareto-smoothed importance
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +37,12 @@ from jax.scipy.special import logsumexp
 
 from bayesrob.calibration import ChainCalibration, side_rows
 from bayesrob.kde import ConditionalKDE
-from bayesrob.latent_errors import LatentJointErrors, fit_latent_errors, joint_jacobian
+from bayesrob.latent_errors import (
+    LatentJointErrors,
+    fit_latent_errors,
+    joint_jacobian,
+    scaled_train_residuals,
+)
 from bayesrob.noise_models import ModelSpec
 from bayesrob.rig import Rig, RigError
 
@@ -135,8 +140,20 @@ def _sample_impl(key, centre, log_w, means, chol, n):
 _sample = jax.jit(_sample_impl, static_argnames=("n",))
 
 
-def _lse(a: np.ndarray) -> np.ndarray:
-    return scipy.special.logsumexp(a, axis=-1)
+def _cond_density(c: ConditionalKDE, u: np.ndarray, centre: np.ndarray) -> MarkerDensity:
+    """The kernel conditional of the residuals at commands u (T, c), centred on ``centre``."""
+    w = np.asarray(c.weights(u)).reshape(len(u), -1)
+    with np.errstate(divide="ignore"):
+        log_w = np.log(w)
+    return MarkerDensity(centre, log_w, c.x_data[None], np.diag(c.bw_x)[None, None])
+
+
+def _marker_covariances(jac: np.ndarray, cov_e: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """J Sigma_s J^T + s_s^2 I, (T, S, dim, dim), for Jacobians (T, dim, n) and population
+    draws Sigma (S, n, n), s (S,)."""
+    dim = jac.shape[1]
+    return (np.einsum("tij,sjk,tlk->tsil", jac, cov_e, jac)
+            + noise[None, :, None, None] ** 2 * np.eye(dim))
 
 
 # ---------------------------------------------------------------------------------- fitting
@@ -149,7 +166,6 @@ class MarkerModel:
     arm: str
     kind: str  # "ind", "corr" or "cond"
     calibration: ChainCalibration
-    dof_scale: float
     train_residuals: np.ndarray  # (N, dim) scaled
     train_commands: np.ndarray  # (N, c)
     latent: LatentJointErrors | None = None
@@ -160,28 +176,23 @@ class MarkerModel:
         return np.asarray(cal.robot.compiled_points(self.arm)(
             jnp.asarray(cal.x), jnp.asarray(u), side))
 
+    def jacobian(self, u: np.ndarray, side: dict | None = None) -> np.ndarray:
+        """d marker / d joint errors at commands u, (T, dim, n)."""
+        cal = self.calibration
+        return np.asarray(joint_jacobian(cal.robot, jnp.asarray(cal.x), self.arm,
+                                         jnp.asarray(u), side))
+
     def density(self, u: np.ndarray, side: dict | None = None) -> MarkerDensity:
         """The marker's density at commands u (T, c) (``side``: the rest of each pose)."""
         u = np.atleast_2d(np.asarray(u, float))
         centre = self.centre(u, side)
-        dim = centre.shape[1]
         if self.kind == "cond":
-            c = self.conditional
-            w = np.asarray(c.weights(u)).reshape(len(u), -1)
-            with np.errstate(divide="ignore"):
-                log_w = np.log(w)
-            chol = np.diag(c.bw_x)[None, None]
-            return MarkerDensity(centre, log_w, c.x_data[None], chol)
-        cal = self.calibration
-        jac = np.asarray(joint_jacobian(cal.robot, jnp.asarray(cal.x), self.arm,
-                                        jnp.asarray(u), side))  # (T, dim, n)
+            return _cond_density(self.conditional, u, centre)
         cov_e, noise = _population(self.latent)
-        cov = (np.einsum("tij,sjk,tlk->tsil", jac, cov_e, jac)
-               + noise[None, :, None, None] ** 2 * np.eye(dim))
-        chol = np.linalg.cholesky(cov)
+        chol = np.linalg.cholesky(_marker_covariances(self.jacobian(u, side), cov_e, noise))
         k = len(noise)
         return MarkerDensity(centre, np.full((len(u), k), -math.log(k)),
-                             np.zeros((1, k, dim)), chol)
+                             np.zeros((1, k, centre.shape[1])), chol)
 
 
 def _population(latent: LatentJointErrors) -> tuple[np.ndarray, np.ndarray]:
@@ -195,20 +206,15 @@ def fit_marker_model(rig: Rig, cal: ChainCalibration, arm: str, spec: ModelSpec,
                      seed: int = 0) -> MarkerModel:
     """Fit ``spec`` (as :func:`marker_model_kind` reads it) to ``arm``'s train rows."""
     kind = marker_model_kind(spec)
-    robot, x = cal.robot, jnp.asarray(cal.x)
-    u, d = rig.rows(arm, "train")
-    side = side_rows(rig, robot, arm, "train")
-    res = d - np.asarray(robot.compiled_points(arm)(x, jnp.asarray(u), side))
-    n_coords = sum(rig.rows(a, "train")[1].size for a in robot.measured_arms())
     n_free = int(cal.ident.free.sum())
-    scale = float(np.sqrt(n_coords / max(n_coords - n_free, 1)))
-    model = MarkerModel(arm, kind, cal, scale, res * scale, u)
+    u, res, _, _ = scaled_train_residuals(rig, cal.robot, cal.x, arm, n_free)
+    model = MarkerModel(arm, kind, cal, res, u)
     if kind == "cond":
         model.conditional = ConditionalKDE.fit(
-            res * scale, u, "kernel", "loo-ml-diag", warn_on_bound=False,
+            res, u, "kernel", "loo-ml-diag", warn_on_bound=False,
             z_spacing_floor=spec.command_bandwidth_floor)
     else:
-        model.latent = fit_latent_errors(rig, robot, cal.x, arm, kind, n_free, seed=seed)
+        model.latent = fit_latent_errors(rig, cal.robot, cal.x, arm, kind, n_free, seed=seed)
     return model
 
 
@@ -217,34 +223,24 @@ def loo_marker_scores(rig: Rig, model: MarkerModel) -> tuple[np.ndarray, np.ndar
     the calibration kept (see the module docstring)."""
     r, u = model.train_residuals, model.train_commands
     if model.kind == "cond":
-        c = model.conditional
-        w = np.asarray(c.weights(u)).reshape(len(u), -1)
-        dev = (r[:, None, :] - c.x_data[None]) / c.bw_x
-        comp = (-0.5 * np.sum(dev**2, -1) - np.sum(np.log(c.bw_x))
-                - 0.5 * r.shape[1] * math.log(2 * math.pi))
-        with np.errstate(divide="ignore"):
-            log_w = np.log(w)
-        in_sample = _lse(comp + log_w)
-        loo_w = w.copy()
-        np.fill_diagonal(loo_w, 0.0)
+        dens = _cond_density(model.conditional, u, np.zeros_like(r))
+        loo_w = np.exp(dens.log_w)
+        np.fill_diagonal(loo_w, 0.0)  # each row without its own kernel
         with np.errstate(divide="ignore"):
             loo_log_w = np.log(loo_w / loo_w.sum(1, keepdims=True))
-        return _lse(comp + loo_log_w), in_sample
+        return replace(dens, log_w=loo_log_w).logpdf(r), dens.logpdf(r)
     import arviz as az
 
-    cal = model.calibration
-    side = side_rows(rig, cal.robot, model.arm, "train")
-    jac = np.asarray(joint_jacobian(cal.robot, jnp.asarray(cal.x), model.arm,
-                                    jnp.asarray(u), side))
     lat = model.latent
-    dim = r.shape[1]
-    cov = (np.einsum("tij,sjk,tlk->stil", jac, lat.covariance, jac)
-           + lat.noise_sd[:, None, None, None] ** 2 * np.eye(dim))  # (S, N, dim, dim)
+    side = side_rows(rig, model.calibration.robot, model.arm, "train")
+    cov = np.swapaxes(_marker_covariances(model.jacobian(u, side), lat.covariance,
+                                          lat.noise_sd), 0, 1)  # (S, N, dim, dim)
     chol = np.linalg.cholesky(cov)
     z = np.linalg.solve(chol, np.broadcast_to(r, cov.shape[:-1])[..., None])[..., 0]
     log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), -1)
+    dim = r.shape[1]
     loglik = -0.5 * np.sum(z**2, -1) - log_det - 0.5 * dim * math.log(2 * math.pi)  # (S, N)
-    in_sample = _lse(loglik.T) - math.log(loglik.shape[0])
+    in_sample = scipy.special.logsumexp(loglik.T, axis=-1) - math.log(loglik.shape[0])
     chains = 2 if loglik.shape[0] % 2 == 0 else 1
     idata = az.from_dict(posterior={"noise_sd": lat.noise_sd.reshape(chains, -1)},
                          log_likelihood={"r": loglik.reshape(chains, -1, loglik.shape[1])})

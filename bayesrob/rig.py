@@ -43,6 +43,18 @@ class RigError(ValueError):
     """A rig file is missing or malformed; the message names the file, row or key."""
 
 
+# Gravity when the rig does not say: straight down, -y in the plane, -z in 3-D
+DOWN = {2: (0.0, -1.0), 3: (0.0, 0.0, -1.0)}
+
+
+def _unit_gravity(g: tuple[float, ...], message: str) -> tuple[float, ...]:
+    """Gravity's direction as a unit vector; ``message`` refuses a zero one."""
+    norm = math.hypot(*g)
+    if norm == 0:
+        raise RigError(message)
+    return tuple(float(v) / norm for v in g)
+
+
 @dataclass(frozen=True)
 class ArmSpec:
     """Nominal values of one arm as a person measured them (calibration's starting point)."""
@@ -191,13 +203,11 @@ class Rig:
                 if a not in known:
                     raise RigError(f"config {cfg!r} names {a!r}, not a measured arm of the rig "
                                    f"({', '.join(known)})")
-        down = gravity if gravity is not None else ((0.0, 0.0, -1.0) if dim == 3
-                                                   else (0.0, -1.0))
-        norm = math.hypot(*down)
-        if len(down) != dim or norm == 0:
-            raise RigError(f"gravity: expected a non-zero {dim}-vector, got {list(down)}")
-        rig = cls(name, specs, measurements, tuple(float(g) / norm for g in down), None, None,
-                  robot)
+        down = tuple(gravity) if gravity is not None else DOWN[dim]
+        bad = f"gravity: expected a non-zero {dim}-vector, got {list(down)}"
+        if len(down) != dim:
+            raise RigError(bad)
+        rig = cls(name, specs, measurements, _unit_gravity(down, bad), None, None, robot)
         for a in known:
             if not measurements.mask(a, "train").any():
                 raise RigError(f"arm {a!r} has no train rows")
@@ -482,13 +492,10 @@ def load_rig_toml(path: Path) -> dict:
         arms = {name: _parse_arm(name, tbl, str(path)) for name, tbl in arms_raw.items()}
         chains = {n: planar_chain(n, a) for n, a in arms.items()}
     dim = 3 if chain_arms else 2
-    gravity = doc.get("gravity", [0.0, 0.0, -1.0] if chain_arms else [0.0, -1.0])
+    gravity = doc.get("gravity", list(DOWN[dim]))
     gravity = tuple(float(g) for g in _numbers(gravity, dim, f"{path}: gravity")) \
         if chain_arms else _pair(gravity, f"{path}: gravity")
-    norm = math.hypot(*gravity)
-    if norm == 0:
-        raise RigError(f"{path}: gravity must be a non-zero vector")
-    gravity = tuple(g / norm for g in gravity)
+    gravity = _unit_gravity(gravity, f"{path}: gravity must be a non-zero vector")
     workspace = doc.get("workspace")
     if workspace is not None:
         if not isinstance(workspace, list) or len(workspace) not in (2, 3):

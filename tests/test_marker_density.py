@@ -47,7 +47,7 @@ def test_cond_leave_one_out_is_the_density_fitted_without_the_row():
     r = rng.normal(0, 0.3, (25, 3)) + 0.5 * u[:, :1]
     bw = [0.2, 0.25, 0.3, 0.5, 0.6, 0.7, 0.8]
     cond = ConditionalKDE.fit(r, u, "kernel", bw)
-    model = MarkerModel("arm", "cond", None, 1.0, r, u, conditional=cond)
+    model = MarkerModel("arm", "cond", None, r, u, conditional=cond)
     loo, in_sample = loo_marker_scores(None, model)
     for i in (0, 7, 24):
         keep = np.arange(25) != i
