@@ -1041,7 +1041,7 @@ def _design_args(p: argparse.ArgumentParser) -> None:
                    "accuracy over a task region (Dask)")(
     _design_args)
 def _design(args: argparse.Namespace) -> int:
-    from bayesrob.design_file import DesignError, load_design
+    from bayesrob.design.file import DesignError, load_design
     from bayesrob.progress import progress
 
     try:  # the whole file is checked before the numerical stack is imported
@@ -1052,12 +1052,9 @@ def _design(args: argparse.Namespace) -> int:
     # seconds); the search's own count follows
     with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules",
                   first_after=FIRST_LINE_S):
-        from bayesrob.design import (
-            design_figure,
-            load_modules,
-            run_design,
-            write_candidate_rig,
-        )
+        from bayesrob.design.modules import load_modules
+        from bayesrob.design.search import run_design, write_candidate_rig
+        from bayesrob.plots.design import design_figure
 
         try:
             modules = load_modules(design)

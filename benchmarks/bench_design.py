@@ -93,7 +93,9 @@ TARGET_SPEEDUP = 1.7
 
 
 def scale() -> dict:
-    from bayesrob.design import load_design, load_modules, run_design
+    from bayesrob.design.file import load_design
+    from bayesrob.design.modules import load_modules
+    from bayesrob.design.search import run_design
 
     with tempfile.TemporaryDirectory() as tmp:
         path = design_file(Path(tmp), None, {
@@ -116,7 +118,9 @@ def scale() -> dict:
 
 
 def tuning() -> dict:
-    from bayesrob.design import dask_client, load_design, load_modules, run_design
+    from bayesrob.design.file import load_design
+    from bayesrob.design.modules import load_modules
+    from bayesrob.design.search import dask_client, run_design
 
     counts: dict[int, list[int]] = {}  # arms -> [built, below optimistic, above assured]
     with tempfile.TemporaryDirectory() as tmp, dask_client(None, 2) as client:

@@ -90,7 +90,7 @@ def run_all(cases: list, workers: int, log: Path | None,
     """Diagnose every case as a Dask task; results in the cases' order."""
     from distributed import as_completed
 
-    from bayesrob.design import dask_client
+    from bayesrob.design.search import dask_client
 
     results: dict[int, dict] = {}
     with dask_client(scheduler, workers) as client:

@@ -20,9 +20,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob import design as D
 from bayesrob.chain_prediction import chain_equilibrium
 from bayesrob.cli import main
+from bayesrob.design.file import load_design
+from bayesrob.design.modules import load_modules
+from bayesrob.design.search import (
+    Job,
+    enumerate_candidates,
+    evaluate,
+    reach_table,
+    run_design,
+    task_targets,
+    write_candidate_rig,
+)
 from bayesrob.rig import load_rig
 
 RIG_TRUTH = dict(seed=0, n_train=40, n_validation=10, n_holdout=10, n_linked=8)
@@ -74,8 +84,8 @@ def rig_dir(tmp_path_factory) -> Path:
 def chain(rig_dir, tmp_path_factory):
     path = tmp_path_factory.mktemp("design") / "design.toml"
     path.write_text(_design_text(rig_dir, MOUNTS, BOX))
-    design = D.load_design(path)
-    return design, D.load_modules(design)
+    design = load_design(path)
+    return design, load_modules(design)
 
 
 def _write(tmp_path: Path, text: str) -> Path:
@@ -88,21 +98,21 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 
 def test_a_3d_design_file_parses(rig_dir, tmp_path):
-    d = D.load_design(_write(tmp_path, _design_text(rig_dir, MOUNTS, BOX)))
+    d = load_design(_write(tmp_path, _design_text(rig_dir, MOUNTS, BOX)))
     assert d.dim == 3 and d.mounts.shape == (3, 3)
     assert d.region.shape == (8, 3)  # the box's corners
     np.testing.assert_array_equal(d.region.min(axis=0), [350.0, -100.0, 150.0])
     np.testing.assert_array_equal(d.region.max(axis=0), [550.0, 100.0, 280.0])
-    t = D.task_targets(d.region, 40, seed=2)
+    t = task_targets(d.region, 40, seed=2)
     assert t.shape == (40, 3) and np.all((t >= [350, -100, 150]) & (t <= [550, 100, 280]))
-    np.testing.assert_array_equal(t, D.task_targets(d.region, 40, seed=2))
+    np.testing.assert_array_equal(t, task_targets(d.region, 40, seed=2))
 
 
 def test_a_3d_mount_grid_runs_x_fastest(rig_dir, tmp_path):
     text = _design_text(rig_dir, MOUNTS, BOX).replace(
         f"points = {json.dumps(MOUNTS)}",
         "grid = { x = [0.0, 10.0, 2], y = [0.0, 20.0, 3], z = [5.0, 5.0, 1] }")
-    d = D.load_design(_write(tmp_path, text))
+    d = load_design(_write(tmp_path, text))
     np.testing.assert_array_equal(d.mounts, [[0, 0, 5], [10, 0, 5], [0, 10, 5], [10, 10, 5],
                                              [0, 20, 5], [10, 20, 5]])
 
@@ -110,7 +120,7 @@ def test_a_3d_mount_grid_runs_x_fastest(rig_dir, tmp_path):
 def test_module_params_name_calibration_groups(rig_dir, tmp_path):
     text = _design_text(rig_dir, MOUNTS, BOX).replace(
         '[modules.left]\n', '[modules.left]\nparams = "offsets,geometric,compliance"\n')
-    d = D.load_design(_write(tmp_path, text))
+    d = load_design(_write(tmp_path, text))
     assert d.modules["left"].params == ("frames", "offsets", "geometric", "compliance")
     assert d.modules["right"].params is None
 
@@ -226,7 +236,7 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     from types import SimpleNamespace
 
     import bayesrob.chain_prediction as cp
-    from bayesrob.chain_design import ChainModule, _log_stiffness, linked_priors
+    from bayesrob.design.modules import PopulationModule, _log_stiffness, linked_priors
 
     sags = {"a": 1.0, "b": 2.0, "c": 4.0}
     monkeypatch.setattr(cp, "arm_sags", lambda rig, cal, arms: {x: sags[x] for x in arms})
@@ -236,8 +246,8 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
         return cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool),
                                  cp.STIFFNESS_SOURCES[2])
 
-    def module(name: str, arm: str, rig_index: int = 0) -> ChainModule:
-        return ChainModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
+    def module(name: str, arm: str, rig_index: int = 0) -> PopulationModule:
+        return PopulationModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
                                                            calibration=None),
                            np.zeros(3), rig_index, "ind")
 
@@ -286,20 +296,20 @@ def test_mounting_moves_the_prediction_with_the_base(chain):
     starts from the same train pose and the draws' seeds follow the mount's index)."""
     design, modules = chain
     shift = np.array([250.0, 0.0, 0.0])
-    targets = D.task_targets(design.region, design.n_targets, design.seed)
-    reach = D.reach_table(modules, design.mounts, targets)
-    moved = D.reach_table(modules, design.mounts + shift, targets + shift)
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    reach = reach_table(modules, design.mounts, targets)
+    moved = reach_table(modules, design.mounts + shift, targets + shift)
     assert set(reach) == set(moved)
     for key, u in reach.items():
         np.testing.assert_allclose(moved[key], u, atol=1e-9)
     results = []
     for mounts, t, r in ((design.mounts, targets, reach),
                          (design.mounts + shift, targets + shift, moved)):
-        job = D._Job(modules, t, r, design.fusion, design.quantile, design.error_mm,
-                     design.confidence, design.draws, design.seed, design.tracker_noise_mm,
-                     mounts)
-        results.append([D._evaluate(job, c, i) for i, c in enumerate(
-            D.enumerate_candidates(design, r))])
+        job = Job(modules, t, r, design.fusion, design.quantile, design.error_mm,
+                  design.confidence, design.draws, design.seed, design.tracker_noise_mm,
+                  mounts)
+        results.append([evaluate(job, c, i) for i, c in enumerate(
+            enumerate_candidates(design, r))])
     for a, b in zip(*results, strict=True):
         np.testing.assert_allclose(a["error_quantile_mm"], b["error_quantile_mm"], atol=1e-9)
         np.testing.assert_allclose(np.asarray(a["expected_point"]) + shift,
@@ -311,7 +321,7 @@ def test_mounting_moves_the_prediction_with_the_base(chain):
 
 def test_chain_design_on_a_local_cluster(chain, tmp_path):
     design, modules = chain
-    res = D.run_design(design, modules, workers=2, batch=2)
+    res = run_design(design, modules, workers=2, batch=2)
     # the far mount serves nothing: two modules on two mounts, 2 singles + 2 linked pairs
     assert res.n_reachable == 4 and len(res.candidates) == 6 and res.workers == 2
     assert not any(2 in c["mounts"] for c in res.candidates)
@@ -343,11 +353,11 @@ def test_chain_design_on_a_local_cluster(chain, tmp_path):
     # a worker's results equal the same candidates evaluated here (pickled modules, same
     # draws); workers run one BLAS thread, whose eigenvectors of the parameter covariance
     # differ from this process's by about 1e-7, hence 1e-4 mm rather than rounding
-    job = D._Job(modules, res.targets, res.reach, design.fusion, design.quantile,
-                 design.error_mm, design.confidence, design.draws, design.seed,
-                 design.tracker_noise_mm, design.mounts)
-    cands = D.enumerate_candidates(design, res.reach)
-    here = {tuple(c.arms) + tuple(c.mounts): D._evaluate(job, c, i)
+    job = Job(modules, res.targets, res.reach, design.fusion, design.quantile,
+              design.error_mm, design.confidence, design.draws, design.seed,
+              design.tracker_noise_mm, design.mounts)
+    cands = enumerate_candidates(design, res.reach)
+    here = {tuple(c.arms) + tuple(c.mounts): evaluate(job, c, i)
             for i, c in enumerate(cands)}
     for c in res.candidates:
         mine = here[tuple(c["arms"]) + tuple(c["mounts"])]
@@ -355,7 +365,7 @@ def test_chain_design_on_a_local_cluster(chain, tmp_path):
                                    atol=1e-4)
 
     linked = next(c for c in res.candidates if len(c["arms"]) == 2)
-    out = D.write_candidate_rig(linked, res, modules, tmp_path / "best")
+    out = write_candidate_rig(linked, res, modules, tmp_path / "best")
     assert {p.name for p in out.iterdir()} == {"rig.toml", "measurements.csv", "design.json",
                                                "left.urdf", "right.urdf"}
     with (out / "measurements.csv").open() as fh:

@@ -364,20 +364,20 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
 
     import jax
 
-    from bayesrob.chain_design import (
-        ChainModule,
+    from bayesrob.design.modules import (
+        PopulationModule,
         _log_stiffness,
-        chain_stiffness_record,
         linked_priors,
+        stiffness_record,
     )
 
     rig, cal = linked_calibration
     own = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
 
-    def module(arm: str, rig_index: int = 0) -> ChainModule:
+    def module(arm: str, rig_index: int = 0) -> PopulationModule:
         # no joint errors: the priors and stiffness draws never read them
         m = cp.ChainModules(cal, {arm: None}, {arm: own[arm]}, None)
-        return ChainModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
+        return PopulationModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
 
     left, right = module("left"), module("right")
 
@@ -395,9 +395,9 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
 
     job = SimpleNamespace(cache={}, modules={"left": left, "right": right}, seed=3, draws=50)
     # the record predict's JSON gives per arm, in the candidate's order
-    assert chain_stiffness_record(job, ("right", "left")) == [
+    assert stiffness_record(job, ("right", "left")) == [
         scaled[a].record() for a in ("right", "left")]
-    assert [r["from"] for r in chain_stiffness_record(job, ("right", "left"))] == [
+    assert [r["from"] for r in stiffness_record(job, ("right", "left"))] == [
         cp.STIFFNESS_SOURCES[3]] * 2
     ab = _log_stiffness(job, ("left", "right"))
     ba = _log_stiffness(job, ("right", "left"))

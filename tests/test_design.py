@@ -12,8 +12,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayesrob import design as D
 from bayesrob.cli import main
+from bayesrob.design.file import load_design
+from bayesrob.design.modules import load_modules, mounted_truth
+from bayesrob.design.search import (
+    enumerate_candidates,
+    evaluate_batch,
+    reach_table,
+    run_design,
+    task_targets,
+    write_candidate_rig,
+)
 from bayesrob.rig import load_rig
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "design"
@@ -39,12 +48,12 @@ def _small_design(tmp_path: Path, **changes: str) -> Path:
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("design")
-    design = D.load_design(_small_design(tmp))
-    return design, D.load_modules(design)
+    design = load_design(_small_design(tmp))
+    return design, load_modules(design)
 
 
 def test_example_design_file_parses():
-    d = D.load_design(EXAMPLE / "design.toml")
+    d = load_design(EXAMPLE / "design.toml")
     assert set(d.modules) == {"top", "bottom", "side"}
     assert d.mounts.shape == (12, 2)
     assert (d.error_mm, d.quantile, d.confidence, d.max_arms) == (1.2, 0.95, 0.9, 3)
@@ -52,17 +61,17 @@ def test_example_design_file_parses():
 
 def test_targets_lie_inside_a_polygon_and_are_reproducible():
     tri = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 100.0]])
-    t = D.task_targets(tri, 40, seed=3)
+    t = task_targets(tri, 40, seed=3)
     assert t.shape == (40, 2)
     assert np.all(t.sum(axis=1) <= 100.0) and np.all(t >= 0)
-    np.testing.assert_array_equal(t, D.task_targets(tri, 40, seed=3))
+    np.testing.assert_array_equal(t, task_targets(tri, 40, seed=3))
 
 
 def test_candidates_use_distinct_mounts_and_only_reaching_placements(small):
     design, modules = small
-    targets = D.task_targets(design.region, design.n_targets, design.seed)
-    reach = D.reach_table(modules, design.mounts, targets)
-    cands = D.enumerate_candidates(design, reach)
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    reach = reach_table(modules, design.mounts, targets)
+    cands = enumerate_candidates(design, reach)
     assert cands and all(len(set(c.mounts)) == len(c.mounts) for c in cands)
     assert all((a, j) in reach for c in cands for a, j in zip(c.arms, c.mounts, strict=True))
     # a placement is reachable exactly when its commands aim every target within limits
@@ -81,16 +90,51 @@ def test_mounted_module_keeps_its_geometry_and_moves_its_truth(small):
     moved = m.at((0.0, 0.0))
     np.testing.assert_allclose(np.asarray(moved.params.links), np.asarray(m.arm.params.links))
     np.testing.assert_allclose(np.asarray(moved.params.base), [0.0, 0.0])
-    t = D.mounted_truth(m, (0.0, 0.0))
+    t = mounted_truth(m, (0.0, 0.0))
     shift = -np.asarray(m.arm.params.base)
     np.testing.assert_allclose(t.base, np.asarray(m.truth.base) + shift)
 
 
+def test_grid_builds_agree_with_the_program_and_meet_by_the_same_rule(tmp_path):
+    """Where no program draws a whole assembly (product fusion, histogram COND) the builds come
+    from the grid density moved by each build's calibration error. A single arm can take
+    both routes: its builds' error quantiles, the share of builds meeting and the spread the
+    calibration error adds agree with the equilibrium program's (an independent route:
+    numpyro draws of the joint errors and parameters pushed through the arm). A linked
+    product candidate is scored by the one rule: ``meets`` is its builds' confidence."""
+    from bayesrob.design.modules import DensityModule, _grid_builds
+    from bayesrob.design.search import Job, evaluate, score
+
+    design = load_design(_small_design(tmp_path, **{
+        "tracker_noise_mm = 0.35": "tracker_noise_mm = 0.0", 'fusion = "equilibrium"':
+        'fusion = "product"', "draws = 400": "draws = 3000"}))
+    modules = load_modules(design)
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    reach = reach_table(modules, design.mounts, targets)
+    job = Job(modules, targets, reach, design.fusion, design.quantile, design.error_mm,
+              design.confidence, design.draws, design.seed, 0.0, design.mounts)
+    cand = next(c for c in enumerate_candidates(design, reach) if c.arms == ("side",))
+    program, _ = DensityModule.draws(job, cand.arms, cand.mounts, 0)
+    m = modules["side"]
+    grid = _grid_builds(job, [m], [m.at(cand.bases[0])], [reach["side", cand.mounts[0]]], 0)
+    a, b = score(job, cand, program), score(job, cand, grid)
+    np.testing.assert_allclose(b["error_quantile_mm"], a["error_quantile_mm"], rtol=0.1)
+    assert abs(b["overall"]["assured_error_mm"] / a["overall"]["assured_error_mm"] - 1) < 0.1
+    # each build's mean offset over the targets: the calibration error's share of the spread
+    spread = [np.std((d - targets[None]).mean(axis=1), axis=0) for d in (program, grid)]
+    np.testing.assert_allclose(spread[1], spread[0], rtol=0.15)
+    linked = next(c for c in enumerate_candidates(design, reach) if len(c.arms) == 2)
+    r = evaluate(job, linked, 1)
+    assert 0.0 <= r["confidence"] <= 1.0
+    assert r["meets"] == (r["confidence"] >= design.confidence)
+    assert r["meets"] == (r["overall"]["assured_error_mm"] <= design.error_mm)
+
+
 def test_run_on_a_local_cluster_ranks_and_keeps_every_candidate(small, tmp_path):
     design, modules = small
-    res = D.run_design(design, modules, workers=2, batch=8)
-    targets = D.task_targets(design.region, design.n_targets, design.seed)
-    n = len(D.enumerate_candidates(design, D.reach_table(modules, design.mounts, targets)))
+    res = run_design(design, modules, workers=2, batch=8)
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    n = len(enumerate_candidates(design, reach_table(modules, design.mounts, targets)))
     assert len(res.candidates) == n and res.workers == 2
     assert [c["rank"] for c in res.candidates] == list(range(1, n + 1))
     met = [c for c in res.candidates if c["meets"]]
@@ -112,7 +156,7 @@ def test_run_on_a_local_cluster_ranks_and_keeps_every_candidate(small, tmp_path)
     assert best[2] < best[1]
     doc = res.document
     assert json.loads(json.dumps(doc))["candidates"][0]["arms"] == res.best["arms"]
-    rig_dir = D.write_candidate_rig(res.best, res, modules, tmp_path / "best")
+    rig_dir = write_candidate_rig(res.best, res, modules, tmp_path / "best")
     text = (rig_dir / "measurements.csv").read_text().splitlines()
     assert len(text) == 1 + design.n_targets
     assert all(line.endswith(",,") for line in text[1:])  # planned: x, y empty
@@ -123,11 +167,11 @@ def test_a_worker_lost_mid_run_loses_no_result(small, tmp_path):
     (restarted) worker and every candidate still comes back once."""
     design, modules = small
     marker = tmp_path / "crashed"
-    res = D.run_design(design, modules, workers=2, batch=6,
+    res = run_design(design, modules, workers=2, batch=6,
                        evaluate=_CrashOnce(str(marker)))
     assert marker.exists()
-    targets = D.task_targets(design.region, design.n_targets, design.seed)
-    n = len(D.enumerate_candidates(design, D.reach_table(modules, design.mounts, targets)))
+    targets = task_targets(design.region, design.n_targets, design.seed)
+    n = len(enumerate_candidates(design, reach_table(modules, design.mounts, targets)))
     assert len(res.candidates) == n
 
 
@@ -141,7 +185,7 @@ class _CrashOnce:
         if batch[0][0] == 6 and not os.path.exists(self.marker):
             Path(self.marker).write_text("x")
             os._exit(1)
-        return D.evaluate_batch(job, batch)
+        return evaluate_batch(job, batch)
 
 
 def test_design_command_writes_its_outputs_and_the_planned_rig_simulates(tmp_path, capsys):

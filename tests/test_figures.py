@@ -260,7 +260,7 @@ def test_fig8_has_a_colour_scale_for_each_model(built):
 
 
 def test_a_design_with_no_candidate_draws_a_figure_that_says_so():
-    from bayesrob.design import design_figure
+    from bayesrob.plots.design import design_figure
 
     region = np.array([[120.0, 220.0], [140.0, 240.0]])
     result = SimpleNamespace(candidates=[], design=SimpleNamespace(region=region),

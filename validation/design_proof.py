@@ -99,7 +99,7 @@ def built_errors(modules: dict, candidate: dict, targets: np.ndarray, seed: int)
     arms moved to the chosen mounts), measured REPEATS times at every target."""
     import jax.numpy as jnp
 
-    from bayesrob.design import mounted_truth
+    from bayesrob.design.modules import mounted_truth
     from bayesrob.simulator import PhysicalRig, round_pulse
 
     arms, bases = candidate["arms"], candidate["bases"]
@@ -124,7 +124,9 @@ def proof(seeds: Sequence[int] = REPORT_SEEDS, say: Callable[[str], None] = prin
     summary; ``met`` is the second report set's criterion, written down before it ran: the
     best holds in at least 90% of designs, and of the designs with a candidate predicted to
     miss, the best-ranked one misses in at least 80%."""
-    from bayesrob.design import dask_client, load_design, load_modules, run_design
+    from bayesrob.design.file import load_design
+    from bayesrob.design.modules import load_modules
+    from bayesrob.design.search import dask_client, run_design
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="bayesrob-design-proof-") as tmp, \
@@ -214,13 +216,14 @@ def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0,
     arm's true link masses stray from the URDF's. ``met`` per placement: every quantile's
     share within two standard errors of nominal at the pooled rows, and the error ratio in
     0.85-1.15 (the criterion written down before the first report rigs ran)."""
-    from bayesrob.chain_design import chain_candidate_draws
     from bayesrob.chain_simulator import (
         LinkedChainTruth,
         load_linked_truth,
         simulate_linked_chain_rig,
     )
-    from bayesrob.design import _Job, load_design, load_modules, reach_table
+    from bayesrob.design.file import load_design
+    from bayesrob.design.modules import PopulationModule, load_modules
+    from bayesrob.design.search import Job, reach_table
     from bayesrob.rig import load_rig
 
     inside = {k: {q: [] for q in CHAIN_LEVELS} for k in CHAIN_KINDS}
@@ -263,8 +266,8 @@ quantile = 0.95
             mounts = np.array([modules["left"].base, modules["right"].base])
             aimed = reach_table(modules, mounts, targets)
             reach = {(a, j): built[a] for j, a in enumerate(("left", "right"))}
-            job = _Job(modules, targets, reach, "equilibrium", 0.95, 1.0, 0.9, design.draws,
-                       seed, design.tracker_noise_mm, mounts)
+            job = Job(modules, targets, reach, "equilibrium", 0.95, 1.0, 0.9, design.draws,
+                      seed, design.tracker_noise_mm, mounts)
             noise = np.random.default_rng(seed).normal(0, 0.1, (2, *targets.shape))
             seen = {"left+right": rig.measurements.observed[m],
                     **{a: np.asarray(truth[f"free_{a}"]) + noise[i]
@@ -276,8 +279,8 @@ quantile = 0.95
             row = {"seed": seed, "rows": len(targets), "aim_vs_built_rad": float(gap)}
             for kind in CHAIN_KINDS:
                 arms = tuple(kind.split("+"))
-                d = chain_candidate_draws(job, arms, tuple(0 if a == "left" else 1
-                                                           for a in arms), 0)
+                d, _ = PopulationModule.draws(job, arms, tuple(0 if a == "left" else 1
+                                                               for a in arms), 0)
                 err = np.linalg.norm(d - targets[None], axis=-1)  # (S, T)
                 obs = np.linalg.norm(seen[kind] - targets, axis=1)
                 means[kind][0].append(err.mean(axis=0))

@@ -1,8 +1,9 @@
 """The design file (``bayesrob design DESIGN.toml``): its format, read and checked in full.
 
-Apart from the search (:mod:`bayesrob.design`) so that a mistake in the file is one line
-before the numerical stack is imported or any module is calibrated; the format is in
-docs/design.md. Only NumPy and the standard library are needed here.
+Apart from the search (:mod:`bayesrob.design.search`) so that a mistake in the file is one
+line before the numerical stack is imported or any module is calibrated; only NumPy and the
+standard library are needed here. The format is in docs/design.md;
+examples/design/design.toml is a commented example.
 """
 
 from __future__ import annotations

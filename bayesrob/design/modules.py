@@ -1,0 +1,600 @@
+"""The designer's modules: calibrated arms of any rig, mounted anywhere, aimed and drawn.
+
+A module is an arm of a rig directory, calibrated on the rig's single-arm ``train`` rows with
+its joint-error model fitted to them, once. Mounting it moves its calibrated base to the mount
+point and keeps everything else (its orientation, so gravity acts as it did while it was
+calibrated). What the search asks of a module is the same for every robot:
+
+- ``aim(targets, mount)``: its commands (T, c) at world targets from that mount, or None when
+  one is out of its reach or limits;
+- ``draws(job, arms, mounts, index)`` (of the modules' class): draws (S, T, dim) of a
+  candidate's end point, each draw **one build** (each module's parameters off by one draw
+  from its calibration's covariance, the same at every target; its joint errors and the
+  tracker's noise at each target), and what the candidate's record adds;
+- ``sketch(mount, target)``: the module's outline for the figure; ``write_rig``: a candidate
+  as a rig directory.
+
+The calibration and joint-error model below the designer are still two (the paper's planar
+arms: :func:`bayesrob.calibration.calibrate` and a density of the joint errors read off the
+rows, :class:`DensityModule`; URDF/DH arms: calibration groups and the latent population,
+:class:`PopulationModule`); :func:`load_modules` is the one place that picks, by what the rig
+is, and a design places one kind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.aiming import aim_chain
+from bayesrob.chain_prediction import (
+    ChainModules,
+    StiffnessPrior,
+    chain_equilibrium,
+    free_draws,
+    parameter_draws,
+    sag_scaled_priors,
+    stiffness_draws,
+)
+from bayesrob.design.file import DesignError, DesignSpec, ModuleSpec
+from bayesrob.fusion import equilibrium_program, fused_posterior
+from bayesrob.inference import error_arrays, error_kind, is_sampleable
+from bayesrob.latent_errors import joint_jacobian
+from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.rig import ArmSpec, Rig, RigError
+
+if TYPE_CHECKING:
+    from bayesrob.simulator import ArmTruth, Truth
+
+__all__ = ["Module", "DensityModule", "PopulationModule", "load_modules", "linked_priors",
+           "stiffness_record", "mounted_truth", "COV_JITTER"]
+
+# Keeps a parameter covariance with an unidentified direction sampleable, in each parameter's
+# own scale: an absolute 1e-12 added gain noise of 1e-6 rad/us (1.5 mrad at 1500 us) to arms
+# whose gains are fitted to far better, and widened every prediction (tuning inventories 1-4:
+# single arms predicted at 1.43-1.76 of the observed q95 with it, 1.28-1.44 without).
+COV_JITTER = 1e-9
+
+
+def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module]:
+    """Calibrate each module's arm on its rig's train rows and fit its joint-error model."""
+    from bayesrob.rig import load_rig
+
+    by_rig: dict[Path, list[ModuleSpec]] = {}
+    for m in design.modules.values():
+        by_rig.setdefault(m.rig, []).append(m)
+    rigs = {}
+    for rig_dir, mods in by_rig.items():
+        try:
+            rigs[rig_dir] = load_rig(rig_dir)
+        except RigError as e:
+            raise DesignError(f"{design.path}: [modules.{mods[0].name}]: {e}") from None
+    # the calibration and joint-error model a rig's arms take (the one place that asks)
+    kinds = {n: PopulationModule if rigs[m.rig].is_chain else DensityModule
+             for n, m in design.modules.items()}
+    if len(set(kinds.values())) > 1:
+        chain = next(n for n, k in kinds.items() if k is PopulationModule)
+        flat = next(n for n, k in kinds.items() if k is DensityModule)
+        raise DesignError(f"{design.path}: module {chain!r} is a URDF/DH arm and {flat!r} a "
+                          "planar arm; a design places one kind")
+    return next(iter(kinds.values())).load(design, rigs, by_rig, models_dir)
+
+
+def _fail(design: DesignSpec, m: ModuleSpec, message: str) -> DesignError:
+    return DesignError(f"{design.path}: [modules.{m.name}]: {message}")
+
+
+# ------------------------------------------------------------------ density of observed errors
+
+
+@dataclass
+class DensityModule:
+    """A module whose joint errors the rows observe (two joints, two measured coordinates:
+    J^-1 r), so its model is a density of them (``models/``): the paper's planar arms."""
+
+    name: str
+    arm: kin.Arm  # calibrated, at the base it was calibrated at
+    fitted: FittedNoiseModel
+    spec: ArmSpec  # the calibrated values as a rig.toml arm (for the planned rig)
+    gravity: tuple[float, float]
+    param_cov: np.ndarray  # (8, 8) the calibration's parameter covariance
+    truth_rig: Truth | None = None  # simulated modules: their rig's physics, for the proof
+    # the joint-error model was fitted with the tracker's noise taken out of its rows
+    tracker_removed: bool = False
+
+    @property
+    def model(self) -> str:
+        return self.fitted.spec.name
+
+    @property
+    def truth(self) -> ArmTruth | None:
+        """The module's own true arm, when its rig was simulated."""
+        return self.truth_rig.arms.get(self.arm.name) if self.truth_rig else None
+
+    def at(self, base: Sequence[float]) -> kin.Arm:
+        """The module with its base moved to ``base``."""
+        return replace(self.arm, name=self.name,
+                       params=self.arm.params._replace(base=jnp.asarray(base, jnp.float64)))
+
+    def aim(self, targets: np.ndarray, mount: Sequence[float]) -> np.ndarray | None:
+        """Pulses (T, 2) aiming the module on ``mount`` at every target, or None when one is
+        out of its reach, off its elbow branch or outside its pulse limits."""
+        arm = self.at(mount)
+        if not bool(np.all(np.asarray(arm.reachable(jnp.asarray(targets))))):
+            return None
+        u = np.asarray(arm.command(jnp.asarray(targets)))
+        lim = np.asarray(arm.pulse_limits)
+        if not np.all((u >= lim[:, 0]) & (u <= lim[:, 1])):
+            return None
+        return u
+
+    def sketch(self, mount: Sequence[float], target: np.ndarray) -> np.ndarray:
+        """Base, elbow and end point aimed at ``target``."""
+        arm = self.at(mount)
+        elbow = np.asarray(kin.elbow_point(arm.params, arm.inverse(jnp.asarray(target))))
+        return np.array([np.asarray(mount, float), elbow, np.asarray(target, float)])
+
+    @classmethod
+    def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
+             by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, DensityModule]:
+        from bayesrob.calibration import calibrate, parameter_covariance
+        from bayesrob.noise_models import (
+            ModelFileError,
+            discover_models,
+            joint_errors,
+            without_tracker_noise,
+        )
+        from bayesrob.simulator import TRUTH_FILE, Truth
+
+        if design.dim != 2:
+            raise DesignError(f"{design.path}: the mounts are 3-D points but the modules are "
+                              "planar arms; give [x, y] mounts and a box of the plane")
+        for m in design.modules.values():
+            if m.params is not None:  # a planar arm's eight parameters are always fitted
+                raise _fail(design, m, "params names calibration groups of URDF/DH arms; a "
+                            "planar arm fits its eight parameters")
+            if m.masses != "fitted":
+                raise _fail(design, m, "masses is for URDF arms calibrated with compliance; a "
+                            "planar arm has no link masses")
+        out: dict[str, DensityModule] = {}
+        specs: dict[str, list] = {}  # model name -> its discovered file, read once
+        for rig_dir, mods in by_rig.items():
+            rig = rigs[rig_dir]
+            for m in mods:
+                if m.arm not in rig.arms:
+                    raise _fail(design, m, f"unknown module arm {m.arm!r} in {rig_dir} "
+                                f"(arms: {', '.join(rig.arms)})")
+            cal = calibrate(rig)
+            truth = (Truth.from_toml(rig_dir / TRUTH_FILE) if (rig_dir / TRUTH_FILE).is_file()
+                     else None)
+            for m in mods:
+                if m.model not in specs:
+                    try:
+                        specs[m.model] = discover_models(models_dir, [m.model])
+                    except (ModelFileError, KeyError, ValueError) as e:
+                        raise _fail(design, m, str(e)) from None
+                if not specs[m.model]:
+                    raise _fail(design, m, f"unknown model {m.model!r}")
+                arm = cal[m.arm].arm
+                u, d = rig.rows(m.arm, "train")
+                errors = joint_errors(arm, u, d)
+                spec = specs[m.model][0]
+                # equilibrium draws add the tracker's noise to the measured point: the density
+                # is then of the joints' own errors (the grid's product, and a model that
+                # cannot draw, which goes to the grid, keep the paper's rows)
+                removed = design.tracker_noise_mm > 0 and design.fusion == "equilibrium"
+                fitted = spec.fit(without_tracker_noise(arm, u, errors, design.tracker_noise_mm)
+                                  if removed else errors, u)
+                if removed and not is_sampleable(fitted):
+                    removed = False
+                    fitted = spec.fit(errors, u)
+                p = arm.params
+                orig = rig.arms[m.arm]
+                cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
+                                          for x in (p.base, p.links, p.gain, p.offset)),
+                                orig.elbow, orig.pulse_limits, orig.stiffness)
+                cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
+                out[m.name] = cls(m.name, arm, fitted, cspec, tuple(rig.gravity),
+                                  cov + COV_JITTER * np.diag(np.diag(cov)), truth, removed)
+        return out
+
+    @staticmethod
+    def draws(job: Any, arms: Sequence[str], mounts: Sequence[int], index: int
+              ) -> tuple[np.ndarray, dict]:
+        """Builds (S, T, 2) of a candidate: the equilibrium program's draws
+        (:func:`bayesrob.fusion.equilibrium_program`, one compiled program per kind of
+        assembly), or :func:`_grid_builds` where no program draws the whole assembly."""
+        mods: list[DensityModule] = [job.modules[a] for a in arms]
+        placed = [m.at(job.mounts[j]) for m, j in zip(mods, mounts, strict=True)]
+        commands = [job.reach[a, j] for a, j in zip(arms, mounts, strict=True)]
+        if not (all(is_sampleable(m.fitted) for m in mods)
+                and (job.fusion == "equilibrium" or len(mods) == 1)):
+            return _grid_builds(job, mods, placed, commands, index), {}
+        stiff = [m.spec.stiffness for m in mods]
+        stiffness = (tuple(tuple(s) if s is not None else None for s in stiff)
+                     if any(s is not None for s in stiff) else None)
+        d = _program_draws(
+            jax.random.PRNGKey(job.seed + index), tuple(jnp.asarray(u) for u in commands),
+            tuple(error_arrays(m.fitted) for m in mods), tuple(a.params for a in placed),
+            tuple(jnp.asarray(m.param_cov) for m in mods),
+            kinds=tuple(error_kind(m.fitted) for m in mods), stiffness=stiffness,
+            num_samples=job.draws, tracker_noise_mm=job.tracker_noise_mm,
+            densities_hold_tracker=not all(m.tracker_removed for m in mods))
+        return np.asarray(d), {}
+
+    @staticmethod
+    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, DensityModule],
+                  reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
+                  ) -> None:
+        """rig.toml (the modules' calibrated values at their new bases), measurements.csv
+        (the planned rows, x and y empty) and, when every module is simulated, truth.toml
+        (their physics at the new bases) for ``bayesrob simulate DIR --planned``."""
+        import csv
+        import math
+
+        from bayesrob.rig import (
+            MEASUREMENTS_FILE,
+            RIG_FILE,
+            dump_toml,
+            format_row,
+            measurement_header,
+            rig_toml_dict,
+        )
+        from bayesrob.simulator import TRUTH_FILE, round_pulse
+
+        names = candidate["arms"]
+        placed = list(zip(names, candidate["mounts"], candidate["bases"], strict=True))
+        specs = {a: replace(modules[a].spec, base=tuple(b)) for a, _, b in placed}
+        lo, hi = region.min(axis=0), region.max(axis=0)
+        workspace = ((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
+        doc = rig_toml_dict(f"design-{candidate['config']}", specs, modules[names[0]].gravity,
+                            workspace)
+        (out / RIG_FILE).write_text(dump_toml(doc))
+        pulses = {a: round_pulse(reach[a, j]) for a, j, _ in placed}
+        with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(measurement_header(names))
+            for i, target in enumerate(targets):
+                w.writerow(format_row(names, "+".join(names), "test", target,
+                                      {a: u[i] for a, u in pulses.items()},
+                                      (math.nan, math.nan)))
+        mods = [modules[a] for a in names]
+        if all(m.truth is not None for m in mods):
+            truth = replace(mods[0].truth_rig, name=doc["name"], arms={
+                a: mounted_truth(modules[a], b) for a, _, b in placed}, workspace=workspace)
+            (out / TRUTH_FILE).write_text(truth.to_toml())
+
+
+@partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm",
+                                   "densities_hold_tracker"))
+def _program_draws(key: jax.Array, commands: tuple, arrays: tuple, params: tuple,
+                   param_cov: tuple, *, kinds: tuple[str, ...], stiffness: tuple | None,
+                   num_samples: int, tracker_noise_mm: float, densities_hold_tracker: bool
+                   ) -> jax.Array:
+    # One compiled program per kind of assembly (model kinds, stiffness knowledge, shapes):
+    # which modules and where they stand are traced arguments.
+    from numpyro.infer import Predictive
+
+    names = tuple(f"arm{i}" for i in range(len(kinds)))
+    out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
+        key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
+        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm,
+        densities_hold_tracker=densities_hold_tracker)
+    return out["d"]
+
+
+def _grid_builds(job: Any, mods: Sequence[DensityModule], arms: Sequence[kin.Arm],
+                 commands: Sequence[np.ndarray], index: int) -> np.ndarray:
+    """Builds (S, T, 2) where no program draws the whole assembly (the product of
+    likelihoods, or the paper's histogram COND, which cannot draw joint errors).
+
+    Each build's joint errors and tracker noise are one draw per target of the fused grid
+    density (:func:`bayesrob.fusion.fused_posterior`, as ``bayesrob predict`` gives it); its
+    calibration errors are one draw per module from the module's covariance, shared by the
+    targets as in the program's builds. A module's draw moves its arm's end point at target t
+    by Delta_a(t) = f(p + delta, g_{p + delta}(u_t)) - f(p, g_p(u_t)); the fused point moves
+    by the arms' shifts weighted by their end-point precisions P_a = (J_a C_a J_a^T)^-1 (C_a
+    the covariance of the joint errors the model was fitted to): the mean of a product of
+    Gaussian likelihoods, each moved by its own shift. One arm moves by its own shift.
+    """
+    post, _ = fused_posterior([m.fitted for m in mods], arms, commands, job.targets,
+                              job.fusion, seed=job.seed + index, num_samples=job.draws)
+    points = post.sample(job.seed + index, job.draws)
+    rng = np.random.default_rng([job.seed, index])
+    shifts, precisions = [], []
+    for m, arm, u in zip(mods, arms, commands, strict=True):
+        delta = rng.multivariate_normal(np.zeros(len(m.param_cov)), m.param_cov,
+                                        size=job.draws, method="eigh")
+        shifts.append(_calibration_shift(arm.params, jnp.asarray(u), jnp.asarray(delta)))
+        if len(mods) > 1:
+            err = np.asarray(m.fitted.theta_err, float)
+            c = np.cov(err.T) + 1e-8 * np.eye(2)  # one point or collinear errors: not singular
+            jac = np.asarray(kin.jacobian(arm.params, kin.servo(arm.params, jnp.asarray(u))))
+            precisions.append(np.linalg.inv(np.einsum("tij,jk,tlk->til", jac, c, jac)))
+    if len(mods) == 1:
+        return points + shifts[0]
+    total = np.linalg.inv(sum(precisions))
+    return points + sum(np.einsum("tij,tjk,stk->sti", total, p, s)
+                        for p, s in zip(precisions, shifts, strict=True))
+
+
+@jax.jit
+def _calibration_shift(params: kin.ArmParams, u: jax.Array, delta: jax.Array) -> jax.Array:
+    """(S, T, 2): how far each parameter error delta (S, 8) moves the end point the arm
+    reaches at commands u (T, 2)."""
+    v = params.to_vector()
+
+    def reached(d: jax.Array) -> jax.Array:
+        p = kin.ArmParams.from_vector(v + d)
+        return kin.forward(p, kin.servo(p, u))
+
+    return jax.vmap(reached)(delta) - reached(jnp.zeros_like(v))[None]
+
+
+def mounted_truth(module: DensityModule, base: Sequence[float]) -> ArmTruth:
+    """A simulated module's true arm, moved with its calibrated base to ``base``: the
+    mounting moves the whole module, so its calibration's base error moves with it."""
+    shift = np.asarray(base, float) - np.asarray(module.arm.params.base, float)
+    b = np.asarray(module.truth.base) + shift
+    return replace(module.truth, name=module.name, base=(float(b[0]), float(b[1])))
+
+
+# ------------------------------------------------------------------ latent error population
+
+
+@dataclass
+class PopulationModule:
+    """A module whose joint errors the rows do not observe (more joints than measured
+    coordinates), so its model is a latent population of them: URDF / DH arms.
+
+    It is a root arm of its rig (no torso under it), calibrated with the groups its design
+    entry names; its joint-error population is fitted as ``bayesrob predict`` fits it
+    (:mod:`bayesrob.chain_prediction`). A world target t is the point t - mount + base of its
+    own frame: it is aimed there (position-only inverse kinematics from its nearest train
+    pose, as ``bayesrob predict`` aims) and drawn there, and the draws are moved back.
+
+    A placement's free-point draws do not depend on the other arms of the candidate, so each
+    worker draws them once per (module, mount) and every candidate that uses the placement
+    reuses them (common random numbers also make the ranking less noisy); linked arms then
+    balance (:func:`bayesrob.chain_prediction.chain_equilibrium`, with the tracker's noise put
+    back). Each build's stiffnesses are the rig's ``stiffness`` or the log-normal prior,
+    linked arms of one rig centred on their fitted sags as ``bayesrob predict`` centres them.
+    """
+
+    name: str
+    arm: str  # the arm of its rig
+    rig: Rig  # its rig: the train poses aiming starts from
+    mods: ChainModules  # its rig's calibration and this module's joint-error population
+    base: np.ndarray  # (dim,) its robot base in its rig's instrument frame (calibrated)
+    rig_index: int  # modules of one rig share its calibration errors in every draw
+    model: str
+
+    @property
+    def dim(self) -> int:
+        return self.mods.robot.dim
+
+    def local(self, points: np.ndarray, mount: Sequence[float]) -> np.ndarray:
+        """World points as seen from the module's own frame when its base is at ``mount``."""
+        return np.asarray(points, float) - np.asarray(mount, float) + self.base
+
+    def aim(self, targets: np.ndarray, mount: Sequence[float]) -> np.ndarray | None:
+        """Joint columns (T, c) whose calibrated model reaches every target (within the
+        inverse kinematics' tolerance), or None."""
+        try:
+            return aim_chain(self.rig, self.mods.robot, self.mods.x, self.arm,
+                             self.local(targets, mount))
+        except RigError:
+            return None
+
+    def sketch(self, mount: Sequence[float], target: np.ndarray) -> np.ndarray:
+        """Base and end point: a line from the mount to ``target``."""
+        return np.array([np.asarray(mount, float), np.asarray(target, float)])
+
+    @classmethod
+    def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
+             by_rig: dict[Path, list[ModuleSpec]], models_dir: Any = None
+             ) -> dict[str, PopulationModule]:
+        """Calibrate each rig once (the groups its modules name) and fit each module's
+        joint-error population on its own train rows."""
+        from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
+        from bayesrob.chain_prediction import _stiffness_prior
+        from bayesrob.latent_errors import check_latent_model, fit_latent_errors
+
+        if design.fusion != "equilibrium" and design.max_arms > 1 and design.linked:
+            raise DesignError(f"{design.path}: fusion = {design.fusion!r} samples every "
+                              "linked chain assembly with NUTS, minutes each; chain modules "
+                              "are designed with fusion = \"equilibrium\"")
+        out: dict[str, PopulationModule] = {}
+        for index, (rig_dir, specs) in enumerate(by_rig.items()):
+            rig = rigs[rig_dir]
+            groups = {m.params for m in specs}
+            masses = {m.masses for m in specs}
+            if len(groups) > 1 or len(masses) > 1:
+                raise DesignError(f"{design.path}: modules {', '.join(m.name for m in specs)} "
+                                  f"share rig {rig_dir} but name different "
+                                  f"{'params' if len(groups) > 1 else 'masses'}; a rig is "
+                                  "calibrated once")
+            for m in specs:
+                if m.arm not in rig.robot.measured_arms():
+                    raise _fail(design, m, f"unknown module arm {m.arm!r} in {rig_dir} "
+                                f"(measured arms: {', '.join(rig.robot.measured_arms())})")
+                path = rig.robot.path(m.arm)
+                if len(path) > 1:
+                    raise _fail(design, m, f"arm {m.arm!r} hangs on {path[-2].name!r}; the "
+                                "designer mounts whole root arms (no arm under them) so far")
+                try:
+                    check_latent_model(m.model)
+                except (RigError, ValueError) as e:
+                    raise _fail(design, m, str(e)) from None
+                if rig.robot.dim != design.dim:
+                    raise _fail(design, m, f"{rig_dir} measures {rig.robot.dim}-D points but "
+                                f"the mounts and the task are {design.dim}-D")
+            try:
+                cal = calibrate_chain(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
+            except ValueError as e:
+                raise DesignError(f"{design.path}: {rig_dir}: {e}") from None
+            n_free = int(cal.ident.free.sum())
+            cov = chain_parameter_covariance(rig, cal)
+            for i, m in enumerate(specs):
+                errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
+                                           seed=design.seed + i)
+                mods = ChainModules(cal, {m.arm: errors},
+                                    {m.arm: _stiffness_prior(rig, m.arm, cal)}, cov)
+                base = np.asarray(cal.robot.instrument_pose(jnp.asarray(cal.x), m.arm))[:3, 3]
+                out[m.name] = cls(m.name, m.arm, rig, mods, base[: rig.robot.dim], index,
+                                  m.model)
+        return out
+
+    @staticmethod
+    def draws(job: Any, arms: Sequence[str], mounts: Sequence[int], index: int
+              ) -> tuple[np.ndarray, dict]:
+        """Builds (S, T, dim) of a candidate's end point: one arm's free point, or linked
+        arms' balance with the tracker's noise put back (and their stiffness record)."""
+        parts = [_placement(job, a, j) for a, j in zip(arms, mounts, strict=True)]
+        if len(parts) == 1:
+            return parts[0][0], {}
+        d = chain_equilibrium([p[0] for p in parts], [p[1] for p in parts],
+                              _log_stiffness(job, arms),
+                              tracker_noise_mm=job.tracker_noise_mm,
+                              key=jax.random.fold_in(jax.random.PRNGKey(job.seed + 1), index))
+        return np.asarray(d), {"stiffness": stiffness_record(job, arms)}
+
+    @staticmethod
+    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, PopulationModule],
+                  reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
+                  ) -> None:
+        """Each module's calibrated URDF (``<module>.urdf``), rig.toml with its instrument
+        pose at the mount (orientation kept), and measurements.csv with the planned linked
+        rows (targets and joint columns, x, y, z empty) for ``bayesrob collect`` or a
+        simulator to fill."""
+        import csv
+
+        from bayesrob.calibration import chain_arm_table
+        from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, dump_toml
+
+        names = candidate["arms"]
+        first = modules[names[0]]
+        arms_doc = {}
+        for a, b in zip(names, candidate["bases"], strict=True):
+            m = modules[a]
+            calibrated = m.mods.robot.with_values(m.mods.x)
+            chain = calibrated.chains[m.arm]
+            alone = kin.Robot({m.arm: chain}, calibrated.dim, calibrated.gravity,
+                              calibrated.sag_steps)
+            urdf = out / f"{a}.urdf"
+            kin.write_urdf(alone, alone.layout.nominal, urdf, name=a)
+            table = chain_arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],
+                                    measured=True)
+            pose = np.asarray(table["instrument"], float)
+            pose[: m.dim] = np.asarray(b, float)
+            table["instrument"] = [float(v) for v in pose]
+            arms_doc[a] = table
+        doc = {"name": f"design-{candidate['config']}",
+               "gravity": [float(v) for v in first.rig.gravity], "arms": arms_doc}
+        (out / RIG_FILE).write_text(dump_toml(doc))
+        axes = "xyz"[: first.dim]
+        cols = [f"{a}_u{k + 1}" for a in names
+                for k in range(modules[a].mods.robot.chains[modules[a].arm].n_columns)]
+        with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(["config", "set", *(f"target_{c}" for c in axes), *cols, *axes])
+            for i, t in enumerate(targets):
+                u = [f"{v:.10g}" for a, j in zip(names, candidate["mounts"], strict=True)
+                     for v in reach[a, j][i]]
+                w.writerow(["+".join(names), "test", *(f"{v:.4f}" for v in t), *u,
+                            *([""] * len(axes))])
+
+
+def _order(job: Any, name: str) -> int:
+    """A module's place in the inventory: its seeds derive from it, so a module draws the
+    same numbers in every candidate it is in (common random numbers)."""
+    return list(job.modules).index(name)
+
+
+def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
+    """A placement's free-point draws (S, T, dim) in the world and its joint Jacobian
+    (T, dim, n), drawn once per worker (``job.cache``) from seeds of its own."""
+    key = ("placement", name, mount)
+    if key not in job.cache:
+        m: PopulationModule = job.modules[name]
+        u = job.reach[name, mount]
+        xs = _rig_parameters(job, m)
+        k = jax.random.fold_in(jax.random.PRNGKey(job.seed), 1000 * _order(job, name) + mount)
+        local = free_draws(m.mods, m.arm, u, xs, k)
+        jac = joint_jacobian(m.mods.robot, jnp.asarray(m.mods.x), m.arm, jnp.asarray(u))
+        world = local - m.base + np.asarray(job.mounts[mount], float)
+        job.cache[key] = (world, jac)
+    return job.cache[key]
+
+
+def _rig_parameters(job: Any, m: PopulationModule) -> jax.Array:
+    """Parameter draws (S, P) of a module's rig, once per worker: every placement of every
+    module of that rig builds on the same calibration errors."""
+    key = ("parameters", m.rig_index)
+    if key not in job.cache:
+        job.cache[key] = parameter_draws(
+            m.mods, jax.random.PRNGKey(job.seed * 7919 + m.rig_index), job.draws)
+    return job.cache[key]
+
+
+def linked_priors(modules: Sequence[PopulationModule]) -> list[StiffnessPrior]:
+    """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
+    one rig: where the modules are distinct arms of one rig and each took the prior, their arm
+    terms are centred on their fitted sags
+    (:func:`bayesrob.chain_prediction.sag_scaled_priors`); else each module's own. Modules
+    of different rigs keep their own, as their sags come from different calibrations. Like
+    ``predict``, it takes arms with paths of equal joint counts to be of one model (alike
+    first moments): that is what lets a sag stand for a stiffness."""
+    own = [m.mods.stiffness[m.arm] for m in modules]
+    arms = {m.arm for m in modules}
+    if len({m.rig_index for m in modules}) > 1 or len(arms) < len(modules):
+        return own
+    first = modules[0]
+    # the rig's arm order, not the candidate's: the sags pool the arms' poses, and a sum in
+    # another order could move a centre in its last bit between (a, b) and (b, a)
+    ordered = [a for a in first.rig.robot.measured_arms() if a in arms]
+    by_arm = {m.arm: m for m in modules}
+    scaled = sag_scaled_priors(first.rig, first.mods.calibration,
+                               {a: by_arm[a].mods.stiffness[a] for a in ordered})
+    return [scaled[m.arm] for m in modules]
+
+
+def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
+    """:func:`linked_priors` of a candidate's modules, once per worker."""
+    key = ("priors", tuple(names))
+    if key not in job.cache:
+        job.cache[key] = linked_priors([job.modules[n] for n in names])
+    return job.cache[key]
+
+
+def stiffness_record(job: Any, names: Sequence[str]) -> list[dict[str, Any]]:
+    """What a linked candidate's balance drew each module's joint stiffnesses from, in
+    ``names``' order, for ``design.json``: the record ``predict``'s JSON gives per arm
+    (:meth:`chain_prediction.StiffnessPrior.record`)."""
+    return [p.record() for p in _candidate_priors(job, names)]
+
+
+def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
+    """Linked modules' joint log stiffnesses, each (S, n). Each module draws its standard
+    normals from its own seed, the same in every candidate it is in (common random numbers);
+    the candidate's arms then set their centres and sds (:func:`linked_priors`)."""
+    key = ("stiffness", tuple(names))
+    if key not in job.cache:
+        priors = _candidate_priors(job, names)
+        job.cache[key] = [
+            stiffness_draws([p], jax.random.PRNGKey(job.seed * 104729 + _order(job, n)),
+                            job.draws)[0]
+            for n, p in zip(names, priors, strict=True)]
+    return job.cache[key]
+
+
+# what the search holds: one kind per design
+Module = DensityModule | PopulationModule
