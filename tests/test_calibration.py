@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob import simulator as sim
+from bayesrob import sim
 from bayesrob.calibration import calibrate, mean_ci95
 from bayesrob.outputs import calibration_report
 from bayesrob.rig import load_rig

@@ -18,9 +18,9 @@ from bayesrob.chain_diagnosis import (
     parse_published,
     resolve_effects,
 )
-from bayesrob.chain_simulator import ChainTruth, play_offsets, simulate_chain_rig
 from bayesrob.cli import main
 from bayesrob.rig import load_rig
+from bayesrob.sim import ChainTruth, play_offsets, simulate_chain_rig
 
 COMPLIANT = {"compliance": True}
 

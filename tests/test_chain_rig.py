@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
+from bayesrob.sim import ChainTruth, simulate_chain_rig
 
 
 @pytest.fixture(scope="module")

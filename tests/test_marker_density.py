@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
 from bayesrob.kde import ConditionalKDE
 from bayesrob.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
+from bayesrob.sim import ChainTruth, simulate_chain_rig
 
 
 def _two_components() -> MarkerDensity:

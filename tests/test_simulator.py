@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob import simulator as sim
+from bayesrob import sim
 
 
 def _sag_mm(truth: sim.Truth, name: str, u) -> float:

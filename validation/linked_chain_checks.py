@@ -96,12 +96,12 @@ def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """The three checks on each rig of ``seeds`` (one rig each, the worst over them)."""
     from bayesrob.chain_prediction import fit_chain_modules
-    from bayesrob.chain_simulator import (
+    from bayesrob.rig import load_rig
+    from bayesrob.sim import (
         LinkedChainTruth,
         load_linked_truth,
         simulate_linked_chain_rig,
     )
-    from bayesrob.rig import load_rig
 
     per_rig: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-linked-checks-") as tmp:

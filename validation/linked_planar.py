@@ -103,7 +103,7 @@ def _pooled(tallies: Sequence[dict[str, Any]]) -> dict[str, float]:
 
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """Two arms linked on sag-and-backlash rigs, per improved model and fusion rule."""
-    from bayesrob.simulator import paper_truth, simulate_rig
+    from bayesrob.sim import paper_truth, simulate_rig
 
     rigs: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-linked-") as tmp:
@@ -142,7 +142,7 @@ def three_arms_kde(seeds: list[int], *, quick: bool, say: Callable[[str], None]
     ``predict`` gives against the observed."""
     from bayesrob.assembly import predict_assembly
     from bayesrob.rig import load_rig
-    from bayesrob.simulator import simulate_rig, three_arm_truth
+    from bayesrob.sim import simulate_rig, three_arm_truth
 
     rigs: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-three-") as tmp:
@@ -185,7 +185,7 @@ def three_arm_study(seeds: Sequence[int], groups: tuple[str, ...] = THREE_ARM_GR
     from bayesrob.assembly import predict_assembly
     from bayesrob.chain_prediction import hdr_levels
     from bayesrob.rig import load_rig
-    from bayesrob.simulator import PhysicalRig, round_pulse, simulate_rig, three_arm_truth
+    from bayesrob.sim import PhysicalRig, round_pulse, simulate_rig, three_arm_truth
 
     levels, pred, obs, rigs = [], [], [], []
     with TemporaryDirectory(prefix="bayesrob-three-physics-") as tmp:
