@@ -329,7 +329,7 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
         if truth.compliance:
             q = q + gravity_deflection(base_robot, x_base, "arm", q, masses,
                                        np.asarray(truth.stiffness_nmm_per_rad), down)
-        p = np.asarray(robot.marker_points(jnp.asarray(x_true), "arm", jnp.asarray(q)))
+        p = np.asarray(robot.compiled_points("arm")(jnp.asarray(x_true), jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
     write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
@@ -446,7 +446,7 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
             # leave up to 6e-6 rad).
             q = q + gravity_deflection(robot, x_true, arm, q, masses[arm], stiffness[arm],
                                        np.asarray(GRAVITY), iterations=8)
-        p = np.asarray(robot.marker_points(jnp.asarray(x_true), arm, jnp.asarray(q)))
+        p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         names = [s for s, n in sets for _ in range(n)]
         lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
