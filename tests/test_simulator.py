@@ -1,6 +1,7 @@
 """The simulator's physics: sag, stiffness, backlash jumps, linked tug of war, determinism."""
 
 from dataclasses import replace
+from functools import partial
 
 import jax.numpy as jnp
 import numpy as np
@@ -102,6 +103,41 @@ def test_equal_arms_meet_between_their_free_end_points():
     # meeting point may slide sideways, but it stays between the two aims
     assert target[0] - 2.0 < linked[0] < target[0] + 2.0
     assert abs(linked[1] - target[1]) < 2.0
+
+
+def test_the_planar_energy_is_the_general_energy_on_the_arms_2_joint_chain():
+    """The paper's arms are a configuration of the one physics: their closed-form energy
+    (springs with a dead band, four point masses) equals, with its gradient and Hessian, the
+    energy program every chain's equilibrium uses, on the arm's 2-joint chain with each link's
+    mass at its centre of mass. Joint angles within and beyond the dead bands (0.008 rad);
+    tolerance: rounding (energies of hundreds of N mm)."""
+    import jax
+
+    from bayesrob.sim.equilibrium import _arm_arrays, _arm_program, _energy
+    from bayesrob.sim.physics import G_N_PER_KG
+
+    @jax.jit
+    @partial(jax.vmap, in_axes=(0, 0, None, None))
+    def closed_form(*args):
+        return _energy(*args), jax.grad(_energy)(*args), jax.hessian(_energy)(*args)
+
+    truth = sim.three_arm_truth(("gravity_sag", "backlash"), stiffness_log_sd=0.3)
+    g = jnp.asarray(truth.gravity)
+    rng = np.random.default_rng(0)
+    for name, arm in truth.arms.items():
+        a = _arm_arrays(arm, truth.effects)
+        robot = arm.robot()
+        mass, centre = arm.link_masses
+        weight = mass[:, None] * (G_N_PER_KG * np.r_[truth.gravity, 0.0])[None]
+        theta_cmd = rng.uniform(-2.5, 2.5, (6, 2))
+        theta = theta_cmd + rng.uniform(-0.02, 0.02, (6, 2))
+        s = _arm_program(robot, name)(jnp.asarray(robot.layout.nominal), theta, theta_cmd,
+                                      a.stiffness, weight, centre, a.backlash, periodic=True)
+        assert np.any(np.abs(theta - theta_cmd) < 0.008)  # some joints inside their band
+        energy, grad, hess = closed_form(jnp.asarray(theta), jnp.asarray(theta_cmd), a, g)
+        np.testing.assert_allclose(s["energy"], energy, atol=1e-9)
+        np.testing.assert_allclose(s["grad"], grad, atol=1e-8)
+        np.testing.assert_allclose(s["hess"], hess, rtol=1e-9, atol=1e-6)
 
 
 def test_simulated_rig_is_deterministic(tmp_path):

@@ -6,8 +6,9 @@ summed energy is least with the points together: a tug of war between their stif
 an average. Two solvers, one physics:
 
 - :class:`PhysicalRig`, the paper's servo-driven planar arms (pulse widths in, end points
-  out): BFGS on the energy of each arm, linked arms eliminated through their closed-form
-  inverse (:func:`bayesrob.kinematics.inverse`), so the dead band's kink needs no Hessian;
+  out): BFGS on the energy of each arm (the general energy's closed form on a 2-joint chain),
+  linked arms eliminated through their closed-form inverse
+  (:func:`bayesrob.kinematics.inverse`), so the dead band's kink needs no Hessian;
 - :func:`linked_equilibrium`, arms of revolute joints in 3-D: Newton's method on the Lagrange
   conditions with closed-form first and second derivatives of one forward pass.
 
@@ -40,6 +41,13 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
         theta = theta + servo_ripple(u, arm.u_mid, arm.nonlinearity_rad,
                                      arm.nonlinearity_period_us)
     return theta
+
+
+# The planar arms' energy in closed form: the one energy of _arm_evaluate on the arm's 2-joint
+# chain (ArmTruth.robot, its links' masses at their centres of mass, ArmTruth.link_masses),
+# tested equal to it. BFGS stops where the energy is flat to rounding, about 1e-6 mm from
+# the minimum, so any other arithmetic moves every simulated planar rig by that much; this
+# one is what the pinned rigs were made with, and a tenth of a millisecond faster per step.
 
 
 class _ArmArrays(NamedTuple):
@@ -188,11 +196,13 @@ class LinkedEquilibrium:
 
 
 def _arm_program(robot: Robot, arm: str) -> Callable:
-    """A compiled ``(x, u, u0, k, weight) -> dict`` of one arm over rows u (N, n), compiled
-    once per process for all robots of ``robot``'s structure: the energy of springs (stiffness k,
-    N mm/rad) holding the joint columns at u0 plus the potential of the link weights (N, at
-    the links' centres as in ``physics.gravity_deflection``), its gradient and Hessian, and the
-    marker with its first and second derivatives.
+    """A compiled ``(x, u, u0, k, weight, centre, backlash, periodic=False) -> dict`` of one
+    arm over rows u (N, n), compiled once per process for all robots of ``robot``'s structure:
+    the energy of springs (stiffness k, N mm/rad, a dead band of half-width ``backlash``)
+    holding the joint columns at u0 (``periodic``: the difference wrapped to a turn) plus the
+    potential of the link weights (N, each at ``centre`` of the way along its link: 0.5 for
+    arm6, as in ``physics.gravity_deflection``), its gradient and Hessian, and the marker with
+    its first and second derivatives.
 
     The derivatives are closed forms on the frames of one forward pass (no automatic
     differentiation through the chain's scan, which took seconds to compile): a point r
@@ -207,15 +217,17 @@ def _arm_program(robot: Robot, arm: str) -> Callable:
     return partial(_arm_evaluate, robot.structure, arm, robot.nominal_values)
 
 
-@partial(jax.jit, static_argnames=("structure", "arm"))
+@partial(jax.jit, static_argnames=("structure", "arm", "periodic"))
 def _arm_evaluate(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
-                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array
+                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
+                  centre: jax.Array, backlash: jax.Array, periodic: bool = False
                   ) -> dict[str, jax.Array]:
     # _arm_program's function, for an arm it has checked
     robot = structure.robot(values)
     chain = robot.chains[arm]
     n = chain.n_joints
-    half = jnp.concatenate([0.5 * chain.origins[1:, :3], jnp.ones((n, 1))], axis=1)
+    half = jnp.concatenate([centre[:, None] * chain.origins[1:, :3], jnp.ones((n, 1))],
+                           axis=1)
     axes = jnp.asarray(chain.axes)
     marker = robot.layout.slices[(arm, "marker")]
     upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
@@ -235,10 +247,12 @@ def _arm_evaluate(structure: RobotStructure, arm: str, values: dict, x: jax.Arra
     t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
                    weight, ordered)
     hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
-    d = u - u0
+    d = kin.wrap_angle(u - u0) if periodic else u - u0
+    spring = jnp.where(jnp.abs(d) >= backlash, k, 0.0)  # no spring inside the dead band
+    d = dead_band(d, backlash)
     return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
             - jnp.einsum("nkd,kd->n", centres, weight),
-            "grad": k * d - torque, "hess": jnp.diag(k)[None] + hv,
+            "grad": k * d - torque, "hess": jax.vmap(jnp.diag)(spring) + hv,
             "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
 
 
@@ -246,8 +260,14 @@ def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np
                 u0s: Sequence[np.ndarray], ks: Sequence[jax.Array],
                 weights: Sequence[jax.Array]) -> list[dict[str, np.ndarray]]:
     return [{key: np.asarray(v) for key, v in _arm_program(robot, a)(
-        x, jnp.asarray(u), jnp.asarray(u0), k, w).items()}
+        x, jnp.asarray(u), jnp.asarray(u0), k, w, *_middles(robot, a)).items()}
         for a, u, u0, k, w in zip(arms, us, u0s, ks, weights, strict=True)]
+
+
+def _middles(robot: Robot, arm: str) -> tuple[jax.Array, jax.Array]:
+    """Centres of mass at the links' middles and no dead band: arm6's physics."""
+    n = robot.chains[arm].n_joints
+    return jnp.full(n, 0.5), jnp.zeros(n)
 
 
 def _physics_arguments(robot: Robot, arms: Sequence[str], stiffness: Mapping[str, np.ndarray],
@@ -409,7 +429,7 @@ def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seed
     steps = np.zeros(n_rows, int)
     done = np.zeros(n_rows, bool)
     while True:
-        state = program(xj, jnp.asarray(u), jnp.asarray(u), k0, w0)
+        state = program(xj, jnp.asarray(u), jnp.asarray(u), k0, w0, *_middles(robot, arm))
         err = targets - np.asarray(state["point"])
         close = np.linalg.norm(err, axis=1) < tol_mm
         done |= close & np.all((u >= lo) & (u <= hi), axis=1)

@@ -64,6 +64,23 @@ class ArmTruth:
         return kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64)
                                for x in (self.base, self.links, self.gain, self.offset)))
 
+    def robot(self) -> kin.Robot:
+        """The arm as a 2-joint chain of the general model, its columns the joint angles (the
+        servo map, with its ripple, stays outside): what the simulator's physics acts on."""
+        angles = kin.ArmParams(*(jnp.asarray(v, dtype=jnp.float64)
+                                 for v in (self.base, self.links, (1.0, 1.0), (0.0, 0.0))))
+        return kin.Robot({self.name: kin.planar_chain(self.name, angles)}, 2)
+
+    @property
+    def link_masses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each link's mass (kg) with what it carries (the elbow servo on link 1, the end mass
+        on link 2), and where along the link their centre of mass sits (fraction of its
+        length)."""
+        link = np.asarray(self.link_mass_kg, float)
+        carried = np.array([self.elbow_mass_kg, self.end_mass_kg])
+        mass = link + carried
+        return mass, (0.5 * link + carried) / mass
+
     @property
     def u_mid(self) -> np.ndarray:
         return np.array([(lo + hi) / 2 for lo, hi in self.pulse_limits])
