@@ -104,7 +104,7 @@ from bayesrob.rig import ArmSpec, RigError
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from bayesrob.sim import ArmTruth, Truth
+    from bayesrob.sim.truth import ArmTruth, Truth
 
 __all__ = ["DesignError", "DesignSpec", "ModuleSpec", "Module", "Candidate", "DesignResult",
            "load_design", "load_modules", "task_targets", "reach_table", "enumerate_candidates",
@@ -199,7 +199,7 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
         joint_errors,
         without_tracker_noise,
     )
-    from bayesrob.sim import TRUTH_FILE, Truth
+    from bayesrob.sim.truth import TRUTH_FILE, Truth
 
     out: dict[str, Module] = {}
     specs: dict[str, list] = {}  # model name -> its discovered file, read once
@@ -789,7 +789,8 @@ def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str
         measurement_header,
         rig_toml_dict,
     )
-    from bayesrob.sim import TRUTH_FILE, round_pulse
+    from bayesrob.sim.rigs import round_pulse
+    from bayesrob.sim.truth import TRUTH_FILE
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -42,7 +42,7 @@ def main() -> None:
     args = p.parse_args()
     from bayesrob.chain_diagnosis import diagnose_chain
     from bayesrob.rig import load_rig
-    from bayesrob.sim import ChainTruth
+    from bayesrob.sim.truth import ChainTruth
 
     with tempfile.TemporaryDirectory() as tmp:
         rig_dir = Path(tmp) / "rig"

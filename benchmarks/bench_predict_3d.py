@@ -170,7 +170,8 @@ def main() -> None:
     from bayesrob.assembly import predict_assembly
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
     from bayesrob.rig import load_rig
-    from bayesrob.sim import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth
 
     with tempfile.TemporaryDirectory() as tmp:
         rig = load_rig(simulate_linked_chain_rig(Path(tmp) / "rig", LinkedChainTruth(seed=0)))

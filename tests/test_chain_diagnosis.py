@@ -20,7 +20,9 @@ from bayesrob.chain_diagnosis import (
 )
 from bayesrob.cli import main
 from bayesrob.rig import load_rig
-from bayesrob.sim import ChainTruth, play_offsets, simulate_chain_rig
+from bayesrob.sim.physics import play_offsets
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 COMPLIANT = {"compliance": True}
 

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from bayesrob.cli import main
-from bayesrob.sim import ChainTruth, simulate_chain_rig
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 @pytest.fixture(scope="module")

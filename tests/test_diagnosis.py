@@ -491,8 +491,8 @@ def test_default_rig_magnitudes_match_the_simulators_truth(diagnoses):
     """
     import math
 
-    from bayesrob.sim import Truth
     from bayesrob.sim.physics import G_N_PER_KG
+    from bayesrob.sim.truth import Truth
 
     truth = Truth.from_toml(default_rig_dir() / "truth.toml")
     doc = diagnoses["default_rig"].to_json()

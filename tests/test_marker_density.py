@@ -12,7 +12,8 @@ import scipy.stats
 from bayesrob.cli import main
 from bayesrob.kde import ConditionalKDE
 from bayesrob.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
-from bayesrob.sim import ChainTruth, simulate_chain_rig
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 def _two_components() -> MarkerDensity:

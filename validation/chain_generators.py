@@ -44,14 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob.kinematics import Robot, urdf_chain
-from bayesrob.sim import (
-    ChainTruth,
-    arm6_urdf_path,
-    random_poses,
-    simulate_chain_rig,
-    true_parameters,
-    write_arm6_rig,
-)
+from bayesrob.sim.rigs import random_poses, simulate_chain_rig, true_parameters, write_arm6_rig
+from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
 
 ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
 MOTOR_KG = np.array([2.5, 1.2, 0.6, 0.5, 0.1])  # at joints 2-6, carried by links 1-5

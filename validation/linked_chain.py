@@ -76,11 +76,8 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     simulator's default); ``three``: three arms joined (left, right and front)."""
     import bayesrob.chain_prediction as cp
     from bayesrob.rig import load_rig
-    from bayesrob.sim import (
-        LinkedChainTruth,
-        simulate_linked_chain_rig,
-        three_linked_chain_truth,
-    )
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
 
     if n_linked is None:
         n_linked = LinkedChainTruth.n_linked

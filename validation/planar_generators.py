@@ -41,7 +41,7 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.rig import ArmSpec, dump_toml, format_row, measurement_header, rig_toml_dict
-from bayesrob.sim import holdout_points
+from bayesrob.sim.rigs import holdout_points
 
 G_ACC = 9.81
 EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
@@ -329,7 +329,8 @@ class Case:
 def make_rig(case: Case, out_dir: str | Path) -> Path:
     """Write the case's rig directory."""
     if case.source == "simulator":
-        from bayesrob.sim import paper_truth, simulate_rig
+        from bayesrob.sim.rigs import simulate_rig
+        from bayesrob.sim.truth import paper_truth
 
         truth = paper_truth(case.effects, seed=case.seed, grid=case.grid)
         s = case.scale

@@ -162,7 +162,7 @@ def _close(a: Sequence[float], b: Sequence[float]) -> bool:
 def grid_targets(workspace: Workspace, n: int, set: str = "train") -> np.ndarray:
     """The N x N grid of ``bayesrob.sim.grid_points`` (for ``holdout``, its cell centres,
     ``holdout_points``), rounded to TARGET_DECIMALS."""
-    from bayesrob.sim import grid_points, holdout_points
+    from bayesrob.sim.rigs import grid_points, holdout_points
 
     points = holdout_points if set == "holdout" else grid_points
     return np.round(points(workspace, n), TARGET_DECIMALS)

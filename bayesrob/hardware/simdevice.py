@@ -691,7 +691,8 @@ def run_sim_device(rig_dir: str | Path, protocol: str = "maestro", *,
     import signal
 
     from bayesrob.rig import RigError
-    from bayesrob.sim import TRUTH_FILE, PhysicalRig, Truth
+    from bayesrob.sim.equilibrium import PhysicalRig
+    from bayesrob.sim.truth import TRUTH_FILE, Truth
 
     truth_path = Path(rig_dir) / TRUTH_FILE
     if not truth_path.is_file():

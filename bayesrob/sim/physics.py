@@ -9,7 +9,7 @@ differ from where its model puts it.
 - servo non-linearity: a ripple on the pulse-to-angle map (:func:`servo_ripple`);
 - encoder error: an eccentric encoder disk (:func:`encoder_error`);
 - joint repeatability and instrument noise, and the per-seed spread of stiffnesses and masses
-  between two builds of one design (:func:`draw_stiffnesses`, :func:`draw_masses`).
+  between two builds of one design (:func:`draw_stiffnesses`).
 
 Each random draw has a stream of its own (``*_STREAM``, spawned from the rig's seed), so
 switching one effect on leaves every other draw of a rig as it was.
@@ -27,18 +27,12 @@ import numpy as np
 from bayesrob.kinematics import Robot, RobotStructure
 from bayesrob.kinematics.chain import G_N_PER_KG
 
-__all__ = [
-    "G_N_PER_KG", "STIFF_FACTOR", "dead_band", "servo_ripple", "encoder_error", "play_offsets",
-    "gravity_torques", "gravity_deflection", "link_weights", "draw_stiffnesses", "draw_masses",
-]
-
 # Without gravity_sag a planar arm's servos are this much stiffer: gravity still decides which
 # side of a dead band a joint rests on, but no longer deflects it measurably.
 STIFF_FACTOR = 1000.0
 ENCODER_STREAM = 7  # the encoder phases' own random stream
 PLAY_STREAM = 8  # the approach sides' own random stream
 STIFFNESS_STREAM = 17  # the drawn stiffnesses' own random stream
-MASS_STREAM = 19  # the drawn masses' own random stream
 
 
 def dead_band(x: jax.Array, b: jax.Array) -> jax.Array:
@@ -143,12 +137,3 @@ def draw_stiffnesses(seed: int, profiles: Mapping[str, Sequence[float]], log_sd:
         k = np.asarray(profile, float)
         out[name] = k * np.exp(log_sd * rng.normal() + log_sd * rng.normal(size=k.shape))
     return out
-
-
-def draw_masses(seed: int, masses_kg: Sequence[float], arms: Sequence[str], log_sd: float
-                ) -> dict[str, np.ndarray]:
-    """Each arm's true link masses (kg) for a seed: the described ``masses_kg`` scaled by
-    exp(N(0, ``log_sd``)) per arm and per link, from the seed's own stream."""
-    rng = np.random.default_rng([seed, MASS_STREAM])
-    m = np.asarray(masses_kg, float)
-    return {a: m * np.exp(log_sd * rng.normal(size=m.shape)) for a in arms}

@@ -25,6 +25,7 @@ from threadpoolctl import threadpool_limits
 
 from bayesrob import kinematics as kin
 from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.progress import progress as progress_bar
 from bayesrob.rig import (
     MEASUREMENTS_FILE,
     RIG_FILE,
@@ -37,15 +38,8 @@ from bayesrob.rig import (
     measurement_header,
     rig_toml_dict,
 )
+from bayesrob.sim import physics
 from bayesrob.sim.equilibrium import PhysicalRig, linked_equilibrium, position_ik
-from bayesrob.sim.physics import (
-    ENCODER_STREAM,
-    PLAY_STREAM,
-    encoder_error,
-    gravity_deflection,
-    gravity_torques,
-    play_offsets,
-)
 from bayesrob.sim.truth import (
     ARM6_URDF,
     GRAVITY,
@@ -133,7 +127,7 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
     rows = []
     hold = holdout_points(truth.workspace, truth.grid) if holdout else np.zeros((0, 2))
     steps = (2 * len(names) + 1) * len(grid) + (len(names) + (len(names) > 1)) * len(hold)
-    bar = _progress(steps, progress, "simulate")
+    bar = progress_bar(steps, "simulate", "pt", enabled=progress)
     train: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     nominals = {name: kin.Arm.nominal(specs[name]) for name in names}
     for name in names:
@@ -207,11 +201,6 @@ def _check_limits(name: str, u: np.ndarray, limits) -> None:
                          f"{u[bad][0].tolist()} outside its limits {limits}")
 
 
-def _progress(total: int, enabled: bool, desc: str):
-    from bayesrob.progress import progress
-    return progress(total, desc, "pt", enabled=enabled)
-
-
 def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
                     ) -> tuple[int, int]:
     """Measure a rig's planned rows (commands given, x and y empty) with the physics of its
@@ -241,7 +230,7 @@ def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
     plant = PhysicalRig(truth, seed=seed)
     planned = [r for r, row in enumerate(body) if len(row) == len(header)
                and is_planned(row, idx)]
-    bar = _progress(len(planned), progress, "measure")
+    bar = progress_bar(len(planned), "measure", "pt", enabled=progress)
     for r in planned:
         row, where = body[r], f"{path}: line {r + 2}"
         members = row[idx["config"]].split("+")
@@ -308,10 +297,11 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
     base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")}, 3)
     x_base = x_true.copy()
     x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
-    phase = np.random.default_rng([truth.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, 6)
+    phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(-np.pi, np.pi,
+                                                                                6)
     if truth.encoder_eccentricity:
         truth.encoder_phase_rad = tuple(float(v) for v in phase)
-    approach = np.random.default_rng([truth.seed, PLAY_STREAM])
+    approach = np.random.default_rng([truth.seed, physics.PLAY_STREAM])
     masses = np.asarray(truth.masses_kg)
     down = np.array([0.0, 0.0, -1.0])
     rows = []
@@ -322,13 +312,14 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
         q_cmd = random_poses(rng, n)
         q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
         if truth.encoder_eccentricity:
-            q = q + encoder_error(q_cmd, truth.encoder_eccentricity, phase)
+            q = q + physics.encoder_error(q_cmd, truth.encoder_eccentricity, phase)
         if truth.joint_play_rad:
-            q = q + play_offsets(gravity_torques(base_robot, x_base, "arm", q, masses, down),
-                                 truth.joint_play_rad, truth.play_stick_nmm, approach)
+            tau = physics.gravity_torques(base_robot, x_base, "arm", q, masses, down)
+            q = q + physics.play_offsets(tau, truth.joint_play_rad, truth.play_stick_nmm,
+                                         approach)
         if truth.compliance:
-            q = q + gravity_deflection(base_robot, x_base, "arm", q, masses,
-                                       np.asarray(truth.stiffness_nmm_per_rad), down)
+            q = q + physics.gravity_deflection(base_robot, x_base, "arm", q, masses,
+                                               np.asarray(truth.stiffness_nmm_per_rad), down)
         p = np.asarray(robot.compiled_points("arm")(jnp.asarray(x_true), jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
@@ -336,7 +327,7 @@ def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
     truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
                                                             strict=True)}
     doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
-    (out / "truth.toml").write_text(dump_toml({"chain_truth": doc}))
+    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": doc}))
     return out
 
 
@@ -345,22 +336,23 @@ def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, n
     """rig.toml, the nominal arm6.urdf and measurements.csv of a single arm6: ``rows`` are
     (set, joint readings (6,), marker point (3,) in mm)."""
     header = ["config", "set", *[f"arm_u{k + 1}" for k in range(6)], "x", "y", "z"]
-    lines = [",".join(header)]
-    for set_name, qc, pc in rows:
-        lines.append(",".join(["arm", set_name, *(f"{v:.10g}" for v in qc),
-                               *(f"{v:.4f}" for v in pc)]))
-    (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+    lines = [",".join(header)] + [",".join(["arm", set_name, *(f"{v:.10g}" for v in qc),
+                                             *(f"{v:.4f}" for v in pc)])
+                                   for set_name, qc, pc in rows]
+    _write_arm6_files(out, name, {"arm": errors.instrument_nominal}, errors.marker_nominal_mm,
+                      lines)
+
+
+def _write_arm6_files(out: Path, name: str, instruments: Mapping[str, Sequence[float]],
+                      marker: Sequence[float], lines: Sequence[str]) -> None:
+    """The nominal arm6.urdf, rig.toml (an arm6 per ``instruments`` entry) and the CSV
+    ``lines`` of a rig of arm6 arms."""
     shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
-    rig = {"name": name, "gravity": [0.0, 0.0, -1.0],
-           "arms": {"arm": {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0",
-                            "marker": list(errors.marker_nominal_mm),
-                            "instrument": list(errors.instrument_nominal)}}}
-    (out / "rig.toml").write_text(dump_toml(rig))
-
-
-def _arm_table(name: str, marker: Sequence[float], instrument: Sequence[float]) -> dict:
-    return {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0", "marker": list(marker),
-            "instrument": [float(v) for v in instrument]}
+    arms = {a: {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0", "marker": list(marker),
+                "instrument": [float(v) for v in pose]} for a, pose in instruments.items()}
+    (out / RIG_FILE).write_text(dump_toml({"name": name, "gravity": list(GRAVITY),
+                                           "arms": arms}))
+    (out / MEASUREMENTS_FILE).write_text("\n".join(lines) + "\n")
 
 
 def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
@@ -444,19 +436,16 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
             # Frames in the instrument frame, so gravity is the instrument's -z. Eight steps:
             # the softer arm's fixed point contracts more slowly than four steps allow (they
             # leave up to 6e-6 rad).
-            q = q + gravity_deflection(robot, x_true, arm, q, masses[arm], stiffness[arm],
-                                       np.asarray(GRAVITY), iterations=8)
+            q = q + physics.gravity_deflection(robot, x_true, arm, q, masses[arm],
+                                               stiffness[arm], np.asarray(GRAVITY), iterations=8)
         p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
         p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
         names = [s for s, n in sets for _ in range(n)]
         lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
                   for s, qc, pc in zip(names, q_cmd, p, strict=True)]
-    shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
-    rig_doc = {"name": f"arm6-linked-seed{truth.seed}", "gravity": list(GRAVITY),
-               "arms": {a: _arm_table(a, truth.marker_nominal_mm, truth.instrument_nominal[a])
-                        for a in truth.arms}}
-    (out / "rig.toml").write_text(dump_toml(rig_doc))
-    (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+    _write_arm6_files(out, f"arm6-linked-seed{truth.seed}",
+                      {a: truth.instrument_nominal[a] for a in truth.arms},
+                      truth.marker_nominal_mm, lines)
 
     linked: dict = {}
     if truth.n_linked:
@@ -469,7 +458,7 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
         lines += [_fmt_row("+".join(truth.arms), "test", t,
                            {a: commands[a][i] for a in truth.arms}, o, truth.arms)
                   for i, (t, o) in enumerate(zip(targets, observed, strict=True))]
-        (out / "measurements.csv").write_text("\n".join(lines) + "\n")
+        (out / MEASUREMENTS_FILE).write_text("\n".join(lines) + "\n")
         linked = {
             "line": list(range(first_line, first_line + truth.n_linked)),
             "target": targets.tolist(),
@@ -481,7 +470,7 @@ def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> P
     truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
                                                             strict=True)}
     truth.linked_rows = linked
-    (out / "truth.toml").write_text(dump_toml({"linked_chain_truth": asdict(truth)}))
+    (out / TRUTH_FILE).write_text(dump_toml({"linked_chain_truth": asdict(truth)}))
     return out
 
 

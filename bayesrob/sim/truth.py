@@ -26,7 +26,7 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.rig import dump_toml
-from bayesrob.sim.physics import draw_masses, draw_stiffnesses
+from bayesrob.sim.physics import draw_stiffnesses
 from bayesrob.vocabulary import EFFECTS
 
 TRUTH_FILE = "truth.toml"
@@ -35,6 +35,7 @@ GRAVITY = (0.0, 0.0, -1.0)  # arm6: unit gravity in the instrument frame
 # The working range of arm6's joints (rad): the shoulder lift keeps the arm off its own base.
 POSE_LO = np.array([-2.8, -2.2, -2.4, -2.8, -2.8, -3.0])
 POSE_HI = np.array([2.8, -0.6, 2.4, 2.8, 2.8, 3.0])
+MASS_STREAM = 19  # the arms' drawn masses' own random stream
 
 
 @dataclass(frozen=True)
@@ -270,9 +271,8 @@ class ChainTruth(_ArmErrors):
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:
     """The true parameter values a simulated chain rig (one arm or two linked) was made with."""
-    doc = tomllib.loads((Path(rig_dir) / "truth.toml").read_text())
-    table = doc["chain_truth"] if "chain_truth" in doc else doc["linked_chain_truth"]
-    return table["true_params"]
+    doc = tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())
+    return doc.get("chain_truth", doc.get("linked_chain_truth"))["true_params"]
 
 
 # Two arm6 arms facing each other over a shared workspace (and, for assemblies of three, a
@@ -370,10 +370,12 @@ def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
 def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
     """Each arm's true link masses (kg) for the rig of ``truth.seed``: the described masses
     scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
-    return draw_masses(truth.seed, truth.masses_kg, truth.arms, truth.mass_log_sd)
+    rng = np.random.default_rng([truth.seed, MASS_STREAM])
+    m = np.asarray(truth.masses_kg, float)
+    return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in truth.arms}
 
 
 def load_linked_truth(rig_dir: str | Path) -> dict:
     """The ``linked_chain_truth`` table of a rig written by
     :func:`~bayesrob.sim.rigs.simulate_linked_chain_rig`."""
-    return tomllib.loads((Path(rig_dir) / "truth.toml").read_text())["linked_chain_truth"]
+    return tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())["linked_chain_truth"]
