@@ -1,15 +1,23 @@
 """What a simulated rig really is: the truths the simulator builds its rigs from and writes to
-``truth.toml`` (only tests and studies read it).
-
-Two configurations of one physics (:mod:`bayesrob.sim.physics`):
+``truth.toml`` (only tests and studies read it). Two configurations of one physics
+(:mod:`bayesrob.sim.physics`, :mod:`bayesrob.sim.equilibrium`):
 
 - the paper's setup (:func:`paper_truth`, :func:`three_arm_truth`): servo-driven planar arms,
-  each a 2-joint chain (:meth:`ArmTruth.chain`) with point masses on its links, joint springs
-  with a dead band, a rippled servo map, aimed on a grid;
+  each a 2-joint chain (:meth:`ArmTruth.robot`) whose joints are springs pulling towards the
+  commanded angles, under the weight of point masses (links at mid-link, the elbow servo, an
+  end mass), aimed on a grid. Its effects (names are a contract, ``vocabulary.EFFECTS``):
+  ``gravity_sag`` gives the servos their real stiffness (without it they are
+  ``STIFF_FACTOR`` times stiffer, so gravity still picks the side of a dead band but no
+  longer deflects a joint measurably); ``backlash`` a dead band, where the gravity torque on
+  a joint changes sign the end point jumps (the paper's bottom-arm discontinuity);
+  ``servo_nonlinearity`` a ripple on the pulse-to-angle map. Always on: joint repeatability
+  noise on the commanded angle and measurement noise on the end point;
 - arm6 (:class:`ChainTruth`, :class:`LinkedChainTruth`): a 6-joint URDF arm whose true
   geometry differs from its nominal URDF, measured at random poses; its joints give way under
   gravity, read through eccentric encoders, rest in their play; linked arms are joined at one
   marker point.
+
+All randomness flows from the seed, so a rig is reproducible from its ``truth.toml``.
 """
 
 from __future__ import annotations
