@@ -249,7 +249,8 @@ def _say_replaced(existing: list[Path]) -> None:
 
 def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
 
-    from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
+    from bayesrob.sim.rigs import simulate_chain_rig
+    from bayesrob.sim.truth import ChainTruth
 
     if args.effects or args.grid != 4:
         raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
@@ -286,12 +287,9 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
 def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
     from dataclasses import replace
 
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        LinkedSimulationError,
-        simulate_linked_chain_rig,
-        three_linked_chain_truth,
-    )
+    from bayesrob.sim.equilibrium import LinkedSimulationError
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
 
     truth = (three_linked_chain_truth if args.third_arm else LinkedChainTruth)(seed=args.seed)
     if args.stiffness_spread is not None:
@@ -322,7 +320,7 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
 
 
 def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
-    from bayesrob.simulator import measure_planned
+    from bayesrob.sim.rigs import measure_planned
 
     n, total = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
     print(f"measured {n} planned rows of {out_dir / 'measurements.csv'} ({total} rows in all)")
@@ -335,7 +333,8 @@ def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
 def _simulate(args: argparse.Namespace) -> int:
 
     from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE
-    from bayesrob.simulator import TRUTH_FILE, paper_truth, simulate_rig, three_arm_truth
+    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.truth import TRUTH_FILE, paper_truth, three_arm_truth
 
     out_dir = Path(args.out_dir)
     if out_dir.exists() and not out_dir.is_dir():

@@ -45,7 +45,7 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        from bayesrob.chain_simulator import ChainTruth
+        from bayesrob.sim.truth import ChainTruth
 
         rig = Path(tmp) / "rig"
         case = ("agile_justin_frames_geometric"

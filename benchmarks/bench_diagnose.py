@@ -154,7 +154,7 @@ def sensitivity_cases() -> list[Case]:
 
 
 def physical_size(case: dict) -> str:
-    """The hidden effect's size in the simulator's own terms (see bayesrob.simulator)."""
+    """The hidden effect's size in the simulator's own terms (see bayesrob.sim)."""
     s = case["scale"]
     sizes = {"gravity_sag": f"servo stiffness {2500 / s:.0f}/{1800 / s:.0f} N mm/rad",
              "backlash": f"play +-{0.458 * s:.2f} deg",

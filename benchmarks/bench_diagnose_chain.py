@@ -41,8 +41,8 @@ def main() -> None:
                    help="torque steps of the ladder's fits with gravity (the target is for 1)")
     args = p.parse_args()
     from bayesrob.chain_diagnosis import diagnose_chain
-    from bayesrob.chain_simulator import ChainTruth
     from bayesrob.rig import load_rig
+    from bayesrob.sim.truth import ChainTruth
 
     with tempfile.TemporaryDirectory() as tmp:
         rig_dir = Path(tmp) / "rig"

@@ -42,7 +42,7 @@ the prior whose arm term is centred on the arms' fitted sags
 
 ``--three-arms`` runs the same study on three arms joined at one point (left and right as
 above, and a third, front, facing the targets from the side:
-``chain_simulator.three_linked_chain_truth``), MANY_LINKED points per rig, with the prior
+``sim.three_linked_chain_truth``), MANY_LINKED points per rig, with the prior
 ``predict`` uses as it stands: THREE_TUNING_SEEDS checked that it runs, THREE_REPORT_SEEDS
 (fixed before any of them ran) report it.
 
@@ -169,8 +169,9 @@ def main() -> None:
 
     from bayesrob.assembly import predict_assembly
     from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
-    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
     from bayesrob.rig import load_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth
 
     with tempfile.TemporaryDirectory() as tmp:
         rig = load_rig(simulate_linked_chain_rig(Path(tmp) / "rig", LinkedChainTruth(seed=0)))

@@ -18,7 +18,7 @@ def justin_or_simulated(data: Path, rig_dir: Path, truth: Any) -> bool:
     if data.is_file():
         convert(data, rig_dir)
         return True
-    from bayesrob.chain_simulator import simulate_chain_rig
+    from bayesrob.sim.rigs import simulate_chain_rig
 
     simulate_chain_rig(rig_dir, truth)
     return False

@@ -42,7 +42,8 @@ def clean_rig_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     paper's 80 rows only (no ``holdout`` rows): the rig-format tests pin that layout, and the
     holdout rows are tested on the rigs that carry them (the default rig, test_simulator).
     """
-    from bayesrob.simulator import paper_truth, simulate_rig
+    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.truth import paper_truth
 
     return simulate_rig(tmp_path_factory.mktemp("clean_rig"), paper_truth((), seed=0, grid=4),
                         holdout=False)
@@ -147,7 +148,7 @@ def handmade_rig_dir(tmp_path: Path) -> Path:
 def forearm_unweighed(tmp_path: Path) -> Path:
     """arm6's URDF with the forearm's <inertial> taken out, written as half.urdf: a
     description that does not weigh every moving link."""
-    from bayesrob.chain_simulator import arm6_urdf_path
+    from bayesrob.sim.truth import arm6_urdf_path
 
     text = arm6_urdf_path().read_text()
     start = text.index('<link name="forearm_link">')

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import bayesrob
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.rig import Measurements, Rig, RigError, default_rig_dir, load_rig
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 def test_every_exported_name_resolves_and_the_import_stays_light():

@@ -16,7 +16,7 @@ from bayesrob.validation.calibration_sbc import narrowed_ranks
 from bayesrob import bayes_calibration as bc
 from bayesrob.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
 from bayesrob.rig import load_rig
-from bayesrob.simulator import Truth
+from bayesrob.sim.truth import Truth
 
 ARMS = ("top", "bottom")
 

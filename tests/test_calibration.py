@@ -8,17 +8,18 @@ import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob import simulator as sim
 from bayesrob.calibration import calibrate, mean_ci95
 from bayesrob.outputs import calibration_report
 from bayesrob.rig import load_rig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 
 @pytest.fixture(scope="module")
 def clean_rig(tmp_path_factory):
     # a 6x6 grid makes the parameters well determined, so the z-test below is sharp
-    truth = sim.paper_truth((), seed=11, grid=6)
-    d = sim.simulate_rig(tmp_path_factory.mktemp("clean6"), truth)
+    truth = paper_truth((), seed=11, grid=6)
+    d = simulate_rig(tmp_path_factory.mktemp("clean6"), truth)
     return load_rig(d), truth
 
 
@@ -50,8 +51,8 @@ def test_clean_rig_validation_error_is_at_noise_level(clean_rig):
 def test_effects_make_validation_error_grow(tmp_path):
     errors = {}
     for effects in ((), ("gravity_sag",), ("backlash",), ("servo_nonlinearity",)):
-        d = sim.simulate_rig(tmp_path / ("_".join(effects) or "none"),
-                             sim.paper_truth(effects, seed=5))
+        d = simulate_rig(tmp_path / ("_".join(effects) or "none"),
+                             paper_truth(effects, seed=5))
         doc = calibration_report(load_rig(d))
         errors[effects] = np.mean([doc["arms"][a]["validation_error_mm"]
                                    for a in ("top", "bottom")])

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob.chain_simulator import ChainTruth, arm6_urdf_path, simulate_chain_rig
 from bayesrob.rig import Rig, default_rig_dir, dump_toml, load_rig, load_rig_toml
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
 
 JUSTIN_TOML = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / "rig.toml"
 # a Justin row's joint columns: the torso's three, then each arm's seven
@@ -418,7 +419,7 @@ def arm6_rig(tmp_path_factory):
 
 def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
     from bayesrob.calibration import calibrate_chain
-    from bayesrob.chain_simulator import load_true_params
+    from bayesrob.sim.truth import load_true_params
 
     rig = load_rig(arm6_rig)
     truth = load_true_params(arm6_rig)

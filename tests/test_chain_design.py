@@ -74,7 +74,8 @@ MOUNTS = [[0.0, 0.0, 0.0], [900.0, 0.0, 0.0], FAR]
 
 @pytest.fixture(scope="module")
 def rig_dir(tmp_path_factory) -> Path:
-    from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth
 
     return simulate_linked_chain_rig(tmp_path_factory.mktemp("arms") / "rig",
                                      LinkedChainTruth(**RIG_TRUTH))

@@ -18,9 +18,11 @@ from bayesrob.chain_diagnosis import (
     parse_published,
     resolve_effects,
 )
-from bayesrob.chain_simulator import ChainTruth, play_offsets, simulate_chain_rig
 from bayesrob.cli import main
 from bayesrob.rig import load_rig
+from bayesrob.sim.physics import play_offsets
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 COMPLIANT = {"compliance": True}
 

@@ -20,22 +20,20 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from bayesrob.calibration import calibrate_chain
-from bayesrob.chain_simulator import (
+from bayesrob.cli import main
+from bayesrob.rig import MEASUREMENTS_FILE, RigError, load_rig
+from bayesrob.sim.equilibrium import linked_energy, linked_equilibrium, position_ik
+from bayesrob.sim.physics import gravity_deflection
+from bayesrob.sim.rigs import simulate_linked_chain_rig
+from bayesrob.sim.truth import (
     GRAVITY,
     LINKED_ARMS,
     POSE_HI,
     POSE_LO,
     LinkedChainTruth,
-    gravity_deflection,
-    linked_energy,
-    linked_equilibrium,
     load_linked_truth,
     load_true_params,
-    position_ik,
-    simulate_linked_chain_rig,
 )
-from bayesrob.cli import main
-from bayesrob.rig import MEASUREMENTS_FILE, RigError, load_rig
 
 TRUTH = LinkedChainTruth(seed=0, n_validation=10, n_holdout=10, n_linked=12)
 GROUPS = ("frames", "offsets", "geometric")
@@ -351,7 +349,7 @@ def test_three_arms_joined_at_one_point_on_the_command_line(tmp_path, capsys):
     simulator's solve leaves them at most 1e-6 mm apart, or it fails); the front arm's
     stiffnesses are the left profile's times THIRD_ARM_STIFFNESS_SCALE, drawn about per seed
     like the others', and the left and right arms draw what a two-arm rig of the seed draws."""
-    from bayesrob.chain_simulator import THIRD_ARM, THIRD_ARM_STIFFNESS_SCALE, drawn_stiffness
+    from bayesrob.sim.truth import THIRD_ARM, THIRD_ARM_STIFFNESS_SCALE, drawn_stiffness
 
     out = tmp_path / "r"
     assert main(["simulate", str(out), "--robot", "arm6", "--linked", "--third-arm",
@@ -404,7 +402,7 @@ def test_each_seed_draws_its_arms_stiffnesses():
     profile (log sd 0.3 per arm and per joint), the same seed draws the same, and sd 0 keeps
     the profile. Over 200 seeds the log ratio to the profile has sd sqrt(0.3^2 + 0.3^2) =
     0.42 (within 10%: its sampling error at 1,200 values, correlated in sixes, is about 4%)."""
-    from bayesrob.chain_simulator import drawn_stiffness
+    from bayesrob.sim.truth import drawn_stiffness
 
     profile = LinkedChainTruth().stiffness_nmm_per_rad
     a, b = drawn_stiffness(LinkedChainTruth(seed=1)), drawn_stiffness(LinkedChainTruth(seed=2))
@@ -423,8 +421,8 @@ def test_linked_arms_true_masses_are_drawn_about_the_urdfs(tmp_path, capsys):
     each arm's are the URDF's times a log-normal factor per link, the same for a seed every
     time and different between the arms. ``--mass-spread`` sets it for arm6 --linked only
     (one line, exit 2, elsewhere)."""
-    from bayesrob.chain_simulator import arm6_urdf_path, drawn_masses
     from bayesrob.kinematics import urdf_chain
+    from bayesrob.sim.truth import arm6_urdf_path, drawn_masses
 
     described = np.array(urdf_chain(arm6_urdf_path(), "base_link", "tool0", "a")
                          .source["link_masses_kg"])

@@ -21,10 +21,11 @@ from bayesrob.chain_prediction import (
     hdr_levels,
     hdr_sizes,
 )
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
 from bayesrob.kde import kde_log_density
 from bayesrob.rig import RigError, load_rig
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 @pytest.fixture(scope="module")
@@ -280,12 +281,8 @@ def linked_calibration(tmp_path_factory):
     (how well fitted arms predict linked points is a study: ``bayesrob validate
     linked_chain_checks``)."""
     from bayesrob.calibration import ChainCalibration, _with_gravity
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        load_linked_truth,
-        load_true_params,
-        simulate_linked_chain_rig,
-    )
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth, load_true_params
 
     d = simulate_linked_chain_rig(tmp_path_factory.mktemp("linked") / "rig",
                                   LinkedChainTruth(seed=1))
@@ -582,7 +579,7 @@ def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed
     another source gave them, nor when a chain on an arm's path leaves a link unweighed."""
     from bayesrob.assembly import stiffness_note
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
-    from bayesrob.chain_simulator import arm6_urdf_path
+    from bayesrob.sim.truth import arm6_urdf_path
 
     def robot(right_urdf):
         return kin.Robot({a: kin.urdf_chain(u, "base_link", "tool0", a)

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 @pytest.fixture(scope="module")

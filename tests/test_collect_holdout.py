@@ -18,7 +18,7 @@ from bayesrob.hardware.collect import (
 from bayesrob.hardware.controller import quantize_us
 from bayesrob.kinematics import Arm
 from bayesrob.rig import RigError, load_rig, load_rig_toml
-from bayesrob.simulator import holdout_points
+from bayesrob.sim.rigs import holdout_points
 
 ALL = ("train", "validation", "test", "holdout")
 

@@ -491,7 +491,8 @@ def test_default_rig_magnitudes_match_the_simulators_truth(diagnoses):
     """
     import math
 
-    from bayesrob.simulator import G_ACC, Truth
+    from bayesrob.sim.physics import G_N_PER_KG
+    from bayesrob.sim.truth import Truth
 
     truth = Truth.from_toml(default_rig_dir() / "truth.toml")
     doc = diagnoses["default_rig"].to_json()
@@ -500,7 +501,7 @@ def test_default_rig_magnitudes_match_the_simulators_truth(diagnoses):
         play = abs(mags["backlash"]["values"]["shoulder_play_deg"]["value"])
         assert 0.5 < play / math.degrees(arm.backlash_rad[0]) < 2.0, name
         l2 = arm.links[1]
-        elbow_torque = G_ACC * (arm.link_mass_kg[1] * l2 / 2 + arm.end_mass_kg * l2)
+        elbow_torque = G_N_PER_KG * (arm.link_mass_kg[1] * l2 / 2 + arm.end_mass_kg * l2)
         expected = math.degrees(elbow_torque / arm.stiffness_nmm_per_rad[1])
         fit = mags["gravity_sag"]["values"]["elbow_deflection_deg"]
         assert abs(fit["value"] - expected) < 3 * fit["se"], (name, fit, expected)

@@ -25,7 +25,9 @@ from bayesrob.kde import kde_log_density
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import setup_rows
 from bayesrob.rig import RigError, default_rig_dir, load_rig
-from bayesrob.simulator import PhysicalRig, paper_truth, simulate_rig
+from bayesrob.sim.equilibrium import PhysicalRig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 ALPHA = 0.01
 

@@ -38,7 +38,9 @@ from bayesrob.hardware.tracker import ManualTracker, StreamTracker
 from bayesrob.kinematics import Arm
 from bayesrob.rig import RigError, dump_toml, load_measurements, load_rig, load_rig_toml
 from bayesrob.rig import rig_toml_dict as _rig_toml_dict
-from bayesrob.simulator import PhysicalRig, nominal_specs, paper_truth
+from bayesrob.sim.equilibrium import PhysicalRig
+from bayesrob.sim.rigs import nominal_specs
+from bayesrob.sim.truth import paper_truth
 
 CHANNELS = {"top": (0, 1), "bottom": (2, 3)}
 CHANNEL_ARGS = ["top=0,1", "bottom=2,3"]

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
 from bayesrob.cli import main
 from bayesrob.kde import ConditionalKDE
 from bayesrob.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth
 
 
 def _two_components() -> MarkerDensity:

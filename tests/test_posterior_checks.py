@@ -33,7 +33,8 @@ from bayesrob.calibration import calibrate
 from bayesrob.comparison import heldout_scores
 from bayesrob.noise_models import ModelSpec, discover_models, joint_errors
 from bayesrob.rig import default_rig_dir, load_rig
-from bayesrob.simulator import paper_truth, simulate_rig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 ALPHA = 0.01
 MASSES = (0.5, 0.9)

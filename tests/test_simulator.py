@@ -1,18 +1,21 @@
 """The simulator's physics: sag, stiffness, backlash jumps, linked tug of war, determinism."""
 
 from dataclasses import replace
+from functools import partial
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob import simulator as sim
+from bayesrob.sim.equilibrium import PhysicalRig
+from bayesrob.sim.rigs import grid_points, holdout_points, simulate_rig
+from bayesrob.sim.truth import TRUTH_FILE, Truth, paper_truth, three_arm_truth
 
 
-def _sag_mm(truth: sim.Truth, name: str, u) -> float:
+def _sag_mm(truth: Truth, name: str, u) -> float:
     """Distance between the rigid-arm end point and where the loaded arm settles."""
-    plant = sim.PhysicalRig(truth)
+    plant = PhysicalRig(truth)
     arm = truth.arms[name]
     rigid = np.asarray(kin.forward_u(arm.params, jnp.asarray(u)))
     return float(np.linalg.norm(plant.end_point({name: u}, noise=False) - rigid))
@@ -20,7 +23,7 @@ def _sag_mm(truth: sim.Truth, name: str, u) -> float:
 
 @pytest.fixture(scope="module")
 def truth():
-    return sim.paper_truth(("gravity_sag",), seed=0)
+    return paper_truth(("gravity_sag",), seed=0)
 
 
 def test_sag_grows_with_mass_and_shrinks_with_stiffness(truth):
@@ -46,16 +49,16 @@ def test_sag_points_along_gravity(truth):
     arm = truth.arms["bottom"]
     theta = jnp.array([0.0, 0.0])  # stretched out horizontally
     u = np.asarray(kin.servo_inverse(arm.params, theta))
-    plant = sim.PhysicalRig(truth)
+    plant = PhysicalRig(truth)
     d = plant.end_point({"bottom": u}, noise=False)
     rigid = np.asarray(kin.forward(arm.params, theta))
     assert d[1] < rigid[1] - 1.0
 
 
 def test_backlash_jumps_where_gravity_torque_changes_sign():
-    truth = sim.paper_truth(("backlash",), seed=0)
+    truth = paper_truth(("backlash",), seed=0)
     arm = truth.arms["top"]
-    plant = sim.PhysicalRig(truth)
+    plant = PhysicalRig(truth)
     # sweep the shoulder through the vertical below the base: torque on joint 1 flips sign
     t1 = np.linspace(-np.pi / 2 - 0.15, -np.pi / 2 + 0.15, 31)
     theta_cmd = np.column_stack([t1, np.zeros_like(t1)])
@@ -72,10 +75,10 @@ def test_backlash_jumps_where_gravity_torque_changes_sign():
 
 
 def test_linked_arms_settle_near_the_much_stiffer_arm():
-    truth = sim.paper_truth(("gravity_sag",), seed=0)
+    truth = paper_truth(("gravity_sag",), seed=0)
     stiff = replace(truth, arms={**truth.arms, "bottom": replace(
         truth.arms["bottom"], stiffness_nmm_per_rad=(2.5e6, 1.8e6))})
-    plant = sim.PhysicalRig(stiff)
+    plant = PhysicalRig(stiff)
     target = np.array([170.0, 190.0])
     # aim the two arms at points 6 mm apart: the tug of war decides where they meet
     u_top = np.asarray(kin.Arm("top", stiff.arms["top"].params, 1).command(
@@ -90,8 +93,8 @@ def test_linked_arms_settle_near_the_much_stiffer_arm():
 
 
 def test_equal_arms_meet_between_their_free_end_points():
-    truth = sim.paper_truth((), seed=0)
-    plant = sim.PhysicalRig(truth)
+    truth = paper_truth((), seed=0)
+    plant = PhysicalRig(truth)
     target = np.array([170.0, 190.0])
     u_top = np.asarray(kin.Arm("top", truth.arms["top"].params, 1).command(
         jnp.asarray(target + [2.0, 0.0])))
@@ -104,18 +107,53 @@ def test_equal_arms_meet_between_their_free_end_points():
     assert abs(linked[1] - target[1]) < 2.0
 
 
+def test_the_planar_energy_is_the_general_energy_on_the_arms_2_joint_chain():
+    """The paper's arms are a configuration of the one physics: their closed-form energy
+    (springs with a dead band, four point masses) equals, with its gradient and Hessian, the
+    energy program every chain's equilibrium uses, on the arm's 2-joint chain with each link's
+    mass at its centre of mass. Joint angles within and beyond the dead bands (0.008 rad);
+    tolerance: rounding (energies of hundreds of N mm)."""
+    import jax
+
+    from bayesrob.sim.equilibrium import _arm_arrays, _arm_program, _energy
+    from bayesrob.sim.physics import G_N_PER_KG
+
+    @jax.jit
+    @partial(jax.vmap, in_axes=(0, 0, None, None))
+    def closed_form(*args):
+        return _energy(*args), jax.grad(_energy)(*args), jax.hessian(_energy)(*args)
+
+    truth = three_arm_truth(("gravity_sag", "backlash"), stiffness_log_sd=0.3)
+    g = jnp.asarray(truth.gravity)
+    rng = np.random.default_rng(0)
+    for name, arm in truth.arms.items():
+        a = _arm_arrays(arm, truth.effects)
+        robot = arm.robot()
+        mass, centre = arm.link_masses
+        weight = mass[:, None] * (G_N_PER_KG * np.r_[truth.gravity, 0.0])[None]
+        theta_cmd = rng.uniform(-2.5, 2.5, (6, 2))
+        theta = theta_cmd + rng.uniform(-0.02, 0.02, (6, 2))
+        s = _arm_program(robot, name)(jnp.asarray(robot.layout.nominal), theta, theta_cmd,
+                                      a.stiffness, weight, centre, a.backlash, periodic=True)
+        assert np.any(np.abs(theta - theta_cmd) < 0.008)  # some joints inside their band
+        energy, grad, hess = closed_form(jnp.asarray(theta), jnp.asarray(theta_cmd), a, g)
+        np.testing.assert_allclose(s["energy"], energy, atol=1e-9)
+        np.testing.assert_allclose(s["grad"], grad, atol=1e-8)
+        np.testing.assert_allclose(s["hess"], hess, rtol=1e-9, atol=1e-6)
+
+
 def test_simulated_rig_is_deterministic(tmp_path):
-    truth = sim.paper_truth(("backlash", "servo_nonlinearity"), seed=7, grid=3)
-    a = sim.simulate_rig(tmp_path / "a", truth)
-    b = sim.simulate_rig(tmp_path / "b", truth)
+    truth = paper_truth(("backlash", "servo_nonlinearity"), seed=7, grid=3)
+    a = simulate_rig(tmp_path / "a", truth)
+    b = simulate_rig(tmp_path / "b", truth)
     for f in ("rig.toml", "measurements.csv", "truth.toml"):
         assert (a / f).read_bytes() == (b / f).read_bytes()
-    assert sim.Truth.from_toml(a / "truth.toml") == truth
+    assert Truth.from_toml(a / "truth.toml") == truth
 
 
 def test_noise_levels_match_their_settings():
-    truth = replace(sim.paper_truth((), seed=3), joint_noise_rad=0.0)
-    plant = sim.PhysicalRig(truth, seed=1)
+    truth = replace(paper_truth((), seed=3), joint_noise_rad=0.0)
+    plant = PhysicalRig(truth, seed=1)
     u = truth.arms["top"].u_mid
     exact = plant.end_point({"top": u}, noise=False)
     draws = np.array([plant.end_point({"top": u}) - exact for _ in range(400)])
@@ -125,22 +163,22 @@ def test_noise_levels_match_their_settings():
 
 def test_holdout_points_lie_between_the_grid_points_inside_the_workspace():
     ws = ((80.0, 260.0), (100.0, 280.0))
-    grid, hold = sim.grid_points(ws, 4), sim.holdout_points(ws, 4)
+    grid, hold = grid_points(ws, 4), holdout_points(ws, 4)
     assert hold.shape == (9, 2)
     assert np.all((hold[:, 0] > 80.0) & (hold[:, 0] < 260.0))
     assert np.all((hold[:, 1] > 100.0) & (hold[:, 1] < 280.0))
     # Every holdout point is half a cell (30 mm) from the grid in x and in y: a new pose.
     gap = np.abs(hold[:, None, :] - grid[None, :, :]).min(axis=1)
     np.testing.assert_allclose(gap, 30.0)
-    assert sim.holdout_points(ws, 1).shape == (0, 2)
+    assert holdout_points(ws, 1).shape == (0, 2)
 
 
 def test_holdout_rows_are_appended_without_changing_the_other_rows(tmp_path):
     from bayesrob.rig import load_rig
 
-    truth = sim.paper_truth(("gravity_sag", "backlash"), seed=5, grid=3)
-    with_h = sim.simulate_rig(tmp_path / "with", truth)
-    without = sim.simulate_rig(tmp_path / "without", truth, holdout=False)
+    truth = paper_truth(("gravity_sag", "backlash"), seed=5, grid=3)
+    with_h = simulate_rig(tmp_path / "with", truth)
+    without = simulate_rig(tmp_path / "without", truth, holdout=False)
     a = (with_h / "measurements.csv").read_text()
     b = (without / "measurements.csv").read_text()
     assert a.startswith(b) and len(a) > len(b)
@@ -156,7 +194,7 @@ def test_holdout_rows_are_appended_without_changing_the_other_rows(tmp_path):
         near = np.all(np.abs(hold[:, None, :] - train[None]) < 50.0, axis=-1)
         assert not near.any()
     linked = meas.mask("top+bottom", "holdout")
-    np.testing.assert_allclose(meas.target[linked], sim.holdout_points(truth.workspace, 3))
+    np.testing.assert_allclose(meas.target[linked], holdout_points(truth.workspace, 3))
     # The linked holdout rows land near their targets, as the test rows do (a few mm).
     assert np.linalg.norm(meas.observed[linked] - meas.target[linked], axis=1).max() < 10.0
 
@@ -168,8 +206,8 @@ def test_the_default_rig_regenerates_byte_for_byte(tmp_path):
     code fails here. About 10 s on two busy cores."""
     from bayesrob.rig import default_rig_dir
 
-    truth = sim.paper_truth(("gravity_sag", "backlash"), seed=2009)
-    out = sim.simulate_rig(tmp_path / "rig", truth)
+    truth = paper_truth(("gravity_sag", "backlash"), seed=2009)
+    out = simulate_rig(tmp_path / "rig", truth)
     for f in ("rig.toml", "measurements.csv", "truth.toml"):
         assert (out / f).read_bytes() == (default_rig_dir() / f).read_bytes(), f
 
@@ -178,13 +216,13 @@ def test_drawn_stiffness_differs_per_arm_and_seed_and_leaves_the_rest_of_the_rig
     """Per-seed stiffness draws: reproducible for a seed, different between arms and seeds,
     recorded in truth.toml, and nothing but the stiffnesses changes (the draws have a stream of
     their own, so the rest of a rig is what the seed always gave)."""
-    plain = sim.paper_truth(("gravity_sag",), seed=7)
-    drawn = sim.paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
-    assert drawn == sim.paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
+    plain = paper_truth(("gravity_sag",), seed=7)
+    drawn = paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
+    assert drawn == paper_truth(("gravity_sag",), seed=7, stiffness_log_sd=0.3)
     k = {n: np.asarray(a.stiffness_nmm_per_rad) for n, a in drawn.arms.items()}
     assert not np.allclose(k["top"], k["bottom"])
     assert not np.allclose(k["top"], plain.arms["top"].stiffness_nmm_per_rad)
-    other = sim.paper_truth(("gravity_sag",), seed=8, stiffness_log_sd=0.3)
+    other = paper_truth(("gravity_sag",), seed=8, stiffness_log_sd=0.3)
     assert not np.allclose(k["top"], other.arms["top"].stiffness_nmm_per_rad)
     for n, a in drawn.arms.items():
         assert replace(a, stiffness_nmm_per_rad=plain.arms[n].stiffness_nmm_per_rad) == \
@@ -192,12 +230,12 @@ def test_drawn_stiffness_differs_per_arm_and_seed_and_leaves_the_rest_of_the_rig
     # a factor e^(2 x 0.3 x 4) = 11 would be a four-sigma draw on both terms
     ratio = np.concatenate([k[n] / np.asarray(plain.arms[n].stiffness_nmm_per_rad) for n in k])
     assert np.all((ratio > 1 / 11) & (ratio < 11)), ratio
-    sim.simulate_rig(tmp_path, drawn, holdout=False)
-    assert sim.Truth.from_toml(tmp_path / sim.TRUTH_FILE).arms == drawn.arms
-    three = sim.three_arm_truth(seed=7, stiffness_log_sd=0.3)
+    simulate_rig(tmp_path, drawn, holdout=False)
+    assert Truth.from_toml(tmp_path / TRUTH_FILE).arms == drawn.arms
+    three = three_arm_truth(seed=7, stiffness_log_sd=0.3)
     assert len({a.stiffness_nmm_per_rad for a in three.arms.values()}) == 3
     with pytest.raises(ValueError, match="stiffness_log_sd"):
-        sim.paper_truth(seed=7, stiffness_log_sd=-0.1)
+        paper_truth(seed=7, stiffness_log_sd=-0.1)
 
 
 def test_simulate_command_draws_stiffness_and_refuses_it_where_it_cannot_apply(tmp_path,
@@ -208,13 +246,13 @@ def test_simulate_command_draws_stiffness_and_refuses_it_where_it_cannot_apply(t
     assert main(["simulate", str(out), "--grid", "2", "--seed", "3",
                  "--stiffness-spread", "0.3"]) == 0
     assert "log sd 0.3" in capsys.readouterr().out
-    assert sim.Truth.from_toml(out / sim.TRUTH_FILE).arms == \
-        sim.paper_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
+    assert Truth.from_toml(out / TRUTH_FILE).arms == \
+        paper_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
     three = tmp_path / "three"
     assert main(["simulate", str(three), "--robot", "three-arm", "--grid", "2", "--seed", "3",
                  "--stiffness-spread", "0.3"]) == 0
-    assert sim.Truth.from_toml(three / sim.TRUTH_FILE).arms == \
-        sim.three_arm_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
+    assert Truth.from_toml(three / TRUTH_FILE).arms == \
+        three_arm_truth(seed=3, grid=2, stiffness_log_sd=0.3).arms
     capsys.readouterr()
     for argv, words in (
             (["--robot", "arm6"], "--stiffness-spread"),  # one arm, one profile

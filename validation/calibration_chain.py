@@ -25,14 +25,10 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob import release_compiled_programs
-from bayesrob.chain_simulator import (
-    ChainTruth,
-    arm6_urdf_path,
-    gravity_deflection,
-    load_true_params,
-    simulate_chain_rig,
-)
 from bayesrob.rig import Rig, load_rig
+from bayesrob.sim.physics import gravity_deflection
+from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import ChainTruth, arm6_urdf_path, load_true_params
 
 CHI2_3_99 = 11.34  # chi-square with 3 degrees of freedom at 0.99
 

@@ -26,7 +26,8 @@ import numpy as np
 
 from bayesrob import bayes_calibration as bc
 from bayesrob.rig import load_rig
-from bayesrob.simulator import paper_truth, simulate_rig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 BATCH = 25  # data sets per seed
 DRAWS = 49  # thinned posterior draws per data set: ranks 0..49, 50 values

@@ -22,7 +22,7 @@ frames of the perturbed true arm):
   The candidate knows neither the masses nor the friction nor the order of the rows: it takes
   the side of its fitted deflection.
 
-Everything else is the simulator's arm6 (:mod:`bayesrob.chain_simulator`): the same nominal
+Everything else is the simulator's arm6 (:mod:`bayesrob.sim`): the same nominal
 URDF, perturbed joint origins, offsets, marker and instrument pose, joint and measurement
 noise, and ``train`` / ``validation`` / ``holdout`` rows at different random poses. No truth
 file is written.
@@ -43,15 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.chain_simulator import (
-    ChainTruth,
-    _poses,
-    _true_vector,
-    arm6_urdf_path,
-    simulate_chain_rig,
-    write_arm6_rig,
-)
 from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.sim.rigs import random_poses, simulate_chain_rig, true_parameters, write_arm6_rig
+from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
 
 ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
 MOTOR_KG = np.array([2.5, 1.2, 0.6, 0.5, 0.1])  # at joints 2-6, carried by links 1-5
@@ -80,7 +74,7 @@ class ChainCase:
     effects: tuple[str, ...]
     seed: int
     scale: float = 1.0  # multiplies every effect's size (compliances and encoder errors)
-    source: str = "generator"  # or "simulator" (bayesrob.chain_simulator's own physics)
+    source: str = "generator"  # or "simulator" (bayesrob.sim's own arm6 physics)
     geometry: str = "arm6"
 
     @property
@@ -187,7 +181,7 @@ def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
     nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
                          marker=errors.marker_nominal_mm, instrument=errors.instrument_nominal)
     robot = Robot({"arm": nominal}, 3)
-    x = jnp.asarray(_true_vector(robot, errors, rng))
+    x = jnp.asarray(true_parameters(robot, errors, rng))
     frames = jax.jit(lambda x, q, b: robot.element_frames(
         x, "arm", q, bend=jnp.asarray(b)))
 
@@ -201,7 +195,7 @@ def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
     rows = []
     for set_name, n in (("train", errors.n_train), ("validation", errors.n_validation),
                         ("holdout", errors.n_holdout)):
-        q_read = _poses(rng, n)
+        q_read = random_poses(rng, n)
         q = q_read + rng.normal(0, errors.joint_noise_rad, q_read.shape)
         if "encoder_error" in case.effects:
             q = q + case.scale * (ENCODER_RAD[0] * np.sin(q_read + phase[0]) +

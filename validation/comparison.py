@@ -19,7 +19,8 @@ from typing import Any
 
 from bayesrob.comparison import compare_models
 from bayesrob.rig import default_rig_dir, load_rig
-from bayesrob.simulator import paper_truth, simulate_rig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 DEFAULT_SEED = 2009
 EFFECTS = ("gravity_sag", "backlash")

@@ -74,7 +74,8 @@ def design_file(tmp: Path, seed: int | None, text_changes: dict[str, str] | None
                 ) -> Path:
     """The worked example's design file in ``tmp`` over the inventory of ``seed`` (simulated
     there; None: the example's own modules), with ``text_changes`` made to its text."""
-    from bayesrob.simulator import simulate_rig, three_arm_truth
+    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.truth import three_arm_truth
 
     if not (EXAMPLE / "design.toml").is_file():
         raise FileNotFoundError(f"the design proof designs with the worked example "
@@ -100,7 +101,8 @@ def built_errors(modules: dict, candidate: dict, targets: np.ndarray, seed: int)
     import jax.numpy as jnp
 
     from bayesrob.design.modules import mounted_truth
-    from bayesrob.simulator import PhysicalRig, round_pulse
+    from bayesrob.sim.equilibrium import PhysicalRig
+    from bayesrob.sim.rigs import round_pulse
 
     arms, bases = candidate["arms"], candidate["bases"]
     truth = replace(modules[arms[0]].truth_rig, arms={
@@ -216,15 +218,12 @@ def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0,
     arm's true link masses stray from the URDF's. ``met`` per placement: every quantile's
     share within two standard errors of nominal at the pooled rows, and the error ratio in
     0.85-1.15 (the criterion written down before the first report rigs ran)."""
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        load_linked_truth,
-        simulate_linked_chain_rig,
-    )
     from bayesrob.design.file import load_design
     from bayesrob.design.modules import PopulationModule, load_modules
     from bayesrob.design.search import Job, reach_table
     from bayesrob.rig import load_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
 
     inside = {k: {q: [] for q in CHAIN_LEVELS} for k in CHAIN_KINDS}
     means = {k: ([], []) for k in CHAIN_KINDS}

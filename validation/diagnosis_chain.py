@@ -84,8 +84,9 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
     chooses between joint compliance and backlash only (a smoke run of the same check)."""
     from bayesrob import release_compiled_programs
     from bayesrob.chain_diagnosis import diagnose_chain
-    from bayesrob.chain_simulator import ChainTruth, simulate_chain_rig
     from bayesrob.rig import load_rig
+    from bayesrob.sim.rigs import simulate_chain_rig
+    from bayesrob.sim.truth import ChainTruth
 
     candidates = list(QUICK_PLAY_CANDIDATES) if quick else None
     rows = []

@@ -52,7 +52,7 @@ MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
 # arm by arm), so they cannot report it.
 MANY_SAG_REPORT_SEEDS = tuple(range(311, 323))
 MANY_LINKED = 8
-# Three arms joined at one point (``chain_simulator.three_linked_chain_truth``: left, right and
+# Three arms joined at one point (``sim.three_linked_chain_truth``: left, right and
 # front), predicted with the prior ``predict`` uses, chosen on the two-arm tuning rigs; nothing
 # is chosen on these. THREE_TUNING_SEEDS only checked that the study runs (its figures are
 # printed, not published); THREE_REPORT_SEEDS were fixed before any of them ran.
@@ -75,12 +75,9 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
     simulator's default); ``three``: three arms joined (left, right and front)."""
     import bayesrob.chain_prediction as cp
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        simulate_linked_chain_rig,
-        three_linked_chain_truth,
-    )
     from bayesrob.rig import load_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
 
     if n_linked is None:
         n_linked = LinkedChainTruth.n_linked

@@ -96,12 +96,9 @@ def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """The three checks on each rig of ``seeds`` (one rig each, the worst over them)."""
     from bayesrob.chain_prediction import fit_chain_modules
-    from bayesrob.chain_simulator import (
-        LinkedChainTruth,
-        load_linked_truth,
-        simulate_linked_chain_rig,
-    )
     from bayesrob.rig import load_rig
+    from bayesrob.sim.rigs import simulate_linked_chain_rig
+    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
 
     per_rig: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-linked-checks-") as tmp:

@@ -103,7 +103,8 @@ def _pooled(tallies: Sequence[dict[str, Any]]) -> dict[str, float]:
 
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """Two arms linked on sag-and-backlash rigs, per improved model and fusion rule."""
-    from bayesrob.simulator import paper_truth, simulate_rig
+    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.truth import paper_truth
 
     rigs: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-linked-") as tmp:
@@ -142,7 +143,8 @@ def three_arms_kde(seeds: list[int], *, quick: bool, say: Callable[[str], None]
     ``predict`` gives against the observed."""
     from bayesrob.assembly import predict_assembly
     from bayesrob.rig import load_rig
-    from bayesrob.simulator import simulate_rig, three_arm_truth
+    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.truth import three_arm_truth
 
     rigs: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-three-") as tmp:
@@ -185,7 +187,9 @@ def three_arm_study(seeds: Sequence[int], groups: tuple[str, ...] = THREE_ARM_GR
     from bayesrob.assembly import predict_assembly
     from bayesrob.chain_prediction import hdr_levels
     from bayesrob.rig import load_rig
-    from bayesrob.simulator import PhysicalRig, round_pulse, simulate_rig, three_arm_truth
+    from bayesrob.sim.equilibrium import PhysicalRig
+    from bayesrob.sim.rigs import round_pulse, simulate_rig
+    from bayesrob.sim.truth import three_arm_truth
 
     levels, pred, obs, rigs = [], [], [], []
     with TemporaryDirectory(prefix="bayesrob-three-physics-") as tmp:

@@ -18,7 +18,8 @@ from bayesrob.calibration import calibrate, predicted_points
 from bayesrob.comparison import PointScores, heldout_scores, score_points
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.rig import Rig, load_rig
-from bayesrob.simulator import paper_truth, simulate_rig
+from bayesrob.sim.rigs import simulate_rig
+from bayesrob.sim.truth import paper_truth
 
 MASSES = (0.5, 0.9)
 IMPROVED = ("ind", "corr", "cond")

@@ -1,4 +1,4 @@
-"""Rig generators whose physics deliberately differs from ``bayesrob.simulator``.
+"""Rig generators whose physics deliberately differs from ``bayesrob.sim``.
 
 The diagnosis must recognise an effect in data it did not make: real sag does not come from
 point masses on linear springs, real play does not sit exactly on the gravity side, real
@@ -41,7 +41,7 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.rig import ArmSpec, dump_toml, format_row, measurement_header, rig_toml_dict
-from bayesrob.simulator import holdout_points
+from bayesrob.sim.rigs import holdout_points
 
 G_ACC = 9.81
 EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
@@ -312,7 +312,7 @@ def write_rig(out_dir: str | Path, rig: GenRig) -> Path:
 class Case:
     """One rig of a sweep: which physics made it and with what."""
 
-    source: str  # "simulator" (bayesrob.simulator) or "generator" (this module)
+    source: str  # "simulator" (bayesrob.sim) or "generator" (this module)
     geometry: str  # "paper" for the simulator; "paper_like" or "tilted" here
     effects: tuple[str, ...]
     grid: int = 4
@@ -329,7 +329,8 @@ class Case:
 def make_rig(case: Case, out_dir: str | Path) -> Path:
     """Write the case's rig directory."""
     if case.source == "simulator":
-        from bayesrob.simulator import paper_truth, simulate_rig
+        from bayesrob.sim.rigs import simulate_rig
+        from bayesrob.sim.truth import paper_truth
 
         truth = paper_truth(case.effects, seed=case.seed, grid=case.grid)
         s = case.scale

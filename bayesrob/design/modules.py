@@ -52,7 +52,7 @@ from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.rig import ArmSpec, Rig, RigError
 
 if TYPE_CHECKING:
-    from bayesrob.simulator import ArmTruth, Truth
+    from bayesrob.sim.truth import ArmTruth, Truth
 
 __all__ = ["Module", "DensityModule", "PopulationModule", "load_modules", "linked_priors",
            "stiffness_record", "mounted_truth", "COV_JITTER"]
@@ -152,7 +152,7 @@ class DensityModule:
             joint_errors,
             without_tracker_noise,
         )
-        from bayesrob.simulator import TRUTH_FILE, Truth
+        from bayesrob.sim.truth import TRUTH_FILE, Truth
 
         if design.dim != 2:
             raise DesignError(f"{design.path}: the mounts are 3-D points but the modules are "
@@ -248,7 +248,8 @@ class DensityModule:
             measurement_header,
             rig_toml_dict,
         )
-        from bayesrob.simulator import TRUTH_FILE, round_pulse
+        from bayesrob.sim.rigs import round_pulse
+        from bayesrob.sim.truth import TRUTH_FILE
 
         names = candidate["arms"]
         placed = list(zip(names, candidate["mounts"], candidate["bases"], strict=True))

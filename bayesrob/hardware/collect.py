@@ -5,7 +5,7 @@ model (``train``), then the very same commands again (``validation``). Then, onc
 has linked the arms' end points, every arm aims at each grid point through its own inverse
 model (calibrated on the train rows already recorded, if there are enough; else nominal): the
 linked ``test`` rows. With ``holdout`` in the plan, rows at new poses too (the grid shifted by
-half a cell, ``bayesrob.simulator.holdout_points``): each arm's after its validation rows, and
+half a cell, ``bayesrob.sim.holdout_points``): each arm's after its validation rows, and
 linked ones after the test rows, aimed like them. The default plan is the paper's.
 
 Every row goes to ``measurements.csv`` as soon as it is measured, in one ``write`` of the whole
@@ -160,9 +160,9 @@ def _close(a: Sequence[float], b: Sequence[float]) -> bool:
 
 
 def grid_targets(workspace: Workspace, n: int, set: str = "train") -> np.ndarray:
-    """The N x N grid of ``bayesrob.simulator.grid_points`` (for ``holdout``, its cell centres,
+    """The N x N grid of ``bayesrob.sim.grid_points`` (for ``holdout``, its cell centres,
     ``holdout_points``), rounded to TARGET_DECIMALS."""
-    from bayesrob.simulator import grid_points, holdout_points
+    from bayesrob.sim.rigs import grid_points, holdout_points
 
     points = holdout_points if set == "holdout" else grid_points
     return np.round(points(workspace, n), TARGET_DECIMALS)

@@ -3,7 +3,7 @@
 :class:`SimDevice` opens two pseudo-terminals (``os.openpty``, raw mode). On the servo port it
 answers like a Pololu Maestro (compact and Pololu protocol at once, as the real one does) or a
 Lynxmotion SSC-32; on the tracker port it streams ``$PXYT`` (or plain ``x,y``) lines of the end
-point. End points come from :class:`bayesrob.simulator.PhysicalRig`: the pulses the controller
+point. End points come from :class:`bayesrob.sim.PhysicalRig`: the pulses the controller
 received drive the simulated arms, with gravity, backlash and the rest of the truth's effects.
 
 When a move is over. The device cannot see a person, so it settles the arms when the host first
@@ -691,7 +691,8 @@ def run_sim_device(rig_dir: str | Path, protocol: str = "maestro", *,
     import signal
 
     from bayesrob.rig import RigError
-    from bayesrob.simulator import TRUTH_FILE, PhysicalRig, Truth
+    from bayesrob.sim.equilibrium import PhysicalRig
+    from bayesrob.sim.truth import TRUTH_FILE, Truth
 
     truth_path = Path(rig_dir) / TRUTH_FILE
     if not truth_path.is_file():

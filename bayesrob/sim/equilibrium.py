@@ -1,0 +1,453 @@
+"""Where simulated arms settle: the least potential energy of their springs and weights.
+
+A free arm settles where its joint springs (dead band and stiffness of
+:mod:`bayesrob.sim.physics`) balance its weights; arms linked at one point settle where their
+summed energy is least with the points together: a tug of war between their stiffnesses, not
+an average. Two solvers, one physics:
+
+- :class:`PhysicalRig`, the paper's servo-driven planar arms (pulse widths in, end points
+  out): BFGS on the energy of each arm (the general energy's closed form on a 2-joint chain),
+  linked arms eliminated through their closed-form inverse
+  (:func:`bayesrob.kinematics.inverse`), so the dead band's kink needs no Hessian;
+- :func:`linked_equilibrium`, arms of revolute joints in 3-D: Newton's method on the Lagrange
+  conditions with closed-form first and second derivatives of one forward pass.
+
+Linked rows are aimed through a calibrated model by :func:`position_ik`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from bayesrob import kinematics as kin
+from bayesrob.kinematics import Robot, RobotStructure
+from bayesrob.sim.physics import G_N_PER_KG, STIFF_FACTOR, dead_band, link_weights, servo_ripple
+from bayesrob.sim.truth import GRAVITY, POSE_HI, POSE_LO, TRUTH_FILE, ArmTruth, Truth
+
+
+def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
+    """The angle each servo tries to hold for pulse widths u (..., 2)."""
+    theta = kin.servo(arm.params, u)
+    if "servo_nonlinearity" in effects:
+        theta = theta + servo_ripple(u, arm.u_mid, arm.nonlinearity_rad,
+                                     arm.nonlinearity_period_us)
+    return theta
+
+
+# The planar arms' energy in closed form: the one energy of _arm_evaluate on the arm's 2-joint
+# chain (ArmTruth.robot, its links' masses at their centres of mass, ArmTruth.link_masses),
+# tested equal to it. BFGS stops where the energy is flat to rounding, about 1e-6 mm from
+# the minimum, so any other arithmetic moves every simulated planar rig by that much; this
+# one is what the pinned rigs were made with, and a tenth of a millisecond faster per step.
+
+
+class _ArmArrays(NamedTuple):
+    """An arm's physics as arrays, so one compiled energy serves every arm and every rig."""
+
+    params: kin.ArmParams
+    masses: jax.Array  # (4,) kg: link 1, elbow servo, link 2, end
+    stiffness: jax.Array  # (2,) N mm / rad, already scaled for the effects in force
+    backlash: jax.Array  # (2,) rad half-width, zero without the effect
+
+
+def _arm_arrays(arm: ArmTruth, effects: Sequence[str]) -> _ArmArrays:
+    k = jnp.asarray(arm.stiffness_nmm_per_rad, dtype=jnp.float64)
+    if "gravity_sag" not in effects:
+        k = k * STIFF_FACTOR
+    b = jnp.asarray(arm.backlash_rad, dtype=jnp.float64) if "backlash" in effects else jnp.zeros(2)
+    m = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1], arm.end_mass_kg])
+    return _ArmArrays(arm.params, m, k, b)
+
+
+def _mass_points(params: kin.ArmParams, theta: jax.Array) -> jax.Array:
+    """Positions (4, 2) of the point masses: mid link 1, elbow, mid link 2, end."""
+    elbow = kin.elbow_point(params, theta)
+    end = kin.forward(params, theta)
+    return jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
+
+
+def _energy(theta: jax.Array, theta_cmd: jax.Array, a: _ArmArrays, gravity: jax.Array
+            ) -> jax.Array:
+    spring = 0.5 * jnp.sum(a.stiffness * dead_band(kin.wrap_angle(theta - theta_cmd),
+                                                   a.backlash) ** 2)
+    # Potential of a mass in a field along unit vector g_dir is -m g (g_dir . r).
+    grav = -G_N_PER_KG * jnp.sum(a.masses * (_mass_points(a.params, theta) @ gravity))
+    return spring + grav
+
+
+_arm_energy_vg = jax.jit(jax.value_and_grad(_energy))
+
+
+@partial(jax.jit, static_argnames="elbows")
+def _linked_energy_vg(d: jax.Array, theta_cmds: tuple, arms: tuple, gravity: jax.Array,
+                      elbows: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    def total(d):
+        out = 0.0
+        for a, tc, e in zip(arms, theta_cmds, elbows, strict=True):
+            theta, _ = kin.inverse(a.params, d, e)
+            out = out + _energy(theta, tc, a, gravity)
+        return out
+
+    return jax.value_and_grad(total)(d)
+
+
+class PhysicalRig:
+    """The simulated hardware: pulse widths in, settled end points out.
+
+    Used by ``bayesrob simulate`` and by the simulated serial device, so the files and the
+    pseudo-terminal answer with the same physics.
+    """
+
+    def __init__(self, truth: Truth, seed: int | None = None):
+        self.truth = truth
+        self.rng = np.random.default_rng(truth.seed if seed is None else seed)
+        self._gravity = jnp.asarray(truth.gravity, dtype=jnp.float64)
+        self._arrays = {n: _arm_arrays(a, truth.effects) for n, a in truth.arms.items()}
+
+    @classmethod
+    def from_rig_dir(cls, directory: str | Path, seed: int | None = None) -> PhysicalRig:
+        return cls(Truth.from_toml(Path(directory) / TRUTH_FILE), seed)
+
+    def _k_scale(self, name: str) -> float:
+        # Energies are divided by the softest spring so the optimiser's tolerances mean the
+        # same for stiff and soft servos.
+        return float(jnp.min(self._arrays[name].stiffness))
+
+    def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
+        """Equilibrium joint angles of a free arm holding commanded angles theta_cmd."""
+        a = self._arrays[name]
+        scale = self._k_scale(name)
+        tc = jnp.asarray(theta_cmd, dtype=jnp.float64)
+
+        def obj(t):
+            v, gr = _arm_energy_vg(jnp.asarray(t), tc, a, self._gravity)
+            return float(v) / scale, np.asarray(gr) / scale
+
+        res = scipy.optimize.minimize(obj, np.asarray(theta_cmd, float), jac=True,
+                                      method="BFGS", options={"gtol": 1e-12, "maxiter": 500})
+        return res.x
+
+    def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
+        """Common end point of arms linked at their end points (least total energy)."""
+        names = tuple(theta_cmds)
+        arrays = tuple(self._arrays[n] for n in names)
+        elbows = tuple(int(self.truth.arms[n].elbow) for n in names)
+        tc = tuple(jnp.asarray(theta_cmds[n], dtype=jnp.float64) for n in names)
+        free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
+                for n in names]
+        d0 = np.mean(np.asarray(free), axis=0)
+        scale = sum(self._k_scale(n) for n in names)
+
+        def obj(d):
+            v, gr = _linked_energy_vg(jnp.asarray(d), tc, arrays, self._gravity, elbows)
+            return float(v) / scale, np.asarray(gr) / scale
+
+        res = scipy.optimize.minimize(obj, d0, jac=True, method="BFGS",
+                                      options={"gtol": 1e-12, "maxiter": 500})
+        return res.x
+
+    def end_point(self, commands: dict[str, Sequence[float]], noise: bool = True) -> np.ndarray:
+        """Observed end point (mm) for pulse widths per arm; several arms means linked."""
+        theta_cmds = {}
+        for name, u in commands.items():
+            arm = self.truth.arms[name]
+            tc = np.asarray(commanded_angles(arm, jnp.asarray(u, float), self.truth.effects))
+            if noise:
+                tc = tc + self.rng.normal(0.0, self.truth.joint_noise_rad, 2)
+            theta_cmds[name] = tc
+        if len(theta_cmds) == 1:
+            (name, tc), = theta_cmds.items()
+            arm = self.truth.arms[name]
+            d = np.asarray(kin.forward(arm.params, jnp.asarray(self.settle_arm(name, tc))))
+        else:
+            d = self.settle_linked(theta_cmds)
+        if noise:
+            d = d + self.rng.normal(0.0, self.truth.measurement_noise_mm, 2)
+        return d
+
+
+
+class LinkedSimulationError(RuntimeError):
+    """A linked row cannot be made: no joint solution reaches a target within the working
+    range, or the joined arms' equilibrium did not settle."""
+
+
+
+@dataclass
+class LinkedEquilibrium:
+    """Where arms whose markers are joined settle, row by row (N rows, mm and rad)."""
+
+    point: np.ndarray  # (N, 3) the joined marker point in the instrument frame
+    joints: dict[str, np.ndarray]  # arm -> (N, n) joint columns at the linked equilibrium
+    free_points: dict[str, np.ndarray]  # arm -> (N, 3) the marker at the arm's own equilibrium
+    free_joints: dict[str, np.ndarray]  # arm -> (N, n) joint columns there
+    multipliers: np.ndarray  # (N, 3 (A - 1)) Lagrange multipliers: the joint's forces (N)
+    violation_mm: np.ndarray  # (N,) largest distance between joined markers
+    iterations: int  # Newton steps on the Lagrange conditions (all rows step together)
+
+
+def _arm_program(robot: Robot, arm: str) -> Callable:
+    """A compiled ``(x, u, u0, k, weight, centre, backlash, periodic=False) -> dict`` of one
+    arm over rows u (N, n), compiled once per process for all robots of ``robot``'s structure:
+    the energy of springs (stiffness k, N mm/rad, a dead band of half-width ``backlash``)
+    holding the joint columns at u0 (``periodic``: the difference wrapped to a turn) plus the
+    potential of the link weights (N, each at ``centre`` of the way along its link: 0.5 for
+    arm6, as in ``physics.gravity_deflection``), its gradient and Hessian, and the marker with
+    its first and second derivatives.
+
+    The derivatives are closed forms on the frames of one forward pass (no automatic
+    differentiation through the chain's scan, which took seconds to compile): a point r
+    carried beyond joint j moves by a_j x (r - o_j) when j turns (axis a_j through o_j), and
+    d2 r / du_i du_j = a_i x (a_j x (r - o_j)) for i <= j, since joint i carries axis j and
+    its origin along.
+    """
+    chain = robot.chains[arm]
+    if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
+        raise ValueError(f"arm {arm!r}: linked equilibria are computed for arms of revolute "
+                         "joints standing on their own (not mounted on another arm)")
+    return partial(_arm_evaluate, robot.structure, arm, robot.nominal_values)
+
+
+@partial(jax.jit, static_argnames=("structure", "arm", "periodic"))
+def _arm_evaluate(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
+                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
+                  centre: jax.Array, backlash: jax.Array, periodic: bool = False
+                  ) -> dict[str, jax.Array]:
+    # _arm_program's function, for an arm it has checked
+    robot = structure.robot(values)
+    chain = robot.chains[arm]
+    n = chain.n_joints
+    half = jnp.concatenate([centre[:, None] * chain.origins[1:, :3], jnp.ones((n, 1))],
+                           axis=1)
+    axes = jnp.asarray(chain.axes)
+    marker = robot.layout.slices[(arm, "marker")]
+    upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
+    ordered = jnp.asarray(upper[:, :, None] & upper[None, :, :])  # [i, j, k]: i <= j <= k
+    joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
+    a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
+    o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
+    centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
+    tip = links[-1]
+    p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
+    jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
+    hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
+    hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
+    # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
+    s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
+    torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
+    t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
+                   weight, ordered)
+    hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
+    d = kin.wrap_angle(u - u0) if periodic else u - u0
+    spring = jnp.where(jnp.abs(d) >= backlash, k, 0.0)  # no spring inside the dead band
+    d = dead_band(d, backlash)
+    return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
+            - jnp.einsum("nkd,kd->n", centres, weight),
+            "grad": k * d - torque, "hess": jax.vmap(jnp.diag)(spring) + hv,
+            "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
+
+
+def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np.ndarray],
+                u0s: Sequence[np.ndarray], ks: Sequence[jax.Array],
+                weights: Sequence[jax.Array]) -> list[dict[str, np.ndarray]]:
+    return [{key: np.asarray(v) for key, v in _arm_program(robot, a)(
+        x, jnp.asarray(u), jnp.asarray(u0), k, w, *_middles(robot, a)).items()}
+        for a, u, u0, k, w in zip(arms, us, u0s, ks, weights, strict=True)]
+
+
+def _middles(robot: Robot, arm: str) -> tuple[jax.Array, jax.Array]:
+    """Centres of mass at the links' middles and no dead band: arm6's physics."""
+    n = robot.chains[arm].n_joints
+    return jnp.full(n, 0.5), jnp.zeros(n)
+
+
+def _physics_arguments(robot: Robot, arms: Sequence[str], stiffness: Mapping[str, np.ndarray],
+                       masses_kg: Mapping[str, np.ndarray] | None,
+                       gravity: Sequence[float] | None) -> tuple[list, list]:
+    ks = [jnp.asarray(np.asarray(stiffness[a], float)) for a in arms]
+    weights = [jnp.asarray(link_weights(None if masses_kg is None else masses_kg[a],
+                                           gravity, robot.chains[a].n_joints)) for a in arms]
+    return ks, weights
+
+
+def linked_energy(robot: Robot, x: np.ndarray, u: Mapping[str, np.ndarray],
+                  u0: Mapping[str, np.ndarray], stiffness: Mapping[str, np.ndarray],
+                  masses_kg: Mapping[str, np.ndarray] | None = None,
+                  gravity: Sequence[float] | None = GRAVITY) -> np.ndarray:
+    """Total potential energy (N mm) of the arms at joint columns ``u[arm]`` (N, n), per row:
+    springs of stiffness ``stiffness[arm]`` (N mm/rad) holding the columns at ``u0[arm]``,
+    plus the potential of the link masses (``masses_kg[arm]``, kg, at the links' centres)
+    under ``gravity`` (instrument frame; None or no masses: none). The markers need not meet.
+    """
+    arms = tuple(u)
+    ks, weights = _physics_arguments(robot, arms, stiffness, masses_kg, gravity)
+    states = _arm_states(robot, arms, jnp.asarray(x, float),
+                         [np.atleast_2d(u[a]) for a in arms],
+                         [np.atleast_2d(u0[a]) for a in arms], ks, weights)
+    return sum(s["energy"] for s in states)
+
+
+def _kkt_system(states: list[dict[str, np.ndarray]], lam: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gradient and Hessian of the Lagrangian, the constraints (each marker on the next) and
+    their Jacobian, over rows: (N, Z), (N, Z, Z), (N, M), (N, M, Z)."""
+    n_rows, n_arms = len(lam), len(states)
+    sizes = [s["grad"].shape[1] for s in states]
+    cuts = np.cumsum([0, *sizes])
+    lam = lam.reshape(n_rows, n_arms - 1, 3)
+    zero = np.zeros((n_rows, 1, 3))
+    # c_j = p_j - p_{j+1}: arm a's marker carries lam_a - lam_{a-1}
+    mu = np.concatenate([lam, zero], 1) - np.concatenate([zero, lam], 1)
+    grad = np.concatenate([s["grad"] + np.einsum("ndj,nd->nj", s["jac"], mu[:, a])
+                           for a, s in enumerate(states)], axis=1)
+    hess = np.zeros((n_rows, cuts[-1], cuts[-1]))
+    jc = np.zeros((n_rows, 3 * (n_arms - 1), cuts[-1]))
+    for a, s in enumerate(states):
+        block = slice(cuts[a], cuts[a + 1])
+        hess[:, block, block] = s["hess"] + np.einsum("nijd,nd->nij", s["point_hess"], mu[:, a])
+        if a < n_arms - 1:
+            jc[:, 3 * a:3 * a + 3, block] = s["jac"]
+        if a > 0:
+            jc[:, 3 * a - 3:3 * a, block] = -s["jac"]
+    c = np.concatenate([states[a]["point"] - states[a + 1]["point"]
+                        for a in range(n_arms - 1)], axis=1)
+    return grad, hess, c, jc
+
+
+def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray],
+                       stiffness: Mapping[str, np.ndarray],
+                       masses_kg: Mapping[str, np.ndarray] | None = None,
+                       gravity: Sequence[float] | None = GRAVITY, tol_mm: float = 1e-9,
+                       max_iter: int = 40) -> LinkedEquilibrium:
+    """The exact equilibrium of arms whose markers are joined by a ball joint, row by row.
+
+    Each arm's joints are torsional springs (``stiffness[arm]``, N mm/rad) holding its joint
+    columns at ``u0[arm]`` (N, n) (commanded plus joint noise); the links' point masses
+    (``masses_kg[arm]``, kg, at the links' centres as in ``physics.gravity_deflection``) hang
+    under ``gravity`` (a direction in the instrument frame; None: no gravity). The arms settle
+    at the minimum of their summed energy subject to every marker (true parameters ``x``)
+    being at one point; the joint's orientation is free. Solved by Newton's method on the
+    Lagrange conditions with exact first and second derivatives, started from each arm's own
+    (free) equilibrium, itself found by Newton on its energy. Raises LinkedSimulationError
+    when a row does not converge (markers more than ``tol_mm`` apart, at most 1e-6 mm) or
+    stops at a point that is not a constrained minimum.
+    """
+    arms = tuple(u0)
+    if len(arms) < 2:
+        raise ValueError("a linked equilibrium needs two arms or more")
+    xj = jnp.asarray(x, float)
+    ks, weights = _physics_arguments(robot, arms, stiffness, masses_kg, gravity)
+    u0s = [np.atleast_2d(np.asarray(u0[a], float)) for a in arms]
+
+    def states(us):
+        return _arm_states(robot, arms, xj, us, u0s, ks, weights)
+
+    us = [u.copy() for u in u0s]
+    for _ in range(max_iter):
+        steps = [-np.linalg.solve(s["hess"], s["grad"][..., None])[..., 0] for s in states(us)]
+        us = [u + d for u, d in zip(us, steps, strict=True)]
+        if max(np.abs(d).max() for d in steps) < 1e-12:
+            break
+    else:
+        raise LinkedSimulationError(f"free equilibrium did not converge in {max_iter} Newton steps")
+    free = states(us)
+    free_joints = [u.copy() for u in us]
+    cuts = np.cumsum([0, *(u.shape[1] for u in us)])
+    n_rows = len(us[0])
+    lam = np.zeros((n_rows, 3 * (len(arms) - 1)))
+    iterations = 0
+    while True:
+        grad, hess, c, jc = _kkt_system(states(us), lam)
+        m = c.shape[1]
+        kkt = np.block([[hess, np.swapaxes(jc, 1, 2)], [jc, np.zeros((n_rows, m, m))]])
+        step = np.linalg.solve(kkt, -np.concatenate([grad, c], axis=1)[..., None])[..., 0]
+        dz = step[:, :cuts[-1]]
+        us = [u + dz[:, cuts[i]:cuts[i + 1]] for i, u in enumerate(us)]
+        lam = lam + step[:, cuts[-1]:]
+        iterations += 1
+        if np.abs(dz).max() < 1e-12 or iterations == max_iter:
+            break
+    final = states(us)
+    _, hess, c, jc = _kkt_system(final, lam)
+    violation_mm = np.linalg.norm(c.reshape(n_rows, -1, 3), axis=2).max(axis=1)
+    worst = int(np.argmax(violation_mm))
+    if not np.all(np.isfinite(violation_mm)) or violation_mm[worst] > min(tol_mm, 1e-6):
+        raise LinkedSimulationError(
+            f"linked equilibrium did not converge in {iterations} Newton steps: row {worst}'s "
+            f"markers are {violation_mm[worst]:.3g} mm apart")
+    # A stationary point of the Lagrangian is the minimum only if the energy curves upwards
+    # along every direction that keeps the markers together.
+    for r in range(n_rows):
+        _, sv, vt = np.linalg.svd(jc[r])
+        tangent = vt[int(np.sum(sv > 1e-12 * sv[0])):].T
+        lowest = np.linalg.eigvalsh(tangent.T @ hess[r] @ tangent).min()
+        if lowest <= 0:
+            raise LinkedSimulationError(f"linked equilibrium of row {r} is not a minimum "
+                                        f"(reduced Hessian eigenvalue {lowest:.3g})")
+    return LinkedEquilibrium(
+        point=np.mean([s["point"] for s in final], axis=0),
+        joints=dict(zip(arms, us, strict=True)),
+        free_points={a: s["point"] for a, s in zip(arms, free, strict=True)},
+        free_joints=dict(zip(arms, free_joints, strict=True)),
+        multipliers=lam, violation_mm=violation_mm, iterations=iterations)
+
+
+def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seeds: np.ndarray,
+                lo: np.ndarray = POSE_LO, hi: np.ndarray = POSE_HI, tol_mm: float = 1e-8,
+                max_iter: int = 60, max_step_rad: float = 0.3) -> np.ndarray:
+    """Joint columns (N, n) that put ``arm``'s marker on each of ``targets`` (N, 3) (mm)
+    under parameters x, all rows at once.
+
+    Gauss-Newton on the 3-D marker point from ``seeds`` (N, S, n), best first, or (S, n) for
+    every row: a 6-joint arm is redundant for a point, so each step is the minimum-norm one
+    (the pseudo-inverse), which keeps near the seed's posture; steps longer than
+    ``max_step_rad`` are shortened while far from the target. A row takes the first solution
+    within ``tol_mm`` whose joints lie in [lo, hi], and moves on to its next seed when a
+    solution leaves the range or ``max_iter`` steps do not converge; LinkedSimulationError
+    when a row's seeds run out.
+    """
+    targets = np.atleast_2d(np.asarray(targets, float))
+    n_rows = len(targets)
+    seeds = np.asarray(seeds, float)
+    if seeds.ndim == 2:
+        seeds = np.broadcast_to(seeds, (n_rows, *seeds.shape))
+    program = _arm_program(robot, arm)
+    n = robot.chains[arm].n_joints
+    xj, k0, w0 = jnp.asarray(x, float), jnp.zeros(n), jnp.zeros((n, 3))
+    rows = np.arange(n_rows)
+    which = np.zeros(n_rows, int)
+    u = seeds[:, 0].copy()
+    steps = np.zeros(n_rows, int)
+    done = np.zeros(n_rows, bool)
+    while True:
+        state = program(xj, jnp.asarray(u), jnp.asarray(u), k0, w0, *_middles(robot, arm))
+        err = targets - np.asarray(state["point"])
+        close = np.linalg.norm(err, axis=1) < tol_mm
+        done |= close & np.all((u >= lo) & (u <= hi), axis=1)
+        if done.all():
+            return u
+        restart = ~done & (close | (steps >= max_iter))
+        which[restart] += 1
+        if np.any(which >= seeds.shape[1]):
+            r = int(np.flatnonzero(which >= seeds.shape[1])[0])
+            raise LinkedSimulationError(
+                f"arm {arm!r}: no joint solution in the working range reaches "
+                f"{targets[r].round(1).tolist()} mm from {seeds.shape[1]} seeds")
+        u[restart] = seeds[rows[restart], which[restart]]
+        steps[restart] = 0
+        move = ~done & ~restart
+        step = np.einsum("nij,nj->ni", np.linalg.pinv(np.asarray(state["jac"])), err)
+        size = np.linalg.norm(step, axis=1)
+        scale = np.minimum(1.0, max_step_rad / np.maximum(size, 1e-300))
+        u[move] += (step * scale[:, None])[move]
+        steps[move] += 1
+

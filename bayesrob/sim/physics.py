@@ -1,0 +1,139 @@
+"""The physical terms of the simulator, for any chain: what makes a built arm's end point
+differ from where its model puts it.
+
+- gravity: the torque of the links' point masses about each joint (:func:`gravity_torques`);
+- compliance: joints give way by that torque over their stiffness (:func:`gravity_deflection`,
+  or the springs of an energy the equilibria minimise, :mod:`bayesrob.sim.equilibrium`);
+- backlash: a dead band in the joint's spring (:func:`dead_band`), or play taken up on the side
+  gravity pushes the joint to (:func:`play_offsets`);
+- servo non-linearity: a ripple on the pulse-to-angle map (:func:`servo_ripple`);
+- encoder error: an eccentric encoder disk (:func:`encoder_error`);
+- joint repeatability and instrument noise, and the per-seed spread of stiffnesses and masses
+  between two builds of one design (:func:`draw_stiffnesses`).
+
+Each random draw has a stream of its own (``*_STREAM``, spawned from the rig's seed), so
+switching one effect on leaves every other draw of a rig as it was.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob.kinematics import Robot, RobotStructure
+from bayesrob.kinematics.chain import G_N_PER_KG
+
+# Without gravity_sag a planar arm's servos are this much stiffer: gravity still decides which
+# side of a dead band a joint rests on, but no longer deflects it measurably.
+STIFF_FACTOR = 1000.0
+ENCODER_STREAM = 7  # the encoder phases' own random stream
+PLAY_STREAM = 8  # the approach sides' own random stream
+STIFFNESS_STREAM = 17  # the drawn stiffnesses' own random stream
+
+
+def dead_band(x: jax.Array, b: jax.Array) -> jax.Array:
+    """What a spring with a dead band of half-width ``b`` sees of a deflection ``x``: nothing
+    inside the band, the excess beyond it (backlash)."""
+    return jnp.sign(x) * jnp.maximum(jnp.abs(x) - b, 0.0)
+
+
+def servo_ripple(u: jax.Array, u_mid: jax.Array, amplitude_rad: jax.Array,
+                 period_us: jax.Array) -> jax.Array:
+    """The servo map's departure from its line at pulse widths ``u`` (rad): ``amplitude
+    sin(2 pi (u - u_mid) / period)``, as a feedback potentiometer's track and the gear train
+    give; over the few hundred microseconds a workspace uses it bends the map visibly."""
+    phase = 2 * jnp.pi * (u - u_mid) / jnp.asarray(period_us)
+    return jnp.asarray(amplitude_rad) * jnp.sin(phase)
+
+
+def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) -> np.ndarray:
+    """How far each joint really is from the angle its eccentric encoder reads (rad): a disk
+    of radius 1 whose centre sits ``eccentricity`` off the axis at ``phase``, read by a fixed
+    head, puts the read angle ahead of the true one by atan2(e sin(q - phase), 1 + e cos(q -
+    phase))."""
+    d = np.asarray(q_read) - np.asarray(phase)
+    return -np.arctan2(eccentricity * np.sin(d), 1.0 + eccentricity * np.cos(d))
+
+
+def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Where each joint rests in its play (N, n) rad: half the play towards its gravity torque
+    ``tau`` (N mm), or, where the torque is weaker than ``stick_nmm``, towards the side it
+    was approached from (drawn from ``rng``)."""
+    approach = rng.choice([-1.0, 1.0], size=tau.shape)
+    side = np.where(np.abs(tau) > stick_nmm, np.sign(tau), approach)
+    return 0.5 * play * side
+
+
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _torques(structure: RobotStructure, arm: str, values: dict, x: jax.Array, q: jax.Array,
+             masses_kg: jax.Array, gravity: jax.Array) -> jax.Array:
+    # gravity_torques' arithmetic, one program per robot structure
+    robot = structure.robot(values)
+    chain = robot.chains[arm]
+    n = chain.n_joints
+    half = jnp.concatenate([0.5 * chain.origins[1:, :3], jnp.ones((n, 1))], axis=1)  # (n, 4)
+    joints, links = robot.element_frames(x, arm, q)
+    centres = jnp.einsum("enij,ej->eni", links[:n], half)[..., :3]  # (n, N, 3)
+    forces = masses_kg[:, None, None] * (gravity * G_N_PER_KG)  # (n, 1, 3)
+    columns = []
+    for i in range(n):
+        axis = joints[i, :, :3, :3] @ chain.axes[i]
+        origin = joints[i, :, :3, 3]
+        moment = jnp.cross(centres[i:] - origin[None], jnp.broadcast_to(
+            forces[i:], centres[i:].shape)).sum(axis=0)
+        columns.append(jnp.sum(moment * axis, axis=1))
+    return jnp.stack(columns, axis=1)
+
+
+def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
+                    masses_kg: np.ndarray, gravity: np.ndarray) -> np.ndarray:
+    """The gravity torque (N, n) about each joint's axis at joint values q (N mm).
+
+    Each link's mass sits halfway along the next origin's translation (its centre); the
+    torque about a joint is that of the masses beyond it about its axis. Compiled once per
+    process for every robot of ``robot``'s structure.
+    """
+    return np.asarray(_torques(robot.structure, arm, robot.nominal_values, jnp.asarray(x),
+                               jnp.asarray(q), jnp.asarray(masses_kg, float),
+                               jnp.asarray(gravity, float)))
+
+
+def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
+                       masses_kg: np.ndarray, stiffness: np.ndarray,
+                       gravity: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """Joint deflections (N, n) at equilibrium: dq = tau(q + dq) / k, by fixed-point steps
+    (torques of :func:`gravity_torques`). Deflections are a few mrad, so the step contracts
+    fast: at arm6's masses and stiffnesses four steps leave about 1e-6 rad, eight about
+    1e-12 rad (more for softer joints).
+    """
+    dq = np.zeros_like(q)
+    for _ in range(iterations):
+        dq = gravity_torques(robot, x, arm, q + dq, masses_kg, gravity) / stiffness
+    return dq
+
+
+def link_weights(masses_kg: np.ndarray | None, gravity: Sequence[float] | None,
+                 n: int) -> np.ndarray:
+    """Weights (n, 3) in N of the links' point masses; zero without gravity."""
+    if masses_kg is None or gravity is None:
+        return np.zeros((n, 3))
+    g = np.asarray(gravity, float)
+    return np.asarray(masses_kg, float)[:, None] * (G_N_PER_KG * g / np.linalg.norm(g))[None]
+
+
+def draw_stiffnesses(seed: int, profiles: Mapping[str, Sequence[float]], log_sd: float
+                     ) -> dict[str, np.ndarray]:
+    """Each arm's joint stiffnesses for a seed: its profile times exp(N(0, sd) per arm +
+    N(0, sd) per joint), arms in the order given, from the seed's own stream. Two servos of
+    one model are not equally stiff, nor are two arms' mountings and links."""
+    rng = np.random.default_rng([seed, STIFFNESS_STREAM])
+    out = {}
+    for name, profile in profiles.items():
+        k = np.asarray(profile, float)
+        out[name] = k * np.exp(log_sd * rng.normal() + log_sd * rng.normal(size=k.shape))
+    return out

@@ -1,0 +1,476 @@
+"""Writing simulated rig directories (rig.toml, measurements.csv, truth.toml) from a truth
+(:mod:`bayesrob.sim.truth`), and measuring a rig's planned rows in simulation.
+
+The paper's rigs (:func:`simulate_rig`) are aimed on a grid through each arm's nominal model,
+then linked through the models calibrated on their train rows; arm6 rigs
+(:func:`simulate_chain_rig`, :func:`simulate_linked_chain_rig`) are measured at random poses,
+and their linked rows aimed through the calibrated models at random targets. Training,
+validation and holdout rows are at different poses; holdout rows draw their noise from a
+stream of their own.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from bayesrob import kinematics as kin
+from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.progress import progress as progress_bar
+from bayesrob.rig import (
+    MEASUREMENTS_FILE,
+    RIG_FILE,
+    ArmSpec,
+    RigError,
+    dump_toml,
+    format_row,
+    is_planned,
+    load_rig,
+    measurement_header,
+    rig_toml_dict,
+)
+from bayesrob.sim import physics
+from bayesrob.sim.equilibrium import PhysicalRig, linked_equilibrium, position_ik
+from bayesrob.sim.truth import (
+    ARM6_URDF,
+    GRAVITY,
+    POSE_HI,
+    POSE_LO,
+    TRUTH_FILE,
+    ChainTruth,
+    LinkedChainTruth,
+    Truth,
+    _ArmErrors,
+    arm6_urdf_path,
+    drawn_masses,
+    drawn_stiffness,
+)
+
+HOLDOUT_STREAM = 1  # spawn key of the holdout rows' noise (see holdout_seed)
+
+
+def grid_points(workspace, n: int) -> np.ndarray:
+    """An n x n grid over the workspace, row by row from the top left."""
+    xs = np.linspace(*workspace[0], n)
+    ys = np.linspace(*workspace[1], n)[::-1]
+    return np.array([(x, y) for y in ys for x in xs])
+
+
+def holdout_points(workspace, n: int) -> np.ndarray:
+    """The centres of the n x n grid's (n - 1) x (n - 1) cells, row by row from the top left.
+
+    The training grid shifted by half a cell, keeping the points inside the workspace: each
+    is as far from the training poses as the grid allows, so errors there measure accuracy at
+    new poses, where the paper's ``validation`` repeats only measure repeatability.
+    """
+    if n < 2:
+        return np.zeros((0, 2))
+    g = grid_points(workspace, n)
+    half = np.array([(workspace[0][1] - workspace[0][0]) / (n - 1),
+                     -(workspace[1][1] - workspace[1][0]) / (n - 1)]) / 2
+    corners = g.reshape(n, n, 2)[:-1, :-1].reshape(-1, 2)  # drop the last row and column
+    return corners + half
+
+
+def nominal_specs(truth: Truth, rng: np.random.Generator) -> dict[str, ArmSpec]:
+    """Nominal values as a person would measure them: the truth plus measuring error."""
+    err = truth.nominal_error
+    specs = {}
+    for name, a in truth.arms.items():
+        def r(x, sd, rel=False):
+            x = np.asarray(x, float)
+            return tuple(float(round(v, 5)) for v in
+                         (x * (1 + rng.normal(0, sd, x.shape)) if rel else
+                          x + rng.normal(0, sd, x.shape)))
+        specs[name] = ArmSpec(
+            name, r(a.base, err["base_mm"]), r(a.links, err["links_mm"]),
+            r(a.gain, err["gain_rel"], rel=True), r(a.offset, err["offset_rad"]),
+            a.elbow, a.pulse_limits)
+    return specs
+
+
+def round_pulse(u: np.ndarray) -> np.ndarray:
+    """Controllers resolve a quarter microsecond (the Maestro's unit)."""
+    return np.round(np.asarray(u, float) * 4) / 4
+
+
+def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
+                 holdout: bool = True) -> Path:
+    """Write a rig directory (rig.toml, measurements.csv, truth.toml) from the truth.
+
+    Training commands aim at the grid through each arm's *nominal* inverse model (a person
+    aiming approximately); validation repeats them; the linked ``test`` rows aim both arms at
+    each grid point through their own inverse models calibrated on the train rows. Then the
+    ``holdout`` rows, at new poses (:func:`holdout_points`, between the grid points): each
+    arm alone aimed through its nominal model, then the arms linked and aimed through their
+    calibrated models. Their noise comes from a stream of its own, so the rows before them
+    are those a run without holdout rows (``holdout=False``) writes, byte for byte.
+    """
+    from bayesrob.calibration import calibrate_arm  # calibration needs rig types only
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(truth.seed)
+    specs = nominal_specs(truth, rng)
+    plant = PhysicalRig(truth, seed=int(rng.integers(2**31)))
+    names = list(truth.arms)
+    grid = grid_points(truth.workspace, truth.grid)
+    rows = []
+    hold = holdout_points(truth.workspace, truth.grid) if holdout else np.zeros((0, 2))
+    steps = (2 * len(names) + 1) * len(grid) + (len(names) + (len(names) > 1)) * len(hold)
+    bar = progress_bar(steps, "simulate", "pt", enabled=progress)
+    train: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    nominals = {name: kin.Arm.nominal(specs[name]) for name in names}
+    for name in names:
+        nominal = nominals[name]
+        u_all = round_pulse(np.asarray(nominal.command(jnp.asarray(grid))))
+        _check_limits(name, u_all, truth.arms[name].pulse_limits)
+        for set_name in ("train", "validation"):
+            obs = []
+            for u in u_all:
+                d = plant.end_point({name: u})
+                obs.append(d)
+                rows.append(format_row(names, name, set_name, None, {name: u}, d))
+                bar.update()
+            if set_name == "train":
+                train[name] = (u_all, np.asarray(obs))
+    calibrated = {}
+    for name in names:
+        u, d = train[name]
+        calibrated[name] = calibrate_arm(specs[name], u, d).arm
+    linked = "+".join(names)
+
+    def aim(target: np.ndarray) -> dict[str, np.ndarray]:
+        cmds = {}
+        for name in names:
+            u = round_pulse(np.asarray(calibrated[name].command(jnp.asarray(target))))
+            _check_limits(name, u[None], truth.arms[name].pulse_limits)
+            cmds[name] = u
+        return cmds
+
+    for target in grid:
+        cmds = aim(target)
+        d = plant.end_point(cmds)
+        rows.append(format_row(names, linked, "test", target, cmds, d))
+        bar.update()
+    plant.rng = np.random.default_rng(holdout_seed(truth.seed))
+    for name in names if len(hold) else ():
+        u_all = round_pulse(np.asarray(nominals[name].command(jnp.asarray(hold))))
+        _check_limits(name, u_all, truth.arms[name].pulse_limits)
+        for u in u_all:
+            rows.append(format_row(names, name, "holdout", None, {name: u},
+                                   plant.end_point({name: u})))
+            bar.update()
+    if len(names) > 1:  # a single arm's test rows are its only ones: nothing is linked
+        for target in hold:
+            cmds = aim(target)
+            rows.append(format_row(names, linked, "holdout", target, cmds,
+                                   plant.end_point(cmds)))
+            bar.update()
+    bar.close()
+
+    (out / RIG_FILE).write_text(dump_toml(rig_toml_dict(
+        truth.name, specs, truth.gravity, truth.workspace)))
+    with (out / MEASUREMENTS_FILE).open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(measurement_header(names))
+        w.writerows(rows)
+    (out / TRUTH_FILE).write_text(truth.to_toml())
+    return out
+
+
+def holdout_seed(seed: int) -> np.random.SeedSequence:
+    """The holdout rows' noise stream: derived from the rig's seed, apart from the main one."""
+    return np.random.SeedSequence([seed, HOLDOUT_STREAM])
+
+
+def _check_limits(name: str, u: np.ndarray, limits) -> None:
+    lim = np.asarray(limits)
+    bad = ~np.all((u >= lim[:, 0]) & (u <= lim[:, 1]), axis=-1)
+    if bad.any():
+        raise ValueError(f"simulated arm {name!r}: a grid point needs pulses "
+                         f"{u[bad][0].tolist()} outside its limits {limits}")
+
+
+def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
+                    ) -> tuple[int, int]:
+    """Measure a rig's planned rows (commands given, x and y empty) with the physics of its
+    ``truth.toml``: how a candidate written by ``bayesrob design`` is tried in simulation.
+
+    Rows already measured are kept as they are; the file is replaced in one step at the end,
+    so an interrupted run leaves it unchanged. Returns (rows measured, rows in the file).
+    """
+    directory = Path(directory)
+    truth_path = directory / TRUTH_FILE
+    if not truth_path.is_file():
+        raise RigError(f"{truth_path}: file not found (only a rig with the simulator's truth "
+                       "can be measured in simulation; use bayesrob collect on hardware)")
+    truth = Truth.from_toml(truth_path)
+    path = directory / MEASUREMENTS_FILE
+    if not path.is_file():
+        raise RigError(f"{path}: file not found")
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise RigError(f"{path}: empty file (a header row is required)")
+    header, body = rows[0], rows[1:]
+    idx = {h: i for i, h in enumerate(header)}
+    for col in ("config", "x", "y"):
+        if col not in idx:
+            raise RigError(f"{path}: missing column '{col}'")
+    plant = PhysicalRig(truth, seed=seed)
+    planned = [r for r, row in enumerate(body) if len(row) == len(header)
+               and is_planned(row, idx)]
+    bar = progress_bar(len(planned), "measure", "pt", enabled=progress)
+    for r in planned:
+        row, where = body[r], f"{path}: line {r + 2}"
+        members = row[idx["config"]].split("+")
+        cmds = {}
+        for a in members:
+            if a not in truth.arms:
+                raise RigError(f"{where}: arm {a!r} is not in {truth_path}")
+            try:
+                cmds[a] = [float(row[idx[f"{a}_u{j}"]]) for j in (1, 2)]
+            except (KeyError, ValueError):
+                raise RigError(f"{where}: arm {a!r} needs numbers in {a}_u1 and {a}_u2") \
+                    from None
+        d = plant.end_point(cmds)
+        row[idx["x"]], row[idx["y"]] = (f"{v:.6g}" for v in d)
+        bar.update()
+    bar.close()
+    buf = io.StringIO()
+    csv.writer(buf).writerows([header, *body])
+    tmp = path.with_suffix(".csv.tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+    return len(planned), len(body)
+
+
+# ------------------------------------------------------------------------------ arm6
+
+
+def random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Random joint angles over the working range."""
+    return rng.uniform(POSE_LO, POSE_HI, size=(n, 6))
+
+
+def true_parameters(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -> np.ndarray:
+    """A built arm6's parameter vector: the nominal one with every joint origin, offset, the
+    marker and the instrument pose perturbed by ``truth``'s spreads."""
+    layout = robot.layout
+    x = layout.nominal.copy()
+    for i, p in enumerate(layout.params):
+        axis = p.name.rsplit(".", 1)[-1]
+        rot = axis in ("rx", "ry", "rz")
+        if ".origin." in p.name:
+            x[i] += rng.normal(0, truth.origin_sd_rad if rot else truth.origin_sd_mm)
+        elif p.name.endswith(".offset"):
+            x[i] += rng.normal(0, truth.offset_sd_rad)
+        elif ".marker." in p.name:
+            x[i] += rng.normal(0, truth.marker_sd_mm)
+        elif ".instrument." in p.name:
+            x[i] += rng.normal(0, truth.instrument_sd[1] if rot else truth.instrument_sd[0])
+    return x
+
+
+
+def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
+    """Write rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml into out_dir."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(truth.seed)
+    nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
+                         marker=truth.marker_nominal_mm, instrument=truth.instrument_nominal)
+    robot = Robot({"arm": nominal}, 3)
+    x_true = true_parameters(robot, truth, rng)
+    # The instrument sees gravity along -z of the robot base; frames for torques are taken with
+    # the base at the identity so that direction holds.
+    base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")}, 3)
+    x_base = x_true.copy()
+    x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
+    phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(-np.pi, np.pi,
+                                                                                6)
+    if truth.encoder_eccentricity:
+        truth.encoder_phase_rad = tuple(float(v) for v in phase)
+    approach = np.random.default_rng([truth.seed, physics.PLAY_STREAM])
+    masses = np.asarray(truth.masses_kg)
+    down = np.array([0.0, 0.0, -1.0])
+    rows = []
+    for set_name, n in (("train", truth.n_train), ("validation", truth.n_validation),
+                        ("holdout", truth.n_holdout)):
+        if n == 0:
+            continue
+        q_cmd = random_poses(rng, n)
+        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
+        if truth.encoder_eccentricity:
+            q = q + physics.encoder_error(q_cmd, truth.encoder_eccentricity, phase)
+        if truth.joint_play_rad:
+            tau = physics.gravity_torques(base_robot, x_base, "arm", q, masses, down)
+            q = q + physics.play_offsets(tau, truth.joint_play_rad, truth.play_stick_nmm,
+                                         approach)
+        if truth.compliance:
+            q = q + physics.gravity_deflection(base_robot, x_base, "arm", q, masses,
+                                               np.asarray(truth.stiffness_nmm_per_rad), down)
+        p = np.asarray(robot.compiled_points("arm")(jnp.asarray(x_true), jnp.asarray(q)))
+        p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+        rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
+    write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
+    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
+                                                            strict=True)}
+    doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
+    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": doc}))
+    return out
+
+
+def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],
+                   errors: _ArmErrors) -> None:
+    """rig.toml, the nominal arm6.urdf and measurements.csv of a single arm6: ``rows`` are
+    (set, joint readings (6,), marker point (3,) in mm)."""
+    header = ["config", "set", *[f"arm_u{k + 1}" for k in range(6)], "x", "y", "z"]
+    lines = [",".join(header)] + [",".join(["arm", set_name, *(f"{v:.10g}" for v in qc),
+                                             *(f"{v:.4f}" for v in pc)])
+                                   for set_name, qc, pc in rows]
+    _write_arm6_files(out, name, {"arm": errors.instrument_nominal}, errors.marker_nominal_mm,
+                      lines)
+
+
+def _write_arm6_files(out: Path, name: str, instruments: Mapping[str, Sequence[float]],
+                      marker: Sequence[float], lines: Sequence[str]) -> None:
+    """The nominal arm6.urdf, rig.toml (an arm6 per ``instruments`` entry) and the CSV
+    ``lines`` of a rig of arm6 arms."""
+    shutil.copy(arm6_urdf_path(), out / ARM6_URDF)
+    arms = {a: {"urdf": ARM6_URDF, "root": "base_link", "tip": "tool0", "marker": list(marker),
+                "instrument": [float(v) for v in pose]} for a, pose in instruments.items()}
+    (out / RIG_FILE).write_text(dump_toml({"name": name, "gravity": list(GRAVITY),
+                                           "arms": arms}))
+    (out / MEASUREMENTS_FILE).write_text("\n".join(lines) + "\n")
+
+
+def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
+             commands: Mapping[str, np.ndarray], point: np.ndarray,
+             arms: Sequence[str]) -> str:
+    cells = [config, set_name]
+    cells += [f"{v:.4f}" for v in target] if target is not None else ["", "", ""]
+    for a in arms:
+        cells += [f"{v:.10g}" for v in commands[a]] if a in commands else [""] * 6
+    return ",".join(cells + [f"{v:.4f}" for v in point])
+
+
+def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedChainTruth,
+                    rng: np.random.Generator) -> tuple:
+    """The linked rows of the rig in ``out`` (single-arm rows written): targets (L, 3),
+    commands and spring set points per arm (L, 6), and the true equilibrium."""
+    from bayesrob.calibration import calibrate_chain
+
+    rig = load_rig(out)
+    # The rig's robot is the simulator's (same URDF, names and layout): one compiled program
+    # per arm then serves the inverse kinematics and the physics.
+    if rig.robot.layout.names != robot.layout.names:
+        raise RuntimeError("the written rig does not read back as the simulated robot")
+    # The commands come from what a user would have: each arm's model calibrated on its own
+    # train rows, not the truth.
+    cal = calibrate_chain(rig, tuple(truth.calibration_groups))
+    box = np.asarray(truth.target_box_mm, float)
+    targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
+    commands = {}
+    for arm in truth.arms:
+        u_train, p_train = rig.rows(arm, "train")
+        nearest = np.argsort(np.linalg.norm(p_train[None] - targets[:, None], axis=2), axis=1)
+        u = position_ik(cal.robot, cal.x, arm, targets, u_train[nearest])
+        # Ten significant digits, as written: the springs hold what the file says.
+        commands[arm] = np.array([[float(f"{v:.10g}") for v in row] for row in u])
+    u0 = {a: commands[a] + rng.normal(0, truth.joint_noise_rad, commands[a].shape)
+          for a in truth.arms}
+    eq = linked_equilibrium(
+        rig.robot, x_true, u0,
+        {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in truth.arms},
+        {a: np.asarray(truth.drawn_masses_kg[a], float) for a in truth.arms}
+        if truth.compliance else None,
+        GRAVITY if truth.compliance else None)
+    return targets, commands, u0, eq
+
+
+def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
+    """Write a rig of two arm6 arms, ``left`` and ``right`` (or ``truth.arms``), into out_dir:
+    rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml.
+
+    Each arm has single-arm train, validation and holdout rows at random poses (as
+    :func:`simulate_chain_rig`, with its own true geometry, noise and compliance). Then each
+    arm is calibrated on its train rows (``truth.calibration_groups``) and the ``left+right``
+    (``+``-joined ``truth.arms``) test rows aim every arm at random targets in
+    ``truth.target_box_mm`` through their calibrated models (position-only inverse
+    kinematics); their observed point is where the joined markers really settle
+    (:func:`linked_equilibrium`), plus measurement noise.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(truth.seed)
+    chains = {a: urdf_chain(arm6_urdf_path(), "base_link", "tool0", a,
+                            marker=truth.marker_nominal_mm,
+                            instrument=truth.instrument_nominal[a]) for a in truth.arms}
+    robot = Robot(chains, 3)
+    x_true = true_parameters(robot, truth, rng)
+    masses = drawn_masses(truth)
+    # a copy: the caller's truth stays the profile, so simulating it again draws the same
+    truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth),
+                    drawn_masses_kg={a: m.tolist() for a, m in masses.items()})
+    stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in truth.arms}
+    lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
+                       *[f"{a}_u{k + 1}" for a in truth.arms for k in range(6)],
+                       "x", "y", "z"])]
+    sets = [(s, n) for s, n in (("train", truth.n_train), ("validation", truth.n_validation),
+                                ("holdout", truth.n_holdout)) if n]
+    for arm in truth.arms:
+        q_cmd = random_poses(rng, sum(n for _, n in sets))
+        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
+        if truth.compliance:
+            # Frames in the instrument frame, so gravity is the instrument's -z. Eight steps:
+            # the softer arm's fixed point contracts more slowly than four steps allow (they
+            # leave up to 6e-6 rad).
+            q = q + physics.gravity_deflection(robot, x_true, arm, q, masses[arm],
+                                               stiffness[arm], np.asarray(GRAVITY), iterations=8)
+        p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
+        p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+        names = [s for s, n in sets for _ in range(n)]
+        lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
+                  for s, qc, pc in zip(names, q_cmd, p, strict=True)]
+    _write_arm6_files(out, f"arm6-linked-seed{truth.seed}",
+                      {a: truth.instrument_nominal[a] for a in truth.arms},
+                      truth.marker_nominal_mm, lines)
+
+    linked: dict = {}
+    if truth.n_linked:
+        # Small dense solves throughout (the fit's rank analysis, pseudo-inverses, KKT
+        # systems): BLAS threads only hand them between busy cores, several times slower.
+        with threadpool_limits(limits=1, user_api="blas"):
+            targets, commands, u0, eq = _aim_and_settle(out, robot, x_true, truth, rng)
+        observed = eq.point + rng.normal(0, truth.measurement_noise_mm, eq.point.shape)
+        first_line = len(lines) + 1
+        lines += [_fmt_row("+".join(truth.arms), "test", t,
+                           {a: commands[a][i] for a in truth.arms}, o, truth.arms)
+                  for i, (t, o) in enumerate(zip(targets, observed, strict=True))]
+        (out / MEASUREMENTS_FILE).write_text("\n".join(lines) + "\n")
+        linked = {
+            "line": list(range(first_line, first_line + truth.n_linked)),
+            "target": targets.tolist(),
+            "point": eq.point.tolist(),
+            **{f"free_{a}": eq.free_points[a].tolist() for a in truth.arms},
+            **{f"u0_{a}": u0[a].tolist() for a in truth.arms},
+            "max_violation_mm": float(eq.violation_mm.max()),
+        }
+    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
+                                                            strict=True)}
+    truth.linked_rows = linked
+    (out / TRUTH_FILE).write_text(dump_toml({"linked_chain_truth": asdict(truth)}))
+    return out
+
+

@@ -1,0 +1,389 @@
+"""What a simulated rig really is: the truths the simulator builds its rigs from and writes to
+``truth.toml`` (only tests and studies read it). Two configurations of one physics
+(:mod:`bayesrob.sim.physics`, :mod:`bayesrob.sim.equilibrium`):
+
+- the paper's setup (:func:`paper_truth`, :func:`three_arm_truth`): servo-driven planar arms,
+  each a 2-joint chain (:meth:`ArmTruth.robot`) whose joints are springs pulling towards the
+  commanded angles, under the weight of point masses (links at mid-link, the elbow servo, an
+  end mass), aimed on a grid. Its effects (names are a contract, ``vocabulary.EFFECTS``):
+  ``gravity_sag`` gives the servos their real stiffness (without it they are
+  ``STIFF_FACTOR`` times stiffer, so gravity still picks the side of a dead band but no
+  longer deflects a joint measurably); ``backlash`` a dead band, where the gravity torque on
+  a joint changes sign the end point jumps (the paper's bottom-arm discontinuity);
+  ``servo_nonlinearity`` a ripple on the pulse-to-angle map. Always on: joint repeatability
+  noise on the commanded angle and measurement noise on the end point;
+- arm6 (:class:`ChainTruth`, :class:`LinkedChainTruth`): a 6-joint URDF arm whose true
+  geometry differs from its nominal URDF, measured at random poses; its joints give way under
+  gravity, read through eccentric encoders, rest in their play; linked arms are joined at one
+  marker point.
+
+All randomness flows from the seed, so a rig is reproducible from its ``truth.toml``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field, replace
+from importlib.resources import files
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.rig import dump_toml
+from bayesrob.sim.physics import draw_stiffnesses
+from bayesrob.vocabulary import EFFECTS
+
+TRUTH_FILE = "truth.toml"
+ARM6_URDF = "arm6.urdf"
+GRAVITY = (0.0, 0.0, -1.0)  # arm6: unit gravity in the instrument frame
+# The working range of arm6's joints (rad): the shoulder lift keeps the arm off its own base.
+POSE_LO = np.array([-2.8, -2.2, -2.4, -2.8, -2.8, -3.0])
+POSE_HI = np.array([2.8, -0.6, 2.4, 2.8, 2.8, 3.0])
+MASS_STREAM = 19  # the arms' drawn masses' own random stream
+
+
+@dataclass(frozen=True)
+class ArmTruth:
+    """True physical parameters of one arm (what ``truth.toml`` records)."""
+
+    name: str
+    base: tuple[float, float]
+    links: tuple[float, float]
+    gain: tuple[float, float]
+    offset: tuple[float, float]
+    elbow: int
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
+    link_mass_kg: tuple[float, float] = (0.05, 0.04)
+    elbow_mass_kg: float = 0.065  # the elbow servo
+    end_mass_kg: float = 0.02
+    # One spring stands in for every compliance between command and end point (the servo's
+    # position loop, horn, mounting, link bending), so it is softer than a servo alone: soft
+    # enough that calibration cannot absorb all of the sag into gains and offsets.
+    stiffness_nmm_per_rad: tuple[float, float] = (2500.0, 1800.0)
+    backlash_rad: tuple[float, float] = (0.008, 0.008)  # half-width of the dead band
+    nonlinearity_rad: tuple[float, float] = (0.01, 0.008)  # amplitude of the ripple
+    nonlinearity_period_us: tuple[float, float] = (900.0, 1100.0)
+
+    @property
+    def params(self) -> kin.ArmParams:
+        return kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64)
+                               for x in (self.base, self.links, self.gain, self.offset)))
+
+    def robot(self) -> kin.Robot:
+        """The arm as a 2-joint chain of the general model, its columns the joint angles (the
+        servo map, with its ripple, stays outside): what the simulator's physics acts on."""
+        angles = kin.ArmParams(*(jnp.asarray(v, dtype=jnp.float64)
+                                 for v in (self.base, self.links, (1.0, 1.0), (0.0, 0.0))))
+        return kin.Robot({self.name: kin.planar_chain(self.name, angles)}, 2)
+
+    @property
+    def link_masses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each link's mass (kg) with what it carries (the elbow servo on link 1, the end mass
+        on link 2), and where along the link their centre of mass sits (fraction of its
+        length)."""
+        link = np.asarray(self.link_mass_kg, float)
+        carried = np.array([self.elbow_mass_kg, self.end_mass_kg])
+        mass = link + carried
+        return mass, (0.5 * link + carried) / mass
+
+    @property
+    def u_mid(self) -> np.ndarray:
+        return np.array([(lo + hi) / 2 for lo, hi in self.pulse_limits])
+
+    @property
+    def u_half_span(self) -> np.ndarray:
+        return np.array([(hi - lo) / 2 for lo, hi in self.pulse_limits])
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Everything the simulator knows and the rig files do not."""
+
+    name: str
+    arms: dict[str, ArmTruth]
+    effects: tuple[str, ...] = ()
+    gravity: tuple[float, float] = (0.0, -1.0)
+    workspace: tuple[tuple[float, float], tuple[float, float]] = ((80.0, 260.0), (100.0, 280.0))
+    joint_noise_rad: float = 0.0008
+    measurement_noise_mm: float = 0.35
+    seed: int = 0
+    grid: int = 4
+    nominal_error: dict[str, float] = field(
+        default_factory=lambda: {"base_mm": 2.0, "links_mm": 1.5, "gain_rel": 0.02,
+                                 "offset_rad": 0.02}
+    )
+
+    def with_effects(self, effects: Iterable[str]) -> Truth:
+        effects = tuple(effects)
+        for e in effects:
+            if e not in EFFECTS:
+                raise ValueError(f"unknown effect {e!r}; known: {', '.join(EFFECTS)}")
+        return replace(self, effects=effects)
+
+    # -- file round trip ---------------------------------------------------------------
+    def to_toml(self) -> str:
+        doc = asdict(self)
+        doc["effects"] = list(self.effects)
+        return "# True parameters of a simulated rig. Only tests read this file.\n" + \
+            dump_toml(_lists(doc))
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Truth:
+        doc = tomllib.loads(Path(path).read_text())
+        arms = {n: ArmTruth(**_tuples(a)) for n, a in doc.pop("arms").items()}
+        doc = _tuples(doc)
+        return cls(arms=arms, **doc)
+
+
+def _lists(x):
+    if isinstance(x, dict):
+        return {k: _lists(v) for k, v in x.items()}
+    if isinstance(x, tuple | list):
+        return [_lists(v) for v in x]
+    return x
+
+
+def _tuples(x):
+    if isinstance(x, dict):
+        return {k: _tuples(v) if k != "nominal_error" else v for k, v in x.items()}
+    if isinstance(x, list):
+        return tuple(_tuples(v) for v in x)
+    return x
+
+
+def _offsets_for(base, links, gain, elbow, limits, workspace) -> tuple[float, float]:
+    """Servo offsets that put the workspace centre at mid pulse: how a person mounts horns."""
+    centre = jnp.array([np.mean(workspace[0]), np.mean(workspace[1])])
+    p = kin.ArmParams(jnp.array(base), jnp.array(links), jnp.array(gain), jnp.zeros(2))
+    theta, ok = kin.inverse(p, centre, elbow)
+    assert bool(ok)
+    mid = np.array([(lo + hi) / 2 for lo, hi in limits])
+    return tuple(float(round(t - g * m, 4)) for t, g, m in zip(np.asarray(theta), gain, mid,
+                                                                strict=True))
+
+
+def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
+                stiffness_log_sd: float = 0.0) -> Truth:
+    """The paper's setup: a top arm hung from a strut, a bottom arm standing on the base.
+
+    The bottom arm carries most of its mobile mass in the elbow servo and bends its elbow to
+    the left, so across the workspace the gravity torque on its shoulder changes sign and the
+    shoulder's backlash makes the end point jump, as the paper saw.
+
+    ``stiffness_log_sd`` > 0 draws each arm's joint stiffnesses for this seed
+    (:func:`with_drawn_stiffness`); 0 keeps every arm at the same (2500, 1800) N mm/rad.
+    """
+    workspace = ((80.0, 260.0), (100.0, 280.0))
+    limits = ((600.0, 2400.0), (600.0, 2400.0))
+    arms = {}
+    for name, base, links, gain, elbow, masses in (
+        ("top", (20.0, 440.0), (240.0, 220.0), (0.00152, 0.00148), 1,
+         dict(link_mass_kg=(0.05, 0.04), elbow_mass_kg=0.065, end_mass_kg=0.02)),
+        ("bottom", (20.0, -20.0), (220.0, 200.0), (0.00150, 0.00155), -1,
+         dict(link_mass_kg=(0.04, 0.03), elbow_mass_kg=0.09, end_mass_kg=0.01)),
+    ):
+        offset = _offsets_for(base, links, gain, elbow, limits, workspace)
+        arms[name] = ArmTruth(name, base, links, gain, offset, elbow, limits, **masses)
+    truth = Truth("paper-rig", arms, seed=seed, grid=grid, workspace=workspace).with_effects(
+        effects)
+    return with_drawn_stiffness(truth, stiffness_log_sd)
+
+
+def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
+    """The truth with each arm's joint stiffnesses drawn for its seed: the arm's own ones
+    scaled by exp(N(0, sd) per arm + N(0, sd) per joint), as the 3-D simulator draws them.
+
+    Two servos of one model are not equally stiff, and neither are two arms' mountings and
+    links. With one stiffness for every arm, a prior that linked arms are alike is right by
+    construction, so predictions judged on such rigs flatter it. The draws come from a stream
+    of their own: the rest of the rig is what the seed always gave. 0 leaves the truth as is.
+    """
+    if not (np.isfinite(log_sd) and log_sd >= 0):
+        raise ValueError(f"stiffness_log_sd must be a finite number >= 0, got {log_sd}")
+    if log_sd == 0:
+        return truth
+    drawn = draw_stiffnesses(truth.seed, {n: a.stiffness_nmm_per_rad
+                                          for n, a in truth.arms.items()}, log_sd)
+    return replace(truth, arms={
+        n: replace(a, stiffness_nmm_per_rad=tuple(float(round(v, 1)) for v in drawn[n]))
+        for n, a in truth.arms.items()})
+
+
+def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
+                    stiffness_log_sd: float = 0.0) -> Truth:
+    """The paper's two arms and a third standing to the left of the workspace (``side``):
+    three arms linked at one end point, for predictions of assemblies of more than two.
+
+    With ``stiffness_log_sd`` the top and bottom arms get the stiffnesses :func:`paper_truth`
+    draws for the seed, and the side arm the next draws of the same stream."""
+    pair = paper_truth(effects, seed, grid)
+    base, links, gain = (-170.0, 190.0), (260.0, 240.0), (0.00151, 0.00149)
+    limits = ((600.0, 2400.0), (600.0, 2400.0))
+    offset = _offsets_for(base, links, gain, -1, limits, pair.workspace)
+    side = ArmTruth("side", base, links, gain, offset, -1, limits, link_mass_kg=(0.045, 0.035),
+                    elbow_mass_kg=0.07, end_mass_kg=0.015)
+    truth = replace(pair, name="three-arm-rig", arms={**pair.arms, "side": side})
+    return with_drawn_stiffness(truth, stiffness_log_sd)
+
+
+# ------------------------------------------------------------------------------ arm6
+
+
+def arm6_urdf_path() -> Path:
+    return Path(str(files("bayesrob.data") / "arm6" / ARM6_URDF))
+
+
+@dataclass
+class _ArmErrors:
+    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are: the
+    settings a single-arm and a linked chain rig share."""
+
+    seed: int = 0
+    n_train: int = 80
+    n_validation: int = 40
+    n_holdout: int = 40
+    origin_sd_mm: float = 1.0
+    origin_sd_rad: float = 2e-3
+    offset_sd_rad: float = 3e-3
+    marker_nominal_mm: tuple[float, float, float] = (0.0, 0.0, 50.0)
+    marker_sd_mm: float = 2.0
+    instrument_sd: tuple[float, float] = (5.0, 5e-3)  # mm, rad
+    joint_noise_rad: float = 1e-4
+    measurement_noise_mm: float = 0.1
+    masses_kg: tuple[float, ...] = (3.7, 8.4, 2.3, 1.2, 1.2, 0.2)
+
+
+@dataclass
+class ChainTruth(_ArmErrors):
+    """What a simulated chain rig really is (written to truth.toml)."""
+
+    instrument_nominal: tuple[float, ...] = (1200.0, -300.0, 150.0, 0.0, 0.0, 0.4)
+    compliance: bool = False
+    stiffness_nmm_per_rad: tuple[float, ...] = (4e6, 4e6, 2e6, 6e5, 6e5, 6e5)
+    # each joint's encoder disk sits off its axis by this fraction of its radius (0: none),
+    # at a phase drawn per joint: the angle read is off by atan2(e sin, 1 + e cos), a
+    # sinusoid once per revolution and its harmonics
+    encoder_eccentricity: float = 0.0
+    encoder_phase_rad: tuple[float, ...] = ()  # filled by simulate_chain_rig
+    # each joint's play (rad, whole width; 0: none): the joint rests against the side its
+    # gravity torque pushes it to; where that torque is weaker than the friction that holds
+    # it (play_stick_nmm), on the side it was approached from, drawn per row
+    joint_play_rad: float = 0.0
+    play_stick_nmm: float = 2000.0
+    true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
+
+
+def load_true_params(rig_dir: str | Path) -> dict[str, float]:
+    """The true parameter values a simulated chain rig (one arm or two linked) was made with."""
+    doc = tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())
+    return doc.get("chain_truth", doc.get("linked_chain_truth"))["true_params"]
+
+
+# Two arm6 arms facing each other over a shared workspace (and, for assemblies of three, a
+# third from the side), their markers joined by a ball joint for the linked rows. The joined
+# point is found exactly, as the minimum of the arms' summed spring and gravity energy under
+# the constraint that the markers coincide: the prediction code under test balances
+# linearised stiffnesses, so the simulator must not.
+
+LINKED_ARMS = ("left", "right")
+# A third arm for assemblies of three: facing the targets from the side (its base 450 mm from
+# the box's middle line, turned a quarter turn), so the box lies where it lies for the left
+# arm in the arm's own frame; stiffer than the right arm, softer than the left.
+THIRD_ARM = "front"
+THIRD_ARM_INSTRUMENT = (450.0, -450.0, 0.0, 0.0, 0.0, np.pi / 2)
+THIRD_ARM_STIFFNESS_SCALE = 0.8
+
+
+def _left_stiffness() -> tuple[float, ...]:
+    return ChainTruth().stiffness_nmm_per_rad
+
+
+@dataclass
+class LinkedChainTruth(_ArmErrors):
+    """What a simulated rig of linked arm6 arms (two, or ``arms``) really is (truth.toml).
+
+    Per-arm settings are tables keyed by arm name (``left``, ``right``; ``arms`` names the
+    arms, in order: :func:`three_linked_chain_truth` adds ``front``); everything else is
+    shared. ``true_params`` holds every arm's parameters under their full names
+    (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
+    :func:`simulate_linked_chain_rig`).
+    """
+
+    n_linked: int = 24
+    arms: tuple[str, ...] = LINKED_ARMS
+    # Bases 900 mm apart on the x axis, facing each other (the right one turned half a turn).
+    instrument_nominal: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
+        "left": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), "right": (900.0, 0.0, 0.0, 0.0, 0.0, np.pi)})
+    compliance: bool = True
+    # The right arm is the softer one (0.6 of the left's stiffness): where the linked point
+    # settles between the arms depends on the ratio.
+    stiffness_nmm_per_rad: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
+        "left": _left_stiffness(), "right": tuple(0.6 * k for k in _left_stiffness())})
+    # Two arms of one model are not equally stiff, nor are two rigs' arms: each seed draws its
+    # arms' stiffnesses about the profile above, log k = log(profile) + N(0, sd) per arm +
+    # N(0, sd) per joint, from a stream of its own (the rest of the rig is what the seed always
+    # gave); truth.toml records what was drawn. 0: the profile as it is, on every seed.
+    stiffness_log_sd: float = 0.3
+    # Nor is a built arm's link mass what its description (arm6.urdf, masses_kg at the links'
+    # middles) says: each arm's true masses are those scaled by a log-normal factor per arm and
+    # per link, from a stream of their own; ``drawn_masses_kg`` records them. 0: as described.
+    mass_log_sd: float = 0.0
+    drawn_masses_kg: dict = field(default_factory=dict)
+    # Linked targets are drawn uniformly in this box (instrument frame, mm): between the bases,
+    # 300-600 mm in front of each, within both arms' reach at their working joint ranges.
+    target_box_mm: tuple[tuple[float, float], ...] = ((300.0, 600.0), (-150.0, 150.0),
+                                                      (100.0, 300.0))
+    calibration_groups: tuple[str, ...] = ("frames", "offsets", "geometric")
+    true_params: dict = field(default_factory=dict)
+    linked_rows: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # said here, not as a KeyError halfway through writing the rig
+        if len(self.arms) < 2 or len(set(self.arms)) != len(self.arms):
+            raise ValueError(f"linked arms must be two or more distinct names, not {self.arms}")
+        for table in ("instrument_nominal", "stiffness_nmm_per_rad"):
+            missing = [a for a in self.arms if a not in getattr(self, table)]
+            if missing:
+                raise ValueError(f"LinkedChainTruth.{table} has no entry for "
+                                 f"{', '.join(missing)}")
+
+
+def three_linked_chain_truth(**kwargs: Any) -> LinkedChainTruth:
+    """Three arm6 arms joined at one point: ``left`` and ``right`` as in
+    :class:`LinkedChainTruth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
+    side; ``kwargs`` as the class takes them. Its stiffness profile is the left arm's times
+    :data:`THIRD_ARM_STIFFNESS_SCALE`, drawn about per seed as the others are."""
+    base = LinkedChainTruth()
+    instrument = {**base.instrument_nominal, THIRD_ARM: THIRD_ARM_INSTRUMENT}
+    stiffness = {**base.stiffness_nmm_per_rad,
+                 THIRD_ARM: tuple(THIRD_ARM_STIFFNESS_SCALE * k
+                                  for k in base.stiffness_nmm_per_rad["left"])}
+    return LinkedChainTruth(**{"arms": (*LINKED_ARMS, THIRD_ARM),
+                               "instrument_nominal": instrument,
+                               "stiffness_nmm_per_rad": stiffness, **kwargs})
+
+
+def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
+    """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
+    scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
+    drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
+                                          for a in truth.arms}, truth.stiffness_log_sd)
+    return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
+
+
+def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
+    """Each arm's true link masses (kg) for the rig of ``truth.seed``: the described masses
+    scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
+    rng = np.random.default_rng([truth.seed, MASS_STREAM])
+    m = np.asarray(truth.masses_kg, float)
+    return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in truth.arms}
+
+
+def load_linked_truth(rig_dir: str | Path) -> dict:
+    """The ``linked_chain_truth`` table of a rig written by
+    :func:`~bayesrob.sim.rigs.simulate_linked_chain_rig`."""
+    return tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())["linked_chain_truth"]
