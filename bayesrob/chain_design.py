@@ -74,7 +74,7 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
                        by_rig: dict[Path, list[ModuleSpec]]) -> dict[str, ChainModule]:
     """Calibrate each chain rig once (the groups its modules name) and fit each module's
     joint-error population on its own train rows (``by_rig``: the modules of each rig)."""
-    from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
+    from bayesrob.calibrate.least_squares import calibrate, parameter_covariance
     from bayesrob.chain_prediction import _stiffness_prior
     from bayesrob.latent_errors import check_latent_model, fit_latent_errors
 
@@ -105,11 +105,11 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
                 raise DesignError(f"{where}: {rig_dir} measures {rig.robot.dim}-D points but "
                                   f"the mounts and the task are {design.dim}-D")
         try:
-            cal = calibrate_chain(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
+            cal = calibrate(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
         except ValueError as e:
             raise DesignError(f"{design.path}: {rig_dir}: {e}") from None
         n_free = int(cal.ident.free.sum())
-        cov = chain_parameter_covariance(rig, cal)
+        cov = parameter_covariance(rig, cal)
         for i, m in enumerate(specs):
             errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
                                        seed=design.seed + i)
@@ -242,7 +242,7 @@ def write_chain_candidate_rig(candidate: dict, targets: np.ndarray,
     empty) for ``bayesrob collect`` or a simulator to fill."""
     import csv
 
-    from bayesrob.calibration import chain_arm_table
+    from bayesrob.calibrate.least_squares import arm_table
     from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, dump_toml
 
     names = candidate["arms"]
@@ -257,7 +257,7 @@ def write_chain_candidate_rig(candidate: dict, targets: np.ndarray,
                            calibrated.sag_steps)
         urdf = out / f"{a}.urdf"
         kin.write_urdf(alone, alone.layout.nominal, urdf, name=a)
-        table = chain_arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],
+        table = arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],
                                 measured=True)
         pose = np.asarray(table["instrument"], float)
         pose[: m.dim] = np.asarray(mounts[j], float)

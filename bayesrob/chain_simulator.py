@@ -636,7 +636,7 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
                     rng: np.random.Generator) -> tuple:
     """The linked rows of the rig in ``out`` (single-arm rows written): targets (L, 3),
     commands and spring set points per arm (L, 6), and the true equilibrium."""
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.rig import load_rig
 
     rig = load_rig(out)
@@ -646,7 +646,7 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
         raise RuntimeError("the written rig does not read back as the simulated robot")
     # The commands come from what a user would have: each arm's model calibrated on its own
     # train rows, not the truth.
-    cal = calibrate_chain(rig, tuple(truth.calibration_groups))
+    cal = calibrate(rig, tuple(truth.calibration_groups))
     box = np.asarray(truth.target_box_mm, float)
     targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
     commands = {}

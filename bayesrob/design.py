@@ -192,7 +192,7 @@ def load_modules(design: DesignSpec, models_dir: Any = None
 
 def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list[ModuleSpec]],
                          models_dir: Any) -> dict[str, Module]:
-    from bayesrob.calibration import calibrate, parameter_covariance
+    from bayesrob.calibrate.arms import arm_covariance, calibrate_arms
     from bayesrob.noise_models import (
         ModelFileError,
         discover_models,
@@ -209,7 +209,7 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
             if m.arm not in rig.arms:
                 raise DesignError(f"{design.path}: [modules.{m.name}]: unknown module arm "
                                   f"{m.arm!r} in {rig_dir} (arms: {', '.join(rig.arms)})")
-        cal = calibrate(rig)
+        cal = calibrate_arms(rig)
         truth = (Truth.from_toml(rig_dir / TRUTH_FILE) if (rig_dir / TRUTH_FILE).is_file()
                  else None)
         for m in mods:
@@ -239,7 +239,7 @@ def _load_planar_modules(design: DesignSpec, rigs: dict, by_rig: dict[Path, list
             cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
                                       for x in (p.base, p.links, p.gain, p.offset)),
                             orig.elbow, orig.pulse_limits, orig.stiffness)
-            cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
+            cov = arm_covariance(np.asarray(arm.params.to_vector()), u, d)
             out[m.name] = Module(m.name, arm, fitted, cspec, tuple(rig.gravity),
                                  cov + COV_JITTER * np.diag(np.diag(cov)), truth, removed)
     return out

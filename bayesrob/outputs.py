@@ -12,8 +12,9 @@ import json
 from pathlib import Path
 
 from bayesrob import kinematics as kin
-from bayesrob.bayes_calibration import calibrate_arm_bayes, report_extras
-from bayesrob.calibration import METHODS, ArmCalibration, calibrate, observed_accuracy
+from bayesrob.calibrate.accuracy import observed_accuracy
+from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms
+from bayesrob.calibrate.bayes import calibrate_arm_bayes, report_extras
 from bayesrob.diagnosis import Diagnosis
 from bayesrob.reproduction import Reproduction
 from bayesrob.rig import Rig
@@ -27,7 +28,7 @@ def calibrate_rig(rig: Rig, method: str = "least-squares") -> dict[str, ArmCalib
         raise ValueError(f"unknown calibration method {method!r}; use one of "
                          f"{CALIBRATION_METHODS}")
     if method != "bayes":
-        return calibrate(rig, method)
+        return calibrate_arms(rig, method)
     out = {}
     for name, spec in rig.arms.items():
         u, d = rig.rows(name, "train")

@@ -443,7 +443,7 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
     calibrated models. Their noise comes from a stream of its own, so the rows before them
     are those a run without holdout rows (``holdout=False``) writes, byte for byte.
     """
-    from bayesrob.calibration import calibrate_arm  # calibration needs rig types only
+    from bayesrob.calibrate.arms import calibrate_arm  # calibration needs rig types only
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

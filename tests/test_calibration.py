@@ -9,7 +9,8 @@ import pytest
 
 from bayesrob import kinematics as kin
 from bayesrob import simulator as sim
-from bayesrob.calibration import calibrate, mean_ci95
+from bayesrob.calibrate.accuracy import mean_ci95
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.outputs import calibration_report
 from bayesrob.rig import load_rig
 
@@ -24,7 +25,7 @@ def clean_rig(tmp_path_factory):
 
 def test_least_squares_recovers_true_parameters_within_standard_errors(clean_rig):
     rig, truth = clean_rig
-    cal = calibrate(rig)
+    cal = calibrate_arms(rig)
     z_all = []
     for name, c in cal.items():
         true = np.asarray(truth.arms[name].params.to_vector())
@@ -63,8 +64,8 @@ def test_effects_make_validation_error_grow(tmp_path):
 
 def test_hill_climb_baseline_fits_and_stops(clean_rig):
     rig, _ = clean_rig
-    ls = calibrate(rig, "least-squares")
-    hc = calibrate(rig, "hill-climb")
+    ls = calibrate_arms(rig, "least-squares")
+    hc = calibrate_arms(rig, "hill-climb")
     for name in ls:
         # the paper's climb is cruder, but within a factor 2 of least squares on a clean rig
         assert hc[name].train_error_mm < 2.0 * ls[name].train_error_mm + 0.2
