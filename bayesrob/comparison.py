@@ -41,8 +41,7 @@ import scipy.stats
 import xarray as xr
 
 from bayesrob import kinematics as kin
-from bayesrob.calibrate.accuracy import predicted_points
-from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms
+from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
 from bayesrob.fusion import fused_posterior
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
 from bayesrob.kde import KDE, ConditionalKDE, kde_log_density

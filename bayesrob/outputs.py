@@ -12,8 +12,7 @@ import json
 from pathlib import Path
 
 from bayesrob import kinematics as kin
-from bayesrob.calibrate.accuracy import observed_accuracy
-from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms
+from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms, observed_accuracy
 from bayesrob.calibrate.bayes import calibrate_arm_bayes, report_extras
 from bayesrob.diagnosis import Diagnosis
 from bayesrob.reproduction import Reproduction

@@ -9,8 +9,7 @@ import pytest
 
 from bayesrob import kinematics as kin
 from bayesrob import simulator as sim
-from bayesrob.calibrate.accuracy import mean_ci95
-from bayesrob.calibrate.arms import calibrate_arms
+from bayesrob.calibrate.arms import calibrate_arms, mean_ci95
 from bayesrob.outputs import calibration_report
 from bayesrob.rig import load_rig
 

@@ -14,8 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob.calibrate.accuracy import predicted_points
-from bayesrob.calibrate.arms import calibrate_arms
+from bayesrob.calibrate.arms import calibrate_arms, predicted_points
 from bayesrob.comparison import PointScores, heldout_scores, score_points
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.rig import Rig, load_rig

@@ -4,10 +4,10 @@
   for (any robot; the paper's planar arms are 2-joint chains) after the rank analysis of
   :mod:`~bayesrob.calibrate.identifiability`, with the one Gauss-Newton covariance.
 - :mod:`~bayesrob.calibrate.arms`: the paper's eight parameters per planar arm, an instance of
-  those groups (``calibrate`` on a planar rig without ``--params``).
+  those groups (``calibrate`` on a planar rig without ``--params``), and their observed
+  accuracy.
 - :mod:`~bayesrob.calibrate.hill_climb`: the paper's own procedure, a selectable baseline.
 - :mod:`~bayesrob.calibrate.bayes`: the NUTS posterior (numpyro) of the same parameters.
-- :mod:`~bayesrob.calibrate.accuracy`: the observed accuracy of calibrated planar arms.
 """
 
 from bayesrob.calibrate.arms import ArmCalibration, calibrate_arms

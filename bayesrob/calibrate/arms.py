@@ -1,15 +1,13 @@
-"""The paper's eight parameters of each planar arm, calibrated from its measured end points.
+"""The paper's eight parameters of each planar arm, calibrated from its measured end points,
+and the observed accuracy of the calibrated arms.
 
-A planar arm is a 2-joint chain of the general robot model (:func:`kinematics.planar_chain`):
-its base is the shoulder's origin, its links the elbow's and the tool's origins along x, its
-servo map the chain's gains and offsets. So the ``least-squares`` fit is the group calibration
-of :mod:`bayesrob.calibrate.least_squares` over the chain's offsets, servo and geometric
-groups, restricted to those eight columns, with the measuring frame the arm's base frame
-(the paper's setup; a rig's ``calibrate --params`` frees the frames instead, to the same
-predictions), and the standard errors come from its one covariance routine. ``hill-climb``
-is the paper's procedure (:mod:`bayesrob.calibrate.hill_climb`). The Bayesian calibration
-(``bayes``) is :mod:`bayesrob.calibrate.bayes`; :func:`bayesrob.outputs.calibrate_rig`
-chooses among the three.
+A planar arm is a 2-joint chain (:func:`kinematics.planar_chain`): its base is the shoulder's
+origin, its links the elbow's and the tool's origins along x, its servo map the chain's gains
+and offsets. So ``least-squares`` is the group fit of :mod:`bayesrob.calibrate.least_squares`
+restricted to those eight columns of the offsets, servo and geometric groups, in the arm's own
+base frame (a rig's ``calibrate --params`` frees the frames instead, to the same predictions),
+with its one covariance. ``hill-climb`` is the paper's procedure
+(:mod:`bayesrob.calibrate.hill_climb`); ``bayes`` is :mod:`bayesrob.calibrate.bayes`.
 """
 
 from __future__ import annotations
@@ -19,11 +17,12 @@ from typing import Literal
 
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 from bayesrob import kinematics as kin
 from bayesrob.calibrate.hill_climb import hill_climb
 from bayesrob.calibrate.least_squares import covariance, fit, residual_function
-from bayesrob.rig import N_ARM_PARAMS, ArmSpec, Rig
+from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
 Method = Literal["least-squares", "hill-climb"]
 # The Bayesian method lives one layer up (bayesrob.calibrate.bayes builds on this module);
@@ -33,15 +32,12 @@ METHODS: tuple[str, ...] = ("least-squares", "hill-climb")
 # The chain's name for an arm fitted on its own: one name for every planar arm, so that all of
 # them share one structure and so the fit's compiled programs.
 ARM = "arm"
-# The eight parameters (kinematics.PARAM_NAMES order: bx, by, l1, l2, a1, a2, b1, b2) as
-# columns of the arm's chain, and the groups they belong to.
+# The eight (PARAM_NAMES order: bx, by, l1, l2, a1, a2, b1, b2) as columns of the arm's chain.
 ARM_PARAMETERS = tuple(f"{ARM}.{p}" for p in (
     "shoulder.origin.x", "shoulder.origin.y", "elbow.origin.x", "tool.origin.x", "u1.gain",
     "u2.gain", "shoulder.offset", "elbow.offset"))
 ARM_GROUPS = ("offsets", "servo", "geometric")
-# The fit's tolerances: tight enough that the eight agree with an independent solver to far
-# below the reported digits.
-ARM_TOL = 1e-12
+ARM_TOL = 1e-12  # the solver's tolerances: the eight to 1e-9 of the paper's own 8-vector fit
 
 
 @dataclass
@@ -148,4 +144,50 @@ def calibrate_arms(rig: Rig, method: Method = "least-squares") -> dict[str, ArmC
         u, d = rig.rows(name, "train")
         uv, dv = rig.rows(name, "validation")
         out[name] = calibrate_arm(spec, u, d, method, uv, dv)
+    return out
+
+
+def mean_ci95(errors: np.ndarray) -> dict:
+    """Mean with the Student-t 95% confidence interval of the mean."""
+    e = np.asarray(errors, float)
+    n = len(e)
+    mean = float(np.mean(e)) if n else float("nan")
+    if n < 2:
+        return {"mean_mm": mean, "ci95_mm": [float("nan"), float("nan")], "n": n}
+    half = float(scipy.stats.t.ppf(0.975, n - 1) * np.std(e, ddof=1) / np.sqrt(n))
+    return {"mean_mm": mean, "ci95_mm": [mean - half, mean + half], "n": n}
+
+
+def predicted_points(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
+    """Where the model says the rows of a config ended up.
+
+    A single arm: f(g(u)) of the commands sent. Linked arms: the target the commands aimed at,
+    as the paper did (the commands came from the arms' own inverse models).
+    """
+    rows = rig.config_rows(config, set)
+    members = config.split("+")
+    if len(members) == 1:
+        return np.asarray(arms[config].forward_u(jnp.asarray(rows["commands"][config])))
+    target = rows["target"]
+    if np.isnan(target).any():
+        # No target recorded: fall back to the mean of the arms' forward predictions.
+        return np.mean([np.asarray(arms[a].forward_u(jnp.asarray(rows["commands"][a])))
+                        for a in members], axis=0)
+    return target
+
+
+def observed_errors(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
+    """Euclidean distance (mm) between predicted and observed end point, row by row."""
+    rows = rig.config_rows(config, set)
+    pred = predicted_points(rig, arms, config, set)
+    return np.linalg.norm(pred - rows["observed"], axis=-1)
+
+
+def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str, dict]]:
+    """Mean error with 95% CI per config and set, for every config and set present."""
+    out: dict[str, dict[str, dict]] = {}
+    for config in rig.configs:
+        for s in SETS:
+            if rig.measurements.mask(config, s).any():
+                out.setdefault(config, {})[s] = mean_ci95(observed_errors(rig, arms, config, s))
     return out

@@ -1,4 +1,9 @@
-"""Bayesian calibration: a posterior over each arm's eight parameters, and its use in prediction.
+"""Bayesian calibration (numpyro NUTS): a posterior over the parameters the least squares fits.
+
+Any robot (:func:`calibrate_bayes`, ``calibrate --params ... --method bayes``): the parameter
+groups' identifiable columns, sampled in the coordinates the least-squares fit and its
+covariance whiten. The paper's planar arms (``calibrate --method bayes``): each arm's eight
+parameters under the priors of :class:`Priors`, below.
 
 The model of one arm (rows i = 1..N of its ``train`` set, pulses u_i, observed end points d_i):
 
@@ -51,8 +56,13 @@ import numpy as np
 import scipy.stats
 
 from bayesrob import kinematics as kin
-from bayesrob.calibrate.accuracy import mean_ci95, observed_errors, predicted_points
-from bayesrob.calibrate.arms import ArmCalibration, calibrate_arm
+from bayesrob.calibrate.arms import (
+    ArmCalibration,
+    calibrate_arm,
+    mean_ci95,
+    observed_errors,
+    predicted_points,
+)
 from bayesrob.calibrate.least_squares import (
     Calibration,
     calibrate,
@@ -559,7 +569,7 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
                      time.perf_counter() - t0)
 
 
-# ----------------------------------------------------------------------------- any chain
+# ----------------------------------------------------------------------------- any robot
 
 
 @dataclass(frozen=True)

@@ -283,8 +283,10 @@ def fit(robot: kin.Robot, rows: Rows, groups: tuple[str, ...],
               ) -> tuple[np.ndarray, int]:
         idx = np.flatnonzero(mask)
 
-        def put(v):
-            return jnp.asarray(x0).at[idx].set(jnp.asarray(v))
+        def put(v):  # on the host: a scatter on the device cost a dispatch per evaluation
+            x = np.array(x0, float)
+            x[idx] = v
+            return x
 
         # the prior's rows only in fits that free a penalised parameter: elsewhere they would
         # be zeros that every trust-region step still factorises
