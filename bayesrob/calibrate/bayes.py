@@ -59,6 +59,7 @@ from bayesrob import kinematics as kin
 from bayesrob.calibrate.arms import (
     ArmCalibration,
     calibrate_arm,
+    calibrate_arms,
     mean_ci95,
     observed_errors,
     predicted_points,
@@ -380,15 +381,11 @@ def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
 
 
 def calibrate_arms_bayes(rig: Rig, priors: Priors = Priors(),
-                    settings: SamplerSettings = SamplerSettings(), seed: int = 0
-                    ) -> dict[str, BayesArmCalibration]:
+                         settings: SamplerSettings = SamplerSettings(), seed: int = 0
+                         ) -> dict[str, BayesArmCalibration]:
     """Bayesian calibration of every arm of a rig on its ``train`` rows."""
-    out = {}
-    for name, spec in rig.arms.items():
-        u, d = rig.rows(name, "train")
-        uv, dv = rig.rows(name, "validation")
-        out[name] = calibrate_arm_bayes(spec, u, d, uv, dv, priors, settings, seed)
-    return out
+    return calibrate_arms(rig, fit_arm=lambda spec, u, d, uv, dv: calibrate_arm_bayes(
+        spec, u, d, uv, dv, priors, settings, seed))
 
 
 # ----------------------------------------------------------------------------- prediction
