@@ -316,7 +316,7 @@ def fit(robot: kin.Robot, rows: Rows, groups: tuple[str, ...],
         if progress:
             progress("frames fitted")
     ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, candidates)
-    if int(ident.free.sum()) > n_res:
+    if int(ident.free.sum()) >= n_res:
         raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
                          "measured coordinates in the train rows")
     # a start with compliances fitted already shows the masses: the second round alone
@@ -421,7 +421,7 @@ def covariance(full_res, full_jac, x: np.ndarray, free: np.ndarray,
     if penalty is not None and penalty[free].any():
         a = np.vstack([a, np.diag(penalty[free])])
     # From the SVD of the column-scaled Jacobian, not by inverting J^T J: a planar arm's gain
-    # columns are 1e5 times its length columns, and the inverse of J^T J (condition 1e14)
+    # columns are 1e5 times its length columns, and the inverse of J^T J (condition 5e14)
     # kept only three or four digits of the standard errors (2.5e-4 off on the default rig).
     norms = np.linalg.norm(a, axis=0)
     norms[norms == 0] = 1.0
