@@ -38,15 +38,19 @@ _API = {
     "load_rig": "rig", "default_rig_dir": "rig",
     "Robot": "kinematics", "Chain": "kinematics", "urdf_chain": "kinematics",
     "dh_chain": "kinematics", "GROUPS": "kinematics",
-    "calibrate": "calibration", "calibrate_chain": "calibration",
+    "Calibration": "calibrate", "calibrate_arms": "calibrate",
     "predict_assembly": "assembly", "compare_models": "comparison",
     "sample_linked": "inference", "diagnose_rig": "diagnosis",
     "diagnose_chain": "chain_diagnosis", "discover_models": "noise_models",
 }
-__all__ = ["__version__", "cache_dir", "release_compiled_programs", *_API]
+__all__ = ["__version__", "cache_dir", "release_compiled_programs", "calibrate", *_API]
 
 
 def __getattr__(name: str):
+    if name == "calibrate":  # the subpackage: its ``calibrate`` fits any robot
+        import importlib
+
+        return importlib.import_module("bayesrob.calibrate")
     if name in _API:
         import importlib
 

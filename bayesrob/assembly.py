@@ -27,7 +27,7 @@ import numpy as np
 
 from bayesrob import kinematics as kin
 from bayesrob.aiming import check_reach
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
 from bayesrob.inference import GridPosterior
 from bayesrob.latent_errors import LATENT_MODELS
@@ -278,7 +278,7 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
             groups or kin.GROUPS, masses), rig)
     model = model or "cond"
     spec = discover_models(models_dir, [model])
-    cal = calibrate(rig)
+    cal = calibrate_arms(rig)
     arms = {a: cal[a].arm for a in members}
     commands = {a: _aim(arms[a], targets) for a in members}
     fitted = fit_noise_models(rig, arms, spec)[model]
@@ -301,7 +301,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
                    fusion: str, seed: int, t0: float, groups: tuple[str, ...],
                    masses: str = "fitted") -> AssemblyPrediction:
     from bayesrob.aiming import aim_chain
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.chain_prediction import (
         chain_draws,
         check_module_arms,
@@ -311,7 +311,7 @@ def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarra
 
     try:
         check_module_arms(rig, members, model)
-        cal = calibrate_chain(rig, groups, masses=masses)
+        cal = calibrate(rig, groups, masses=masses)
         # aimed before the joint-error fits, which take most of the time: a target out of
         # reach or off the servos' range is refused after the calibration alone
         commands = {a: aim_chain(rig, cal.robot, cal.x, a, targets) for a in members}

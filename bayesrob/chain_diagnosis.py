@@ -31,12 +31,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from bayesrob.calibration import (
+from bayesrob.calibrate.least_squares import (
     SAG_CONVERGED_MM,
-    ChainCalibration,
-    calibrate_chain,
-    chain_distances,
-    chain_residuals,
+    Calibration,
+    calibrate,
+    marker_distances,
+    marker_residuals,
     sag_convergence,
 )
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
@@ -152,13 +152,13 @@ def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
     return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 else 0.0
 
 
-def _row_errors(rig: Rig, cal: ChainCalibration, set: str) -> np.ndarray:
-    dist = chain_distances(rig, cal.robot, cal.x, set)
+def _row_errors(rig: Rig, cal: Calibration, set: str) -> np.ndarray:
+    dist = marker_distances(rig, cal.robot, cal.x, set)
     return np.concatenate([dist[a] for a in sorted(dist)]) if dist else np.zeros(0)
 
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str],
-                selected: np.ndarray | None = None) -> ChainCalibration:
+                selected: np.ndarray | None = None) -> Calibration:
     """A ladder step refitted on every train row: with joints giving way under gravity and
     ``sag_steps`` > 1, its torques taken that many times (towards equilibrium); where that fit
     has not reached its equilibrium (one more step moves a train marker by more than
@@ -177,14 +177,14 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
                          f"{moved:.3g} mm): no equilibrium fitted; reported with one step, the "
                          "first-order model")
         else:
-            cal = calibrate_chain(rig, groups, sag_steps=sag_steps)
+            cal = calibrate(rig, groups, sag_steps=sag_steps)
             moved = cal.extra["sag_next_step_mm"]
             if moved <= SAG_CONVERGED_MM:
                 return cal
             notes.append(f"{label}: not at equilibrium after {sag_steps} steps of the torques "
                          f"(one more moves a train marker by {moved:.3g} mm): reported with "
                          "one step, the first-order model")
-    return calibrate_chain(rig, groups)
+    return calibrate(rig, groups)
 
 
 def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
@@ -214,7 +214,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
-        cal = calibrate_chain(split, groups, polish=False, max_nfev=SELECTION_NFEV)
+        cal = calibrate(split, groups, polish=False, max_nfev=SELECTION_NFEV)
         before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
         # each named effect's selection fit: the last one is the named model's, which the
         # WARM_STARTED candidates start from; each is its ladder step's equilibrium check
@@ -225,7 +225,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             for eff in (c for c in candidates
                         if c not in named and NEEDS.get(c, c) in (*named, c)):
                 # compared with each other, not reported: the fast fit is enough to decide
-                cal = calibrate_chain(split, (*groups, CHAIN_EFFECTS[eff]), polish=False,
+                cal = calibrate(split, (*groups, CHAIN_EFFECTS[eff]), polish=False,
                                       **({"max_nfev": WARM_NFEV, "start": selected[named[-1]]}
                                          if eff in WARM_STARTED and named
                                          else {"max_nfev": SELECTION_NFEV}))
@@ -300,7 +300,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                 row["sag_next_step_mm"] = cal.extra["sag_next_step_mm"]
             if k in (0, len(ladder) - 1):
                 label = "geometric" if k == 0 else "+ " + " + ".join(named)
-                residuals[label] = chain_residuals(rig, cal.robot, cal.x, "validation")
+                residuals[label] = marker_residuals(rig, cal.robot, cal.x, "validation")
             if k == 0:
                 baseline = row
             else:

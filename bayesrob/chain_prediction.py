@@ -44,7 +44,7 @@ from numpyro.infer import MCMC, NUTS, Predictive
 
 from bayesrob import kinematics as kin
 from bayesrob.aiming import aim_chain
-from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
+from bayesrob.calibrate.least_squares import Calibration, calibrate, parameter_covariance
 from bayesrob.fusion import DRAWS, FUSIONS
 from bayesrob.kde import kde_bandwidth, kde_log_density
 from bayesrob.latent_errors import (
@@ -99,7 +99,7 @@ DESCRIBED_MASS_LOG_SD = 0.1
 class ChainModules:
     """Calibrated chain arms and their fitted joint-error populations."""
 
-    calibration: ChainCalibration
+    calibration: Calibration
     errors: dict[str, LatentJointErrors]
     # per arm: the log joint stiffnesses' prior
     stiffness: dict[str, StiffnessPrior]
@@ -131,7 +131,7 @@ def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
 
 def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                       groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
-                      calibration: ChainCalibration | None = None,
+                      calibration: Calibration | None = None,
                       parameter_uncertainty: bool = False,
                       masses: str = "fitted", sag_steps: int = 1) -> ChainModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
@@ -140,20 +140,20 @@ def fit_chain_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
     too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
     residual scaling for the fit's degrees of freedom having already widened them.
-    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s, for the calibration
+    ``masses`` ("fitted" or "description"): as :func:`calibrate`'s, for the calibration
     made here (a ``calibration`` given carries its own); with the description's masses and a
     compliance group, the arms' stiffnesses come from the fitted compliances instead of the
-    prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
+    prior. ``sag_steps``: as :func:`calibrate`'s (the joint-error fits and predictions
     use the calibration's robot, so its sag model too).
     """
     check_module_arms(rig, arms, model)  # before the calibration, which takes the time
     cal = (calibration if calibration is not None
-           else calibrate_chain(rig, groups, masses=masses, sag_steps=sag_steps))
+           else calibrate(rig, groups, masses=masses, sag_steps=sag_steps))
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
     stiffness = stiffness_priors(rig, arms, cal)
-    cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
+    cov = parameter_covariance(rig, cal) if parameter_uncertainty else None
     return ChainModules(cal, errors, stiffness, cov)
 
 
@@ -197,7 +197,7 @@ STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "t
                      "the prior, the arms scaled by their fitted sags")
 
 
-def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
+def _stiffness_prior(rig: Rig, arm: str, cal: Calibration | None = None
                      ) -> StiffnessPrior:
     """The log joint stiffnesses along the path to ``arm``: the rig's ``stiffness`` when it
     gives them; else, from a calibration whose compliances were fitted under the description's
@@ -245,7 +245,7 @@ def _stiffness_prior(rig: Rig, arm: str, cal: ChainCalibration | None = None
     return StiffnessPrior(centre, sd, np.zeros(n, bool), STIFFNESS_SOURCES[1])
 
 
-def arm_sags(rig: Rig, cal: ChainCalibration, arms: Sequence[str]) -> dict[str, float] | None:
+def arm_sags(rig: Rig, cal: Calibration, arms: Sequence[str]) -> dict[str, float] | None:
     """Each arm's mean fitted sag (mm): how far its marker moves when its own chains'
     compliances are set to zero, over the train poses of all ``arms`` pooled, so every arm is
     weighed at the same poses. None where that cannot be read: the arms' paths differ in
@@ -271,7 +271,7 @@ def arm_sags(rig: Rig, cal: ChainCalibration, arms: Sequence[str]) -> dict[str, 
     return sags
 
 
-def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, StiffnessPrior]
+def sag_scaled_priors(rig: Rig, cal: Calibration, priors: dict[str, StiffnessPrior]
                       ) -> dict[str, StiffnessPrior]:
     """``priors`` with each arm's term centred on its fitted sag against the others' (log k_a
     = -log sag_a + the mean of log sag over the arms), where every arm took the prior and
@@ -299,7 +299,7 @@ def sag_scaled_priors(rig: Rig, cal: ChainCalibration, priors: dict[str, Stiffne
             for a, p in priors.items()}
 
 
-def stiffness_priors(rig: Rig, arms: Sequence[str], cal: ChainCalibration
+def stiffness_priors(rig: Rig, arms: Sequence[str], cal: Calibration
                      ) -> dict[str, StiffnessPrior]:
     """The log joint stiffnesses' prior of each of ``arms``, linked: each arm's own
     (:func:`_stiffness_prior`), their arm terms then centred on their fitted sags

@@ -423,8 +423,8 @@ def _param_groups(text: str) -> tuple[str, ...]:
     return items
 
 
-def _calibrate_chain(args: argparse.Namespace, rig) -> int:
-    from bayesrob.calibration import calibrate_chain, calibrated_rig_document
+def _calibrate_groups(args: argparse.Namespace, rig) -> int:
+    from bayesrob.calibrate.least_squares import calibrate, calibrated_rig_document
     from bayesrob.kinematics import GROUPS, OPTIONAL_GROUPS, write_urdf
     from bayesrob.progress import progress
     from bayesrob.report import format_chain_calibration
@@ -444,11 +444,11 @@ def _calibrate_chain(args: argparse.Namespace, rig) -> int:
                   postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
         try:
             if args.method == "bayes":
-                from bayesrob.bayes_calibration import calibrate_chain_bayes
+                from bayesrob.calibrate.bayes import calibrate_bayes
 
-                cal = calibrate_chain_bayes(rig, groups, progress=bar.set_postfix)
+                cal = calibrate_bayes(rig, groups, progress=bar.set_postfix)
             else:
-                cal = calibrate_chain(rig, groups, progress=bar.set_postfix,
+                cal = calibrate(rig, groups, progress=bar.set_postfix,
                                       sag_steps=args.sag_steps, masses=args.masses)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
@@ -483,7 +483,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     rig = _load_rig_arg(args.rig)
     if rig.is_chain or args.params is not None or args.urdf_out:
-        return _calibrate_chain(args, rig)
+        return _calibrate_groups(args, rig)
     if args.sag_steps != 1 or args.masses != "fitted":
         raise UsageError(f"{'--sag-steps' if args.sag_steps != 1 else '--masses'} is for "
                          "URDF/DH rigs (and --params); the planar eight-parameter fit has no "

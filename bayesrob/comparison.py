@@ -41,7 +41,7 @@ import scipy.stats
 import xarray as xr
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import calibrate, calibrate_arm, predicted_points
+from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
 from bayesrob.fusion import fused_posterior
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
 from bayesrob.kde import KDE, ConditionalKDE, kde_log_density
@@ -210,7 +210,7 @@ def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel
 
 
 def loo_calibrations(rig: Rig, arm: str) -> list[kin.Arm]:
-    """The arm calibrated (least squares, as :func:`calibrate`) without each training row."""
+    """The arm calibrated (least squares, as :func:`calibrate_arms`) without each training row."""
     u, d = rig.rows(arm, "train")
     uv, dv = rig.rows(arm, "validation")
     spec = rig.arms[arm]
@@ -407,7 +407,7 @@ class ModelComparison:
 def heldout_scores(rig: Rig, specs: Sequence[ModelSpec], arms: dict[str, kin.Arm] | None = None
                    ) -> dict[str, dict[str, PointScores]]:
     """Held-out scores {model: {setup: scores}} of every model, fitted on the train rows."""
-    arms = arms if arms is not None else {n: c.arm for n, c in calibrate(rig).items()}
+    arms = arms if arms is not None else {n: c.arm for n, c in calibrate_arms(rig).items()}
     out = {}
     for spec in specs:
         fitted = fit_noise_models(rig, arms, [spec])[spec.name]
@@ -436,7 +436,7 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     specs = discover_models(models_dir, models)
     bar = progress_report(len(specs), "compare", "models", enabled=progress,
                           postfix="calibrating")
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     configs = setups(rig)
     hold_configs = holdout_setups(rig)
     bar.set_postfix("calibrating without each training row")
@@ -493,7 +493,7 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
     """:func:`compare_models` on a rig of URDF/DH arms: every measured arm's validation rows
     (and holdout rows) scored by :class:`bayesrob.marker_density.MarkerDensity`, and
     leave-one-out over its train rows with the calibration kept."""
-    from bayesrob.calibration import calibrate_chain, side_rows
+    from bayesrob.calibrate.least_squares import calibrate, side_rows
     from bayesrob.marker_density import fit_marker_model, loo_marker_scores, marker_model_kind
     from bayesrob.progress import progress as progress_report
 
@@ -505,7 +505,7 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
     kinds = {s.name: marker_model_kind(s) for s in specs}
     bar = progress_report(len(specs), "compare", "models", enabled=progress,
                           postfix="calibrating")
-    cal = calibrate_chain(rig, groups if groups is not None else kin.GROUPS)
+    cal = calibrate(rig, groups if groups is not None else kin.GROUPS)
     arms = [a for a in cal.robot.measured_arms() if rig.measurements.mask(a, "train").any()]
     hold_arms = [a for a in arms if rig.measurements.mask(a, HOLDOUT).any()]
 

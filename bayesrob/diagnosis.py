@@ -381,7 +381,7 @@ def evaluate_arm(data: ArmData, names: tuple[str, ...], start: ArmEval | None = 
 
     ``start``: a fitted model whose effects are a prefix of ``names`` (warm start; the new
     effects start at their ``initial`` values). Without it the base model is fitted first,
-    from the nominal values as :func:`bayesrob.calibration.calibrate_arm` does.
+    from the nominal values as :func:`bayesrob.calibrate.arms.calibrate_arm` does.
     ``k_folds``: None for exact leave-one-out up to 40 points, else 10-fold.
     """
     names = tuple(names)

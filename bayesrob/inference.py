@@ -1142,7 +1142,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     and the point sampled under its arms' marker densities (:func:`_sample_markers`); so is a
     planar rig given ``groups``, its arms as the 2-joint chains they are.
     """
-    from bayesrob.calibration import calibrate
+    from bayesrob.calibrate.arms import calibrate_arms
     from bayesrob.noise_models import discover_models, fit_noise_models
 
     if sampler not in (*SAMPLERS, "all"):
@@ -1162,7 +1162,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     # second: a target out of reach, found after the calibration, is then the only line.
     with _progress(3, progress, "sample", "steps", "calibrating",
                    first_after=FIRST_LINE_S) as bar:
-        cal = calibrate(rig)
+        cal = calibrate_arms(rig)
         arms = {a: cal[a].arm for a in members}
         target = np.asarray(target, float).reshape(1, 2)
         commands = [np.asarray(arms[a].command(jnp.asarray(target))) for a in members]
@@ -1239,7 +1239,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     (:class:`bayesrob.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample it and
     a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
     from bayesrob.aiming import aim_chain
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
     from bayesrob.noise_models import discover_models
     from bayesrob.rig import RigError
@@ -1255,7 +1255,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     dim = rig.robot.dim
     target = np.asarray(target, float).reshape(1, dim)
     with _progress(3, progress, "sample", "steps", "calibrating") as bar:
-        cal = calibrate_chain(rig, groups if groups is not None else kin.GROUPS)
+        cal = calibrate(rig, groups if groups is not None else kin.GROUPS)
         commands = {a: aim_chain(rig, cal.robot, cal.x, a, target) for a in members}
         bar.update()
         bar.set_postfix(f"fitting {model}")

@@ -34,7 +34,7 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import side_rows
+from bayesrob.calibrate.least_squares import side_rows
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.special
 from jax.scipy.special import logsumexp
 
-from bayesrob.calibration import ChainCalibration, side_rows
+from bayesrob.calibrate.least_squares import Calibration, side_rows
 from bayesrob.kde import ConditionalKDE
 from bayesrob.latent_errors import (
     LatentJointErrors,
@@ -165,7 +165,7 @@ class MarkerModel:
 
     arm: str
     kind: str  # "ind", "corr" or "cond"
-    calibration: ChainCalibration
+    calibration: Calibration
     train_residuals: np.ndarray  # (N, dim) scaled
     train_commands: np.ndarray  # (N, c)
     latent: LatentJointErrors | None = None
@@ -202,7 +202,7 @@ def _population(latent: LatentJointErrors) -> tuple[np.ndarray, np.ndarray]:
     return cov[pick], latent.noise_sd[pick]
 
 
-def fit_marker_model(rig: Rig, cal: ChainCalibration, arm: str, spec: ModelSpec,
+def fit_marker_model(rig: Rig, cal: Calibration, arm: str, spec: ModelSpec,
                      seed: int = 0) -> MarkerModel:
     """Fit ``spec`` (as :func:`marker_model_kind` reads it) to ``arm``'s train rows."""
     kind = marker_model_kind(spec)

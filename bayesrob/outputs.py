@@ -12,8 +12,8 @@ import json
 from pathlib import Path
 
 from bayesrob import kinematics as kin
-from bayesrob.bayes_calibration import calibrate_arm_bayes, report_extras
-from bayesrob.calibration import METHODS, ArmCalibration, calibrate, observed_accuracy
+from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms, observed_accuracy
+from bayesrob.calibrate.bayes import calibrate_arms_bayes, report_extras
 from bayesrob.diagnosis import Diagnosis
 from bayesrob.reproduction import Reproduction
 from bayesrob.rig import Rig
@@ -26,14 +26,7 @@ def calibrate_rig(rig: Rig, method: str = "least-squares") -> dict[str, ArmCalib
     if method not in CALIBRATION_METHODS:
         raise ValueError(f"unknown calibration method {method!r}; use one of "
                          f"{CALIBRATION_METHODS}")
-    if method != "bayes":
-        return calibrate(rig, method)
-    out = {}
-    for name, spec in rig.arms.items():
-        u, d = rig.rows(name, "train")
-        uv, dv = rig.rows(name, "validation")
-        out[name] = calibrate_arm_bayes(spec, u, d, uv, dv)
-    return out
+    return calibrate_arms_bayes(rig) if method == "bayes" else calibrate_arms(rig, method)
 
 
 def calibration_report(rig: Rig, method: str = "least-squares") -> dict:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import mean_ci95, observed_errors, predicted_points
+from bayesrob.calibrate.arms import mean_ci95, observed_errors, predicted_points
 from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.rig import Rig
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import Method, calibrate
+from bayesrob.calibrate.arms import Method, calibrate_arms
 from bayesrob.noise_models import (
     FittedNoiseModel,
     ModelSpec,
@@ -72,7 +72,7 @@ def run_reproduction(rig: Rig, models: Sequence[str] | None = None,
     steps = 1 + len(specs) * (len(rig.arms) + len(configs))
     bar = progress_report(steps, "reproduce", "steps", enabled=progress,
                           postfix=f"calibrating ({calibration})")
-    arms = {n: c.arm for n, c in calibrate(rig, calibration).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig, calibration).items()}
     bar.update()
 
     def fitted_one(model: str, arm: str) -> None:

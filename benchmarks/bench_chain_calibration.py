@@ -27,12 +27,12 @@ FRESH = """
 import time, json, sys
 t0 = time.perf_counter()
 from bayesrob.rig import load_rig
-from bayesrob.calibration import calibrate_chain
+from bayesrob.calibrate.least_squares import calibrate
 t1 = time.perf_counter()
 rig = load_rig(sys.argv[1])
-cal = calibrate_chain(rig, ("frames", "geometric"))
+cal = calibrate(rig, ("frames", "geometric"))
 t2 = time.perf_counter()
-cal2 = calibrate_chain(rig, ("frames", "geometric"))
+cal2 = calibrate(rig, ("frames", "geometric"))
 t3 = time.perf_counter()
 print(json.dumps({"imports_s": t1 - t0, "first_s": t2 - t1, "warm_s": t3 - t2,
                   "n_free": int(cal.ident.free.sum()), "n_parameters": len(cal.x),

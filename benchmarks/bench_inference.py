@@ -31,7 +31,7 @@ import numpy as np
 
 import bayesrob  # noqa: F401  (float64)
 from bayesrob import inference as inf
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.prediction import Grid, predict
 from bayesrob.rig import default_rig_dir, load_rig
@@ -55,7 +55,7 @@ def main() -> None:
 
     rig = load_rig(default_rig_dir())
     members = args.config.split("+")
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     fitted = fit_noise_models(rig, arms, discover_models(names=[args.model]))[args.model]
     models = [fitted[a] for a in members]
     arm_list = [arms[a] for a in members]

@@ -62,18 +62,18 @@ def memory(n_robots: int, tmp: Path) -> None:
     subprocess.run([sys.executable, "-c", SIMULATE, str(tmp), str(n_robots)], check=True,
                    capture_output=True, cwd=tmp)
     import bayesrob
-    from bayesrob import calibration
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate import least_squares
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.rig import load_rig
 
     # off, so the figures show what the programs hold rather than when they were dropped
-    calibration.release_compiled_programs = lambda *a, **k: False
+    least_squares.release_compiled_programs = lambda *a, **k: False
     print(json.dumps({"case": "memory", "bayesrob": bayesrob.__file__,
                       "start_maps": bayesrob.memory_maps()[0], "start_rss_mb": round(_rss_mb())}))
     t_all = time.perf_counter()
     for seed in range(n_robots):
         t0 = time.perf_counter()
-        cal = calibrate_chain(load_rig(tmp / f"seed{seed}"), ("frames", "geometric"))
+        cal = calibrate(load_rig(tmp / f"seed{seed}"), ("frames", "geometric"))
         seconds = time.perf_counter() - t0
         done = seed + 1
         if done in CHECKPOINTS or done == n_robots:

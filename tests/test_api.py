@@ -37,7 +37,7 @@ def arm6_dir(tmp_path_factory):
 
 
 def test_a_chain_rig_from_a_urdf_string_and_arrays_calibrates_as_its_directory(arm6_dir):
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate import calibrate
 
     disk = load_rig(arm6_dir)
     chain = disk.robot.chains["arm"]
@@ -48,22 +48,22 @@ def test_a_chain_rig_from_a_urdf_string_and_arrays_calibrates_as_its_directory(a
     rig = Rig.from_arrays({"arm": arm}, Measurements.from_arrays(**_arrays(disk.measurements)),
                           name="mem")
     groups = ("frames", "geometric")
-    a, b = calibrate_chain(rig, groups), calibrate_chain(disk, groups)
+    a, b = calibrate(rig, groups), calibrate(disk, groups)
     np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9)
     assert a.errors["validation"]["all"]["n"] == 40
 
 
 def test_a_planar_rig_from_arrays_is_the_default_rig():
-    from bayesrob.calibration import calibrate
+    from bayesrob.calibrate import calibrate_arms
 
     disk = load_rig(default_rig_dir())
     m = disk.measurements
     rig = Rig.from_arrays(dict(disk.arms), Measurements.from_arrays(
         m.config, m.set, m.observed, m.commands, m.target))
     assert rig.gravity == disk.gravity and not rig.is_chain
-    for name, fit in calibrate(rig).items():
+    for name, fit in calibrate_arms(rig).items():
         np.testing.assert_allclose(fit.arm.params.to_vector(),
-                                   calibrate(disk)[name].arm.params.to_vector(), atol=1e-9)
+                                   calibrate_arms(disk)[name].arm.params.to_vector(), atol=1e-9)
 
 
 @pytest.mark.parametrize("change, message", [

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from bayesrob.validation.calibration_sbc import narrowed_ranks
 
-from bayesrob import bayes_calibration as bc
+from bayesrob.calibrate import bayes as bc
 from bayesrob.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
 from bayesrob.rig import load_rig
 from bayesrob.sim.truth import Truth
@@ -26,7 +26,7 @@ def clean(clean_rig_dir):
     """The session's clean rig (grid 4, no effects), its truth and its Bayesian calibration."""
     rig = load_rig(clean_rig_dir)
     truth = Truth.from_toml(clean_rig_dir / "truth.toml")
-    return rig, truth, bc.calibrate_bayes(rig)
+    return rig, truth, bc.calibrate_arms_bayes(rig)
 
 
 def test_posterior_contains_true_parameters_on_clean_rig(clean):

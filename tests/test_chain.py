@@ -145,11 +145,11 @@ def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_pa
     torques are large, within 10% of the simulator's (measured 1%); the first
     joint, whose axis is vertical, is not identified; the masses stay as described. A robot
     whose URDF does not weigh every moving link is refused by name."""
-    from bayesrob.calibration import calibrate_chain, described_links
+    from bayesrob.calibrate.least_squares import calibrate, described_links
 
     truth = ChainTruth(seed=3, compliance=True)
     rig = load_rig(simulate_chain_rig(tmp_path / "r", truth))
-    cal = calibrate_chain(rig, ("frames", "offsets", "geometric", "compliance"),
+    cal = calibrate(rig, ("frames", "offsets", "geometric", "compliance"),
                           masses="description")
     lay = cal.robot.layout
     comp = lay.slices["arm", "compliance"]
@@ -255,11 +255,11 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
     every parameter non-zero (some deflections within the play's smooth step, so its slope
     counts). Both are exact; the sums along the chain are taken in another order:
     1e-10 of each column's largest entry (measured 6e-13)."""
-    from bayesrob import calibration
+    from bayesrob.calibrate import least_squares
 
     rng = np.random.default_rng(21)
     for rig in (_two_handed_rig(tmp_path, rng), load_rig(default_rig_dir())):
-        robot = calibration._with_gravity(rig, sag_steps)
+        robot = least_squares.with_gravity(rig, sag_steps)
         lay = robot.layout
         x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
         joint = np.array([p.name.endswith(".compliance") for p in lay.params])
@@ -272,7 +272,7 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
         idx = np.flatnonzero(lay.group_mask(kin.SAG_GROUPS))
         for arm in robot.measured_arms():
             u = jnp.asarray(rig.rows(arm, "train")[0])
-            frames = robot._sag_frames(x, arm, u, calibration.side_rows(rig, robot, arm,
+            frames = robot._sag_frames(x, arm, u, least_squares.side_rows(rig, robot, arm,
                                                                         "train"))
             defl = np.asarray(robot._sag_at(x.at[np.flatnonzero(play)].set(0.0), arm,
                                             *frames)[0])
@@ -418,13 +418,13 @@ def arm6_rig(tmp_path_factory):
 
 
 def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.sim.truth import load_true_params
 
     rig = load_rig(arm6_rig)
     truth = load_true_params(arm6_rig)
     x_true = np.array([truth[n] for n in rig.robot.layout.names])
-    cal = calibrate_chain(rig, ("frames", "geometric"))
+    cal = calibrate(rig, ("frames", "geometric"))
     for s in ("validation", "holdout"):
         u, obs = rig.rows("arm", s)
         floor = np.linalg.norm(np.asarray(rig.robot.marker_points(x_true, "arm", u)) - obs,
@@ -432,14 +432,14 @@ def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
         # the floor is what noise alone leaves with the true geometry; 60 fitted numbers from
         # 240 coordinates inflate held-out errors by about sqrt(1 + 60/240) at most
         assert cal.errors[s]["all"]["mean_mm"] <= 1.3 * floor, (s, floor)
-    frames_only = calibrate_chain(rig, ("frames",))
+    frames_only = calibrate(rig, ("frames",))
     assert frames_only.errors["validation"]["all"]["mean_mm"] > 5 * floor
 
 
 def test_rank_analysis_names_what_the_rows_cannot_tell_apart(arm6_rig):
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
 
-    cal = calibrate_chain(load_rig(arm6_rig), ("frames", "offsets", "geometric"))
+    cal = calibrate(load_rig(arm6_rig), ("frames", "offsets", "geometric"))
     fixed = {u["name"]: u["explained_by"] for u in cal.ident.unidentifiable}
     # a turn of the base about z is the instrument's own turn about its z
     assert fixed["arm.shoulder_pan.origin.rz"] == pytest.approx(
@@ -452,10 +452,10 @@ def test_rank_analysis_names_what_the_rows_cannot_tell_apart(arm6_rig):
 
 
 def test_calibrated_urdf_loads_back_as_the_same_robot(arm6_rig, tmp_path):
-    from bayesrob.calibration import calibrate_chain, calibrated_rig_document
+    from bayesrob.calibrate.least_squares import calibrate, calibrated_rig_document
 
     rig = load_rig(arm6_rig)
-    cal = calibrate_chain(rig, ("frames", "offsets", "geometric", "servo"))
+    cal = calibrate(rig, ("frames", "offsets", "geometric", "servo"))
     out = tmp_path / "back"
     out.mkdir()
     kin.write_urdf(rig.robot, cal.x, out / "cal.urdf")
@@ -495,11 +495,12 @@ def test_chain_path_calibrates_the_planar_default_rig_like_the_planar_fit():
     """The planar arm as an instance of the general model: fitting every group of its chain
     (the rank analysis leaves exactly the planar arm's eight freedoms) predicts what the
     eight-parameter fit predicts."""
-    from bayesrob.calibration import calibrate, calibrate_chain
+    from bayesrob.calibrate.arms import calibrate_arms
+    from bayesrob.calibrate.least_squares import calibrate
 
     rig = load_rig(default_rig_dir())
-    planar = calibrate(rig)
-    cal = calibrate_chain(rig)
+    planar = calibrate_arms(rig)
+    cal = calibrate(rig)
     assert cal.ident.free.sum() == 8 * len(rig.arms)
     for arm in rig.arms:
         u, _ = rig.rows(arm, "validation")
@@ -511,18 +512,18 @@ def test_bayesian_chain_priors_are_proper_and_sag_groups_are_refused(arm6_rig):
     """Every group NUTS samples has a proper prior (the encoder's sinusoids had sd 0 from a
     nominal of 0, and the fit failed on numpyro's scale check); the groups gravity's torques
     drive are refused with one line before any fitting, as NUTS did not mix over them."""
-    from bayesrob.bayes_calibration import ChainPriors, calibrate_chain_bayes
+    from bayesrob.calibrate.bayes import GroupPriors, calibrate_bayes
 
     rig = load_rig(arm6_rig)
     layout = rig.robot.layout
-    sd = ChainPriors().sd(layout)
+    sd = GroupPriors().sd(layout)
     sampled = ~layout.group_mask(kin.SAG_GROUPS)
     assert np.all(np.isfinite(sd[sampled]) & (sd[sampled] > 0))
     encoder = layout.group_mask(("encoder",))
     assert np.allclose(sd[encoder], 10 * layout.scales[encoder])
     for group in kin.SAG_GROUPS:
         with pytest.raises(ValueError, match=f"does not sample {group} .*least-squares"):
-            calibrate_chain_bayes(rig, ("frames", "geometric", group))
+            calibrate_bayes(rig, ("frames", "geometric", group))
 
 
 def test_calibrations_with_gravity_share_one_robot_and_its_compiled_fits(arm6_rig,
@@ -532,7 +533,7 @@ def test_calibrations_with_gravity_share_one_robot_and_its_compiled_fits(arm6_ri
     split is) uses an equal robot, so the residuals and Jacobians traced for the first fit
     serve the next of the same rows, not traced once per fit (the split's fewer train rows
     are new shapes, traced once)."""
-    from bayesrob import calibration
+    from bayesrob.calibrate import least_squares
 
     rig = load_rig(arm6_rig)
     traced = []
@@ -541,36 +542,36 @@ def test_calibrations_with_gravity_share_one_robot_and_its_compiled_fits(arm6_ri
         monkeypatch.setattr(kin.Robot, name, lambda self, *a, _real=real, **k: (
             traced.append(1), _real(self, *a, **k))[1])
     jax.clear_caches()  # programs an earlier test traced for an equal robot would serve here
-    a = calibration.calibrate_chain(rig, ("frames", "compliance"), polish=False)
+    a = least_squares.calibrate(rig, ("frames", "compliance"), polish=False)
     n_first = len(traced)
-    b = calibration.calibrate_chain(rig, ("frames", "geometric", "compliance"), polish=False)
+    b = least_squares.calibrate(rig, ("frames", "geometric", "compliance"), polish=False)
     assert n_first > 0 and len(traced) == n_first
     sets = rig.measurements.set.copy()
     sets[np.flatnonzero(sets == "train")[:5]] = "selection"
     split = replace(rig, measurements=replace(rig.measurements, set=sets))
-    c = calibration.calibrate_chain(split, ("frames", "lateral"), polish=False)
+    c = least_squares.calibrate(split, ("frames", "lateral"), polish=False)
     assert a.robot == b.robot == c.robot and a.robot.gravity is not None
 
 
 def test_lateral_compliances_carry_a_zero_centred_prior(arm6_rig, monkeypatch):
-    """Bending across the axes is penalised towards zero (calibration.LATERAL_PRIOR_MM): the
+    """Bending across the axes is penalised towards zero (least_squares.LATERAL_PRIOR_MM): the
     penalty rows exist exactly for the lateral parameters and only when ``lateral`` is fitted,
     and on a rig with no bending (the simulator's arm6) the prior's fit holds the lateral
     compliances at a fraction of what the same fit without it leaves (noise fitted)."""
-    from bayesrob import calibration
+    from bayesrob.calibrate import least_squares
 
     rig = load_rig(arm6_rig)
     layout = rig.robot.layout
     lateral = layout.group_mask(("lateral",))
-    pen = calibration.prior_penalty(layout, ("frames", "geometric", "lateral"))
+    pen = least_squares.prior_penalty(layout, ("frames", "geometric", "lateral"))
     assert np.all(pen[~lateral] == 0) and np.allclose(
-        pen[lateral], calibration.LATERAL_PRIOR_MM / layout.scales[lateral])
-    assert not calibration.prior_penalty(layout, ("frames", "compliance")).any()
+        pen[lateral], least_squares.LATERAL_PRIOR_MM / layout.scales[lateral])
+    assert not least_squares.prior_penalty(layout, ("frames", "compliance")).any()
     groups = ("frames", "compliance", "lateral")
-    with_prior = calibration.calibrate_chain(rig, groups, polish=False)
-    assert with_prior.to_json()["lateral_prior_mm"] == calibration.LATERAL_PRIOR_MM
-    monkeypatch.setattr(calibration, "LATERAL_PRIOR_MM", 0.0)
-    without = calibration.calibrate_chain(rig, groups, polish=False)
+    with_prior = least_squares.calibrate(rig, groups, polish=False)
+    assert with_prior.to_json()["lateral_prior_mm"] == least_squares.LATERAL_PRIOR_MM
+    monkeypatch.setattr(least_squares, "LATERAL_PRIOR_MM", 0.0)
+    without = least_squares.calibrate(rig, groups, polish=False)
     size = [float(np.linalg.norm(c.x[lateral] / layout.scales[lateral]))
             for c in (with_prior, without)]
     # measured: 0.02 scales with the prior, 62 without (free masses let noise and the joint
@@ -601,16 +602,17 @@ def _exact_against_forward_mode(rig, rng, compliance: float, picked=()):
     parameter moved), on 40 columns in random order with ``picked`` among them, beside
     forward-mode autodiff of the whole residual vector: largest error per column over the
     column's largest entry (or 1e-12 of the whole Jacobian's, where that is larger)."""
-    from bayesrob import calibration
+    from bayesrob.calibrate import least_squares
 
-    robot = calibration._with_gravity(rig, 3)
+    robot = least_squares.with_gravity(rig, 3)
     lay = robot.layout
     x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
     joint = np.array([p.name.endswith(".compliance") for p in lay.params])
     x[joint] = rng.uniform(0, compliance, joint.sum())
     bending = lay.group_mask(("lateral",))
     x[bending] = rng.uniform(0, 0.3 * compliance, bending.sum())
-    res, _, n_res, exact = calibration._residual_function(rig, robot, "train")
+    res, _, n_res, exact = least_squares.residual_function(
+        robot, least_squares.set_rows(rig, robot, "train"))
     picked = list(picked)
     rest = rng.permutation(np.setdiff1d(np.arange(lay.nominal.size), picked))
     idx = rng.permutation(np.concatenate([picked, rest[: 40 - len(picked)]]).astype(int))
@@ -666,15 +668,15 @@ def test_lateral_compliance_alone_fits_the_links_masses(arm6_rig):
     joint compliances, so fitted without them they still free the links' masses and first
     moments (the compliance group's columns), as far as the rank analysis sees them: not the
     layout's guessed masses. With ``masses="description"`` they stay held."""
-    from bayesrob import calibration
+    from bayesrob.calibrate import least_squares
 
     rig = load_rig(arm6_rig)
-    cal = calibration.calibrate_chain(rig, ("frames", "geometric", "lateral"), polish=False)
-    links = calibration.link_mask(cal.robot.layout)
+    cal = least_squares.calibrate(rig, ("frames", "geometric", "lateral"), polish=False)
+    links = least_squares.link_mask(cal.robot.layout)
     assert links.sum() == 4 * 6
     assert cal.ident.free[links].any()
     assert np.any(cal.x[links] != cal.robot.layout.nominal[links])
     assert not cal.ident.free[cal.robot.layout.group_mask(("compliance",)) & ~links].any()
-    held = calibration.calibrate_chain(rig, ("frames", "geometric", "lateral"), polish=False,
+    held = least_squares.calibrate(rig, ("frames", "geometric", "lateral"), polish=False,
                                        masses="description")
     assert not held.ident.free[links].any()

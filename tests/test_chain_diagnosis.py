@@ -43,20 +43,20 @@ def _fits_done() -> dict:
 
 @pytest.fixture
 def shared_fits(_fits_done, monkeypatch):
-    """``chain_diagnosis.calibrate_chain``, each distinct fit computed once per module.
+    """``chain_diagnosis.calibrate``, each distinct fit computed once per module.
 
     Three tests diagnose the same compliant rig, through the command and through the library,
     and so ask for the same least-squares fits (the geometric and joint-compliance selection
     fits and ladder steps): a fit asked again with the same rows (the rig's directory and a
     digest of its sets, commands and observed points) and the same arguments (groups,
     polish, max_nfev, start, sag_steps, masses) is the one already computed, which
-    calibrate_chain, deterministic, would compute again. A fit asked with any other argument
+    calibrate, deterministic, would compute again. A fit asked with any other argument
     (a wrong ``sag_steps``, another start, another split) is computed afresh, so what each
     test asserts about which fit the diagnosis makes is checked as before. Returns the
     wrapper (call it for a test's own fits)."""
     import bayesrob.chain_diagnosis as cd
 
-    real = cd.calibrate_chain
+    real = cd.calibrate
     signature = inspect.signature(real)
 
     def fits(*args, **kwargs):
@@ -78,7 +78,7 @@ def shared_fits(_fits_done, monkeypatch):
             _fits_done[key] = real(*args, **kwargs)
         return _fits_done[key]
 
-    monkeypatch.setattr(cd, "calibrate_chain", fits)
+    monkeypatch.setattr(cd, "calibrate", fits)
     return fits
 
 

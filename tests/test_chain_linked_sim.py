@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from bayesrob.calibration import calibrate_chain
+from bayesrob.calibrate.least_squares import calibrate
 from bayesrob.cli import main
 from bayesrob.rig import MEASUREMENTS_FILE, RigError, load_rig
 from bayesrob.sim.equilibrium import linked_energy, linked_equilibrium, position_ik
@@ -106,8 +106,8 @@ def test_calibration_is_the_same_without_the_linked_rows(rig_dir, world, tmp_pat
     _write_rows(bare / MEASUREMENTS_FILE, [r for r in rows if r[0] != "left+right"])
     # one BLAS thread: the fit's small dense solves only contend for two busy cores
     with threadpool_limits(limits=1, user_api="blas"):
-        with_linked = calibrate_chain(world["rig"], GROUPS)
-        without = calibrate_chain(load_rig(bare), GROUPS)
+        with_linked = calibrate(world["rig"], GROUPS)
+        without = calibrate(load_rig(bare), GROUPS)
     assert not load_rig(bare).linked_configs
     np.testing.assert_array_equal(with_linked.ident.free, without.ident.free)
     np.testing.assert_allclose(with_linked.x, without.x, rtol=0, atol=1e-9)

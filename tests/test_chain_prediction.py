@@ -144,16 +144,17 @@ def test_aim_reaches_targets_with_a_planar_arms_pulse_columns():
     as 0.3 us per step stopped 14.6 mm short on a three-arm rig) and lands where the
     eight-parameter fit's closed-form inverse does, the same model fitted the same way to
     within 0.5 us."""
-    from bayesrob.calibration import calibrate, calibrate_chain
+    from bayesrob.calibrate.arms import calibrate_arms
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.rig import default_rig_dir
 
     rig = load_rig(default_rig_dir())
-    cal = calibrate_chain(rig, kin.GROUPS)
+    cal = calibrate(rig, kin.GROUPS)
     targets = rig.config_rows("top+bottom", "test")["target"][:6]
     u = aim_chain(rig, cal.robot, cal.x, "top", targets)
     got = np.asarray(cal.robot.compiled_points("top")(cal.x, u))
     assert np.abs(got - targets).max() < 1e-3
-    closed = np.asarray(calibrate(rig)["top"].arm.command(targets))
+    closed = np.asarray(calibrate_arms(rig)["top"].arm.command(targets))
     assert np.abs(u - closed).max() < 0.5
 
 
@@ -280,19 +281,19 @@ def linked_calibration(tmp_path_factory):
     compliance; a fitted one costs a least-squares fit whose compilation alone takes a minute
     (how well fitted arms predict linked points is a study: ``bayesrob validate
     linked_chain_checks``)."""
-    from bayesrob.calibration import ChainCalibration, _with_gravity
+    from bayesrob.calibrate.least_squares import Calibration, with_gravity
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth, load_true_params
 
     d = simulate_linked_chain_rig(tmp_path_factory.mktemp("linked") / "rig",
                                   LinkedChainTruth(seed=1))
     rig = load_rig(d)
-    robot = _with_gravity(rig)
+    robot = with_gravity(rig)
     true = load_true_params(d)
     x = np.array([true[n] for n in robot.layout.names])
     for arm, k in load_linked_truth(d)["stiffness_nmm_per_rad"].items():
         x[robot.layout.slices[arm, "compliance"]] = 1.0 / np.asarray(k, float)
-    cal = ChainCalibration(robot=robot, x=x, groups=("frames", "offsets", "geometric",
+    cal = Calibration(robot=robot, x=x, groups=("frames", "offsets", "geometric",
                                                      "compliance"),
                            ident=None, se=np.full(x.size, np.nan), errors={}, nfev=0,
                            seconds=0.0)

@@ -247,11 +247,11 @@ def test_regions_and_neighbours_of_a_grid():
 
 def test_base_model_matches_the_calibration(clean_rig_dir):
     """The diagnosis's base fit is the geometric calibration (same data, same model)."""
-    from bayesrob.calibration import calibrate
+    from bayesrob.calibrate.arms import calibrate_arms
 
     rig = load_rig(clean_rig_dir)
     ev = evaluate_arm(ArmData.from_rig(rig, "bottom"), ())
-    cal = calibrate(rig)["bottom"]
+    cal = calibrate_arms(rig)["bottom"]
     # Tolerance: both are least-squares optima of the same residuals; they differ by the
     # solvers' stopping rules, far below a micrometre at the end point.
     assert np.mean(ev.train_errors) == pytest.approx(cal.train_error_mm, abs=1e-4)

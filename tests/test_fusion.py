@@ -19,7 +19,7 @@ from bayesrob.validation.linked_planar import single_arm_copy
 from bayesrob import fusion
 from bayesrob import kinematics as kin
 from bayesrob.assembly import predict_assembly, read_targets
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
 from bayesrob.kde import kde_log_density
 from bayesrob.noise_models import discover_models, fit_noise_models
@@ -39,7 +39,7 @@ def sag_rig(tmp_path_factory):
 
 
 def _fitted(rig, name):
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     spec = [s for s in discover_models() if s.name == name]
     return arms, fit_noise_models(rig, arms, spec)[name]
 
@@ -55,7 +55,7 @@ def test_linearised_equilibrium_matches_the_simulators_energy_minimum(sag_rig):
     prior's centre) stays under 0.15 mm too, and is far closer than the midpoint."""
     rig = load_rig(sag_rig)
     plant = PhysicalRig.from_rig_dir(sag_rig)
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     rows = setup_rows(rig, arms, "top+bottom")
     cmds = rows["commands"]
     free = {a: np.array([plant.end_point({a: u}, noise=False) for u in cmds[a]])
@@ -262,23 +262,23 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monk
 
     The calibrated model the commands are checked under is the one the command fitted, kept
     as it returns (not fitted a second time): the command must have made exactly one
-    calibration, of the default rig with the groups asked and otherwise calibrate_chain's
-    defaults, i.e. the fit ``calibrate_chain(rig, groups)`` computes (it is deterministic)."""
+    calibration, of the default rig with the groups asked and otherwise calibrate's
+    defaults, i.e. the fit ``calibrate(rig, groups)`` computes (it is deterministic)."""
     import inspect
 
-    import bayesrob.calibration
+    import bayesrob.calibrate.least_squares
     import bayesrob.chain_prediction
     from bayesrob.chain_prediction import STIFFNESS_SOURCES
 
-    real, fits = bayesrob.calibration.calibrate_chain, []
+    real, fits = bayesrob.calibrate.least_squares.calibrate, []
 
     def kept(*args, **kwargs):
         fits.append((inspect.signature(real).bind(*args, **kwargs), real(*args, **kwargs)))
         return fits[-1][1]
 
     # wherever the prediction calls it from: the module that defines it, or one that imported it
-    for module in (bayesrob.calibration, bayesrob.chain_prediction):
-        monkeypatch.setattr(module, "calibrate_chain", kept)
+    for module in (bayesrob.calibrate.least_squares, bayesrob.chain_prediction):
+        monkeypatch.setattr(module, "calibrate", kept)
     targets = tmp_path / "t.csv"
     targets.write_text("x,y\n160,240\n200,200\n")
     out, png = tmp_path / "p.json", tmp_path / "p.png"

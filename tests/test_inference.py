@@ -19,7 +19,7 @@ from numpyro.infer.util import log_density
 from scipy.ndimage import maximum_filter
 
 from bayesrob import inference as inf
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
 from bayesrob.kde import ConditionalKDE
 from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
@@ -43,7 +43,7 @@ def rig():
 
 @pytest.fixture(scope="module")
 def arms(rig):
-    return {n: c.arm for n, c in calibrate(rig).items()}
+    return {n: c.arm for n, c in calibrate_arms(rig).items()}
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +190,7 @@ def test_the_grid_zoom_agrees_with_the_paper_grid(small_models, arms, rig):
 def test_linked_program_density_is_the_product_of_likelihoods(handmade_rig_dir):
     """Three linked arms: log_density of the program = the grid's summed log-likelihoods."""
     rig3 = load_rig(handmade_rig_dir)
-    arms3 = {n: c.arm for n, c in calibrate(rig3).items()}
+    arms3 = {n: c.arm for n, c in calibrate_arms(rig3).items()}
     names = ["left", "middle", "right"]
     models = [FIXED["CORR"].fit(*_train(rig3, arms3[a])) for a in names]
     rows = rig3.config_rows("left+middle+right", "test")

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob.calibration import calibrate, calibrate_arm
+from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms
 from bayesrob.cli import main
 from bayesrob.comparison import (
     _elpd_data,
@@ -45,7 +45,7 @@ def test_az_compare_on_exact_pointwise_values_gives_the_textbook_figures():
 
 def test_leave_one_out_drops_exactly_one_training_row():
     rig = load_rig(default_rig_dir())
-    arm = calibrate(rig)["top"].arm
+    arm = calibrate_arms(rig)["top"].arm
     arms = {"top": arm}
     spec = discover_models(names=["corr"])[0]
     model = fit_noise_models(rig, arms, [spec])["corr"]["top"]
@@ -69,7 +69,7 @@ def test_leave_one_out_refits_the_calibration_without_the_row():
     """Row i is scored by an arm calibrated on the other 15 rows, whose joint errors (under
     that arm) the density is refitted to; compare's LOO is this by default."""
     rig = load_rig(default_rig_dir())
-    arm = calibrate(rig)["bottom"].arm
+    arm = calibrate_arms(rig)["bottom"].arm
     spec = discover_models(names=["corr"])[0]
     model = fit_noise_models(rig, {"bottom": arm}, [spec])["corr"]["bottom"]
     u, d = rig.rows("bottom", "train")
@@ -97,7 +97,7 @@ def test_histogram_cond_leave_one_out_keeps_its_bin_margin():
     1e-300 = -690.8) exactly when it lies outside that grid, which is the model's support;
     without the margin every row at the edge of the data fell there."""
     rig = load_rig(default_rig_dir())
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     spec = discover_models(names=["cond_paper"])[0]
     assert spec.bin_widths is None and spec.bin_margin > 0
     fitted = fit_noise_models(rig, arms, [spec])["cond_paper"]

@@ -29,7 +29,7 @@ from bayesrob.validation.model_coverage import holdout_scores
 from bayesrob.validation.model_coverage import levels as pooled_levels
 
 from bayesrob import inference as inf
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.comparison import heldout_scores
 from bayesrob.noise_models import ModelSpec, discover_models, joint_errors
 from bayesrob.rig import default_rig_dir, load_rig
@@ -88,7 +88,7 @@ def test_hdr_levels_of_the_models_own_draws_are_uniform():
     must have uniform HDR levels (KS at 0.01) and nominal coverage (binomial at 0.01).
     400 draws: 25 at each of 16 commands of the default rig's top arm."""
     rig = load_rig(default_rig_dir())
-    arm = calibrate(rig)["top"].arm
+    arm = calibrate_arms(rig)["top"].arm
     u, d = rig.rows("top", "train")
     model = ModelSpec("corr_fixed", "CORR", bandwidth=(0.003, 0.004)).fit(
         joint_errors(arm, u, d), u)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.noise_models import (
     ModelFileError,
     ModelSpec,
@@ -22,7 +22,7 @@ from bayesrob.rig import default_rig_dir, load_rig
 @pytest.fixture(scope="module")
 def default():
     rig = load_rig(default_rig_dir())
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     return rig, arms
 
 

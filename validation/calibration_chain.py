@@ -41,16 +41,16 @@ def true_vector(rig_dir: Path, rig: Rig) -> np.ndarray:
 
 def bayes_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     """One rig's figures of the NUTS posterior against least squares and the truth."""
-    from bayesrob.bayes_calibration import calibrate_chain_bayes
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.bayes import calibrate_bayes
+    from bayesrob.calibrate.least_squares import calibrate
 
     d = simulate_chain_rig(rig_dir, ChainTruth(seed=seed, n_train=30, n_validation=20,
                                                n_holdout=0, origin_sd_mm=0.0,
                                                origin_sd_rad=0.0))
     rig = load_rig(d)
     groups = ("frames", "offsets")
-    post = calibrate_chain_bayes(rig, groups, num_warmup=300, num_samples=400, seed=seed)
-    ls = calibrate_chain(rig, groups)
+    post = calibrate_bayes(rig, groups, num_warmup=300, num_samples=400, seed=seed)
+    ls = calibrate(rig, groups)
     p = post.extra["posterior"]
     free = post.ident.free
     u, _ = rig.rows("arm", "validation")
@@ -101,13 +101,13 @@ def noise_floor(rig: Rig, x_true: np.ndarray, truth: ChainTruth, u: np.ndarray,
 
 
 def compliance_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
 
     truth = ChainTruth(seed=seed, compliance=True)
     d = simulate_chain_rig(rig_dir, truth)
     rig = load_rig(d)
-    geometric = calibrate_chain(rig, ("frames", "geometric"))
-    compliant = calibrate_chain(rig, ("frames", "geometric", "compliance"))
+    geometric = calibrate(rig, ("frames", "geometric"))
+    compliant = calibrate(rig, ("frames", "geometric", "compliance"))
     u, obs = rig.rows("arm", "validation")
     floor = noise_floor(rig, true_vector(d, rig), truth, u, obs)
     doc = compliant.to_json()

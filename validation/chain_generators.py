@@ -223,7 +223,7 @@ def diagnose_chain_case(case: ChainCase) -> dict:
     """Make the case's rig (and its clean twin), diagnose it from its files alone, and say
     what was named and how strong the hidden effects are (the geometric calibration's mean
     validation error over the clean twin's)."""
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.chain_diagnosis import diagnose_chain
     from bayesrob.rig import load_rig
 
@@ -234,7 +234,7 @@ def diagnose_chain_case(case: ChainCase) -> dict:
         twin = base
         if case.effects:
             clean = load_rig(make_chain_rig(replace(case, effects=()), Path(tmp) / "twin"))
-            twin = calibrate_chain(clean, ("frames", "geometric")).errors[
+            twin = calibrate(clean, ("frames", "geometric")).errors[
                 "validation"]["all"]["mean_mm"]
     return {"case": asdict(case), "truth": case.label,
             "named": "+".join(sorted(doc["effects"])) or "none", "order": doc["effects"],

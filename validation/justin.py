@@ -135,9 +135,9 @@ def ladder(rig_dir: Path, steps: Sequence[str] = STEPS,
            say: Callable[[str], None] | None = None, polish: bool = True,
            max_nfev: int = 300) -> list[dict]:
     """One row per step: its fitted parameter count and train / validation marker errors.
-    ``polish`` and ``max_nfev``: as :func:`~bayesrob.calibration.calibrate_chain`'s."""
+    ``polish`` and ``max_nfev``: as :func:`~bayesrob.calibrate.least_squares.calibrate`'s."""
     from bayesrob import kinematics as kin
-    from bayesrob.calibration import calibrate_chain, sag_convergence
+    from bayesrob.calibrate.least_squares import calibrate, sag_convergence
     from bayesrob.rig import load_rig
 
     rig = load_rig(rig_dir)
@@ -145,7 +145,7 @@ def ladder(rig_dir: Path, steps: Sequence[str] = STEPS,
     for i, step in enumerate(steps, 1):
         params, _, n_steps = step.partition(" --sag-steps ")
         groups = tuple(params.split(","))
-        cal = calibrate_chain(rig, groups, sag_steps=int(n_steps or 1), polish=polish,
+        cal = calibrate(rig, groups, sag_steps=int(n_steps or 1), polish=polish,
                               max_nfev=max_nfev)
         extra = cal.extra
         if not polish and set(groups) & set(kin.SAG_GROUPS):
@@ -213,8 +213,8 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     """Per hand: the share of its validation points inside the predicted 50% and 90% regions
     and the predicted / observed mean error (observed: distance from the predicted mean
     point). The other arm's pose is given: its weight bends the torso. ``polish`` and
-    ``max_nfev``: the calibration's, as :func:`~bayesrob.calibration.calibrate_chain`'s."""
-    from bayesrob.calibration import calibrate_chain
+    ``max_nfev``: the calibration's, as :func:`~bayesrob.calibrate.least_squares.calibrate`'s."""
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.chain_prediction import chain_draws, fit_chain_modules, hdr_levels
     from bayesrob.rig import load_rig
 
@@ -222,7 +222,7 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
         (say or (lambda t: print(t, file=sys.stderr)))(text)
 
     rig = load_rig(rig_dir)
-    cal = calibrate_chain(rig, groups, sag_steps=sag_steps, polish=polish, max_nfev=max_nfev)
+    cal = calibrate(rig, groups, sag_steps=sag_steps, polish=polish, max_nfev=max_nfev)
     for n in cal.extra.get("notes", []):  # e.g. the sag not at its equilibrium
         note(f"note: {n}")
     if say:

@@ -75,9 +75,9 @@ def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
     priors of the calibration with the links' masses held at the URDF's (what
     ``fit_chain_modules`` keeps; its joint-error fits do not touch them)."""
     import bayesrob.chain_prediction as cp
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
 
-    cal = calibrate_chain(rig, GROUPS, masses="description")
+    cal = calibrate(rig, GROUPS, masses="description")
     priors = cp.stiffness_priors(rig, list(ARMS), cal)
     errors = {}
     for a in ARMS:

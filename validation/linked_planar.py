@@ -56,12 +56,12 @@ def single_arm_copy(rig_dir: Path, out: Path) -> Path:
 
 def fit_model(rig_dir: Path, model: str) -> tuple[Any, dict, dict]:
     """The rig, its arms calibrated on their train rows, and ``model`` fitted to each arm."""
-    from bayesrob.calibration import calibrate
+    from bayesrob.calibrate.arms import calibrate_arms
     from bayesrob.noise_models import discover_models, fit_noise_models
     from bayesrob.rig import load_rig
 
     rig = load_rig(rig_dir)
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     spec = [s for s in discover_models() if s.name == model]
     return rig, arms, fit_noise_models(rig, arms, spec)[model]
 

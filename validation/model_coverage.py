@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob.calibration import calibrate, predicted_points
+from bayesrob.calibrate.arms import calibrate_arms, predicted_points
 from bayesrob.comparison import PointScores, heldout_scores, score_points
 from bayesrob.noise_models import discover_models, fit_noise_models
 from bayesrob.rig import Rig, load_rig
@@ -30,7 +30,7 @@ def holdout_scores(rig: Rig, specs) -> dict[str, dict[str, PointScores]]:
     """Scores {model: {config: scores}} of every config's holdout rows, models fitted on the
     train rows as for the held-out scores; each row's prediction is centred where the
     calibrated model says it lands (f(g(u)) for one arm, the aimed-at target when linked)."""
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     configs = [c for c in rig.configs if rig.measurements.mask(c, "holdout").any()]
     out: dict[str, dict[str, PointScores]] = {}
     for spec in specs:

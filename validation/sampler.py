@@ -26,7 +26,7 @@ import numpy as np
 
 from bayesrob import inference as inf
 from bayesrob import release_compiled_programs
-from bayesrob.calibration import calibrate
+from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.kinematics import Arm
 from bayesrob.noise_models import discover_models, joint_errors
 from bayesrob.rig import Rig, default_rig_dir, load_rig
@@ -88,7 +88,7 @@ def check_model(rig: Rig, arms: dict[str, Arm], name: str, target_index: Sequenc
 
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     rig = load_rig(default_rig_dir())
-    arms = {n: c.arm for n, c in calibrate(rig).items()}
+    arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
     names = QUICK_MODELS if quick else tuple(s.name for s in discover_models())
     n_targets = len(rig.config_rows("top+bottom", "test")["target"])
     target_index = QUICK_TARGETS if quick else tuple(range(n_targets))

@@ -15,7 +15,7 @@ calibrated). What the search asks of a module is the same for every robot:
   as a rig directory.
 
 The calibration and joint-error model below the designer are still two (the paper's planar
-arms: :func:`bayesrob.calibration.calibrate` and a density of the joint errors read off the
+arms: :func:`bayesrob.calibrate.arms.calibrate_arms` and a density of the joint errors read off the
 rows, :class:`DensityModule`; URDF/DH arms: calibration groups and the latent population,
 :class:`PopulationModule`); :func:`load_modules` is the one place that picks, by what the rig
 is, and a design places one kind.
@@ -145,7 +145,7 @@ class DensityModule:
     @classmethod
     def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
              by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, DensityModule]:
-        from bayesrob.calibration import calibrate, parameter_covariance
+        from bayesrob.calibrate.arms import arm_covariance, calibrate_arms
         from bayesrob.noise_models import (
             ModelFileError,
             discover_models,
@@ -172,7 +172,7 @@ class DensityModule:
                 if m.arm not in rig.arms:
                     raise _fail(design, m, f"unknown module arm {m.arm!r} in {rig_dir} "
                                 f"(arms: {', '.join(rig.arms)})")
-            cal = calibrate(rig)
+            cal = calibrate_arms(rig)
             truth = (Truth.from_toml(rig_dir / TRUTH_FILE) if (rig_dir / TRUTH_FILE).is_file()
                      else None)
             for m in mods:
@@ -201,7 +201,7 @@ class DensityModule:
                 cspec = ArmSpec(m.name, *(tuple(float(v) for v in np.asarray(x))
                                           for x in (p.base, p.links, p.gain, p.offset)),
                                 orig.elbow, orig.pulse_limits, orig.stiffness)
-                cov = parameter_covariance(np.asarray(arm.params.to_vector()), u, d)
+                cov = arm_covariance(np.asarray(arm.params.to_vector()), u, d)
                 out[m.name] = cls(m.name, arm, fitted, cspec, tuple(rig.gravity),
                                   cov + COV_JITTER * np.diag(np.diag(cov)), truth, removed)
         return out
@@ -405,7 +405,7 @@ class PopulationModule:
              ) -> dict[str, PopulationModule]:
         """Calibrate each rig once (the groups its modules name) and fit each module's
         joint-error population on its own train rows."""
-        from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
+        from bayesrob.calibrate.least_squares import calibrate, parameter_covariance
         from bayesrob.chain_prediction import _stiffness_prior
         from bayesrob.latent_errors import check_latent_model, fit_latent_errors
 
@@ -439,11 +439,11 @@ class PopulationModule:
                     raise _fail(design, m, f"{rig_dir} measures {rig.robot.dim}-D points but "
                                 f"the mounts and the task are {design.dim}-D")
             try:
-                cal = calibrate_chain(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
+                cal = calibrate(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
             except ValueError as e:
                 raise DesignError(f"{design.path}: {rig_dir}: {e}") from None
             n_free = int(cal.ident.free.sum())
-            cov = chain_parameter_covariance(rig, cal)
+            cov = parameter_covariance(rig, cal)
             for i, m in enumerate(specs):
                 errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
                                            seed=design.seed + i)
@@ -478,7 +478,7 @@ class PopulationModule:
         simulator to fill."""
         import csv
 
-        from bayesrob.calibration import chain_arm_table
+        from bayesrob.calibrate.least_squares import arm_table
         from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, dump_toml
 
         names = candidate["arms"]
@@ -492,7 +492,7 @@ class PopulationModule:
                               calibrated.sag_steps)
             urdf = out / f"{a}.urdf"
             kin.write_urdf(alone, alone.layout.nominal, urdf, name=a)
-            table = chain_arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],
+            table = arm_table(chain, urdf.name, kin.urdf.generated_arm_keys(alone)[m.arm],
                                     measured=True)
             pose = np.asarray(table["instrument"], float)
             pose[: m.dim] = np.asarray(b, float)

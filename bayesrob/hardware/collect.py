@@ -236,7 +236,7 @@ def arm_models(specs: dict[str, ArmSpec], rows: Sequence[RecordedRow],
     Only train rows recorded before the first linked row count, so a resumed run plans the
     linked rows exactly as the interrupted one did.
     """
-    from bayesrob.calibration import calibrate_arm
+    from bayesrob.calibrate.arms import calibrate_arm
     from bayesrob.kinematics import Arm
 
     first_test = next((i for i, r in enumerate(rows) if "+" in r.config), len(rows))

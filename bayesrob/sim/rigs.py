@@ -115,7 +115,7 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
     calibrated models. Their noise comes from a stream of its own, so the rows before them
     are those a run without holdout rows (``holdout=False``) writes, byte for byte.
     """
-    from bayesrob.calibration import calibrate_arm  # calibration needs rig types only
+    from bayesrob.calibrate.arms import calibrate_arm  # calibration needs rig types only
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -369,7 +369,7 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
                     rng: np.random.Generator) -> tuple:
     """The linked rows of the rig in ``out`` (single-arm rows written): targets (L, 3),
     commands and spring set points per arm (L, 6), and the true equilibrium."""
-    from bayesrob.calibration import calibrate_chain
+    from bayesrob.calibrate.least_squares import calibrate
 
     rig = load_rig(out)
     # The rig's robot is the simulator's (same URDF, names and layout): one compiled program
@@ -378,7 +378,7 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
         raise RuntimeError("the written rig does not read back as the simulated robot")
     # The commands come from what a user would have: each arm's model calibrated on its own
     # train rows, not the truth.
-    cal = calibrate_chain(rig, tuple(truth.calibration_groups))
+    cal = calibrate(rig, tuple(truth.calibration_groups))
     box = np.asarray(truth.target_box_mm, float)
     targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
     commands = {}

@@ -1,4 +1,9 @@
-"""Bayesian calibration: a posterior over each arm's eight parameters, and its use in prediction.
+"""Bayesian calibration (numpyro NUTS): a posterior over the parameters the least squares fits.
+
+Any robot (:func:`calibrate_bayes`, ``calibrate --params ... --method bayes``): the parameter
+groups' identifiable columns, sampled in the coordinates the least-squares fit and its
+covariance whiten. The paper's planar arms (``calibrate --method bayes``): each arm's eight
+parameters under the priors of :class:`Priors`, below.
 
 The model of one arm (rows i = 1..N of its ``train`` set, pulses u_i, observed end points d_i):
 
@@ -27,7 +32,7 @@ across arms, chains and data sets, which keeps an arm's fit to about a second on
 and makes simulation-based calibration (:func:`sbc`) affordable.
 
 From the posterior:
-- :func:`calibrate_arm_bayes` gives an :class:`~bayesrob.calibration.ArmCalibration` like the
+- :func:`calibrate_arm_bayes` gives an :class:`~bayesrob.calibrate.arms.ArmCalibration` like the
   point-estimate methods (params = posterior mean, params_se = posterior sd, the errors of the
   posterior-mean prediction) plus a ``posterior`` block: R-hat, bulk ESS, the noise level and the
   posterior predictive coverage of the validation end points.
@@ -51,7 +56,22 @@ import numpy as np
 import scipy.stats
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import ArmCalibration, calibrate_arm, mean_ci95
+from bayesrob.calibrate.arms import (
+    ArmCalibration,
+    calibrate_arm,
+    calibrate_arms,
+    mean_ci95,
+    observed_errors,
+    predicted_points,
+)
+from bayesrob.calibrate.least_squares import (
+    Calibration,
+    calibrate,
+    marker_errors,
+    parameter_covariance,
+    residual_function,
+    set_rows,
+)
 from bayesrob.rig import ArmSpec, Rig
 
 N_PARAMS = len(kin.PARAM_NAMES)
@@ -360,16 +380,12 @@ def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
     )
 
 
-def calibrate_bayes(rig: Rig, priors: Priors = Priors(),
-                    settings: SamplerSettings = SamplerSettings(), seed: int = 0
-                    ) -> dict[str, BayesArmCalibration]:
+def calibrate_arms_bayes(rig: Rig, priors: Priors = Priors(),
+                         settings: SamplerSettings = SamplerSettings(), seed: int = 0
+                         ) -> dict[str, BayesArmCalibration]:
     """Bayesian calibration of every arm of a rig on its ``train`` rows."""
-    out = {}
-    for name, spec in rig.arms.items():
-        u, d = rig.rows(name, "train")
-        uv, dv = rig.rows(name, "validation")
-        out[name] = calibrate_arm_bayes(spec, u, d, uv, dv, priors, settings, seed)
-    return out
+    return calibrate_arms(rig, fit_arm=lambda spec, u, d, uv, dv: calibrate_arm_bayes(
+        spec, u, d, uv, dv, priors, settings, seed))
 
 
 # ----------------------------------------------------------------------------- prediction
@@ -441,7 +457,6 @@ def predicted_accuracy_document(rig: Rig, cal: dict[str, BayesArmCalibration],
                                 seed: int = 0) -> dict:
     """Observed vs predicted mean error of every setup (single arms on validation rows,
     linked arms on test rows), in the shape of ``accuracy.json``'s ``setups``."""
-    from bayesrob.calibration import observed_errors, predicted_points
     from bayesrob.prediction import setup_set, setups
 
     arms = {n: c.arm for n, c in cal.items()}
@@ -551,11 +566,11 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
                      time.perf_counter() - t0)
 
 
-# ----------------------------------------------------------------------------- any chain
+# ----------------------------------------------------------------------------- any robot
 
 
 @dataclass(frozen=True)
-class ChainPriors:
+class GroupPriors:
     """Prior sd of each calibration group around the rig's nominal values (mm, rad)."""
 
     instrument_mm: float = 200.0  # a rough placement of the robot in the measuring frame
@@ -589,31 +604,24 @@ class ChainPriors:
         return out
 
 
-def calibrate_chain_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
-                          priors: ChainPriors = ChainPriors(), num_warmup: int = 400,
-                          num_samples: int = 500, num_chains: int = 2, seed: int = 0,
-                          progress=None):
+def calibrate_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
+                    priors: GroupPriors = GroupPriors(), num_warmup: int = 400,
+                    num_samples: int = 500, num_chains: int = 2, seed: int = 0,
+                    progress=None) -> Calibration:
     """NUTS posterior of a chain rig's identifiable parameters (and the noise sd).
 
-    The model: x_free ~ Normal(nominal, ChainPriors), noise_sd ~ HalfNormal, every measured
+    The model: x_free ~ Normal(nominal, GroupPriors), noise_sd ~ HalfNormal, every measured
     coordinate ~ Normal(marker point, noise_sd); parameters the rank analysis fixes stay at
     nominal. NUTS runs in coordinates whitened by the least-squares fit (x = x_ls + L z, L the
     Cholesky factor of its covariance): there the posterior is close to a standard normal, so
     the trajectories are short however correlated the ~100 parameters are. Returns a
-    :class:`~bayesrob.calibration.ChainCalibration` whose x is the posterior mean and se the
+    :class:`~bayesrob.calibrate.least_squares.Calibration` whose x is the posterior mean and se the
     posterior sd, with R-hat, bulk ESS and the noise level from arviz.
     """
     import arviz as az
     import numpyro
     import numpyro.distributions as dist
     from numpyro.infer import MCMC, NUTS, init_to_value
-
-    from bayesrob.calibration import (
-        ChainCalibration,
-        _residual_function,
-        calibrate_chain,
-        chain_errors,
-    )
 
     sags = [g for g in groups if g in kin.SAG_GROUPS]
     if sags:
@@ -623,13 +631,12 @@ def calibrate_chain_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
         raise ValueError(f"--method bayes does not sample {', '.join(sags)} (joints giving "
                          "way under gravity); calibrate them with --method least-squares")
     t0 = time.perf_counter()
-    ls = calibrate_chain(rig, groups, progress=progress)
+    ls = calibrate(rig, groups, progress=progress)
     robot, free = ls.robot, ls.ident.free
-    full_res, full_jac, *_ = _residual_function(rig, robot, "train")
-    jac = np.asarray(full_jac(jnp.asarray(ls.x)))[:, free]
+    full_res, *_ = residual_function(robot, set_rows(rig, robot, "train"))
     r = np.asarray(full_res(jnp.asarray(ls.x)))
     s2 = float(r @ r) / max(r.size - int(free.sum()), 1)
-    chol = np.linalg.cholesky(s2 * np.linalg.inv(jac.T @ jac))
+    chol = np.linalg.cholesky(parameter_covariance(rig, ls)[np.ix_(free, free)])
     idx = jnp.asarray(np.flatnonzero(free))
     x_ls = jnp.asarray(ls.x)
     nominal = jnp.asarray(robot.layout.nominal[free])
@@ -669,6 +676,6 @@ def calibrate_chain_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
             "all", {}).get("mean_mm")}}
     full = np.repeat(ls.x[None], draws.shape[0], axis=0)
     full[:, free] = draws
-    return ChainCalibration(robot, x, ls.groups, ls.ident, se, chain_errors(rig, robot, x),
-                            ls.nfev, time.perf_counter() - t0, method="bayes", extra=extra,
-                            draws=full)
+    return Calibration(robot, x, ls.groups, ls.ident, se, marker_errors(rig, robot, x),
+                       ls.nfev, time.perf_counter() - t0, method="bayes", extra=extra,
+                       draws=full)
