@@ -3,11 +3,11 @@
 A chain module is a root arm of a chain rig (its path is one chain, no torso under it),
 calibrated on the rig's single-arm ``train`` rows with the calibration groups its design entry
 names, with its joint-error population fitted as ``bayesrob predict`` does
-(:mod:`bayesrob.chain_prediction`). Mounting it moves its robot base (the root's instrument
+(:mod:`bayesrob.predict.draws`). Mounting it moves its robot base (the root's instrument
 position) to the mount point and keeps its orientation, so gravity acts on it as it did while
 it was calibrated. A world target t is then the point t - mount + base of the module's own
 frame: it is aimed (position-only inverse kinematics from its nearest train pose, as
-``chain_prediction.aim_chain`` aims) and drawn there, and the draws are moved back.
+``predict.aiming.aim`` aims) and drawn there, and the draws are moved back.
 
 A candidate's draws are builds, as in the plane: each carries one set of calibration errors
 (the rig's parameter covariance; modules of one rig share a set) and one set of joint
@@ -16,7 +16,7 @@ their fitted sags as ``bayesrob predict`` centres them), the same at every targe
 A placement's free-point draws do not depend on the other arms of the candidate, so each
 worker draws them once per (module, mount) and every candidate that uses the placement reuses
 them (common random numbers also make the ranking less noisy); linked arms then balance
-(:func:`bayesrob.chain_prediction.chain_equilibrium`, with the tracker's noise put back).
+(:func:`bayesrob.predict.draws.equilibrium`, with the tracker's noise put back).
 """
 
 from __future__ import annotations
@@ -31,18 +31,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.aiming import aim_chain
-from bayesrob.chain_prediction import (
-    ChainModules,
-    StiffnessPrior,
-    chain_equilibrium,
-    free_draws,
-    parameter_draws,
-    sag_scaled_priors,
-    stiffness_draws,
-)
 from bayesrob.design_file import DesignError, DesignSpec, ModuleSpec
 from bayesrob.latent_errors import joint_jacobian
+from bayesrob.predict.aiming import aim
+from bayesrob.predict.draws import CalibratedModules, free_draws, parameter_draws
+from bayesrob.predict.fusion import equilibrium
+from bayesrob.predict.stiffness import StiffnessPrior, sag_scaled_priors, stiffness_draws
 from bayesrob.rig import Rig, RigError
 
 __all__ = ["ChainModule", "load_chain_modules", "chain_reach_table", "linked_priors",
@@ -56,7 +50,7 @@ class ChainModule:
     name: str
     arm: str  # the arm of its rig
     rig: Rig  # its rig: the train poses aiming starts from
-    mods: ChainModules  # its rig's calibration and this module's joint-error population
+    mods: CalibratedModules  # its rig's calibration and this module's joint-error population
     base: np.ndarray  # (dim,) its robot base in its rig's instrument frame (calibrated)
     rig_index: int  # modules of one rig share its calibration errors in every draw
     model: str
@@ -75,8 +69,8 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
     """Calibrate each chain rig once (the groups its modules name) and fit each module's
     joint-error population on its own train rows (``by_rig``: the modules of each rig)."""
     from bayesrob.calibration import calibrate_chain, chain_parameter_covariance
-    from bayesrob.chain_prediction import _stiffness_prior
     from bayesrob.latent_errors import check_latent_model, fit_latent_errors
+    from bayesrob.predict.stiffness import stiffness_prior
 
     out: dict[str, ChainModule] = {}
     for index, (rig_dir, specs) in enumerate(by_rig.items()):
@@ -113,8 +107,8 @@ def load_chain_modules(design: DesignSpec, rigs: dict[Path, Rig],
         for i, m in enumerate(specs):
             errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
                                        seed=design.seed + i)
-            mods = ChainModules(cal, {m.arm: errors}, {m.arm: _stiffness_prior(rig, m.arm, cal)},
-                                cov)
+            mods = CalibratedModules(cal, {m.arm: errors},
+                                     {m.arm: stiffness_prior(rig, m.arm, cal)}, cov)
             base = np.asarray(cal.robot.instrument_pose(jnp.asarray(cal.x), m.arm))[:3, 3]
             out[m.name] = ChainModule(m.name, m.arm, rig, mods, base[: rig.robot.dim],
                                       index, m.model)
@@ -129,7 +123,7 @@ def chain_reach_table(modules: dict[str, ChainModule], mounts: np.ndarray, targe
     for name, m in modules.items():
         for j, mount in enumerate(mounts):
             try:
-                out[name, j] = aim_chain(m.rig, m.mods.robot, m.mods.x, m.arm,
+                out[name, j] = aim(m.rig, m.mods.robot, m.mods.x, m.arm,
                                          m.local(targets, mount))
             except RigError:
                 continue
@@ -172,7 +166,7 @@ def linked_priors(modules: Sequence[ChainModule]) -> list[StiffnessPrior]:
     """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
     one rig: where the modules are distinct arms of one rig and each took the prior, their arm
     terms are centred on their fitted sags
-    (:func:`bayesrob.chain_prediction.sag_scaled_priors`); else each module's own. Modules
+    (:func:`bayesrob.predict.draws.sag_scaled_priors`); else each module's own. Modules
     of different rigs keep their own, as their sags come from different calibrations. Like
     ``predict``, it takes arms with paths of equal joint counts to be of one model (alike
     first moments): that is what lets a sag stand for a stiffness."""
@@ -201,7 +195,7 @@ def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
 def chain_stiffness_record(job: Any, names: Sequence[str]) -> list[dict[str, Any]]:
     """What a linked candidate's balance drew each module's joint stiffnesses from, in
     ``names``' order, for ``design.json``: the record ``predict``'s JSON gives per arm
-    (:meth:`chain_prediction.StiffnessPrior.record`)."""
+    (:meth:`predict.stiffness.StiffnessPrior.record`)."""
     return [p.record() for p in _candidate_priors(job, names)]
 
 
@@ -226,7 +220,7 @@ def chain_candidate_draws(job: Any, arms: Sequence[str], mounts: Sequence[int],
     parts = [_placement(job, a, j) for a, j in zip(arms, mounts, strict=True)]
     if len(parts) == 1:
         return parts[0][0]
-    d = chain_equilibrium([p[0] for p in parts], [p[1] for p in parts],
+    d = equilibrium([p[0] for p in parts], [p[1] for p in parts],
                           _log_stiffness(job, arms),
                           tracker_noise_mm=job.tracker_noise_mm,
                           key=jax.random.fold_in(jax.random.PRNGKey(job.seed + 1), index))

@@ -3,7 +3,7 @@ linked how, reach a required accuracy over a task region.
 
 A design file (TOML) names the inventory and the task::
 
-    fusion = "equilibrium"          # how linked arms share their end point (bayesrob.fusion)
+    fusion = "equilibrium"          # how linked arms share their end point (predict.fusion)
     seed = 0
     tracker_noise_mm = 0.35         # the tracker's noise, sd per axis (default 0: not known)
 
@@ -96,9 +96,9 @@ from bayesrob.design_file import (
     ModuleSpec,
     load_design,
 )
-from bayesrob.fusion import equilibrium_program, fused_posterior
 from bayesrob.inference import error_arrays, error_kind, is_sampleable
 from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.predict.fusion import equilibrium_program, fused_posterior
 from bayesrob.rig import ArmSpec, RigError
 
 if TYPE_CHECKING:

@@ -26,7 +26,7 @@ regions and predicted / observed mean error. ``tuning`` (seeds TUNING_SEEDS) wit
 centre and sd) and ``--sag-variants`` those of SAG_VARIANTS; ``report``
 (seeds REPORT_SEEDS, fixed before any run) runs the chosen prior once. With ``--masses
 description`` the arms are calibrated with their link masses held at the URDF's, their
-stiffnesses read from the fitted compliances (``chain_prediction._stiffness_prior``), each
+stiffnesses read from the fitted compliances (``predict.stiffness.stiffness_prior``), each
 simulated arm's true masses drawn ``--mass-spread`` (log sd) about the URDF's; its report rigs
 are DESCRIPTION_REPORT_SEEDS.
 
@@ -38,7 +38,7 @@ far noisier than the binomial range the targets assume (docs/fusion.md). With ``
 tuning`` it runs the twelve tuning rigs MANY_TUNING_SEEDS; ``--rechosen`` reports the prior
 chosen on them (and on TUNING_SEEDS) on MANY_RECHOSEN_REPORT_SEEDS, and ``--sag-report``
 the prior whose arm term is centred on the arms' fitted sags
-(``chain_prediction.sag_scaled_priors``) on MANY_SAG_REPORT_SEEDS.
+(``predict.stiffness.sag_scaled_priors``) on MANY_SAG_REPORT_SEEDS.
 
 ``--three-arms`` runs the same study on three arms joined at one point (left and right as
 above, and a third, front, facing the targets from the side:
@@ -167,9 +167,10 @@ def main() -> None:
                                   MANY_LINKED if args.many_rigs else None)))
         return
 
-    from bayesrob.assembly import predict_assembly
-    from bayesrob.chain_prediction import fit_chain_modules, hdr_sizes, predict_chain_points
     from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.predict.assembly import predict_assembly
+    from bayesrob.predict.draws import fit_modules, predict_points
+    from bayesrob.predict.regions import hdr_sizes
     from bayesrob.rig import load_rig
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -184,10 +185,10 @@ def main() -> None:
             if k:
                 whole.append(t1 - t0)
                 single.append(time.perf_counter() - t1)
-        mods = fit_chain_modules(rig, ["left", "right"])
+        mods = fit_modules(rig, ["left", "right"])
         for k in range(args.repeats + 1):
             t0 = time.perf_counter()
-            _, draws = predict_chain_points(mods, rig, ["left", "right"], targets,
+            _, draws = predict_points(mods, rig, ["left", "right"], targets,
                                                "equilibrium", seed=k)
             hdr_sizes(draws)
             if k:

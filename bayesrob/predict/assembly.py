@@ -4,12 +4,12 @@ An assembly is one arm or several arms linked at their end point (``top+bottom+s
 the modules' single-arm ``train`` rows are used: each arm is calibrated on them and its
 joint-error model fitted to them, each arm is aimed at every target through its calibrated
 inverse model, and the linked end point is predicted by a fusion rule
-(:mod:`bayesrob.fusion`). A rig without any linked row works: that is the point.
+(:mod:`bayesrob.predict.fusion`). A rig without any linked row works: that is the point.
 
 Per target: the expected end point, the expected distance from the target, and the areas of
 the 50% / 90% highest-density regions (volumes in 3-D).
 
-Chain rigs (URDF / DH arms, 2-D or 3-D) go through :mod:`bayesrob.chain_prediction`: their
+Chain rigs (URDF / DH arms, 2-D or 3-D) go through :mod:`bayesrob.predict.draws`: their
 joint-error models are the latent-variable populations of :mod:`bayesrob.latent_errors`
 (``ind`` or ``corr``), and the prediction is a set of draws rather than a grid.
 """
@@ -26,13 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.aiming import check_reach
 from bayesrob.calibration import calibrate
-from bayesrob.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
 from bayesrob.inference import GridPosterior
 from bayesrob.latent_errors import LATENT_MODELS
 from bayesrob.noise_models import discover_models, fit_noise_models
-from bayesrob.prediction import hdr_area
+from bayesrob.predict.aiming import check_reach
+from bayesrob.predict.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
+from bayesrob.predict.grid import hdr_area
 from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
@@ -300,27 +300,23 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
                    fusion: str, seed: int, t0: float, groups: tuple[str, ...],
                    masses: str = "fitted") -> AssemblyPrediction:
-    from bayesrob.aiming import aim_chain
     from bayesrob.calibration import calibrate_chain
-    from bayesrob.chain_prediction import (
-        chain_draws,
-        check_module_arms,
-        fit_chain_modules,
-        hdr_sizes,
-    )
+    from bayesrob.predict.aiming import aim
+    from bayesrob.predict.draws import assembly_draws, check_module_arms, fit_modules
+    from bayesrob.predict.regions import hdr_sizes
 
     try:
         check_module_arms(rig, members, model)
         cal = calibrate_chain(rig, groups, masses=masses)
         # aimed before the joint-error fits, which take most of the time: a target out of
         # reach or off the servos' range is refused after the calibration alone
-        commands = {a: aim_chain(rig, cal.robot, cal.x, a, targets) for a in members}
-        mods = fit_chain_modules(rig, members, model, groups, seed=seed, calibration=cal)
+        commands = {a: aim(rig, cal.robot, cal.x, a, targets) for a in members}
+        mods = fit_modules(rig, members, model, groups, seed=seed, calibration=cal)
     except RigError:
         raise
     except ValueError as e:
         raise RigError(f"{rig.path}: {e}") from None
-    draws = chain_draws(mods, members, [commands[a] for a in members], fusion, DRAWS, seed)
+    draws = assembly_draws(mods, members, [commands[a] for a in members], fusion, DRAWS, seed)
     sizes = hdr_sizes(draws)
     pred = AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
@@ -339,7 +335,7 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     every chain of the robot weighs its links (what ``masses="description"`` needs): how to
     read them from those masses instead, each joint's own stiffness where the prior gives
     only a profile."""
-    from bayesrob.chain_prediction import STIFFNESS_SOURCES
+    from bayesrob.predict.stiffness import STIFFNESS_SOURCES
 
     guessed = [a for a, src in sources.items() if src in STIFFNESS_SOURCES[2:]]
     if not guessed or not all(c.weighed for c in robot.chains.values()):
@@ -407,7 +403,7 @@ def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
     accurate target's draws in and out of its 50% / 90% regions, on the same planes."""
     import matplotlib.pyplot as plt
 
-    from bayesrob.chain_prediction import hdr_levels
+    from bayesrob.predict.regions import hdr_levels
 
     t = pred.targets
     planes = [(0, 1), (0, 2)] if t.shape[1] == 3 else [(0, 1)]
