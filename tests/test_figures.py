@@ -289,7 +289,7 @@ def _fake_3d_prediction(config: str = "left+right"):
         pose[:3, 3] = bases[arm]
         return pose
 
-    rig = SimpleNamespace(is_chain=True, robot=SimpleNamespace(
+    rig = SimpleNamespace(arms={a: SimpleNamespace() for a in bases}, robot=SimpleNamespace(
         layout=SimpleNamespace(nominal=None), instrument_pose=instrument_pose))
     return pred, rig
 
@@ -301,7 +301,6 @@ def test_the_3d_predict_figure_shows_the_targets_in_views_of_equal_scale(config)
     from bayesrob.predict.assembly import assembly_figure
 
     pred, rig = _fake_3d_prediction(config)
-    pred.posterior = None
     fig = assembly_figure(pred, rig)
     try:
         assert _clipped_texts(fig) == []

@@ -21,8 +21,9 @@ The draws' density and regions: :mod:`.regions`.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -32,19 +33,26 @@ import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
 from bayesrob import kinematics as kin
-from bayesrob.calibration import ChainCalibration, calibrate_chain, chain_parameter_covariance
+from bayesrob.calibration import (
+    ChainCalibration,
+    calibrate,
+    calibrate_chain,
+    chain_parameter_covariance,
+)
 from bayesrob.latent_errors import (
     LatentJointErrors,
     check_latent_model,
     fit_latent_errors,
     joint_jacobian,
 )
-from bayesrob.predict.aiming import aim
-from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium
+from bayesrob.noise_models import FittedNoiseModel, discover_models, fit_noise_models
+from bayesrob.predict.aiming import aim, check_reach
+from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium, fused_draws
 from bayesrob.predict.stiffness import StiffnessPrior, stiffness_draws, stiffness_priors
 from bayesrob.rig import Rig, RigError
 
-__all__ = ["CalibratedModules", "fit_modules", "check_module_arms", "assembly_draws",
+__all__ = ["CalibratedModules", "PaperModules", "fit_modules", "fit_paper_modules",
+           "check_module_arms", "assembly_draws",
            "free_draws", "parameter_draws", "product_draws_nuts", "predict_points"]
 
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
@@ -64,6 +72,8 @@ class CalibratedModules:
     stiffness: dict[str, StiffnessPrior]
     # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
     param_cov: np.ndarray | None
+    # arm -> (T, c): the columns aiming it at the targets it was fitted for, if any
+    commands: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def robot(self) -> kin.Robot:
@@ -72,6 +82,55 @@ class CalibratedModules:
     @property
     def x(self) -> np.ndarray:
         return self.calibration.x
+
+    def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
+              fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
+        """:func:`assembly_draws` (S, T, dim) of ``arms`` at ``commands``."""
+        return assembly_draws(self, arms, commands, fusion, num_samples, seed)
+
+
+@dataclass
+class PaperModules:
+    """The paper's planar arms: each calibrated by its eight parameters, with a kernel
+    joint-error model of :mod:`bayesrob.noise_models` (the paper's or an improved one)."""
+
+    arms: dict[str, kin.Arm]
+    fitted: dict[str, FittedNoiseModel]
+    # per arm: its joint stiffnesses (N mm / rad) from the rig, or None (the prior)
+    stiffness: list[np.ndarray | None]
+    commands: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
+              fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
+        """:func:`bayesrob.predict.fusion.fused_draws` (S, T, 2) of ``arms`` at ``commands``."""
+        given = [self.stiffness[list(self.arms).index(a)] for a in arms]
+        return fused_draws([self.fitted[a] for a in arms], [self.arms[a] for a in arms],
+                           commands, targets, fusion,
+                           given if any(k is not None for k in given) else None, seed,
+                           num_samples)
+
+
+def fit_paper_modules(rig: Rig, arms: Sequence[str], model: str, models_dir: Any = None,
+                      targets: np.ndarray | None = None) -> PaperModules:
+    """Calibrate the rig's planar arms (eight parameters each), aim ``arms`` at ``targets``
+    (pulses from the closed-form inverse; a target out of reach or off the servos' range is
+    refused in one line before the joint-error models are fitted) and fit ``model`` to each."""
+    spec = discover_models(models_dir, [model])
+    cal = calibrate(rig)
+    fitted_arms = {a: cal[a].arm for a in arms}
+    commands = {} if targets is None else {a: _aim_arm(fitted_arms[a], targets) for a in arms}
+    fitted = fit_noise_models(rig, fitted_arms, spec)[model]
+    return PaperModules(fitted_arms, {a: fitted[a] for a in arms},
+                        [rig.arms[a].stiffness for a in arms], commands)
+
+
+def _aim_arm(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
+    """Pulses aiming the calibrated planar arm at each target, from its closed-form inverse
+    (the specialisation of :func:`aim`); refuses targets it cannot be aimed at."""
+    u = np.asarray(arm.command(jnp.asarray(targets)))
+    for t, ut in zip(targets, u, strict=True):
+        check_reach(arm, t, ut)
+    return u
 
 
 def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
@@ -89,10 +148,10 @@ def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
 
 
 def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
-                      groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
-                      calibration: ChainCalibration | None = None,
-                      parameter_uncertainty: bool = False,
-                      masses: str = "fitted", sag_steps: int = 1) -> CalibratedModules:
+                groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
+                calibration: ChainCalibration | None = None,
+                parameter_uncertainty: bool = False, masses: str = "fitted",
+                sag_steps: int = 1, targets: np.ndarray | None = None) -> CalibratedModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
 
     ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
@@ -103,17 +162,21 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     made here (a ``calibration`` given carries its own); with the description's masses and a
     compliance group, the arms' stiffnesses come from the fitted compliances instead of the
     prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
-    use the calibration's robot, so its sag model too).
+    use the calibration's robot, so its sag model too). ``targets``: aim ``arms`` at them
+    (:func:`aim`, kept in ``commands``) before the joint-error fits, which take most of the
+    time, so a target out of reach is refused after the calibration alone.
     """
     check_module_arms(rig, arms, model)  # before the calibration, which takes the time
     cal = (calibration if calibration is not None
            else calibrate_chain(rig, groups, masses=masses, sag_steps=sag_steps))
+    commands = ({} if targets is None
+                else {a: aim(rig, cal.robot, cal.x, a, targets) for a in arms})
     n_free = int(cal.ident.free.sum())
     errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
               for i, a in enumerate(arms)}
     stiffness = stiffness_priors(rig, arms, cal)
     cov = chain_parameter_covariance(rig, cal) if parameter_uncertainty else None
-    return CalibratedModules(cal, errors, stiffness, cov)
+    return CalibratedModules(cal, errors, stiffness, cov, commands)
 
 
 def parameter_draws(mods: CalibratedModules, key: jax.Array, n: int) -> jax.Array:

@@ -74,6 +74,7 @@ __all__ = [
     "equilibrium_program",
     "equilibrium_draws",
     "draws_posterior",
+    "fused_draws",
     "fused_posterior",
 ]
 
@@ -299,6 +300,20 @@ def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> Gri
     cov = np.einsum("sti,stj->tij", dev, dev) / (draws.shape[0] - 1) + h
     return GridPosterior(targets, lo, cell, n, prob, mean, cov, np.zeros(len(targets)),
                          outside, COARSE_GRID, time.perf_counter() - t0)
+
+
+def fused_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                commands: Sequence[np.ndarray], targets: np.ndarray,
+                fusion: str = DEFAULT_FUSION, stiffness: Sequence[Any] | None = None,
+                seed: int = 0, num_samples: int = DRAWS) -> np.ndarray:
+    """Draws (S, T, 2) of the end point of one planar arm or of linked ones, fused by
+    ``fusion``: the equilibrium's forward draws, or those of the product's exact grid (one
+    arm is its own prediction whichever the rule)."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
+    if fusion == "product" or len(arms) == 1:
+        return grid_posterior(models, arms, commands, targets).sample(seed, num_samples)
+    return equilibrium_draws(models, arms, commands, targets, stiffness, num_samples, seed)
 
 
 def fused_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
