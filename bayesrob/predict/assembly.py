@@ -264,7 +264,7 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     # calibrated over its groups with a latent joint-error population. Aiming, draws and
     # regions are one path from there.
     paper = groups is None and not rig.is_chain
-    if masses != "fitted" and paper:
+    if masses != "fitted" and not rig.is_chain:
         raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
                        f"{masses!r} is for URDF rigs)")
     model = model or ("cond" if paper else LATENT_MODELS[0])
