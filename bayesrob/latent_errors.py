@@ -99,29 +99,19 @@ def _model(jac: jax.Array, res: jax.Array, structure: str) -> None:
 
 
 def _gaussian_log_density(cov: jax.Array, r: jax.Array) -> jax.Array:
-    """log N(r_i; 0, cov_i) of rows r (N, d) with covariances (N, d, d): in closed form for
-    the 2 or 3 coordinates a marker has, where XLA's batched Cholesky takes a call per row (a
-    gradient of the population's density cost three times as much through it)."""
+    """log N(r_i; 0, cov_i) of rows r (N, d) with covariances (N, d, d), by the adjugate for
+    the 2 or 3 coordinates a marker has (a 2 x 2 padded with a unit third axis): XLA's batched
+    Cholesky takes a call per row, and a gradient of the population's density cost three
+    times as much through it."""
     d = r.shape[-1]
-    if d == 2:
-        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-        det = a * c - b * b
-        quad = (c * r[:, 0] ** 2 - 2 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det
-    elif d == 3:
-        s = cov
-        # the adjugate of a symmetric 3 x 3, row by row: (s^-1 = adj / det)
-        c00 = s[:, 1, 1] * s[:, 2, 2] - s[:, 1, 2] ** 2
-        c01 = s[:, 0, 2] * s[:, 1, 2] - s[:, 0, 1] * s[:, 2, 2]
-        c02 = s[:, 0, 1] * s[:, 1, 2] - s[:, 1, 1] * s[:, 0, 2]
-        c11 = s[:, 0, 0] * s[:, 2, 2] - s[:, 0, 2] ** 2
-        c12 = s[:, 0, 1] * s[:, 0, 2] - s[:, 0, 0] * s[:, 1, 2]
-        c22 = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] ** 2
-        det = s[:, 0, 0] * c00 + s[:, 0, 1] * c01 + s[:, 0, 2] * c02
-        x, y, z = r[:, 0], r[:, 1], r[:, 2]
-        quad = (c00 * x * x + c11 * y * y + c22 * z * z
-                + 2 * (c01 * x * y + c02 * x * z + c12 * y * z)) / det
-    else:
+    if d > 3:
         return dist.MultivariateNormal(jnp.zeros(d), cov).log_prob(r)
+    s = jnp.pad(cov, ((0, 0), (0, 3 - d), (0, 3 - d))) + jnp.diag(jnp.arange(3) >= d)
+    c0, c1, c2 = s[..., 0], s[..., 1], s[..., 2]
+    adj = jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)], axis=-2)
+    det = jnp.sum(c0 * adj[..., 0, :], axis=-1)
+    x = jnp.pad(r, ((0, 0), (0, 3 - d)))
+    quad = jnp.einsum("ni,nij,nj->n", x, adj, x) / det
     return -0.5 * (quad + jnp.log(det) + d * jnp.log(2 * jnp.pi))
 
 

@@ -170,8 +170,9 @@ def main() -> None:
         return
 
     from bayesrob.chain_simulator import LinkedChainTruth, simulate_linked_chain_rig
+    from bayesrob.predict.aiming import aim
     from bayesrob.predict.assembly import predict_assembly
-    from bayesrob.predict.draws import fit_modules, predict_points
+    from bayesrob.predict.draws import assembly_draws, fit_modules
     from bayesrob.predict.regions import hdr_sizes
     from bayesrob.rig import load_rig
 
@@ -191,8 +192,8 @@ def main() -> None:
         mods = fit_modules(rig, ["left", "right"])
         for k in range(args.repeats + 1):
             t0, c0 = time.perf_counter(), time.process_time()
-            _, draws = predict_points(mods, rig, ["left", "right"], targets,
-                                               "equilibrium", seed=k)
+            commands = [aim(rig, mods.robot, mods.x, a, targets) for a in ("left", "right")]
+            draws = assembly_draws(mods, ["left", "right"], commands, "equilibrium", seed=k)
             hdr_sizes(draws)
             if k:
                 step.append(time.perf_counter() - t0)

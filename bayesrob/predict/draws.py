@@ -53,7 +53,7 @@ from bayesrob.rig import Rig, RigError
 
 __all__ = ["CalibratedModules", "PaperModules", "fit_modules", "fit_paper_modules",
            "check_module_arms", "assembly_draws",
-           "free_draws", "parameter_draws", "product_draws_nuts", "predict_points"]
+           "free_draws", "parameter_draws", "product_draws_nuts"]
 
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
 # call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
@@ -314,12 +314,3 @@ def product_draws_nuts(mods: CalibratedModules, arms: Sequence[str], commands: S
     mcmc.run(jax.random.PRNGKey(seed), commands, mods.robot, x, list(arms), covs, noises,
              start)
     return np.asarray(mcmc.get_samples()["p"])[:num_samples]
-
-
-def predict_points(mods: CalibratedModules, rig: Rig, arms: Sequence[str], targets: np.ndarray,
-                         fusion: str, seed: int = 0, num_samples: int = DRAWS
-                         ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Aim ``arms`` at targets and draw the (shared) end point: (commands, draws)."""
-    commands = {a: aim(rig, mods.robot, mods.x, a, targets) for a in arms}
-    return commands, assembly_draws(mods, arms, [commands[a] for a in arms], fusion, num_samples,
-                                 seed)

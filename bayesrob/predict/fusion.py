@@ -24,7 +24,7 @@ joint's log stiffness gets an independent ``Normal(0, STIFFNESS_LOG_SD)`` prior 
 arm and joint, shared by every target of a draw: an arm is as stiff at one target as at the
 next).
 
-:func:`equilibrium_model` is the generative program: joint errors from each arm's joint-error
+:func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
 model (the KDE distributions of :mod:`bayesrob.inference`), pushed through the arm, then the
 stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction; their density
 is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid (:func:`draws_posterior`) where
@@ -70,7 +70,6 @@ __all__ = [
     "balance",
     "tracker_remainder",
     "equilibrium",
-    "equilibrium_model",
     "equilibrium_program",
     "equilibrium_draws",
     "draws_posterior",
@@ -173,21 +172,6 @@ def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
     return jnp.where(known, loc, drawn)
 
 
-def equilibrium_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseModel],
-                      arms: Sequence[kin.Arm], stiffness: Sequence[Any] | None = None) -> None:
-    """Arms linked at their end point, settling where their stiffnesses balance.
-
-    For each arm k with commands (T, 2): theta_err_k ~ its joint-error model,
-    theta_k = g(u) + theta_err_k, free point d_k = f(theta_k); log stiffnesses from
-    ``stiffness`` ((2,) N mm/rad per arm, None for unknown) or the prior; then the linked
-    point ``d`` = :func:`balance` of the free points with K_k at theta_k (:func:`springs`).
-    """
-    equilibrium_program(commands, kinds=tuple(error_kind(m) for m in models),
-                        arrays=[error_arrays(m) for m in models],
-                        params=[a.params for a in arms], names=tuple(a.name for a in arms),
-                        stiffness=stiffness)
-
-
 def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...],
                         arrays: Sequence[dict[str, jax.Array]],
                         params: Sequence[kin.ArmParams], names: tuple[str, ...],
@@ -195,9 +179,14 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
                         param_cov: Sequence[jax.Array] | None = None,
                         tracker_noise_mm: float = 0.0,
                         densities_hold_tracker: bool = True) -> None:
-    """:func:`equilibrium_model` on the models' arrays and the arms' parameters, so a compiled
-    caller (the configuration designer) traces them rather than baking them in: one program
-    serves every placement of the same modules.
+    """Arms linked at their end point, settling where their stiffnesses balance.
+
+    For each arm k with commands (T, 2): theta_err_k ~ its joint-error model (``kinds`` and
+    ``arrays``: :func:`bayesrob.inference.error_arrays`, so a compiled caller such as the
+    configuration designer traces them rather than baking them in), theta_k = g(u) +
+    theta_err_k, free point d_k = f(theta_k); log stiffnesses from ``stiffness`` ((2,)
+    N mm/rad per arm, None for unknown) or the prior; then the linked point ``d`` =
+    :func:`balance` of the free points with K_k at theta_k (:func:`springs`).
 
     ``param_cov``: each arm's calibrated-parameter covariance (8, 8); the arm that executes
     the commands then differs from the calibrated one that aimed them by a draw from it (one
@@ -241,16 +230,18 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
                       seed: int = 0) -> np.ndarray:
     """Draws (S, T, 2) of the linked end point under equilibrium fusion.
 
-    ``Predictive`` of :func:`equilibrium_model` when every model can draw joint errors;
+    ``Predictive`` of :func:`equilibrium_program` when every model can draw joint errors;
     otherwise each arm's free end points come from its single-arm grid prediction and the
     same stiffness prior and balance are applied.
     """
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     key = jax.random.PRNGKey(seed)
     if all(is_sampleable(m) for m in models):
-        pred = Predictive(equilibrium_model, num_samples=num_samples, return_sites=["d"])
-        out = pred(key, [jnp.asarray(u) for u in commands], models=models, arms=arms,
-                   stiffness=stiffness)
+        pred = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])
+        out = pred(key, [jnp.asarray(u) for u in commands],
+                   kinds=tuple(error_kind(m) for m in models),
+                   arrays=[error_arrays(m) for m in models], params=[a.params for a in arms],
+                   names=tuple(a.name for a in arms), stiffness=stiffness)
         return np.asarray(out["d"])
     targets = np.atleast_2d(np.asarray(targets, float))
     frees, thetas = [], []
