@@ -58,6 +58,20 @@ def test_one_region_routine_serves_grid_cells_and_draws():
         assert abs(drawn / (exact * inflate) - 1) < 0.10, (m, drawn, exact)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_population_density_of_a_row_is_scipys_gaussian(dim):
+    """The latent fit's closed-form Gaussian log density of residual rows equals scipy's."""
+    from bayesrob.latent_errors import _gaussian_log_density
+
+    rng = np.random.default_rng(dim)
+    a = rng.normal(size=(20, dim, dim))
+    cov = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(dim)
+    r = rng.normal(size=(20, dim))
+    ours = np.asarray(_gaussian_log_density(cov, r))
+    ref = [scipy.stats.multivariate_normal(cov=c).logpdf(x) for c, x in zip(cov, r, strict=True)]
+    np.testing.assert_allclose(ours, ref, rtol=1e-10)
+
+
 def test_hdr_sizes_and_levels_of_a_gaussian():
     """Draws of N(0, diag(1, 4, 0.25)): the 50% / 90% regions are ellipsoids of volume
     4/3 pi chi2_3(m)^(3/2) sqrt(det) (the KDE's bandwidth widens the covariance by
