@@ -39,7 +39,7 @@ _API = {
     "Robot": "kinematics", "Chain": "kinematics", "urdf_chain": "kinematics",
     "dh_chain": "kinematics", "GROUPS": "kinematics",
     "Calibration": "calibrate", "calibrate_arms": "calibrate",
-    "predict_assembly": "assembly", "compare_models": "comparison",
+    "predict_assembly": "predict.assembly", "compare_models": "comparison",
     "sample_linked": "inference", "diagnose_rig": "diagnosis",
     "diagnose_chain": "chain_diagnosis", "discover_models": "noise_models",
 }

@@ -521,7 +521,7 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
 def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.noise_models import ModelFileError
     from bayesrob.outputs import write_reproduction
-    from bayesrob.prediction import Grid
+    from bayesrob.predict.grid import Grid
     from bayesrob.report import grouped_notes
     from bayesrob.reproduction import (
         bound_notes,
@@ -948,8 +948,13 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
 @command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
                     "before it is built, from its modules' single-arm rows")(_predict_args)
 def _predict(args: argparse.Namespace) -> int:
-    from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly, read_targets
     from bayesrob.noise_models import ModelFileError
+    from bayesrob.predict.assembly import (
+        assembly_figure,
+        grid_targets,
+        predict_assembly,
+        read_targets,
+    )
 
     rig = _load_rig_arg(args.rig)
     dim = rig.robot.dim

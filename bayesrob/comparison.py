@@ -42,9 +42,8 @@ import xarray as xr
 
 from bayesrob import kinematics as kin
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
-from bayesrob.fusion import fused_posterior
 from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
-from bayesrob.kde import KDE, ConditionalKDE, kde_log_density
+from bayesrob.kde import KDE, ConditionalKDE
 from bayesrob.noise_models import (
     FittedNoiseModel,
     ModelSpec,
@@ -52,7 +51,9 @@ from bayesrob.noise_models import (
     fit_noise_models,
     joint_errors,
 )
-from bayesrob.prediction import setup_rows, setups
+from bayesrob.predict.fusion import fused_posterior
+from bayesrob.predict.grid import setup_rows, setups
+from bayesrob.predict.regions import kde_log_density
 from bayesrob.report import format_table
 from bayesrob.rig import Rig
 
@@ -75,7 +76,7 @@ __all__ = [
 ]
 
 MASSES = (0.5, 0.9)
-EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.fusion)
+EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.predict.fusion)
 
 # Rows taken where no training, validation or test row was: single-arm rows at new poses and
 # linked rows at new targets. Scored beside the validation/test rows, never fitted on.
@@ -128,7 +129,7 @@ def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     """Log predictive density and HDR level of ``observed`` (T, 2), one point per target.
 
     ``models``/``arms``/``commands`` describe the setup: one arm, or arms linked at their end
-    point, fused by ``fusion`` (:mod:`bayesrob.fusion`); the prediction for row t is centred
+    point, fused by ``fusion`` (:mod:`bayesrob.predict.fusion`); the prediction for row t is centred
     at ``targets[t]``.
     """
     observed = np.asarray(observed, float)
@@ -481,7 +482,8 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     if any("+" in c for c in configs):
         notes.append(f"linked setups are scored under both fusion rules: models.<name> by the "
                      f"product of likelihoods (the paper's), models.<name>:{EQUILIBRIUM} by the "
-                     "arms' stiffness balance (bayesrob.fusion); elpd tables use the product")
+                     "arms' stiffness balance (bayesrob.predict.fusion); elpd tables use the "
+                     "product")
     return ModelComparison(rig, list(specs), heldout, loo, in_sample, held_table, loo_table,
                            time.perf_counter() - t0, notes, holdout, hold_table, recalibrate,
                            fused, fused_holdout)

@@ -1,6 +1,6 @@
 """The joint-error models as numpyro programs, sampled by NUTS and emcee and checked on the grid.
 
-The grid (:mod:`bayesrob.prediction`) answers "where will the end point be" exactly, but only on
+The grid (:mod:`bayesrob.predict.grid`) answers "where will the end point be" exactly, but only on
 a 2-D box. Here the same models are probabilistic programs, so standard Bayesian tools apply:
 
 - Every kernel joint-error model is a numpyro distribution whose density *is* the KDE: a
@@ -50,10 +50,11 @@ from scipy.special import logsumexp, softmax
 from threadpoolctl import threadpool_limits
 
 from bayesrob import kinematics as kin
-from bayesrob.aiming import check_pulse_limits, check_reach
 from bayesrob.kde import guided_histogram_lookup, kernel_conditional_weights
 from bayesrob.noise_models import FittedNoiseModel
-from bayesrob.prediction import Grid
+from bayesrob.predict.aiming import check_pulse_limits, check_reach
+from bayesrob.predict.grid import Grid
+from bayesrob.predict.regions import density_levels
 from bayesrob.progress import FIRST_LINE_S
 from bayesrob.report import grouped_notes
 from bayesrob.rig import Rig
@@ -333,7 +334,7 @@ def arm_log_density(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array, d: jax.
 
     log p(theta_err(d) | u) (+ log|det df^-1/dd| when the model applies the Jacobian);
     -inf where the arm cannot reach d. The same quantity as the grid's
-    :func:`bayesrob.prediction.arm_log_likelihood`, computed through the distributions.
+    :func:`bayesrob.predict.grid.arm_log_likelihood`, computed through the distributions.
     """
     (static,), ((arm_params, arrays),) = _structure([model], [arm])
     return _arm_log_density(static, arm_params, arrays, jnp.asarray(u, dtype=jnp.float64),
@@ -448,9 +449,8 @@ class GridPosterior:
         """
         log_area = np.log(self.cell_mm[:, 0] * self.cell_mm[:, 1])
         with np.errstate(divide="ignore"):
-            cell_ld = np.log(self.prob) - log_area[:, None]
-        return np.sum(np.where(cell_ld > np.asarray(log_density)[:, None], self.prob, 0.0),
-                      axis=1)
+            cell_ld = np.log(self.prob.T) - log_area
+        return density_levels(cell_ld, log_density, self.prob.T)
 
 
 def _cell_centres(lo: np.ndarray, cell: np.ndarray, n: int) -> np.ndarray:
@@ -478,7 +478,7 @@ def _loglik(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's density.
 
     Computed by the same per-arm densities as the programs (their equality with
-    :func:`bayesrob.prediction.arm_log_likelihood` is tested), compiled once per structure
+    :func:`bayesrob.predict.grid.arm_log_likelihood` is tested), compiled once per structure
     and shapes, so repeated grids (targets, LOO refits, rigs) pay no compilation.
     """
     statics, params = _structure(models, arms)
@@ -1138,7 +1138,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     the document's ``check`` says whether it passed and lists every failure.
 
     A rig of URDF/DH arms (2-D or 3-D) is calibrated over ``groups`` (default
-    :data:`bayesrob.kinematics.GROUPS`), each arm aimed by :func:`bayesrob.aiming.aim_chain`,
+    :data:`bayesrob.kinematics.GROUPS`), each arm aimed by :func:`bayesrob.predict.aiming.aim`,
     and the point sampled under its arms' marker densities (:func:`_sample_markers`); so is a
     planar rig given ``groups``, its arms as the 2-joint chains they are.
     """
@@ -1238,10 +1238,10 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     ``target`` has the density prod_a p_a(point | u_a) of the arms' marker densities
     (:class:`bayesrob.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample it and
     a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
-    from bayesrob.aiming import aim_chain
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
     from bayesrob.noise_models import discover_models
+    from bayesrob.predict.aiming import aim
     from bayesrob.rig import RigError
 
     members = config.split("+")
@@ -1256,7 +1256,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     target = np.asarray(target, float).reshape(1, dim)
     with _progress(3, progress, "sample", "steps", "calibrating") as bar:
         cal = calibrate(rig, groups if groups is not None else kin.GROUPS)
-        commands = {a: aim_chain(rig, cal.robot, cal.x, a, target) for a in members}
+        commands = {a: aim(rig, cal.robot, cal.x, a, target) for a in members}
         bar.update()
         bar.set_postfix(f"fitting {model}")
         densities = [fit_marker_model(rig, cal, a, spec, seed=i).density(

@@ -28,10 +28,8 @@ The pure functions :func:`kde_logpdf`, :func:`conditional_kde_logpdf` and
 :func:`kernel_conditional_weights` take and return ``jnp`` arrays so they can be used under
 ``jax.grad`` / ``jax.jit`` / NUTS.
 
-Draws of a prediction (S draws at each of T targets) are smoothed differently: one full
-bandwidth matrix per target by Scott's rule, in NumPy (:func:`kde_bandwidth`,
-:func:`kde_log_density`): the density scipy's ``gaussian_kde`` gives each target, computed
-for all the targets at once.
+Draws of a prediction are smoothed by scipy's ``gaussian_kde`` (Scott's rule), in
+:mod:`bayesrob.predict.regions`.
 """
 
 from __future__ import annotations
@@ -53,7 +51,7 @@ import numpy as np
 from jax.experimental import serialize_executable
 from jax.experimental.compilation_cache import compilation_cache
 from jax.scipy.special import logsumexp
-from scipy import optimize, special
+from scipy import optimize
 
 try:  # optional: only used to keep L-BFGS-B's tiny BLAS calls single-threaded
     from threadpoolctl import ThreadpoolController
@@ -66,8 +64,6 @@ __all__ = [
     "KDEError",
     "BandwidthOnBoundWarning",
     "kde_logpdf",
-    "kde_bandwidth",
-    "kde_log_density",
     "conditional_kde_logpdf",
     "kernel_conditional_weights",
     "command_spacing",
@@ -1418,32 +1414,3 @@ def _guided_histogram_lookup_jvp(bins, log_floor, wall, primals, tangents):
     value = histogram_lookup(x, z, table, lo, widths, bins, log_floor)
     grad = jax.grad(lambda xx: histogram_guide(xx, z, table, lo, widths, bins, wall).sum())(x)
     return value, jnp.sum(grad * tangents[0], axis=1)
-
-
-# ------------------------------------------------------------- KDE of a prediction's draws
-
-
-def kde_bandwidth(draws: np.ndarray) -> np.ndarray:
-    """Scott's rule per target: H = n^(-2 / (d + 4)) cov for d-dimensional draws (T, d, d)
-    (n^(-1/3) in the plane)."""
-    n, d = draws.shape[0], draws.shape[-1]
-    dev = draws - draws.mean(axis=0)
-    cov = np.einsum("sti,stj->tij", dev, dev) / (n - 1)
-    return cov * n ** (-2.0 / (d + 4))
-
-
-def kde_log_density(draws: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Exact Gaussian-KDE log density (per mm^d) of draws (S, T, d) at points (T, d), or at
-    several points per target (K, T, d) giving (K, T)."""
-    h = kde_bandwidth(draws)  # once for all K points: the regions ask at hundreds
-    hinv = np.linalg.inv(h)
-    d = draws.shape[-1]
-    log_norm = -0.5 * d * np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(h)[1]
-    pts = np.asarray(points, float)
-
-    def at(p: np.ndarray) -> np.ndarray:
-        dev = p[None] - draws  # (S, T, d)
-        q = np.einsum("sti,tij,stj->st", dev, hinv, dev)
-        return special.logsumexp(-0.5 * q, axis=0) - np.log(draws.shape[0]) + log_norm
-
-    return at(pts) if pts.ndim == 2 else np.stack([at(p) for p in pts])

@@ -22,7 +22,7 @@ from bayesrob.noise_models import (
     fit_noise_models,
     joint_errors,
 )
-from bayesrob.prediction import Grid, Prediction, accuracy_document, predict, setup_rows, setups
+from bayesrob.predict.grid import Grid, Prediction, accuracy_document, predict, setup_rows, setups
 from bayesrob.report import format_table
 from bayesrob.rig import Rig, RigError
 

@@ -67,7 +67,7 @@ class ArmSpec:
     elbow: int = 1
     pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
     # Joint stiffnesses (N mm / rad) when known: linked arms settle where these balance
-    # (bayesrob.fusion); None: a prior over them is used instead.
+    # (bayesrob.predict.fusion); None: a prior over them is used instead.
     stiffness: tuple[float, float] | None = None
 
     @property
@@ -89,7 +89,7 @@ class ChainSpec:
     name: str
     chain: Chain
     # each joint's stiffness (N mm / rad; N / mm if prismatic), when known: it decides where
-    # linked arms settle (bayesrob.chain_prediction)
+    # linked arms settle (bayesrob.predict.draws)
     stiffness: np.ndarray | None = None
 
 

@@ -174,9 +174,9 @@ def main() -> None:
         p.error(f"--seeds: expected FIRST-LAST, e.g. 111-130, got {args.seeds!r}")
     seeds = tuple(range(first, last + 1))
     if args.arm_centre is not None:
-        import bayesrob.chain_prediction as cp
+        import bayesrob.predict.stiffness as st
 
-        cp.CHAIN_STIFFNESS_ARM_CENTRE = args.arm_centre
+        st.CHAIN_STIFFNESS_ARM_CENTRE = args.arm_centre
     chain_seeds = CHAIN_SAG_REPORT_SEEDS if args.sag_report else CHAIN_SEEDS
     chain = (chain_proof("description", DESCRIBED_MASS_SPREAD, chain_seeds)
              if args.masses == "description" else chain_proof(seeds=chain_seeds)

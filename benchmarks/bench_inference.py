@@ -8,7 +8,7 @@ reported separately (``compile_s``), and each method runs once untimed before th
 
 - ``grid``: :func:`bayesrob.inference.grid_posterior` (the checks' reference: a coarse
   +-30 mm grid, then a zoomed grid over the mass) and, for comparison, the paper's plain
-  100 x 100 grid (:func:`bayesrob.prediction.predict`).
+  100 x 100 grid (:func:`bayesrob.predict.grid.predict`).
 - ``nuts``: numpyro's NUTS with the package defaults (4 chains x (300 warm-up + 4000 draws)
   per target, acceptance target 0.65), all targets and chains in one vectorised, compiled run.
 - ``emcee``: 32 walkers x 2500 steps (500 burned) per target, one ensemble per target.
@@ -33,7 +33,7 @@ import bayesrob  # noqa: F401  (float64)
 from bayesrob import inference as inf
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.noise_models import discover_models, fit_noise_models
-from bayesrob.prediction import Grid, predict
+from bayesrob.predict.grid import Grid, predict
 from bayesrob.rig import default_rig_dir, load_rig
 
 

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob.chain_prediction import chain_equilibrium
 from bayesrob.cli import main
 from bayesrob.design.file import load_design
 from bayesrob.design.modules import load_modules
@@ -33,6 +32,7 @@ from bayesrob.design.search import (
     task_targets,
     write_candidate_rig,
 )
+from bayesrob.predict.fusion import equilibrium
 from bayesrob.rig import load_rig
 
 RIG_TRUTH = dict(seed=0, n_train=40, n_validation=10, n_holdout=10, n_linked=8)
@@ -236,16 +236,16 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     own prior and seed, as before linked modules were centred."""
     from types import SimpleNamespace
 
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.stiffness as st
     from bayesrob.design.modules import PopulationModule, _log_stiffness, linked_priors
 
     sags = {"a": 1.0, "b": 2.0, "c": 4.0}
-    monkeypatch.setattr(cp, "arm_sags", lambda rig, cal, arms: {x: sags[x] for x in arms})
+    monkeypatch.setattr(st, "arm_sags", lambda rig, cal, arms: {x: sags[x] for x in arms})
     rig = SimpleNamespace(robot=SimpleNamespace(measured_arms=lambda: ["a", "b", "c"]))
 
-    def prior() -> cp.StiffnessPrior:
-        return cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool),
-                                 cp.STIFFNESS_SOURCES[2])
+    def prior() -> st.StiffnessPrior:
+        return st.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool),
+                                 st.STIFFNESS_SOURCES[2])
 
     def module(name: str, arm: str, rig_index: int = 0) -> PopulationModule:
         return PopulationModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
@@ -257,7 +257,7 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     assert ab[0].arm_centre == pytest.approx(0.5 * np.log(2.0))
     assert ab[1].arm_centre == pytest.approx(-0.5 * np.log(2.0))
     assert ac[0].arm_centre == pytest.approx(np.log(2.0))
-    assert all(p.source == cp.STIFFNESS_SOURCES[3] for p in ab + ac)
+    assert all(p.source == st.STIFFNESS_SOURCES[3] for p in ab + ac)
     job = SimpleNamespace(cache={}, modules=mods, seed=5, draws=40)
     with_b = np.asarray(_log_stiffness(job, ("a", "b"))[0])
     with_c = np.asarray(_log_stiffness(job, ("a", "c"))[0])
@@ -267,10 +267,10 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     other = module("d", "b", rig_index=1)
     assert linked_priors([mods["a"], other]) == [mods["a"].mods.stiffness["a"],
                                                  other.mods.stiffness["b"]]
-    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
+    monkeypatch.setattr(st, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
     job = SimpleNamespace(cache={}, modules=mods, seed=5, draws=40)
     plain = np.asarray(_log_stiffness(job, ("a", "b"))[0])
-    np.testing.assert_array_equal(plain, np.asarray(cp.stiffness_draws(
+    np.testing.assert_array_equal(plain, np.asarray(st.stiffness_draws(
         [prior()], jax.random.PRNGKey(5 * 104729), 40)[0]))
 
 
@@ -283,11 +283,11 @@ def test_the_balance_puts_the_tracker_noise_back():
     jac = jnp.asarray(np.random.default_rng(0).normal(size=(1, 3, 6)))
     zero = jnp.zeros((n, 1, 3))
     log_k = [jnp.zeros((n, 6))] * 2
-    d = np.asarray(chain_equilibrium([zero, zero], [jac, jac], log_k, tracker_noise_mm=sigma,
+    d = np.asarray(equilibrium([zero, zero], [jac, jac], log_k, tracker_noise_mm=sigma,
                                      key=jax.random.PRNGKey(0)))[:, 0]
     np.testing.assert_allclose(np.var(d, axis=0), sigma**2 / 2, rtol=0.05)
     assert abs(np.corrcoef(d.T)[0, 1]) < 0.03
-    plain = chain_equilibrium([zero, zero], [jac, jac], log_k)
+    plain = equilibrium([zero, zero], [jac, jac], log_k)
     assert float(jnp.abs(plain).max()) == 0.0
 
 

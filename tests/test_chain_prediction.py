@@ -9,20 +9,17 @@ import numpy as np
 import pytest
 import scipy.stats
 
-import bayesrob.aiming as aiming
-import bayesrob.chain_prediction as cp
+import bayesrob.predict.aiming as aiming
+import bayesrob.predict.draws as cp
+import bayesrob.predict.stiffness as st
 from bayesrob import kinematics as kin
-from bayesrob.assembly import grid_targets, predict_assembly, read_targets
-from bayesrob.chain_prediction import (
-    StiffnessPrior,
-    aim_chain,
-    chain_draws,
-    fit_chain_modules,
-    hdr_levels,
-    hdr_sizes,
-)
 from bayesrob.cli import main
-from bayesrob.kde import kde_log_density
+from bayesrob.predict.aiming import aim
+from bayesrob.predict.assembly import grid_targets, predict_assembly, read_targets
+from bayesrob.predict.draws import assembly_draws, fit_modules
+from bayesrob.predict.grid import hdr_area
+from bayesrob.predict.regions import hdr_levels, hdr_sizes
+from bayesrob.predict.stiffness import StiffnessPrior
 from bayesrob.rig import RigError, load_rig
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth
@@ -39,16 +36,40 @@ def arm6_rig(tmp_path_factory):
 @pytest.fixture(scope="module")
 def arm6_modules(arm6_rig):
     rig = load_rig(arm6_rig)
-    return rig, fit_chain_modules(rig, ["arm"], "ind", groups=("frames", "offsets", "geometric"))
+    return rig, fit_modules(rig, ["arm"], "ind", groups=("frames", "offsets", "geometric"))
 
 
-def test_kde_log_density_matches_scipy_in_3d():
-    """The exact KDE in 3-D is scipy's gaussian_kde (Scott's rule) to rounding."""
-    rng = np.random.default_rng(0)
-    draws = rng.normal(size=(500, 1, 3)) * [1.0, 2.0, 0.5]
-    pts = rng.normal(size=(7, 3))
-    ours = np.array([kde_log_density(draws, p[None])[0] for p in pts])
-    ref = scipy.stats.gaussian_kde(draws[:, 0].T).logpdf(pts.T)
+def test_one_region_routine_serves_grid_cells_and_draws():
+    """The 50% / 90% regions of N(0, diag(1, 4)) in the plane have area -2 log(1 - m) pi
+    sqrt(det): the paper's grid of cells (100 x 100 over +-8 sd) within 1% (its cells are
+    0.16 / 0.32 wide), and the draws' Monte Carlo estimate within 10% of the KDE's (the
+    bandwidth widens the covariance by 1 + n^(-1/3))."""
+    sd = np.array([1.0, 2.0])
+    n, half = 100, 8.0
+    axes = [(-half + 2 * half * (np.arange(n) + 0.5) / n) * s for s in sd]
+    gx, gy = np.meshgrid(*axes)
+    dens = scipy.stats.multivariate_normal(cov=np.diag(sd**2)).pdf(np.dstack([gx, gy]))
+    cell = np.prod(2 * half * sd / n)
+    prob = (dens / dens.sum()).reshape(1, -1)
+    draws = np.random.default_rng(2).normal(size=(4000, 1, 2)) * sd
+    inflate = 1 + 4000 ** (-1 / 3)
+    for m, drawn in zip((0.5, 0.9), hdr_sizes(draws)[:, 0], strict=True):
+        exact = -2 * np.log(1 - m) * np.pi * np.prod(sd)
+        assert abs(hdr_area(prob, m, cell)[0] / exact - 1) < 0.01
+        assert abs(drawn / (exact * inflate) - 1) < 0.10, (m, drawn, exact)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_population_density_of_a_row_is_scipys_gaussian(dim):
+    """The latent fit's closed-form Gaussian log density of residual rows equals scipy's."""
+    from bayesrob.latent_errors import _gaussian_log_density
+
+    rng = np.random.default_rng(dim)
+    a = rng.normal(size=(20, dim, dim))
+    cov = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(dim)
+    r = rng.normal(size=(20, dim))
+    ours = np.asarray(_gaussian_log_density(cov, r))
+    ref = [scipy.stats.multivariate_normal(cov=c).logpdf(x) for c, x in zip(cov, r, strict=True)]
     np.testing.assert_allclose(ours, ref, rtol=1e-10)
 
 
@@ -91,7 +112,7 @@ def test_latent_population_and_coverage_on_new_poses(arm6_modules):
     assert np.all((sds[:3] > 0.25e-3) & (sds[:3] < 1e-3)), sds
     us, ds = zip(*(rig.rows("arm", s) for s in ("validation", "holdout")), strict=True)
     u, d = np.concatenate(us), np.concatenate(ds)
-    draws = chain_draws(mods, ["arm"], [u], num_samples=2000, seed=3)
+    draws = assembly_draws(mods, ["arm"], [u], num_samples=2000, seed=3)
     levels = hdr_levels(draws, d)
     assert 0.36 <= np.mean(levels <= 0.5) <= 0.64
     assert 0.81 <= np.mean(levels <= 0.9) <= 0.99
@@ -110,7 +131,7 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
     rig, mods = arm6_modules
     mods = dataclasses.replace(mods, param_cov=1e-8 * np.eye(len(mods.x)))
     u, _ = rig.rows("arm", "validation")
-    whole = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
+    whole = assembly_draws(mods, ["arm"], [u], num_samples=300, seed=5)
     monkeypatch.setattr(cp, "POINTS_PER_CALL", 45 * len(u))  # 7 calls: 6 of 43 draws, 42
     sizes = []
     compiled = cp._points_with_errors
@@ -119,7 +140,7 @@ def test_draws_pushed_in_slices_are_the_draws_pushed_at_once(arm6_modules, monke
         push = compiled(robot, arm)
         return lambda xs, *a: sizes.append(len(xs)) or push(xs, *a)
     monkeypatch.setattr(cp, "_points_with_errors", counted)
-    sliced = chain_draws(mods, ["arm"], [u], num_samples=300, seed=5)
+    sliced = assembly_draws(mods, ["arm"], [u], num_samples=300, seed=5)
     assert sizes == [43] * 6 + [42]
     assert sliced.shape == whole.shape == (300, len(u), 3)
     # the draws' parameters differ, so a slice given the wrong draws' parameters would show
@@ -131,11 +152,11 @@ def test_aim_reaches_targets_and_refuses_what_it_cannot(arm6_modules):
     rig, mods = arm6_modules
     _, d = rig.rows("arm", "holdout")
     targets = d[:6] + np.array([5.0, -5.0, 5.0])
-    u = aim_chain(rig, mods.robot, mods.x, "arm", targets)
+    u = aim(rig, mods.robot, mods.x, "arm", targets)
     got = np.asarray(mods.robot.compiled_points("arm")(mods.x, u))
     assert np.abs(got - targets).max() < 1e-3
     with pytest.raises(RigError, match=r"out of reach of arm 'arm'"):
-        aim_chain(rig, mods.robot, mods.x, "arm", np.array([[9000.0, 0.0, 0.0]]))
+        aim(rig, mods.robot, mods.x, "arm", np.array([[9000.0, 0.0, 0.0]]))
 
 
 def test_aim_reaches_targets_with_a_planar_arms_pulse_columns():
@@ -151,7 +172,7 @@ def test_aim_reaches_targets_with_a_planar_arms_pulse_columns():
     rig = load_rig(default_rig_dir())
     cal = calibrate(rig, kin.GROUPS)
     targets = rig.config_rows("top+bottom", "test")["target"][:6]
-    u = aim_chain(rig, cal.robot, cal.x, "top", targets)
+    u = aim(rig, cal.robot, cal.x, "top", targets)
     got = np.asarray(cal.robot.compiled_points("top")(cal.x, u))
     assert np.abs(got - targets).max() < 1e-3
     closed = np.asarray(calibrate_arms(rig)["top"].arm.command(targets))
@@ -185,7 +206,7 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     monkeypatch.setattr(aiming, "_column_jacobian", lambda robot, arm: None)
     monkeypatch.setattr(aiming, "_radians_per_unit", lambda robot, arm: np.ones(2))
     targets = np.array([[1.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0]])
-    u = aiming.aim_chain(rig, None, np.zeros(1), "arm", targets)
+    u = aiming.aim(rig, None, np.zeros(1), "arm", targets)
     np.testing.assert_array_equal(u, [[0.5, 0.5], [0.4, 0.4], [1.05, 0.0]])
     # seeds nearest first: target 1 (x = 12) starts from the train pose at x = 10
     np.testing.assert_array_equal(calls[0][1], u_train[1])
@@ -195,18 +216,18 @@ def test_aim_leaves_the_train_range_only_when_no_near_seed_stays_inside(monkeypa
     np.testing.assert_array_equal(calls[1][0], u[0])
     # everything inside at once: the nearest seeds alone, one solve
     calls.clear()
-    assert aiming.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.5, 0.5]]
+    assert aiming.aim(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.5, 0.5]]
     assert len(calls) == 1
     # a seed that misses the target is passed over for a later one that reaches it
     calls.clear()
     answers[0] = [[5.0, 5.0], [0.6, 0.6], [0.2, 0.3], [0.1, 0.1]]
     reach[0] = [False, True, True, True]
-    assert aiming.aim_chain(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.6, 0.6]]
+    assert aiming.aim(rig, None, np.zeros(1), "arm", targets[:1]).tolist() == [[0.6, 0.6]]
     assert len(calls) == 2
     calls.clear()
     answers[3] = answers[0]
     with pytest.raises(RigError, match=r"target \(25, 0, 0\) is out of reach"):
-        aiming.aim_chain(rig, None, np.zeros(1), "arm", np.array([[1.0, 0, 0], [12.0, 0, 0],
+        aiming.aim(rig, None, np.zeros(1), "arm", np.array([[1.0, 0, 0], [12.0, 0, 0],
                                                               [19.0, 0, 0], [25.0, 0, 0]]))
 
 
@@ -314,42 +335,42 @@ def test_linked_arms_prior_is_centred_on_their_fitted_sags(linked_calibration, m
 
 
     rig, cal = linked_calibration
-    prior = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
+    prior = {a: st.stiffness_prior(rig, a, cal) for a in ("left", "right")}
     assert all(p.source == "the prior" and p.arm_centre == 0 for p in prior.values())
-    scaled = cp.sag_scaled_priors(rig, cal, prior)
-    # what fit_chain_modules keeps
-    assert _same_priors(cp.stiffness_priors(rig, ["left", "right"], cal), scaled)
-    sags = cp.arm_sags(rig, cal, ["left", "right"])
+    scaled = st.sag_scaled_priors(rig, cal, prior)
+    # what fit_modules keeps
+    assert _same_priors(st.stiffness_priors(rig, ["left", "right"], cal), scaled)
+    sags = st.arm_sags(rig, cal, ["left", "right"])
     assert all(v > 0.05 for v in sags.values()), sags  # mm: gravity bends both arms
     gap = scaled["left"].arm_centre - scaled["right"].arm_centre
     assert gap == pytest.approx(np.log(sags["right"] / sags["left"]), abs=1e-9)
     assert scaled["left"].arm_centre == pytest.approx(-scaled["right"].arm_centre)
-    assert all(p.source == cp.STIFFNESS_SOURCES[3] for p in scaled.values())
+    assert all(p.source == st.STIFFNESS_SOURCES[3] for p in scaled.values())
     np.testing.assert_array_equal(scaled["left"].centre, prior["left"].centre)
-    assert np.all(scaled["left"].sd == cp.SAG_SCALED_LOG_SD)
-    assert scaled["left"].arm_sd == cp.SAG_SCALED_ARM_LOG_SD
+    assert np.all(scaled["left"].sd == st.SAG_SCALED_LOG_SD)
+    assert scaled["left"].arm_sd == st.SAG_SCALED_ARM_LOG_SD
 
     x = np.array(cal.x, float)
     x[cal.robot.layout.slices["right", "compliance"]] *= 3.0
     softer = replace(cal, x=x)
-    tripled = cp.arm_sags(rig, softer, ["left", "right"])
+    tripled = st.arm_sags(rig, softer, ["left", "right"])
     assert tripled["left"] == pytest.approx(sags["left"], rel=1e-9)
     assert tripled["right"] == pytest.approx(3.0 * sags["right"], rel=0.01)
-    wider = cp.sag_scaled_priors(rig, softer, prior)
+    wider = st.sag_scaled_priors(rig, softer, prior)
     assert wider["left"].arm_centre - wider["right"].arm_centre == pytest.approx(
         gap + np.log(3.0), abs=0.01)
 
-    draws = cp.stiffness_draws([wider["left"], wider["right"]], jax.random.PRNGKey(0), 20_000)
+    draws = st.stiffness_draws([wider["left"], wider["right"]], jax.random.PRNGKey(0), 20_000)
     for d, p in zip(draws, (wider["left"], wider["right"]), strict=True):
         np.testing.assert_allclose(np.asarray(d).mean(0), p.centre + p.arm_centre, atol=0.02)
 
-    given = dict(prior, right=cp.StiffnessPrior(np.zeros(6), np.zeros(6), np.zeros(6, bool),
+    given = dict(prior, right=st.StiffnessPrior(np.zeros(6), np.zeros(6), np.zeros(6, bool),
                                                 "the rig"))
-    assert _same_priors(cp.sag_scaled_priors(rig, cal, given), given)
+    assert _same_priors(st.sag_scaled_priors(rig, cal, given), given)
     alone = {"left": prior["left"]}
-    assert _same_priors(cp.sag_scaled_priors(rig, cal, alone), alone)
-    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
-    assert _same_priors(cp.sag_scaled_priors(rig, cal, prior), prior)
+    assert _same_priors(st.sag_scaled_priors(rig, cal, alone), alone)
+    monkeypatch.setattr(st, "CHAIN_STIFFNESS_ARM_CENTRE", "equal")
+    assert _same_priors(st.sag_scaled_priors(rig, cal, prior), prior)
 
 
 def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_calibration):
@@ -370,11 +391,11 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     )
 
     rig, cal = linked_calibration
-    own = {a: cp._stiffness_prior(rig, a, cal) for a in ("left", "right")}
+    own = {a: st.stiffness_prior(rig, a, cal) for a in ("left", "right")}
 
     def module(arm: str, rig_index: int = 0) -> PopulationModule:
         # no joint errors: the priors and stiffness draws never read them
-        m = cp.ChainModules(cal, {arm: None}, {arm: own[arm]}, None)
+        m = cp.CalibratedModules(cal, {arm: None}, {arm: own[arm]}, None)
         return PopulationModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
 
     left, right = module("left"), module("right")
@@ -382,8 +403,8 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     def named(arms: tuple[str, str], priors: list) -> dict:
         return dict(zip(arms, priors, strict=True))
 
-    scaled = cp.sag_scaled_priors(rig, cal, own)
-    assert scaled["left"].source == cp.STIFFNESS_SOURCES[3]
+    scaled = st.sag_scaled_priors(rig, cal, own)
+    assert scaled["left"].source == st.STIFFNESS_SOURCES[3]
     assert _same_priors(named(("left", "right"), linked_priors([left, right])), scaled)
     assert _same_priors(named(("right", "left"), linked_priors([right, left])), scaled)
     other_rig = module("right", rig_index=1)
@@ -396,13 +417,13 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     assert stiffness_record(job, ("right", "left")) == [
         scaled[a].record() for a in ("right", "left")]
     assert [r["from"] for r in stiffness_record(job, ("right", "left"))] == [
-        cp.STIFFNESS_SOURCES[3]] * 2
+        st.STIFFNESS_SOURCES[3]] * 2
     ab = _log_stiffness(job, ("left", "right"))
     ba = _log_stiffness(job, ("right", "left"))
     np.testing.assert_array_equal(np.asarray(ab[0]), np.asarray(ba[1]))
     np.testing.assert_array_equal(np.asarray(ab[1]), np.asarray(ba[0]))
     # the centres moved the draws: the sag-centred left arm is not the left arm alone
-    alone = cp.stiffness_draws([own["left"]], jax.random.PRNGKey(3 * 104729), 50)[0]
+    alone = st.stiffness_draws([own["left"]], jax.random.PRNGKey(3 * 104729), 50)[0]
     assert not np.allclose(np.asarray(ab[0]), np.asarray(alone))
 
 
@@ -418,10 +439,10 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     import dataclasses
     import shutil
 
-    from bayesrob.chain_prediction import CHAIN_STIFFNESS_LOG_SD, _stiffness_prior
+    from bayesrob.predict.stiffness import CHAIN_STIFFNESS_LOG_SD, stiffness_prior
 
     rig, _ = arm6_modules
-    loc, sd, shared, source, *_ = _stiffness_prior(rig, "arm")
+    loc, sd, shared, source, *_ = stiffness_prior(rig, "arm")
     assert source == "the prior"
     np.testing.assert_allclose(np.exp(loc), [150, 150, 150, 28, 28, 28])
     np.testing.assert_array_equal(sd, CHAIN_STIFFNESS_LOG_SD)
@@ -429,7 +450,7 @@ def test_stiffness_prior_from_the_rig_or_the_default(arm6_rig, arm6_modules, tmp
     k = np.array([4e6, 4e6, 2e6, 6e5, 6e5, 6e5])
     given = dataclasses.replace(rig, arms={"arm": dataclasses.replace(rig.arms["arm"],
                                                                       stiffness=k)})
-    loc, sd, shared, source, *_ = _stiffness_prior(given, "arm")
+    loc, sd, shared, source, *_ = stiffness_prior(given, "arm")
     assert source == "the rig"
     np.testing.assert_allclose(np.exp(loc), k)
     np.testing.assert_array_equal(sd, 0.0)
@@ -469,12 +490,12 @@ def test_stiffness_from_compliances_fitted_under_the_described_masses(arm6_modul
         free[comp[1:]] = True  # the first joint's axis is vertical: never seen
         cal = SimpleNamespace(masses="description", groups=("frames", "compliance"),
                               robot=mods.robot, x=x, se=se, ident=SimpleNamespace(free=free))
-        return cp._stiffness_prior(rig, "arm", cal)
+        return st.stiffness_prior(rig, "arm", cal)
 
     p = fitted(4e5)
     assert not p.shared.any() and p.source == "compliances fitted under the URDF's masses"
     np.testing.assert_allclose(np.exp(p.centre[[1, 2, 3, 5]]), true_k[[1, 2, 3, 5]], rtol=0.02)
-    assert np.all(np.abs(p.sd[[1, 2, 3, 5]] - cp.DESCRIBED_MASS_LOG_SD) < 0.01)
+    assert np.all(np.abs(p.sd[[1, 2, 3, 5]] - st.DESCRIBED_MASS_LOG_SD) < 0.01)
     # the arm's scale about the profile (150 N m on the first three joints, 28 on the wrist)
     seen = [1, 2, 3, 5]
     profile = np.log([150, 150, 150, 28, 28, 28])
@@ -482,7 +503,7 @@ def test_stiffness_from_compliances_fitted_under_the_described_masses(arm6_modul
     assert p.centre[0] == pytest.approx(profile[0] + scale, abs=0.02)
     # the profile's own spread, and the scale's: four sharp joints, each off the profile by
     # the prior's sd, fix it to sd / 2
-    tau = cp.CHAIN_STIFFNESS_LOG_SD
+    tau = st.CHAIN_STIFFNESS_LOG_SD
     assert p.sd[0] == pytest.approx(np.sqrt(tau**2 + (tau**2 + 0.01) / 4), abs=0.01)
     far = fitted(4e5 / 50)  # the poorly seen wrist fitted 50 times too soft
     # its weight beside a sharp joint's: 0.26 / 9.3 of it, over four sharp joints
@@ -498,11 +519,11 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
     import jax
 
 
-    monkeypatch.setattr(cp, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
-    unknown = cp.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool), "the prior")
-    known = cp.StiffnessPrior(np.log([4e6, 2e6, 6e5]), np.zeros(3), np.zeros(3, bool),
+    monkeypatch.setattr(st, "CHAIN_STIFFNESS_ARM_LOG_SD", 0.5)
+    unknown = st.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool), "the prior")
+    known = st.StiffnessPrior(np.log([4e6, 2e6, 6e5]), np.zeros(3), np.zeros(3, bool),
                                 "the rig")
-    a, b, c = cp.stiffness_draws([unknown, unknown, known], jax.random.PRNGKey(0), 20_000)
+    a, b, c = st.stiffness_draws([unknown, unknown, known], jax.random.PRNGKey(0), 20_000)
     a, b, c = (np.asarray(v) for v in (a, b, c))
     r = np.corrcoef(np.hstack([a, b]).T)
     assert abs(r[0, 1] - 0.5) < 0.03 and abs(r[1, 2] - 0.5) < 0.03
@@ -513,7 +534,7 @@ def test_stiffness_draws_share_an_arm_term_only_where_unknown(monkeypatch):
 
 def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
     """The linked point is measured once with the tracker's whole noise, where the balance
-    would average the noise each free point carried: ``chain_draws`` balances the free points
+    would average the noise each free point carried: ``assembly_draws`` balances the free points
     as they are (no noise) and adds the mean of the arms' fitted noise sds (0.1 and 0.3 mm
     here: 0.2) once. With the free points at zero the draws are that noise alone: 20,000 x 2
     x 3 draws give its sd to about 0.3%; tolerance 2%."""
@@ -535,10 +556,10 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
     monkeypatch.setattr(cp, "parameter_draws", lambda mods, key, n: jnp.zeros((n, 1)))
     errors = {"a": SimpleNamespace(noise_sd=np.array([0.08, 0.12])),
               "b": SimpleNamespace(noise_sd=np.array([0.3, 0.3]))}
-    prior = cp.StiffnessPrior(np.zeros(6), np.full(6, 0.5), np.ones(6, bool), "the prior")
+    prior = st.StiffnessPrior(np.zeros(6), np.full(6, 0.5), np.ones(6, bool), "the prior")
     mods = SimpleNamespace(errors=errors, stiffness={"a": prior, "b": prior}, robot=None,
                            x=np.zeros(1))
-    d = cp.chain_draws(mods, ["a", "b"], [np.zeros((2, 6)), np.zeros((2, 6))],
+    d = cp.assembly_draws(mods, ["a", "b"], [np.zeros((2, 6)), np.zeros((2, 6))],
                        num_samples=20_000)
     assert asked == [False, False]
     assert d.std() == pytest.approx(0.2, rel=0.02)
@@ -550,7 +571,7 @@ def test_stiffness_record_names_where_the_balance_drew_from():
     from: the rig's (N mm/rad, sd 0), compliances fitted under the URDF's masses (N mm/rad and
     log sds), or the prior, whose scale is arbitrary (relative to the first joint, with its
     arm term); every record gives the arm's log scale against the others'."""
-    from bayesrob.chain_prediction import CHAIN_STIFFNESS_ARM_LOG_SD, STIFFNESS_SOURCES
+    from bayesrob.predict.stiffness import CHAIN_STIFFNESS_ARM_LOG_SD, STIFFNESS_SOURCES
 
     k = np.array([4e6, 2e6, 5e5])
     rig = StiffnessPrior(np.log(k), np.zeros(3), np.zeros(3, bool), "the rig").record()
@@ -578,8 +599,8 @@ def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed
     """``predict`` notes, under its stiffness lines, that linked arms whose stiffnesses came
     from the prior could read them from their URDF's masses, naming those arms; not when
     another source gave them, nor when a chain on an arm's path leaves a link unweighed."""
-    from bayesrob.assembly import stiffness_note
-    from bayesrob.chain_prediction import STIFFNESS_SOURCES
+    from bayesrob.predict.assembly import stiffness_note
+    from bayesrob.predict.stiffness import STIFFNESS_SOURCES
     from bayesrob.sim.truth import arm6_urdf_path
 
     def robot(right_urdf):

@@ -217,7 +217,7 @@ def test_no_text_of_the_papers_figures_is_cut_off(built, name):
 def test_the_predict_figure_fits_its_content(config):
     """Every text inside the figure, every target and arm base inside the map's axes, and a
     title that names a fusion only for linked arms."""
-    from bayesrob.assembly import assembly_figure, grid_targets, predict_assembly
+    from bayesrob.predict.assembly import assembly_figure, grid_targets, predict_assembly
     from bayesrob.rig import default_rig_dir, load_rig
 
     rig = load_rig(default_rig_dir())
@@ -289,7 +289,7 @@ def _fake_3d_prediction(config: str = "left+right"):
         pose[:3, 3] = bases[arm]
         return pose
 
-    rig = SimpleNamespace(is_chain=True, robot=SimpleNamespace(
+    rig = SimpleNamespace(arms={a: SimpleNamespace() for a in bases}, robot=SimpleNamespace(
         layout=SimpleNamespace(nominal=None), instrument_pose=instrument_pose))
     return pred, rig
 
@@ -298,10 +298,9 @@ def _fake_3d_prediction(config: str = "left+right"):
 def test_the_3d_predict_figure_shows_the_targets_in_views_of_equal_scale(config):
     """Seen from above and from the side on one scale, every target and arm base inside
     its view, every panel titled, nothing cut off at the figure's edge."""
-    from bayesrob.assembly import assembly_figure
+    from bayesrob.predict.assembly import assembly_figure
 
     pred, rig = _fake_3d_prediction(config)
-    pred.posterior = None
     fig = assembly_figure(pred, rig)
     try:
         assert _clipped_texts(fig) == []

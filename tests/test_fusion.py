@@ -1,5 +1,5 @@
-"""Equilibrium fusion of linked arms (bayesrob.fusion) and predictions of assemblies before they
-are built (bayesrob.assembly, ``bayesrob predict``).
+"""Equilibrium fusion of linked arms (bayesrob.predict.fusion) and predictions of assemblies
+before they are built (bayesrob.predict.assembly, ``bayesrob predict``).
 
 How often the linked predictions hold on report rigs is measured by the validation suite
 (``bayesrob validate linked_planar linked_planar_three linked_planar_physics``), not here.
@@ -16,14 +16,14 @@ import pytest
 import scipy.stats
 from bayesrob.validation.linked_planar import single_arm_copy
 
-from bayesrob import fusion
 from bayesrob import kinematics as kin
-from bayesrob.assembly import predict_assembly, read_targets
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
-from bayesrob.kde import kde_log_density
 from bayesrob.noise_models import discover_models, fit_noise_models
-from bayesrob.prediction import setup_rows
+from bayesrob.predict import fusion
+from bayesrob.predict.assembly import predict_assembly, read_targets
+from bayesrob.predict.grid import setup_rows
+from bayesrob.predict.regions import kde_log_density
 from bayesrob.rig import RigError, default_rig_dir, load_rig
 from bayesrob.sim.equilibrium import PhysicalRig
 from bayesrob.sim.rigs import simulate_rig
@@ -64,13 +64,14 @@ def test_linearised_equilibrium_matches_the_simulators_energy_minimum(sag_rig):
                        for t in range(len(rows["targets"]))])
 
     def balance(k_of):
-        springs = []
+        held = []
         for a in ("top", "bottom"):
             truth = plant.truth.arms[a]
             theta, _ = kin.inverse(truth.params, jnp.asarray(free[a]), truth.elbow)
-            springs.append(fusion.cartesian_stiffness(truth.params, theta, k_of(truth)))
-        return np.asarray(fusion.equilibrium_point(
-            jnp.asarray(np.stack([free["top"], free["bottom"]])), jnp.stack(springs)))
+            held.append(fusion.springs(kin.jacobian(truth.params, theta),
+                                       jnp.log(k_of(truth))))
+        return np.asarray(fusion.balance(
+            jnp.asarray(np.stack([free["top"], free["bottom"]])), jnp.stack(held)))
 
     gap_true = np.linalg.norm(balance(lambda t: jnp.asarray(t.stiffness_nmm_per_rad))
                               - linked, axis=1).mean()
@@ -86,7 +87,7 @@ def test_known_stiffness_pins_the_balance():
     """Two springs on one axis each: the balance is the stiffness-weighted mean per axis."""
     free = jnp.asarray([[[0.0, 0.0]], [[3.0, 6.0]]])  # (A=2, T=1, 2)
     k = jnp.asarray([[[[1.0, 0.0], [0.0, 2.0]]], [[[2.0, 0.0], [0.0, 1.0]]]])
-    d = np.asarray(fusion.equilibrium_point(free, k))[0]
+    d = np.asarray(fusion.balance(free, k))[0]
     np.testing.assert_allclose(d, [2.0, 2.0])
 
 
@@ -266,9 +267,10 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monk
     defaults, i.e. the fit ``calibrate(rig, groups)`` computes (it is deterministic)."""
     import inspect
 
-    import bayesrob.calibrate.least_squares
-    import bayesrob.chain_prediction
-    from bayesrob.chain_prediction import STIFFNESS_SOURCES
+    import bayesrob.calibration
+
+    import bayesrob.predict.draws
+    from bayesrob.predict.stiffness import STIFFNESS_SOURCES
 
     real, fits = bayesrob.calibrate.least_squares.calibrate, []
 
@@ -277,8 +279,8 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monk
         return fits[-1][1]
 
     # wherever the prediction calls it from: the module that defines it, or one that imported it
-    for module in (bayesrob.calibrate.least_squares, bayesrob.chain_prediction):
-        monkeypatch.setattr(module, "calibrate", kept)
+    for module in (bayesrob.calibration, bayesrob.predict.draws):
+        monkeypatch.setattr(module, "calibrate_chain", kept)
     targets = tmp_path / "t.csv"
     targets.write_text("x,y\n160,240\n200,200\n")
     out, png = tmp_path / "p.json", tmp_path / "p.png"

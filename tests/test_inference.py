@@ -23,7 +23,7 @@ from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
 from bayesrob.kde import ConditionalKDE
 from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
-from bayesrob.prediction import Grid, arm_log_likelihood, predict
+from bayesrob.predict.grid import Grid, arm_log_likelihood, predict
 from bayesrob.rig import default_rig_dir, load_rig
 
 # Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.

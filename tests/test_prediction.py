@@ -15,7 +15,7 @@ from bayesrob.noise_models import (
     joint_errors,
     without_tracker_noise,
 )
-from bayesrob.prediction import Grid, predict, setup_rows, setups
+from bayesrob.predict.grid import Grid, predict, setup_rows, setups
 from bayesrob.rig import default_rig_dir, load_rig
 
 

@@ -215,7 +215,8 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     point). The other arm's pose is given: its weight bends the torso. ``polish`` and
     ``max_nfev``: the calibration's, as :func:`~bayesrob.calibrate.least_squares.calibrate`'s."""
     from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.chain_prediction import chain_draws, fit_chain_modules, hdr_levels
+    from bayesrob.predict.draws import assembly_draws, fit_modules
+    from bayesrob.predict.regions import hdr_levels
     from bayesrob.rig import load_rig
 
     def note(text: str) -> None:
@@ -228,11 +229,11 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     if say:
         say(f"calibrated ({','.join(groups)}): validation "
             f"{cal.errors['validation']['all']['mean_mm']:.2f} mm")
-    mods = fit_chain_modules(rig, list(hands), model, groups, seed=seed, calibration=cal)
+    mods = fit_modules(rig, list(hands), model, groups, seed=seed, calibration=cal)
     out = []
     for k, hand in enumerate(hands):
         u, obs = rig.rows(hand, "validation")
-        draws = chain_draws(mods, [hand], [u], seed=seed + k,
+        draws = assembly_draws(mods, [hand], [u], seed=seed + k,
                             side=rig.chain_side_rows(hand, "validation"))
         level = hdr_levels(draws, obs)
         mean = draws.mean(axis=0)

@@ -74,7 +74,7 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     simulated arm's true link masses stray from the description's; ``sag_steps``: the
     calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
     simulator's default); ``three``: three arms joined (left, right and front)."""
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.draws as cp
     from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
@@ -91,7 +91,7 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     truth = (three_linked_chain_truth if three else LinkedChainTruth)(
         seed=seed, mass_log_sd=mass_log_sd, n_linked=n_linked)
     rig = load_rig(simulate_linked_chain_rig(rig_dir, truth))
-    mods = cp.fit_chain_modules(rig, list(truth.arms), "ind", groups=GROUPS, seed=seed,
+    mods = cp.fit_modules(rig, list(truth.arms), "ind", groups=GROUPS, seed=seed,
                                 masses=masses, sag_steps=sag_steps)
     kept.write_bytes(pickle.dumps(mods))
     return rig, mods
@@ -106,31 +106,31 @@ def chosen_prior() -> Prior:
     """The prior ``predict`` draws stiffnesses from: (centre, per-joint log sd, arm term's
     centre, arm term's log sd), as the benchmark's VARIANTS name them (the sds the arms'
     fitted sags bring with them where the arm term is centred on them)."""
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.stiffness as st
 
-    if cp.CHAIN_STIFFNESS_ARM_CENTRE == "sags":
-        return cp.CHAIN_STIFFNESS_CENTRE, cp.SAG_SCALED_LOG_SD, "sags", cp.SAG_SCALED_ARM_LOG_SD
-    return (cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_LOG_SD,
-            cp.CHAIN_STIFFNESS_ARM_CENTRE, cp.CHAIN_STIFFNESS_ARM_LOG_SD)
+    if st.CHAIN_STIFFNESS_ARM_CENTRE == "sags":
+        return st.CHAIN_STIFFNESS_CENTRE, st.SAG_SCALED_LOG_SD, "sags", st.SAG_SCALED_ARM_LOG_SD
+    return (st.CHAIN_STIFFNESS_CENTRE, st.CHAIN_STIFFNESS_LOG_SD,
+            st.CHAIN_STIFFNESS_ARM_CENTRE, st.CHAIN_STIFFNESS_ARM_LOG_SD)
 
 
 @contextlib.contextmanager
 def prior(centre: str, joint_sd: float, arm_centre: str, arm_sd: float) -> Iterator[None]:
     """The module's prior set to a variant for the block, and put back after it: a sweep
     must not leave its last variant behind for whatever runs next in the process."""
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.stiffness as st
 
-    before = {name: getattr(cp, name) for name in _PRIOR_CONSTANTS}
-    cp.CHAIN_STIFFNESS_CENTRE, cp.CHAIN_STIFFNESS_ARM_CENTRE = centre, arm_centre
+    before = {name: getattr(st, name) for name in _PRIOR_CONSTANTS}
+    st.CHAIN_STIFFNESS_CENTRE, st.CHAIN_STIFFNESS_ARM_CENTRE = centre, arm_centre
     if arm_centre == "sags":
-        cp.SAG_SCALED_LOG_SD, cp.SAG_SCALED_ARM_LOG_SD = joint_sd, arm_sd
+        st.SAG_SCALED_LOG_SD, st.SAG_SCALED_ARM_LOG_SD = joint_sd, arm_sd
     else:
-        cp.CHAIN_STIFFNESS_LOG_SD, cp.CHAIN_STIFFNESS_ARM_LOG_SD = joint_sd, arm_sd
+        st.CHAIN_STIFFNESS_LOG_SD, st.CHAIN_STIFFNESS_ARM_LOG_SD = joint_sd, arm_sd
     try:
         yield
     finally:
         for name, value in before.items():
-            setattr(cp, name, value)
+            setattr(st, name, value)
 
 
 def variant_name(variant: Prior) -> str:
@@ -145,7 +145,9 @@ def coverage(seeds: Sequence[int], variants: Sequence[Prior], cache: Path | None
     90% regions, the predicted / observed mean error, and per rig in ``rigs`` ([seed, 50%,
     90%, error ratio, observed mean error in mm]). Each rig's figures are also said as a JSON
     line. The rest as :func:`_fitted` takes them."""
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.draws as cp
+    import bayesrob.predict.regions as rg
+    import bayesrob.predict.stiffness as st
 
     pooled: dict = {v: {"in50": [], "in90": [], "pred": [], "obs": [], "rigs": []}
                     for v in variants}
@@ -163,9 +165,9 @@ def coverage(seeds: Sequence[int], variants: Sequence[Prior], cache: Path | None
             for variant in variants:
                 # the prior is read when the stiffnesses are set and again when drawn
                 with prior(*variant):
-                    mods.stiffness = cp.stiffness_priors(rig, arms, mods.calibration)
-                    draws = cp.chain_draws(mods, arms, commands, seed=seed)
-                level = cp.hdr_levels(draws, seen)
+                    mods.stiffness = st.stiffness_priors(rig, arms, mods.calibration)
+                    draws = cp.assembly_draws(mods, arms, commands, seed=seed)
+                level = rg.hdr_levels(draws, seen)
                 pred = np.linalg.norm(draws - target[None], axis=-1).mean(axis=0)
                 p = pooled[variant]
                 p["in50"] += (level < 0.5).tolist()

@@ -35,14 +35,15 @@ PRODUCT_ROWS = 3
 
 
 def _known_stiffness(mods: Any, rows: dict, stiffness: dict) -> dict[str, float]:
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.draws as cp
+    import bayesrob.predict.stiffness as st
 
     guessed = dict(mods.stiffness)
     try:
-        mods.stiffness = {a: cp.StiffnessPrior(np.log(np.asarray(stiffness[a], float)),
+        mods.stiffness = {a: st.StiffnessPrior(np.log(np.asarray(stiffness[a], float)),
                                                np.zeros(6), np.zeros(6, bool), "the rig")
                           for a in ARMS}
-        draws = cp.chain_draws(mods, list(ARMS), rows["commands"], seed=2)
+        draws = cp.assembly_draws(mods, list(ARMS), rows["commands"], seed=2)
     finally:
         mods.stiffness = guessed
     gap = float(np.linalg.norm(draws.mean(0) - rows["observed"], axis=1).mean())
@@ -51,13 +52,13 @@ def _known_stiffness(mods: Any, rows: dict, stiffness: dict) -> dict[str, float]
 
 
 def _product(mods: Any, rows: dict) -> dict[str, float]:
-    import bayesrob.chain_prediction as cp
+    import bayesrob.predict.draws as cp
 
     cmds = [u[:PRODUCT_ROWS] for u in rows["commands"]]
-    nuts = cp.chain_draws(mods, list(ARMS), cmds, "product", num_samples=1000, seed=4)
+    nuts = cp.assembly_draws(mods, list(ARMS), cmds, "product", num_samples=1000, seed=4)
     prec, pull = 0.0, 0.0
     for a, u in zip(ARMS, cmds, strict=True):
-        free = cp.chain_draws(mods, [a], [u], num_samples=8000, seed=5)
+        free = cp.assembly_draws(mods, [a], [u], num_samples=8000, seed=5)
         cov = np.einsum("sti,stj->tij", free - free.mean(0), free - free.mean(0)) / len(free)
         p = np.linalg.inv(cov)
         prec, pull = prec + p, pull + np.einsum("tij,tj->ti", p, free.mean(0))
@@ -73,16 +74,16 @@ def _product(mods: Any, rows: dict) -> dict[str, float]:
 def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
     """The stiffnesses ``predict --masses description`` draws linked arms' balance from: the
     priors of the calibration with the links' masses held at the URDF's (what
-    ``fit_chain_modules`` keeps; its joint-error fits do not touch them)."""
-    import bayesrob.chain_prediction as cp
+    ``fit_modules`` keeps; its joint-error fits do not touch them)."""
+    import bayesrob.predict.stiffness as st
     from bayesrob.calibrate.least_squares import calibrate
 
     cal = calibrate(rig, GROUPS, masses="description")
-    priors = cp.stiffness_priors(rig, list(ARMS), cal)
+    priors = st.stiffness_priors(rig, list(ARMS), cal)
     errors = {}
     for a in ARMS:
         record = priors[a].record()
-        if record["from"] != cp.STIFFNESS_SOURCES[1]:
+        if record["from"] != st.STIFFNESS_SOURCES[1]:
             # the route did not read the masses: there is nothing to measure
             raise RuntimeError(f"with the URDF's masses held, {a}'s stiffnesses came from "
                                f"{record['from']}")
@@ -95,7 +96,7 @@ def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
 
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """The three checks on each rig of ``seeds`` (one rig each, the worst over them)."""
-    from bayesrob.chain_prediction import fit_chain_modules
+    from bayesrob.predict.draws import fit_modules
     from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
@@ -106,7 +107,7 @@ def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[st
             d = simulate_linked_chain_rig(Path(tmp) / f"rig{seed}", LinkedChainTruth(seed=seed))
             rig = load_rig(d)
             stiffness = load_linked_truth(d)["stiffness_nmm_per_rad"]
-            mods = fit_chain_modules(rig, list(ARMS), "ind", groups=GROUPS)
+            mods = fit_modules(rig, list(ARMS), "ind", groups=GROUPS)
             m = rig.measurements.mask("+".join(ARMS), "test")
             rows = {"commands": [rig.measurements.commands[a][m] for a in ARMS],
                     "observed": rig.measurements.observed[m],

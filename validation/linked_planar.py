@@ -71,7 +71,7 @@ def linked_scores(rig: Any, arms: dict, fitted: dict, config: str, fusion_rule: 
     """HDR levels of the test rows of ``config`` under ``fusion_rule``, and per row the
     predicted mean distance from the target and the observed one."""
     from bayesrob.comparison import score_points
-    from bayesrob.prediction import setup_rows
+    from bayesrob.predict.grid import setup_rows
 
     rows = setup_rows(rig, arms, config)
     members = config.split("+")
@@ -141,7 +141,7 @@ def three_arms_kde(seeds: list[int], *, quick: bool, say: Callable[[str], None]
     """Three arms predicted from single-arm rows (eight-parameter fits, KDE models): each
     point's HDR level under the equilibrium of the rig's own linked rows, and the mean error
     ``predict`` gives against the observed."""
-    from bayesrob.assembly import predict_assembly
+    from bayesrob.predict.assembly import predict_assembly
     from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_rig
     from bayesrob.sim.truth import three_arm_truth
@@ -184,8 +184,8 @@ def three_arm_study(seeds: Sequence[int], groups: tuple[str, ...] = THREE_ARM_GR
     they are not what ``predict`` would build). Returns the linked points, the share inside
     the 50% / 90% regions, the predicted / observed mean error, and per rig in ``rigs`` (each
     also said as a JSON line)."""
-    from bayesrob.assembly import predict_assembly
-    from bayesrob.chain_prediction import hdr_levels
+    from bayesrob.predict.assembly import predict_assembly
+    from bayesrob.predict.regions import hdr_levels
     from bayesrob.rig import load_rig
     from bayesrob.sim.equilibrium import PhysicalRig
     from bayesrob.sim.rigs import round_pulse, simulate_rig

@@ -39,7 +39,7 @@ From the posterior:
 - :func:`predict_end_points` returns draws of the end point for given commands, mixing over the
   posterior of every arm involved (parameter uncertainty) and the noise; for arms linked at
   their end points, the product of the arms' Gaussian likelihoods (the same rule
-  :mod:`bayesrob.prediction` uses for the joint-error models).
+  :mod:`bayesrob.predict.grid` uses for the joint-error models).
 - :func:`predicted_accuracy` summarises those draws as the expected mean error of a setup with
   a 95 % interval, next to the error the noise alone would give.
 """
@@ -397,7 +397,7 @@ def predict_end_points(posteriors: dict[str, ArmPosterior], commands: dict[str, 
 
     One arm: f(g(u)) under each posterior draw, plus that draw's Gaussian noise if ``noise``.
     Several arms linked at their end points: each arm's draw says the end point is
-    Normal(f_a(g_a(u_a)), sigma_a^2 I); their product (the rule :mod:`bayesrob.prediction`
+    Normal(f_a(g_a(u_a)), sigma_a^2 I); their product (the rule :mod:`bayesrob.predict.grid`
     applies to the joint-error likelihoods) is Normal with the precision-weighted mean and
     variance 1 / sum_a sigma_a^-2. The arms' posteriors are independent, so their draws are
     paired by index (S = the fewest draws of any arm).
@@ -457,7 +457,7 @@ def predicted_accuracy_document(rig: Rig, cal: dict[str, BayesArmCalibration],
                                 seed: int = 0) -> dict:
     """Observed vs predicted mean error of every setup (single arms on validation rows,
     linked arms on test rows), in the shape of ``accuracy.json``'s ``setups``."""
-    from bayesrob.prediction import setup_set, setups
+    from bayesrob.predict.grid import setup_set, setups
 
     arms = {n: c.arm for n, c in cal.items()}
     posteriors = {n: c.posterior for n, c in cal.items()}

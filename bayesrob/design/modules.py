@@ -34,21 +34,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.aiming import aim_chain
-from bayesrob.chain_prediction import (
-    ChainModules,
-    StiffnessPrior,
-    chain_equilibrium,
-    free_draws,
-    parameter_draws,
-    sag_scaled_priors,
-    stiffness_draws,
-)
 from bayesrob.design.file import DesignError, DesignSpec, ModuleSpec
-from bayesrob.fusion import equilibrium_program, fused_posterior
 from bayesrob.inference import error_arrays, error_kind, is_sampleable
 from bayesrob.latent_errors import joint_jacobian
 from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.predict.aiming import aim
+from bayesrob.predict.draws import CalibratedModules, free_draws, parameter_draws
+from bayesrob.predict.fusion import equilibrium, equilibrium_program, fused_posterior
+from bayesrob.predict.stiffness import StiffnessPrior, sag_scaled_priors, stiffness_draws
 from bayesrob.rig import ArmSpec, Rig, RigError
 
 if TYPE_CHECKING:
@@ -210,7 +203,7 @@ class DensityModule:
     def draws(job: Any, arms: Sequence[str], mounts: Sequence[int], index: int
               ) -> tuple[np.ndarray, dict]:
         """Builds (S, T, 2) of a candidate: the equilibrium program's draws
-        (:func:`bayesrob.fusion.equilibrium_program`, one compiled program per kind of
+        (:func:`bayesrob.predict.fusion.equilibrium_program`, one compiled program per kind of
         assembly), or :func:`_grid_builds` where no program draws the whole assembly."""
         mods: list[DensityModule] = [job.modules[a] for a in arms]
         placed = [m.at(job.mounts[j]) for m, j in zip(mods, mounts, strict=True)]
@@ -298,7 +291,7 @@ def _grid_builds(job: Any, mods: Sequence[DensityModule], arms: Sequence[kin.Arm
     likelihoods, or the paper's histogram COND, which cannot draw joint errors).
 
     Each build's joint errors and tracker noise are one draw per target of the fused grid
-    density (:func:`bayesrob.fusion.fused_posterior`, as ``bayesrob predict`` gives it); its
+    density (:func:`bayesrob.predict.fusion.fused_posterior`, as ``bayesrob predict`` gives it); its
     calibration errors are one draw per module from the module's covariance, shared by the
     targets as in the program's builds. A module's draw moves its arm's end point at target t
     by Delta_a(t) = f(p + delta, g_{p + delta}(u_t)) - f(p, g_p(u_t)); the fused point moves
@@ -358,14 +351,14 @@ class PopulationModule:
 
     It is a root arm of its rig (no torso under it), calibrated with the groups its design
     entry names; its joint-error population is fitted as ``bayesrob predict`` fits it
-    (:mod:`bayesrob.chain_prediction`). A world target t is the point t - mount + base of its
+    (:mod:`bayesrob.predict.draws`). A world target t is the point t - mount + base of its
     own frame: it is aimed there (position-only inverse kinematics from its nearest train
     pose, as ``bayesrob predict`` aims) and drawn there, and the draws are moved back.
 
     A placement's free-point draws do not depend on the other arms of the candidate, so each
     worker draws them once per (module, mount) and every candidate that uses the placement
     reuses them (common random numbers also make the ranking less noisy); linked arms then
-    balance (:func:`bayesrob.chain_prediction.chain_equilibrium`, with the tracker's noise put
+    balance (:func:`bayesrob.predict.fusion.equilibrium`, with the tracker's noise put
     back). Each build's stiffnesses are the rig's ``stiffness`` or the log-normal prior,
     linked arms of one rig centred on their fitted sags as ``bayesrob predict`` centres them.
     """
@@ -373,7 +366,7 @@ class PopulationModule:
     name: str
     arm: str  # the arm of its rig
     rig: Rig  # its rig: the train poses aiming starts from
-    mods: ChainModules  # its rig's calibration and this module's joint-error population
+    mods: CalibratedModules  # its rig's calibration and this module's joint-error population
     base: np.ndarray  # (dim,) its robot base in its rig's instrument frame (calibrated)
     rig_index: int  # modules of one rig share its calibration errors in every draw
     model: str
@@ -390,7 +383,7 @@ class PopulationModule:
         """Joint columns (T, c) whose calibrated model reaches every target (within the
         inverse kinematics' tolerance), or None."""
         try:
-            return aim_chain(self.rig, self.mods.robot, self.mods.x, self.arm,
+            return aim(self.rig, self.mods.robot, self.mods.x, self.arm,
                              self.local(targets, mount))
         except RigError:
             return None
@@ -406,8 +399,8 @@ class PopulationModule:
         """Calibrate each rig once (the groups its modules name) and fit each module's
         joint-error population on its own train rows."""
         from bayesrob.calibrate.least_squares import calibrate, parameter_covariance
-        from bayesrob.chain_prediction import _stiffness_prior
         from bayesrob.latent_errors import check_latent_model, fit_latent_errors
+        from bayesrob.predict.stiffness import stiffness_prior
 
         if design.fusion != "equilibrium" and design.max_arms > 1 and design.linked:
             raise DesignError(f"{design.path}: fusion = {design.fusion!r} samples every "
@@ -447,8 +440,8 @@ class PopulationModule:
             for i, m in enumerate(specs):
                 errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
                                            seed=design.seed + i)
-                mods = ChainModules(cal, {m.arm: errors},
-                                    {m.arm: _stiffness_prior(rig, m.arm, cal)}, cov)
+                mods = CalibratedModules(cal, {m.arm: errors},
+                                    {m.arm: stiffness_prior(rig, m.arm, cal)}, cov)
                 base = np.asarray(cal.robot.instrument_pose(jnp.asarray(cal.x), m.arm))[:3, 3]
                 out[m.name] = cls(m.name, m.arm, rig, mods, base[: rig.robot.dim], index,
                                   m.model)
@@ -462,7 +455,7 @@ class PopulationModule:
         parts = [_placement(job, a, j) for a, j in zip(arms, mounts, strict=True)]
         if len(parts) == 1:
             return parts[0][0], {}
-        d = chain_equilibrium([p[0] for p in parts], [p[1] for p in parts],
+        d = equilibrium([p[0] for p in parts], [p[1] for p in parts],
                               _log_stiffness(job, arms),
                               tracker_noise_mm=job.tracker_noise_mm,
                               key=jax.random.fold_in(jax.random.PRNGKey(job.seed + 1), index))
@@ -550,7 +543,7 @@ def linked_priors(modules: Sequence[PopulationModule]) -> list[StiffnessPrior]:
     """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
     one rig: where the modules are distinct arms of one rig and each took the prior, their arm
     terms are centred on their fitted sags
-    (:func:`bayesrob.chain_prediction.sag_scaled_priors`); else each module's own. Modules
+    (:func:`bayesrob.predict.stiffness.sag_scaled_priors`); else each module's own. Modules
     of different rigs keep their own, as their sags come from different calibrations. Like
     ``predict``, it takes arms with paths of equal joint counts to be of one model (alike
     first moments): that is what lets a sag stand for a stiffness."""

@@ -1,7 +1,7 @@
 """How arms linked at their end points share it: two fusion rules.
 
 - ``product`` (the paper's rule, kept as the baseline): the linked end point's density is the
-  product of the arms' likelihoods (:mod:`bayesrob.prediction`,
+  product of the arms' likelihoods (:mod:`bayesrob.predict.grid`,
   :func:`bayesrob.inference.grid_posterior`).
 - ``equilibrium``: linked arms are springs. Left alone, arm a would hold its end point at d_a,
   its *free* end point, whose distribution is the arm's own single-arm prediction at its
@@ -24,13 +24,14 @@ joint's log stiffness gets an independent ``Normal(0, STIFFNESS_LOG_SD)`` prior 
 arm and joint, shared by every target of a draw: an arm is as stiff at one target as at the
 next).
 
-:func:`equilibrium_model` is the generative program: joint errors from each arm's joint-error
+:func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
 model (the KDE distributions of :mod:`bayesrob.inference`), pushed through the arm, then the
 stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction; their density
-is a Gaussian KDE (Scott's bandwidth), binned on a zoomed grid for regions and plots and exact
-at the scored points. The paper's histogram COND has a density but no sampler: its free end
-points are drawn from its single-arm grid prediction instead, which for a model without the
-Jacobian is that model's own single-arm prediction as the paper defines it.
+is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid (:func:`draws_posterior`) where
+a grid posterior is asked for, and exact at the scored points. The paper's histogram COND has
+a density but no sampler: its free end points are drawn from its single-arm grid prediction
+instead, which for a model without the Jacobian is that model's own single-arm prediction as
+the paper defines it.
 """
 
 from __future__ import annotations
@@ -57,20 +58,22 @@ from bayesrob.inference import (
     grid_posterior,
     is_sampleable,
 )
-from bayesrob.kde import kde_bandwidth
 from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.predict.regions import kernels
 from bayesrob.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
 
 __all__ = [
     "FUSIONS",
     "DEFAULT_FUSION",
     "STIFFNESS_LOG_SD",
-    "cartesian_stiffness",
-    "equilibrium_point",
-    "equilibrium_model",
+    "springs",
+    "balance",
+    "tracker_remainder",
+    "equilibrium",
     "equilibrium_program",
     "equilibrium_draws",
     "draws_posterior",
+    "fused_draws",
     "fused_posterior",
 ]
 
@@ -85,25 +88,73 @@ STIFFNESS_LOG_SD = 0.4
 DRAWS = 4000
 
 
-def inv2(m: jax.Array) -> jax.Array:
-    """Inverse of 2 x 2 matrices (..., 2, 2) in closed form: XLA's batched LAPACK calls cost
-    a call per matrix, and the draws hold tens of thousands of them."""
+def _inverse(m: jax.Array) -> jax.Array:
+    """Inverse of small matrices (..., d, d): in closed form for 2 x 2, whose draws hold tens
+    of thousands of them and XLA's batched LAPACK costs a call per matrix."""
+    if m.shape[-1] != 2:
+        return jnp.linalg.inv(m)
     a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
     det = a * d - b * c
     return jnp.stack([jnp.stack([d, -b], -1), jnp.stack([-c, a], -1)], -2) / det[..., None, None]
 
 
-def cartesian_stiffness(params: kin.ArmParams, theta: jax.Array, k: jax.Array) -> jax.Array:
-    """K = J^-T diag(k) J^-1 (..., 2, 2): the force (N) per mm the arm's end point resists with."""
-    jinv = inv2(kin.jacobian(params, theta))
-    return jnp.einsum("...ji,...j,...jk->...ik", jinv, k, jinv)
+def springs(jac: jax.Array, log_k: jax.Array) -> jax.Array:
+    """K = (J diag(1 / k) J^T)^-1 (..., dim, dim): the force (N) per mm an arm's end point
+    resists with, from its joint Jacobian (..., dim, n) and log joint stiffnesses (..., n)
+    (broadcast against each other)."""
+    return _inverse(jnp.einsum("...ik,...k,...jk->...ij", jac, jnp.exp(-log_k), jac))
 
 
-def equilibrium_point(free: jax.Array, stiffness: jax.Array) -> jax.Array:
-    """Where springs K_a (A, ..., 2, 2) holding points d_a (A, ..., 2) balance (..., 2)."""
-    total = stiffness.sum(axis=0)
+def balance(free: jax.Array, stiffness: jax.Array) -> jax.Array:
+    """Where springs K_a (A, ..., dim, dim) holding points d_a (A, ..., dim) balance (..., dim)."""
     pull = jnp.einsum("a...ik,a...k->...i", stiffness, free)
-    return jnp.einsum("...ik,...k->...i", inv2(total), pull)
+    return jnp.einsum("...ik,...k->...i", _inverse(stiffness.sum(axis=0)), pull)
+
+
+def tracker_remainder(stiffness: jax.Array, tracker_noise_mm: float, z: jax.Array
+                      ) -> jax.Array:
+    """The tracker's noise the balance averaged away, put back (..., dim) from standard normal
+    ``z`` (..., dim): each free point carries the noise (the joint-error densities were fitted
+    to measured points) and the balance averages it down to sum_a W_a W_a^T sigma^2 (W_a =
+    (sum K)^-1 K_a), but the linked point is measured once, with all of it, so
+    sigma^2 (I - sum_a W_a W_a^T) is missing."""
+    w = jnp.einsum("...ij,a...jk->a...ik", _inverse(stiffness.sum(axis=0)), stiffness)
+    dim = z.shape[-1]
+    cov = tracker_noise_mm**2 * (jnp.eye(dim) - jnp.einsum("a...ij,a...kj->...ik", w, w))
+    return jnp.einsum("...ij,...j->...i", _psd_sqrt(cov), z)
+
+
+def _psd_sqrt(m: jax.Array) -> jax.Array:
+    """Symmetric square root of symmetric matrices (..., d, d) whose least eigenvalue may poke
+    below zero by rounding (a sum of W W^T past I): in closed form for 2 x 2 (shifted up to a
+    zero least eigenvalue), by eigendecomposition (negative eigenvalues clipped) otherwise."""
+    m = 0.5 * (m + jnp.swapaxes(m, -1, -2))
+    if m.shape[-1] != 2:
+        vals, vecs = jnp.linalg.eigh(m)
+        return jnp.einsum("...ij,...j,...kj->...ik", vecs, jnp.sqrt(jnp.clip(vals, 0.0)), vecs)
+    a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
+    least = 0.5 * (a + d) - jnp.sqrt(0.25 * (a - d) ** 2 + b**2)
+    m = m + jnp.clip(-least, 0.0)[..., None, None] * jnp.eye(2)
+    s = jnp.sqrt(jnp.clip(m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] ** 2, 0.0))
+    t = jnp.sqrt(jnp.clip(m[..., 0, 0] + m[..., 1, 1] + 2 * s, 1e-300))
+    return (m + s[..., None, None] * jnp.eye(2)) / t[..., None, None]
+
+
+def equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
+                log_k: Sequence[jax.Array], tracker_noise_mm: float = 0.0,
+                key: jax.Array | None = None) -> jax.Array:
+    """The balance (S, T, dim) of free points (each (S, T, dim)) held by arms with joint
+    Jacobians (T, dim, n_a) and log joint stiffnesses (S, n_a); with ``tracker_noise_mm`` (and
+    ``key``) the tracker's noise the balance averaged away put back (:func:`tracker_remainder`).
+    """
+    k = jnp.stack([springs(jnp.asarray(j)[None], jnp.asarray(lk)[:, None, :])
+                   for j, lk in zip(jacs, log_k, strict=True)])
+    d = balance(jnp.stack([jnp.asarray(f) for f in free]), k)
+    if tracker_noise_mm <= 0:
+        return d
+    if key is None:
+        raise ValueError("tracker noise needs a random key")
+    return d + tracker_remainder(k, tracker_noise_mm, jax.random.normal(key, d.shape))
 
 
 def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
@@ -121,21 +172,6 @@ def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
     return jnp.where(known, loc, drawn)
 
 
-def equilibrium_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseModel],
-                      arms: Sequence[kin.Arm], stiffness: Sequence[Any] | None = None) -> None:
-    """Arms linked at their end point, settling where their stiffnesses balance.
-
-    For each arm k with commands (T, 2): theta_err_k ~ its joint-error model,
-    theta_k = g(u) + theta_err_k, free point d_k = f(theta_k); log stiffnesses from
-    ``stiffness`` ((2,) N mm/rad per arm, None for unknown) or the prior; then the linked
-    point ``d`` = :func:`equilibrium_point` of the free points with K_k at theta_k.
-    """
-    equilibrium_program(commands, kinds=tuple(error_kind(m) for m in models),
-                        arrays=[error_arrays(m) for m in models],
-                        params=[a.params for a in arms], names=tuple(a.name for a in arms),
-                        stiffness=stiffness)
-
-
 def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...],
                         arrays: Sequence[dict[str, jax.Array]],
                         params: Sequence[kin.ArmParams], names: tuple[str, ...],
@@ -143,9 +179,14 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
                         param_cov: Sequence[jax.Array] | None = None,
                         tracker_noise_mm: float = 0.0,
                         densities_hold_tracker: bool = True) -> None:
-    """:func:`equilibrium_model` on the models' arrays and the arms' parameters, so a compiled
-    caller (the configuration designer) traces them rather than baking them in: one program
-    serves every placement of the same modules.
+    """Arms linked at their end point, settling where their stiffnesses balance.
+
+    For each arm k with commands (T, 2): theta_err_k ~ its joint-error model (``kinds`` and
+    ``arrays``: :func:`bayesrob.inference.error_arrays`, so a compiled caller such as the
+    configuration designer traces them rather than baking them in), theta_k = g(u) +
+    theta_err_k, free point d_k = f(theta_k); log stiffnesses from ``stiffness`` ((2,)
+    N mm/rad per arm, None for unknown) or the prior; then the linked point ``d`` =
+    :func:`balance` of the free points with K_k at theta_k (:func:`springs`).
 
     ``param_cov``: each arm's calibrated-parameter covariance (8, 8); the arm that executes
     the commands then differs from the calibrated one that aimed them by a draw from it (one
@@ -159,7 +200,7 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     out (:func:`bayesrob.noise_models.without_tracker_noise`), so all of it is added, to a
     single arm's point as to a linked one.
     """
-    frees, springs = [], []
+    frees, held = [], []
     log_k = _log_stiffness(len(kinds), stiffness)
     for i, (kind, arr, p, u) in enumerate(zip(kinds, arrays, params, commands, strict=True)):
         u = jnp.atleast_2d(jnp.asarray(u, dtype=jnp.float64))
@@ -172,32 +213,15 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
             err = numpyro.sample(f"theta_err_{names[i]}", error_distribution(kind, arr, u))
         theta = kin.servo(p, u) + err
         frees.append(numpyro.deterministic(f"free_{names[i]}", kin.forward(p, theta)))
-        springs.append(cartesian_stiffness(p, theta, jnp.exp(log_k[i])))
-    d = equilibrium_point(jnp.stack(frees), jnp.stack(springs))
+        held.append(springs(kin.jacobian(p, theta), log_k[i]))
+    k = jnp.stack(held)
+    d = balance(jnp.stack(frees), k)
     if tracker_noise_mm > 0 and (len(kinds) > 1 or not densities_hold_tracker):
         with numpyro.plate("targets", d.shape[-2]):
             z = numpyro.sample("tracker", dist.Normal(0.0, 1.0).expand([2]).to_event(1))
-        if densities_hold_tracker:
-            k = jnp.stack(springs)
-            w = jnp.einsum("...ij,a...jk->a...ik", inv2(k.sum(axis=0)), k)  # (A, ..., 2, 2)
-            cov = tracker_noise_mm**2 * (jnp.eye(2) - jnp.einsum("a...ij,a...kj->...ik", w, w))
-            d = d + jnp.einsum("...ij,...j->...i", _sqrt_psd2(cov), z)
-        else:
-            d = d + tracker_noise_mm * z
+        d = d + (tracker_remainder(k, tracker_noise_mm, z) if densities_hold_tracker
+                 else tracker_noise_mm * z)
     numpyro.deterministic("d", d)
-
-
-def _sqrt_psd2(m: jax.Array) -> jax.Array:
-    """Symmetric square root of 2 x 2 matrices (..., 2, 2) in closed form, the matrix made
-    symmetric and shifted up to a zero least eigenvalue first when it has a negative one (a
-    sum of W W^T can poke past I by rounding)."""
-    m = 0.5 * (m + jnp.swapaxes(m, -1, -2))
-    a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
-    least = 0.5 * (a + d) - jnp.sqrt(0.25 * (a - d) ** 2 + b**2)
-    m = m + jnp.clip(-least, 0.0)[..., None, None] * jnp.eye(2)
-    s = jnp.sqrt(jnp.clip(m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] ** 2, 0.0))
-    t = jnp.sqrt(jnp.clip(m[..., 0, 0] + m[..., 1, 1] + 2 * s, 1e-300))
-    return (m + s[..., None, None] * jnp.eye(2)) / t[..., None, None]
 
 
 def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
@@ -206,16 +230,18 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
                       seed: int = 0) -> np.ndarray:
     """Draws (S, T, 2) of the linked end point under equilibrium fusion.
 
-    ``Predictive`` of :func:`equilibrium_model` when every model can draw joint errors;
+    ``Predictive`` of :func:`equilibrium_program` when every model can draw joint errors;
     otherwise each arm's free end points come from its single-arm grid prediction and the
     same stiffness prior and balance are applied.
     """
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     key = jax.random.PRNGKey(seed)
     if all(is_sampleable(m) for m in models):
-        pred = Predictive(equilibrium_model, num_samples=num_samples, return_sites=["d"])
-        out = pred(key, [jnp.asarray(u) for u in commands], models=models, arms=arms,
-                   stiffness=stiffness)
+        pred = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])
+        out = pred(key, [jnp.asarray(u) for u in commands],
+                   kinds=tuple(error_kind(m) for m in models),
+                   arrays=[error_arrays(m) for m in models], params=[a.params for a in arms],
+                   names=tuple(a.name for a in arms), stiffness=stiffness)
         return np.asarray(out["d"])
     targets = np.atleast_2d(np.asarray(targets, float))
     frees, thetas = [], []
@@ -229,9 +255,9 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
     if log_k is None:
         log_k = jnp.broadcast_to(jnp.log(jnp.asarray(stiffness, dtype=jnp.float64)),
                                  (num_samples, len(arms), 2))
-    springs = [cartesian_stiffness(a.params, th, jnp.exp(log_k[:, i, None, :]))
-               for i, (a, th) in enumerate(zip(arms, thetas, strict=True))]
-    return np.asarray(equilibrium_point(jnp.asarray(np.stack(frees)), jnp.stack(springs)))
+    k = jnp.stack([springs(kin.jacobian(a.params, th), log_k[:, i, None, :])
+                   for i, (a, th) in enumerate(zip(arms, thetas, strict=True))])
+    return np.asarray(balance(jnp.asarray(np.stack(frees)), k))
 
 
 def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> GridPosterior:
@@ -240,7 +266,7 @@ def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> Gri
     t0 = time.perf_counter()
     draws = np.asarray(draws, float)
     targets = np.atleast_2d(np.asarray(targets, float))
-    h = kde_bandwidth(draws)
+    h = np.stack([k.covariance for k in kernels(draws)])  # (T, 2, 2)
     sd = np.sqrt(np.einsum("tii->ti", h))
     lo = draws.min(axis=0) - 4 * sd
     hi = draws.max(axis=0) + 4 * sd
@@ -265,6 +291,20 @@ def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> Gri
     cov = np.einsum("sti,stj->tij", dev, dev) / (draws.shape[0] - 1) + h
     return GridPosterior(targets, lo, cell, n, prob, mean, cov, np.zeros(len(targets)),
                          outside, COARSE_GRID, time.perf_counter() - t0)
+
+
+def fused_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
+                commands: Sequence[np.ndarray], targets: np.ndarray,
+                fusion: str = DEFAULT_FUSION, stiffness: Sequence[Any] | None = None,
+                seed: int = 0, num_samples: int = DRAWS) -> np.ndarray:
+    """Draws (S, T, 2) of the end point of one planar arm or of linked ones, fused by
+    ``fusion``: the equilibrium's forward draws, or those of the product's exact grid (one
+    arm is its own prediction whichever the rule)."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
+    if fusion == "product" or len(arms) == 1:
+        return grid_posterior(models, arms, commands, targets).sample(seed, num_samples)
+    return equilibrium_draws(models, arms, commands, targets, stiffness, num_samples, seed)
 
 
 def fused_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],

@@ -20,6 +20,7 @@ import numpy as np
 from bayesrob import kinematics as kin
 from bayesrob.calibrate.arms import mean_ci95, observed_errors, predicted_points
 from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.predict.regions import region_sizes
 from bayesrob.rig import Rig
 
 
@@ -114,9 +115,9 @@ class Prediction:
 
 def hdr_area(prob: np.ndarray, mass: float, cell_area: float | np.ndarray) -> np.ndarray:
     """Area of the smallest set of cells holding ``mass`` of each row of ``prob`` (T,)."""
-    p = np.sort(prob, axis=-1)[:, ::-1]
-    k = np.argmax(np.cumsum(p, axis=-1) >= mass, axis=-1) + 1
-    return k * cell_area
+    with np.errstate(divide="ignore"):
+        log_density = np.log(prob.T) - np.log(cell_area)
+    return region_sizes(log_density, [mass], weights=prob.T, volume=cell_area)[0]
 
 
 def predict(config: str, models: dict[str, FittedNoiseModel], arms: dict[str, kin.Arm],

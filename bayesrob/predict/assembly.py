@@ -4,14 +4,14 @@ An assembly is one arm or several arms linked at their end point (``top+bottom+s
 the modules' single-arm ``train`` rows are used: each arm is calibrated on them and its
 joint-error model fitted to them, each arm is aimed at every target through its calibrated
 inverse model, and the linked end point is predicted by a fusion rule
-(:mod:`bayesrob.fusion`). A rig without any linked row works: that is the point.
+(:mod:`bayesrob.predict.fusion`). A rig without any linked row works: that is the point.
 
 Per target: the expected end point, the expected distance from the target, and the areas of
 the 50% / 90% highest-density regions (volumes in 3-D).
 
-Chain rigs (URDF / DH arms, 2-D or 3-D) go through :mod:`bayesrob.chain_prediction`: their
-joint-error models are the latent-variable populations of :mod:`bayesrob.latent_errors`
-(``ind`` or ``corr``), and the prediction is a set of draws rather than a grid.
+The prediction is a set of draws of the end point at each target (:mod:`.draws`), for any
+robot and any number of arms; its figures are those of the draws and of their KDE's regions
+(:mod:`.regions`).
 """
 
 from __future__ import annotations
@@ -22,17 +22,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import kinematics as kin
-from bayesrob.aiming import check_reach
-from bayesrob.calibrate.arms import calibrate_arms
-from bayesrob.fusion import DEFAULT_FUSION, DRAWS, FUSIONS, fused_posterior
-from bayesrob.inference import GridPosterior
 from bayesrob.latent_errors import LATENT_MODELS
-from bayesrob.noise_models import discover_models, fit_noise_models
-from bayesrob.prediction import hdr_area
+from bayesrob.predict.draws import fit_modules, fit_paper_modules
+from bayesrob.predict.fusion import DEFAULT_FUSION, DRAWS, FUSIONS
+from bayesrob.predict.regions import hdr_levels, hdr_sizes
+from bayesrob.predict.stiffness import STIFFNESS_SOURCES
 from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
@@ -56,9 +53,8 @@ class AssemblyPrediction:
     expected_error_mm: np.ndarray  # (T,)
     hdr50: np.ndarray  # (T,) area (mm^2) or, in 3-D, volume (mm^3) of the 50% region
     hdr90: np.ndarray  # (T,)
-    posterior: GridPosterior | None  # planar arms: the grid
     seconds: float
-    draws: np.ndarray | None = None  # (S, T, dim) chain arms: the draws the prediction is
+    draws: np.ndarray  # (S, T, dim): the draws the prediction is
     # arm -> (T, c): how far each target's commands lie beyond the range of that arm's train
     # commands, per column (0 inside; pulse us for planar arms, joint units for chains); set
     # with the two fields after it by :func:`_with_command_ranges`
@@ -209,14 +205,6 @@ def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
     return np.asarray(out, float)
 
 
-def _aim(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
-    """Pulses aiming the calibrated arm at each target; refuses targets it cannot be aimed at."""
-    u = np.asarray(arm.command(jnp.asarray(targets)))
-    for t, ut in zip(targets, u, strict=True):
-        check_reach(arm, t, ut)
-    return u
-
-
 def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
     """(T, c): how far each row of ``commands`` lies beyond the range of ``arm``'s train
     commands, per column (0 inside), in the columns' own units."""
@@ -232,7 +220,9 @@ def _with_command_ranges(pred: AssemblyPrediction, rig: Rig) -> AssemblyPredicti
     return replace(pred, beyond_train={a: beyond_train_range(rig, a, u)
                                        for a, u in pred.commands.items()},
                    columns={a: rig.robot.columns(a) for a in pred.commands},
-                   command_unit="" if rig.is_chain else " us")
+                   # servo-driven arms are commanded in pulse widths, joints in their values
+                   command_unit=" us" if all(getattr(rig.arms[a], "pulse_limits", None)
+                                             is not None for a in pred.commands) else "")
 
 
 def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | None = None,
@@ -269,68 +259,37 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     if targets.shape[1] != dim:
         raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
                        f"{targets.shape[1]} coordinates")
+    # The one choice left between robots: the paper's planar arms without ``groups`` keep
+    # their eight-parameter calibration and kernel joint-error models; every other arm is
+    # calibrated over its groups with a latent joint-error population. Aiming, draws and
+    # regions are one path from there.
+    paper = groups is None and not rig.is_chain
     if masses != "fitted" and not rig.is_chain:
         raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
                        f"{masses!r} is for URDF rigs)")
-    if rig.is_chain or groups is not None:
-        return _with_command_ranges(_predict_chain(
-            rig, config, members, targets, model or LATENT_MODELS[0], fusion, seed, t0,
-            groups or kin.GROUPS, masses), rig)
-    model = model or "cond"
-    spec = discover_models(models_dir, [model])
-    cal = calibrate_arms(rig)
-    arms = {a: cal[a].arm for a in members}
-    commands = {a: _aim(arms[a], targets) for a in members}
-    fitted = fit_noise_models(rig, arms, spec)[model]
-    stiffness = [rig.arms[a].stiffness for a in members]
-    post, _ = fused_posterior([fitted[a] for a in members], [arms[a] for a in members],
-                              [commands[a] for a in members], targets, fusion,
-                              stiffness if any(s is not None for s in stiffness) else None,
-                              seed=seed)
-    pts = post.points()
-    dist = np.linalg.norm(pts - targets[:, None, :], axis=-1)
-    cell = post.cell_mm[:, 0] * post.cell_mm[:, 1]
-    return _with_command_ranges(AssemblyPrediction(
-        rig.name, config, model, fusion, targets, commands, post.mean,
-        np.einsum("tm,tm->t", post.prob, dist),
-        hdr_area(post.prob, 0.5, cell), hdr_area(post.prob, 0.9, cell),
-        post, time.perf_counter() - t0), rig)
-
-
-def _predict_chain(rig: Rig, config: str, members: list[str], targets: np.ndarray, model: str,
-                   fusion: str, seed: int, t0: float, groups: tuple[str, ...],
-                   masses: str = "fitted") -> AssemblyPrediction:
-    from bayesrob.aiming import aim_chain
-    from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.chain_prediction import (
-        chain_draws,
-        check_module_arms,
-        fit_chain_modules,
-        hdr_sizes,
-    )
-
+    model = model or ("cond" if paper else LATENT_MODELS[0])
     try:
-        check_module_arms(rig, members, model)
-        cal = calibrate(rig, groups, masses=masses)
-        # aimed before the joint-error fits, which take most of the time: a target out of
-        # reach or off the servos' range is refused after the calibration alone
-        commands = {a: aim_chain(rig, cal.robot, cal.x, a, targets) for a in members}
-        mods = fit_chain_modules(rig, members, model, groups, seed=seed, calibration=cal)
+        mods = (fit_paper_modules(rig, members, model, models_dir, targets) if paper
+                else fit_modules(rig, members, model, groups or kin.GROUPS, seed=seed,
+                                 masses=masses, targets=targets))
     except RigError:
         raise
     except ValueError as e:
+        if paper:
+            raise
         raise RigError(f"{rig.path}: {e}") from None
-    draws = chain_draws(mods, members, [commands[a] for a in members], fusion, DRAWS, seed)
+    commands = mods.commands
+    draws = mods.draws(members, [commands[a] for a in members], targets, fusion, DRAWS, seed)
     sizes = hdr_sizes(draws)
     pred = AssemblyPrediction(
         rig.name, config, model, fusion, targets, commands, draws.mean(axis=0),
         np.linalg.norm(draws - targets[None], axis=-1).mean(axis=0), sizes[0], sizes[1],
-        None, time.perf_counter() - t0, draws)
-    if fusion == "equilibrium" and len(members) > 1:
-        pred.stiffness = {a: mods.stiffness[a].record() for a in members}
-        pred.stiffness_note = stiffness_note(
-            rig.robot, {a: mods.stiffness[a].source for a in members})
-    return pred
+        time.perf_counter() - t0, draws)
+    priors = getattr(mods, "stiffness", None)
+    if fusion == "equilibrium" and len(members) > 1 and isinstance(priors, dict):
+        pred.stiffness = {a: priors[a].record() for a in members}
+        pred.stiffness_note = stiffness_note(rig.robot, {a: priors[a].source for a in members})
+    return _with_command_ranges(pred, rig)
 
 
 def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
@@ -339,8 +298,6 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
     every chain of the robot weighs its links (what ``masses="description"`` needs): how to
     read them from those masses instead, each joint's own stiffness where the prior gives
     only a profile."""
-    from bayesrob.chain_prediction import STIFFNESS_SOURCES
-
     guessed = [a for a, src in sources.items() if src in STIFFNESS_SOURCES[2:]]
     if not guessed or not all(c.weighed for c in robot.chains.values()):
         return None
@@ -352,70 +309,19 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
-    """Expected error over the targets (left) and the 50% / 90% regions of a few (right)."""
+    """The targets coloured by their expected error, seen from above and, in 3-D, from the
+    side (x-z) on the same scale, with each arm's base; then the least accurate target's draws
+    in and out of its 50% / 90% regions, on the same planes."""
     import matplotlib.pyplot as plt
-
-    if pred.posterior is None:
-        return _draws_figure(pred, rig)
-
-    t = pred.targets
-    bases = np.asarray([rig.arms[a].base for a in pred.config.split("+")], float)
-    shown = np.vstack([t, bases])
-    lo, hi = shown.min(axis=0), shown.max(axis=0)
-    # room for the square markers and the arms' names inside the axes, not cut at the edge
-    pad = np.maximum(0.08 * (hi - lo).max(), 15.0)
-    lo, hi = lo - pad, hi + pad
-    # the map keeps equal scales: its panel is as wide as the workspace is, for its height
-    ratio = float(np.clip((hi - lo)[0] / (hi - lo)[1], 0.3, 3.0))
-    fig = plt.figure(figsize=(4.2 * ratio + 1.6 + 4.6, 4.6), layout="constrained")
-    ax, bx = fig.subplots(1, 2, width_ratios=[4.2 * ratio + 1.6, 4.6])
-    sc = ax.scatter(t[:, 0], t[:, 1], c=pred.expected_error_mm, cmap="viridis", s=160,
-                    marker="s")
-    fig.colorbar(sc, ax=ax, label="expected error (mm)")
-    for a, base in zip(pred.config.split("+"), bases, strict=True):
-        ax.plot(*base, "k^")
-        ax.annotate(a, base, textcoords="offset points", xytext=(4, 4))
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
-    ax.set_aspect("equal")
-    # a single arm has no fusion: naming one would claim a step that did not happen
-    how = f"{pred.model}, {pred.fusion}" if "+" in pred.config else pred.model
-    ax.set_title(f"{pred.config}: expected error ({how})", fontsize=10)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    post = pred.posterior
-    worst = int(np.argmax(pred.expected_error_mm))
-    n = post.n
-    pts = post.points()[worst]
-    dens = post.prob[worst]
-    order = np.sort(dens)[::-1]
-    levels = [order[np.searchsorted(np.cumsum(order), m)] for m in (0.9, 0.5)]
-    bx.contour(pts[:, 0].reshape(n, n) - t[worst, 0], pts[:, 1].reshape(n, n) - t[worst, 1],
-               dens.reshape(n, n), levels=levels, colors=["C0", "C3"])
-    bx.plot(0, 0, "k+")
-    bx.set_aspect("equal")
-    bx.set_title(f"least accurate target ({t[worst, 0]:.0f}, {t[worst, 1]:.0f}): "
-                 "50% (red) / 90% (blue)", fontsize=9)
-    bx.set_xlabel("x - target (mm)")
-    bx.set_ylabel("y - target (mm)")
-    return fig
-
-
-def _draws_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
-    """A chain assembly: the targets coloured by their expected error, seen from above and,
-    in 3-D, from the side (x-z) on the same scale, with each arm's base; then the least
-    accurate target's draws in and out of its 50% / 90% regions, on the same planes."""
-    import matplotlib.pyplot as plt
-
-    from bayesrob.chain_prediction import hdr_levels
 
     t = pred.targets
     planes = [(0, 1), (0, 2)] if t.shape[1] == 3 else [(0, 1)]
     x = rig.robot.layout.nominal
     arms = pred.config.split("+")
     # a planar arm's base is its chain's first joint origin, not an instrument pose
-    bases = np.asarray([np.asarray(rig.robot.instrument_pose(x, a))[:3, 3][:t.shape[1]]
-                        if rig.is_chain else np.asarray(rig.arms[a].base, float)
+    bases = np.asarray([np.asarray(rig.arms[a].base, float)
+                        if getattr(rig.arms[a], "base", None) is not None
+                        else np.asarray(rig.robot.instrument_pose(x, a))[:3, 3][:t.shape[1]]
                         for a in arms])
     shown = np.vstack([t, bases])
     lo, hi = shown.min(axis=0), shown.max(axis=0)

@@ -1,7 +1,7 @@
 """Aiming arms at targets: the inverse kinematics of a calibrated arm, and the one-line
 refusals of a target it cannot reach.
 
-Any arm (a URDF/DH chain, or a planar arm as a 2-joint chain) is aimed by :func:`aim_chain`:
+Any arm (a URDF/DH chain, or a planar arm as a 2-joint chain) is aimed by :func:`aim`:
 position-only damped Gauss-Newton through its calibrated model, from the train poses nearest
 the target. The planar arm's closed form (:meth:`bayesrob.kinematics.Arm.command`) is its
 specialisation, which the paper's pipeline uses.
@@ -19,7 +19,7 @@ import numpy as np
 from bayesrob import kinematics as kin
 from bayesrob.rig import Rig, RigError
 
-__all__ = ["aim_chain", "check_reach", "check_pulse_limits", "IK_TOL_MM"]
+__all__ = ["aim", "check_reach", "check_pulse_limits", "IK_TOL_MM"]
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
@@ -46,7 +46,7 @@ def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
     return partial(_column_jacobian_program, robot.structure, arm, robot.nominal_values)
 
 
-def aim_chain(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
+def aim(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
               ) -> np.ndarray:
     """Columns (T, c) putting ``arm``'s marker on each target under the calibrated model.
 
@@ -110,7 +110,7 @@ def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
 
 def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`aim_chain`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
+    """:func:`aim`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
     each target is missed (mm). ``per_rad`` (c,): radians per unit of each column."""
     for _ in range(IK_ITERATIONS):
         p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))

@@ -1,0 +1,312 @@
+"""Draws of where an assembly's end point lands: one arm, or any number linked, 2-D or 3-D.
+
+Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
+residuals (:mod:`bayesrob.latent_errors`). At a target, each arm is aimed through its calibrated
+model (:mod:`.aiming`), and its *free* end point is the push-forward of the population: draws
+of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated robot, plus
+N(0, s^2) for what no joint explains.
+
+Linked arms share one point (:mod:`.fusion`):
+
+- ``equilibrium`` (default): the point where the arms' elastic forces balance, linearised about
+  the free points (:func:`.fusion.equilibrium`), their joint stiffnesses drawn from
+  :mod:`.stiffness`. Forward draws, no sampler needed.
+- ``product`` (the paper's rule): the density of the shared point is the product of the arms'
+  end-point densities. Every arm's joint errors and the shared point are latent and sampled
+  together with NUTS: p ~ flat, e_a ~ N(0, Sigma_a), p ~ N(f_a(e_a), s_a^2) for each arm a.
+
+The draws' density and regions: :mod:`.regions`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+from numpyro.infer import MCMC, NUTS
+
+from bayesrob import kinematics as kin
+from bayesrob.calibrate.arms import calibrate_arms
+from bayesrob.calibrate.least_squares import Calibration, calibrate, parameter_covariance
+from bayesrob.latent_errors import (
+    LatentJointErrors,
+    check_latent_model,
+    fit_latent_errors,
+    joint_jacobian,
+)
+from bayesrob.noise_models import FittedNoiseModel, discover_models, fit_noise_models
+from bayesrob.predict.aiming import aim, check_reach
+from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium, fused_draws
+from bayesrob.predict.stiffness import StiffnessPrior, stiffness_draws, stiffness_priors
+from bayesrob.rig import Rig, RigError
+
+__all__ = ["CalibratedModules", "PaperModules", "fit_modules", "fit_paper_modules",
+           "check_module_arms", "assembly_draws",
+           "free_draws", "parameter_draws", "product_draws_nuts"]
+
+# Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
+# call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
+# the sag's torques taken six times, took the process to 23 GB in one call; a rig's 16-24
+# targets stay one call.
+POINTS_PER_CALL = 100_000
+
+
+@dataclass
+class CalibratedModules:
+    """Calibrated arms, their fitted joint-error populations and their stiffness priors."""
+
+    calibration: Calibration
+    errors: dict[str, LatentJointErrors]
+    # per arm: the log joint stiffnesses' prior
+    stiffness: dict[str, StiffnessPrior]
+    # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
+    param_cov: np.ndarray | None
+    # arm -> (T, c): the columns aiming it at the targets it was fitted for, if any
+    commands: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def robot(self) -> kin.Robot:
+        return self.calibration.robot
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.calibration.x
+
+    def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
+              fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
+        """:func:`assembly_draws` (S, T, dim) of ``arms`` at ``commands``."""
+        return assembly_draws(self, arms, commands, fusion, num_samples, seed)
+
+
+@dataclass
+class PaperModules:
+    """The paper's planar arms: each calibrated by its eight parameters, with a kernel
+    joint-error model of :mod:`bayesrob.noise_models` (the paper's or an improved one)."""
+
+    arms: dict[str, kin.Arm]
+    fitted: dict[str, FittedNoiseModel]
+    # per arm: its joint stiffnesses (N mm / rad) from the rig, or None (the prior)
+    stiffness: list[np.ndarray | None]
+    commands: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
+              fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
+        """:func:`bayesrob.predict.fusion.fused_draws` (S, T, 2) of ``arms`` at ``commands``."""
+        given = [self.stiffness[list(self.arms).index(a)] for a in arms]
+        return fused_draws([self.fitted[a] for a in arms], [self.arms[a] for a in arms],
+                           commands, targets, fusion,
+                           given if any(k is not None for k in given) else None, seed,
+                           num_samples)
+
+
+def fit_paper_modules(rig: Rig, arms: Sequence[str], model: str, models_dir: Any = None,
+                      targets: np.ndarray | None = None) -> PaperModules:
+    """Calibrate the rig's planar arms (eight parameters each), aim ``arms`` at ``targets``
+    (pulses from the closed-form inverse; a target out of reach or off the servos' range is
+    refused in one line before the joint-error models are fitted) and fit ``model`` to each."""
+    spec = discover_models(models_dir, [model])
+    cal = calibrate_arms(rig)
+    fitted_arms = {a: cal[a].arm for a in arms}
+    commands = {} if targets is None else {a: _aim_arm(fitted_arms[a], targets) for a in arms}
+    fitted = fit_noise_models(rig, fitted_arms, spec)[model]
+    return PaperModules(fitted_arms, {a: fitted[a] for a in arms},
+                        [rig.arms[a].stiffness for a in arms], commands)
+
+
+def _aim_arm(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
+    """Pulses aiming the calibrated planar arm at each target, from its closed-form inverse
+    (the specialisation of :func:`aim`); refuses targets it cannot be aimed at."""
+    u = np.asarray(arm.command(jnp.asarray(targets)))
+    for t, ut in zip(targets, u, strict=True):
+        check_reach(arm, t, ut)
+    return u
+
+
+def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
+    """Refuse, in one line, a joint-error model or an arm :func:`fit_modules` cannot fit
+    (not measured, or without train rows of its own)."""
+    check_latent_model(model)
+    measured = rig.robot.measured_arms()
+    for a in arms:
+        if a not in measured:
+            raise RigError(f"{rig.path}: {a!r} is not a measured arm of the rig (measured: "
+                           f"{', '.join(measured)})")
+        if not rig.measurements.mask(a, "train").any():
+            raise RigError(f"{rig.path}: arm {a!r} has no train rows of its own to calibrate "
+                           "and fit its joint-error model on")
+
+
+def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
+                groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
+                calibration: Calibration | None = None,
+                parameter_uncertainty: bool = False, masses: str = "fitted",
+                sag_steps: int = 1, targets: np.ndarray | None = None) -> CalibratedModules:
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
+
+    ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
+    covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
+    too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
+    residual scaling for the fit's degrees of freedom having already widened them.
+    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s, for the calibration
+    made here (a ``calibration`` given carries its own); with the description's masses and a
+    compliance group, the arms' stiffnesses come from the fitted compliances instead of the
+    prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
+    use the calibration's robot, so its sag model too). ``targets``: aim ``arms`` at them
+    (:func:`aim`, kept in ``commands``) before the joint-error fits, which take most of the
+    time, so a target out of reach is refused after the calibration alone.
+    """
+    check_module_arms(rig, arms, model)  # before the calibration, which takes the time
+    cal = (calibration if calibration is not None
+           else calibrate(rig, groups, masses=masses, sag_steps=sag_steps))
+    commands = ({} if targets is None
+                else {a: aim(rig, cal.robot, cal.x, a, targets) for a in arms})
+    n_free = int(cal.ident.free.sum())
+    errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
+              for i, a in enumerate(arms)}
+    stiffness = stiffness_priors(rig, arms, cal)
+    cov = parameter_covariance(rig, cal) if parameter_uncertainty else None
+    return CalibratedModules(cal, errors, stiffness, cov, commands)
+
+
+def parameter_draws(mods: CalibratedModules, key: jax.Array, n: int) -> jax.Array:
+    """Parameter vectors (S, P) from the calibration's Gaussian approximation: one per draw,
+    shared by every arm (the arms of a tree share links and the instrument)."""
+    if mods.param_cov is None:
+        return jnp.broadcast_to(jnp.asarray(mods.x), (n, len(mods.x)))
+    w, v = np.linalg.eigh(mods.param_cov)
+    # An eigenvector's sign is arbitrary and LAPACK builds and thread counts pick differently:
+    # each is turned so its largest entry is positive, so a key gives the same draws in every
+    # process (a Dask worker and the client alike).
+    v = v * np.sign(v[np.argmax(np.abs(v), axis=0), np.arange(v.shape[1])])
+    root = v * np.sqrt(np.clip(w, 0.0, None))
+    z = jax.random.normal(key, (n, len(w)))
+    return jnp.asarray(mods.x) + z @ jnp.asarray(root).T
+
+
+def free_draws(mods: CalibratedModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
+                side: dict[str, np.ndarray] | None = None, measured: bool = True
+                ) -> np.ndarray:
+    """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
+    vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs), as the
+    tracker measures it (``measured``: with its noise) or as it is."""
+    n = xs.shape[0]
+    e, noise = mods.errors[arm].draw(key, (n, len(u)))
+    # the rest of the pose weighs only where the model has gravity in it
+    rest = (None if side is None or mods.robot.gravity is None
+            else {b: jnp.asarray(v) for b, v in side.items()})
+    push = _points_with_errors(mods.robot, arm)
+    rows = jnp.asarray(u)
+    per_call = max(1, POINTS_PER_CALL // max(1, len(u)))
+    calls = max(1, -(-n // per_call))
+    size = -(-n // calls)  # equal slices: one compiled shape (one more for a short last one)
+    if calls == 1:
+        pts = push(xs, rows, e, rest)
+    else:
+        # sliced on the host and each slice finished before the next starts: slicing device
+        # arrays compiles a program per offset while earlier slices still run, and under the
+        # persistent compilation cache one such run ended in a crash inside XLA's serialiser
+        xs, e = np.asarray(xs), np.asarray(e)
+        pts = np.concatenate([np.asarray(push(xs[i:i + size], rows, e[i:i + size], rest))
+                              for i in range(0, n, size)])
+    if not measured:
+        return np.asarray(pts)
+    eps = jax.random.normal(jax.random.fold_in(key, 1), pts.shape) * noise[:, None, None]
+    return np.asarray(pts + eps)
+
+
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _points_with_errors_program(structure: kin.RobotStructure, arm: str, values: dict,
+                                xs: jax.Array, u: jax.Array, e: jax.Array,
+                                side: dict[str, jax.Array] | None) -> jax.Array:
+    robot = structure.robot(values)
+    return jax.vmap(lambda x, u, e, side: robot.marker_points(x, arm, u, e, side),
+                    in_axes=(0, None, 0, None))(xs, u, e, side)
+
+
+def _points_with_errors(robot: kin.Robot, arm: str) -> Callable:
+    """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim),
+    compiled once per process for all robots of ``robot``'s structure."""
+    return partial(_points_with_errors_program, robot.structure, arm, robot.nominal_values)
+
+
+def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Sequence[np.ndarray],
+                fusion: str = "equilibrium", num_samples: int = DRAWS, seed: int = 0,
+                side: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """Draws (S, T, dim) of one arm's end point or of linked arms' shared point. ``side``
+    (one arm only): the other arms' path columns in the same rows, whose weight bends the
+    chains they share when the model has gravity in it."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
+    key = jax.random.PRNGKey(seed)
+    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+    if fusion == "product" and len(arms) > 1:
+        return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
+    xs = parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
+    linked = len(arms) > 1
+    # Linked, the free points are drawn without the tracker's noise and the balance is
+    # measured once, with all of it (below): the balance would average the noise each free
+    # point carried.
+    free = [free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
+                        None if linked else side, measured=not linked)
+            for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
+    if not linked:
+        return free[0]
+    jacs = [joint_jacobian(mods.robot, jnp.asarray(mods.x), a, jnp.asarray(u))
+            for a, u in zip(arms, commands, strict=True)]
+    # The joint Jacobian at the commanded pose serves every draw: joint errors of a few mrad
+    # change it by parts in a thousand.
+    log_k = stiffness_draws([mods.stiffness[a] for a in arms], jax.random.fold_in(key, 0),
+                            num_samples)
+    d = equilibrium(free, jacs, log_k)
+    # each arm's population has its own fitted estimate of the one tracker's noise: their mean
+    noise = float(np.mean([np.mean(mods.errors[a].noise_sd) for a in arms]))
+    # a key of the parameters' branch: the arms' own keys are 1, 2, ... for any number of arms
+    eps = jax.random.normal(jax.random.fold_in(jax.random.fold_in(key, 99), 1), d.shape)
+    return np.asarray(d + noise * eps)
+
+
+def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
+    t, dim = start.shape
+    p = numpyro.sample("p", dist.ImproperUniform(dist.constraints.real_vector, (t,), (dim,)))
+    for i, (a, u, cov, s) in enumerate(zip(arms, commands, covs, noises, strict=True)):
+        n = cov.shape[0]
+        chol = jnp.linalg.cholesky(cov + 1e-18 * jnp.eye(n))
+        z = numpyro.sample(f"z_{i}", dist.Normal(0.0, 1.0).expand([t, n]).to_event(2))
+        e = z @ chol.T
+        f = robot.marker_points(x, a, u, e)
+        numpyro.sample(f"link_{i}", dist.Normal(f, s).to_event(2), obs=p)
+
+
+def product_draws_nuts(mods: CalibratedModules, arms: Sequence[str], commands: Sequence[np.ndarray],
+                       seed: int = 0, num_samples: int = DRAWS, warmup: int = 500,
+                       chains: int = 2) -> np.ndarray:
+    """NUTS draws (S, T, dim) of the shared point under the product of the arms' densities.
+
+    The population parameters are held at their posterior means (a mixture over them would
+    make the target multimodal in Sigma for nothing the draws could resolve).
+    """
+    from numpyro.infer import init_to_value
+
+    commands = [jnp.asarray(np.atleast_2d(np.asarray(u, float))) for u in commands]
+    covs = [jnp.asarray(mods.errors[a].covariance.mean(0)) for a in arms]
+    noises = [float(mods.errors[a].noise_sd.mean()) for a in arms]
+    x = jnp.asarray(mods.x)
+    start = jnp.mean(jnp.stack([mods.robot.compiled_points(a)(x, u)
+                                for a, u in zip(arms, commands, strict=True)]), axis=0)
+    init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))
+                           for i, c in enumerate(covs)}}
+    kernel = NUTS(_product_model, init_strategy=init_to_value(values=init), dense_mass=False,
+                  target_accept_prob=0.85)
+    per_chain = -(-num_samples // chains)
+    mcmc = MCMC(kernel, num_warmup=warmup, num_samples=per_chain, num_chains=chains,
+                chain_method="sequential", progress_bar=False)
+    mcmc.run(jax.random.PRNGKey(seed), commands, mods.robot, x, list(arms), covs, noises,
+             start)
+    return np.asarray(mcmc.get_samples()["p"])[:num_samples]

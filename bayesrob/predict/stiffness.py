@@ -1,0 +1,226 @@
+"""The joint stiffnesses linked arms balance with (equilibrium fusion, :mod:`.fusion`).
+
+An arm's log joint stiffnesses along its path: the rig's ``stiffness`` when it gives them;
+else read from compliances fitted under the description's link masses; else a log-normal
+prior centred on the joints' URDF torque limits, with a term per arm and one per joint, and,
+where every linked arm takes the prior, each arm's term centred on its fitted sag against the
+others' (:func:`sag_scaled_priors`). Only the ratios of the arms' stiffnesses move the
+balance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+from numpyro.infer import Predictive
+
+from bayesrob.calibrate.least_squares import Calibration
+from bayesrob.rig import Rig
+
+__all__ = ["StiffnessPrior", "STIFFNESS_SOURCES", "stiffness_prior", "arm_sags",
+           "sag_scaled_priors", "stiffness_priors", "stiffness_draws"]
+
+# The joint stiffness prior when the rig does not give them. Chosen on two sets of linked
+# tuning rigs (arm6 --linked, each seed drawing its own arms' stiffnesses; 201-206, 24 points
+# each, and 271-282, 8 each: 240 points; `bench_predict_3d.py --coverage tuning [--many-rigs]
+# --variants`) as the prior whose pooled 50% / 90% coverage came closest to nominal: 0.47 /
+# 0.96 (arm sd 0.5, chosen on 201-206 alone before: 0.64 / 0.98). Tried: per-joint sd 0.25 /
+# 0.5 / 0.75, arm sd 0 / 0.25 / 0.5, centred on equal joints or on the torque limits. No prior
+# moves the mean error's ratio by much (1.14-1.27 over all 18 on 271-282).
+CHAIN_STIFFNESS_LOG_SD = 0.5  # each joint's own
+CHAIN_STIFFNESS_ARM_LOG_SD = 0.25  # shared by an arm's joints: an arm stiffer or softer as a whole
+# Where the prior is centred: "effort", each joint's stiffness in proportion to its URDF torque
+# limit (a bigger drive is a stiffer one; equal joints where the file gives no limit), or
+# "equal" joints
+CHAIN_STIFFNESS_CENTRE = "effort"
+# Where the arm term is centred when every linked arm takes the prior: "sags", each arm's log
+# stiffness scale set against the others' by its fitted sag at the poses they were all trained
+# on (:func:`sag_scaled_priors`), or "equal" arms (the two sds above).
+CHAIN_STIFFNESS_ARM_CENTRE = "sags"
+# The sag-centred prior's own per-joint and arm-term log sds: chosen on the tuning rigs
+# 271-282 and 201-206 (`bench_predict_3d.py --coverage tuning [--many-rigs] --sag-variants`,
+# 240 points) by a rule written before the sweep, the smallest largest miss relative to each
+# target's half-width: 0.512 / 0.892, error ratio 0.929, against 0.471 / 0.958, 1.081 for the
+# equal-arms prior (docs/fusion.md)
+SAG_SCALED_LOG_SD = 0.4
+SAG_SCALED_ARM_LOG_SD = 0.5
+# How far a robot description's link masses are trusted (log sd): a compliance fitted under
+# them carries their error into the stiffness read from it.
+DESCRIBED_MASS_LOG_SD = 0.1
+
+class StiffnessPrior(NamedTuple):
+    """An arm's log joint stiffnesses along its path (mounts first): Normal(centre, sd) per
+    joint (sd 0: known), plus the prior's arm term where ``shared`` (an arm stiffer or softer
+    as a whole, where nothing fixes its scale). ``source`` says where it came from, in words
+    a report can print: one of ``STIFFNESS_SOURCES``."""
+
+    centre: np.ndarray
+    sd: np.ndarray
+    shared: np.ndarray
+    source: str
+    # the arm term's mean (the arm's log stiffness scale against the other linked arms') and
+    # sd (None: CHAIN_STIFFNESS_ARM_LOG_SD)
+    arm_centre: float = 0.0
+    arm_sd: float | None = None
+
+    def arm_term_sd(self) -> float:
+        """The arm term's log sd: its own, else CHAIN_STIFFNESS_ARM_LOG_SD as it stands now
+        (a sweep of priors sets it between draws)."""
+        return CHAIN_STIFFNESS_ARM_LOG_SD if self.arm_sd is None else self.arm_sd
+
+    def record(self) -> dict[str, Any]:
+        """What the balance draws this arm's joint stiffnesses from, for a report (``predict``'s
+        JSON ``stiffness.<arm>``, ``design.json``'s ``stiffness[]``): ``from``, medians (N mm/rad;
+        ``relative`` to the arm's first joint under the prior, whose scale is arbitrary), log
+        sds, and ``arm_log_centre`` (the arm's log scale against the other linked arms', 0
+        unless their fitted sags set it); under the prior also the arm term's sd."""
+        k = np.exp(self.centre)
+        out: dict[str, Any] = {"from": self.source}
+        if np.any(self.shared):
+            out |= {"relative": [float(v) for v in k / k[0]],
+                    "log_sd": [float(v) for v in self.sd], "arm_log_sd": self.arm_term_sd()}
+        else:
+            out |= {"nmm_per_rad": [float(v) for v in k], "log_sd": [float(v) for v in self.sd]}
+        return out | {"arm_log_centre": float(self.arm_centre)}
+
+
+STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "the prior",
+                     "the prior, the arms scaled by their fitted sags")
+
+
+def stiffness_prior(rig: Rig, arm: str, cal: Calibration | None = None
+                     ) -> StiffnessPrior:
+    """The log joint stiffnesses along the path to ``arm``: the rig's ``stiffness`` when it
+    gives them; else, from a calibration whose compliances were fitted under the description's
+    masses (``masses="description"``), each seen joint's own and the rest scaled to them; else
+    the prior."""
+    parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
+    if all(p is not None for p in parts):
+        k = np.concatenate(parts)
+        return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool),
+                              STIFFNESS_SOURCES[0])
+    n = rig.robot.n_path_joints(arm)
+    efforts = [c.source.get("efforts") for c in rig.robot.path(arm)]
+    centre = (np.log(np.concatenate(efforts))
+              if CHAIN_STIFFNESS_CENTRE == "effort" and all(e is not None for e in efforts)
+              else np.zeros(n))
+    sd = np.full(n, CHAIN_STIFFNESS_LOG_SD)
+    if cal is None or cal.masses != "description" or "compliance" not in cal.groups:
+        # Not from compliances fitted with the masses: then only compliance x first moment is
+        # identified, so each arm's compliances carry its own unknown mass scale. Read as
+        # stiffnesses they put the arms' ratio 4.5 times off on a report rig (seed 2) and
+        # overflowed on another (seed 1), though they helped on the tuning rigs.
+        return StiffnessPrior(centre, sd, np.ones(n, bool), STIFFNESS_SOURCES[2])
+    layout = cal.robot.layout
+    every = np.arange(layout.nominal.size)
+    idx = np.concatenate([every[layout.slices[c.name, "compliance"]]
+                          for c in rig.robot.path(arm)])
+    c, se, free = cal.x[idx], cal.se[idx], cal.ident.free[idx]
+    seen = free & (c > 0) & np.isfinite(se)
+    if not seen.any():
+        return StiffnessPrior(centre, sd, np.ones(n, bool), STIFFNESS_SOURCES[2])
+    # The prior, log k_j = scale + profile_j + N(0, sd), updated by the fitted compliances
+    # (each log k_j measured with its standard error and the masses' accuracy): the arm's
+    # scale is their precision-weighted mean about the profile, so a poorly seen joint (a
+    # wrist that gravity hardly turns) neither sets it nor leaves the profile by much; a joint
+    # gravity never turns (a vertical axis) keeps the profile at that scale.
+    y = -np.log(np.where(seen, c, 1.0))
+    var_fit = (se / np.where(seen, c, 1.0)) ** 2 + DESCRIBED_MASS_LOG_SD**2
+    w = np.where(seen, 1.0 / (sd**2 + var_fit), 0.0)
+    scale = np.sum(w * (y - centre)) / w.sum()
+    prior_mean, prior_var = centre + scale, sd**2 + 1.0 / w.sum()
+    post_var = np.where(seen, 1.0 / (1.0 / prior_var + 1.0 / np.where(seen, var_fit, 1.0)),
+                        prior_var)
+    centre = np.where(seen, post_var * (prior_mean / prior_var + y / var_fit), prior_mean)
+    sd = np.sqrt(post_var)
+    return StiffnessPrior(centre, sd, np.zeros(n, bool), STIFFNESS_SOURCES[1])
+
+
+def arm_sags(rig: Rig, cal: Calibration, arms: Sequence[str]) -> dict[str, float] | None:
+    """Each arm's mean fitted sag (mm): how far its marker moves when its own chains'
+    compliances are set to zero, over the train poses of all ``arms`` pooled, so every arm is
+    weighed at the same poses. None where that cannot be read: the arms' paths differ in
+    joints (no common poses), the calibration fitted no compliance or has no gravity, or an
+    arm shows no sag."""
+    robot = cal.robot
+    if ("compliance" not in cal.groups or robot.gravity is None or len(arms) < 2
+            or len({robot.n_path_joints(a) for a in arms}) > 1):
+        return None
+    shared = set.intersection(*({c.name for c in robot.path(a)} for a in arms))
+    u = jnp.asarray(np.concatenate([rig.rows(a, "train")[0] for a in arms]))
+    sags = {}
+    for a in arms:
+        rigid = np.array(cal.x, float)
+        for c in robot.path(a):
+            if c.name not in shared:
+                rigid[robot.layout.slices[c.name, "compliance"]] = 0.0
+        points = robot.compiled_points(a)
+        moved = np.asarray(points(jnp.asarray(cal.x), u) - points(jnp.asarray(rigid), u))
+        sags[a] = float(np.linalg.norm(moved, axis=1).mean())
+    if not all(np.isfinite(v) and v > 0 for v in sags.values()):
+        return None
+    return sags
+
+
+def sag_scaled_priors(rig: Rig, cal: Calibration, priors: dict[str, StiffnessPrior]
+                      ) -> dict[str, StiffnessPrior]:
+    """``priors`` with each arm's term centred on its fitted sag against the others' (log k_a
+    = -log sag_a + the mean of log sag over the arms), where every arm took the prior and
+    CHAIN_STIFFNESS_ARM_CENTRE is "sags"; else as given.
+
+    Only the ratios of the arms' stiffnesses move the balance, and the prior alone treats
+    the arms alike. A calibration that fits compliance without the masses identifies each
+    joint's compliance times the first moment it carries, not the stiffness; but arms of one
+    model carry alike moments, so an arm that sags further is the softer one. On the tuning
+    rigs (271-282, 201-206) the log ratio of two arms' sags followed their true log stiffness
+    ratio with slope -0.98 / -0.94 (Spearman -0.91 / -0.94), scattered by about 0.25
+    (docs/fusion.md). Its sds are SAG_SCALED_LOG_SD per joint and SAG_SCALED_ARM_LOG_SD per
+    arm.
+    """
+    if (CHAIN_STIFFNESS_ARM_CENTRE != "sags"
+            or any(p.source != STIFFNESS_SOURCES[2] for p in priors.values())):
+        return priors
+    sags = arm_sags(rig, cal, list(priors))
+    if sags is None:
+        return priors
+    log_sag = {a: np.log(v) for a, v in sags.items()}
+    mean = float(np.mean(list(log_sag.values())))
+    return {a: p._replace(sd=np.full_like(p.sd, SAG_SCALED_LOG_SD), arm_centre=mean - log_sag[a],
+                          arm_sd=SAG_SCALED_ARM_LOG_SD, source=STIFFNESS_SOURCES[3])
+            for a, p in priors.items()}
+
+
+def stiffness_priors(rig: Rig, arms: Sequence[str], cal: Calibration
+                     ) -> dict[str, StiffnessPrior]:
+    """The log joint stiffnesses' prior of each of ``arms``, linked: each arm's own
+    (:func:`stiffness_prior`), their arm terms then centred on their fitted sags
+    (:func:`sag_scaled_priors`)."""
+    return sag_scaled_priors(rig, cal, {a: stiffness_prior(rig, a, cal) for a in arms})
+
+
+def _log_stiffness_prior(priors: Sequence[StiffnessPrior]) -> None:
+    """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
+    where the prior marks them ``shared``, a Normal(arm_centre, arm_term_sd()) term the arm's
+    joints share: an arm as a whole is stiffer or softer than another."""
+    for i, p in enumerate(priors):
+        z = numpyro.sample(f"log_stiffness_z_{i}",
+                           dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
+        whole = numpyro.sample(f"log_stiffness_arm_{i}", dist.Normal(0.0, 1.0))
+        shared = jnp.where(jnp.asarray(p.shared), p.arm_centre + p.arm_term_sd() * whole, 0.0)
+        numpyro.deterministic(f"log_stiffness_{i}",
+                              jnp.asarray(p.centre) + jnp.asarray(p.sd) * z + shared)
+
+
+def stiffness_draws(priors: Sequence[StiffnessPrior], key: jax.Array,
+                    num_samples: int) -> list[jax.Array]:
+    """Draws (S, n_a) of each arm's joint log stiffnesses from their prior (centre, sd)."""
+    sites = Predictive(_log_stiffness_prior, num_samples=num_samples)(key, priors)
+    return [jnp.broadcast_to(sites[f"log_stiffness_{i}"], (num_samples, len(p.centre)))
+            for i, p in enumerate(priors)]
+
