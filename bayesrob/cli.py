@@ -780,13 +780,14 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
                      "show the gap shrink")(_diagnose_args)
 def _diagnose(args: argparse.Namespace) -> int:
-    from bayesrob.diagnosis import diagnose, format_diagnosis
+    from bayesrob.diagnose.refits import diagnose
     from bayesrob.effects import resolve_effects
     from bayesrob.outputs import write_diagnosis_report
+    from bayesrob.report import format_diagnosis
 
     rig = _load_rig_arg(args.rig)
     if rig.is_chain:
-        return _diagnose_chain(rig, args)
+        return _diagnose_groups(rig, args)
     if args.published:
         raise UsageError("--published draws a published ladder for URDF/DH rigs; "
                          f"{rig.name!r} is planar")
@@ -811,28 +812,23 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
-def _diagnose_chain(rig, args: argparse.Namespace) -> int:
-    from bayesrob.chain_diagnosis import (
-        ChainDiagnosisError,
-        diagnose_chain,
-        format_chain_diagnosis,
-        ladder_figure,
-        parse_published,
-    )
-    from bayesrob.plots.diagnosis import chain_residual_figure
+def _diagnose_groups(rig, args: argparse.Namespace) -> int:
+    from bayesrob.diagnose.groups import DiagnosisError, diagnose_groups, parse_published
+    from bayesrob.plots.diagnosis import ladder_figure, marker_residual_figure
+    from bayesrob.report import format_group_diagnosis
 
     try:
         published = parse_published(args.published) if args.published else None
-        diag = diagnose_chain(rig, args.effects, seed=args.seed, progress=_progress(args),
-                              sag_steps=args.sag_steps)
-    except ChainDiagnosisError as e:
+        diag = diagnose_groups(rig, args.effects, seed=args.seed, progress=_progress(args),
+                               sag_steps=args.sag_steps)
+    except DiagnosisError as e:
         raise UsageError(str(e)) from None
     doc = diag.to_json()
     if args.json != "-":
-        print(format_chain_diagnosis(doc))
+        print(format_group_diagnosis(doc))
     if args.report:
         figures = (("ladder.png", ladder_figure(doc, published)),
-                   ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"])))
+                   ("residuals.png", marker_residual_figure(diag.residuals, doc["rig"])))
         with staged_directory(args.report) as scratch:
             for name, fig in figures:
                 fig.savefig(scratch / name, dpi=120)

@@ -14,7 +14,7 @@ from pathlib import Path
 from bayesrob import kinematics as kin
 from bayesrob.bayes_calibration import calibrate_arm_bayes, report_extras
 from bayesrob.calibration import METHODS, ArmCalibration, calibrate, observed_accuracy
-from bayesrob.diagnosis import Diagnosis
+from bayesrob.diagnose.refits import Diagnosis
 from bayesrob.reproduction import Reproduction
 from bayesrob.rig import Rig
 

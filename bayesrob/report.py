@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from bayesrob.diagnose.rule import Z
 from bayesrob.kinematics import PARAM_NAMES
 
 
@@ -90,3 +91,108 @@ def grouped_notes(warnings: Sequence[str], notes: Sequence[str]) -> list[str]:
             out.append(heading)
             out += [f"  {line.removeprefix(prefix)}" for line in lines]
     return out
+
+
+def format_diagnosis(doc: dict) -> str:
+    """``bayesrob diagnose``'s report on a planar rig: residual structure, each round's
+    candidates, the named effects."""
+    def f(x: float | None, nd: int = 2) -> str:
+        return "-" if x is None else f"{x:.{nd}f}"
+
+    out = [f"diagnosis of rig {doc['rig']!r}", f"decision rule: {doc['rule']}", "",
+           "residual structure of the base model (p values: small means not noise)"]
+    rows = []
+    for a, t in doc["residual_tests"]["before"].items():
+        lof = t.get("lack_of_fit", {})
+        jump = t.get("largest_jump", {})
+        w = t["worst_region"]
+        rows.append([a, f(lof.get("p_value"), 3), f(t["morans_i"]["p_value"], 3),
+                     f"{f(jump.get('mm'))} ({f(jump.get('p_value'), 3)})",
+                     f"{w['region']} {f(w['mean_mm'])} vs {f(w['elsewhere_mm'])}",
+                     " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
+    out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
+                             "worst region (mm)", "signature p"], rows))
+    for t in doc["residual_tests"]["before"].values():
+        w, jump = t["worst_region"], t.get("largest_jump")
+        line = (f"  {t['arm']} arm: largest residuals {w['region']} ({w['mean_mm']:.2f} mm "
+                f"against {w['elsewhere_mm']:.2f} mm elsewhere)")
+        if jump:
+            line += f"; largest jump between neighbours {jump['mm']:.2f} mm, {jump['where']}"
+        out.append(line)
+    for r, scores in enumerate(doc["rounds"], start=1):
+        out += ["", f"round {r}: each candidate added to the model named so far"]
+        rows = [[s["effect"], ",".join(s["arms"]) or "-",
+                 f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
+                 f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
+                 f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
+                 "yes" if s["passes"] else "no"] for s in scores]
+        out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
+                                 "elpd diff", "passes"], rows))
+    out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
+    gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
+    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
+            for s in doc["steps"]]
+    out.append("held-out error per step: " + " -> ".join(gap))
+    if doc.get("baseline_holdout_error_mm") is not None:
+        hold = [f"base {f(doc['baseline_holdout_error_mm'])} mm"]
+        hold += [f"+{s['effect']} {f(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
+        out.append("  (held-out above: validation rows, which repeat the training commands; "
+                   "at new poses, the holdout rows: " + " -> ".join(hold) + ")")
+    if doc["steps"]:
+        # From the final model, where every named effect is fitted jointly (a step's own
+        # record keeps the values at the time it was named).
+        out.append("fitted magnitudes (final model):")
+        for name in doc["effects"]:
+            for a, arm in doc["arms"].items():
+                if name in arm["magnitudes"]:
+                    out.append(f"  {name} in {a}: {arm['magnitudes'][name]['text']}")
+    after = doc["residual_tests"]["after"]
+    lof = ", ".join(f"{a} {t['lack_of_fit']['p_value']:.3g}" for a, t in after.items()
+                    if "lack_of_fit" in t)
+    moran = ", ".join(f"{a} {t['morans_i']['p_value']:.3g}" for a, t in after.items())
+    out.append(f"final residuals: lack-of-fit p ({lof or '-'}); Moran's I p ({moran})")
+    if not doc["steps"]:
+        out.append("no candidate effect improves the held-out fit: none is named")
+    return "\n".join(out)
+
+
+def format_group_diagnosis(doc: dict) -> str:
+    """``bayesrob diagnose``'s report on a URDF/DH rig: each round's candidates, then the
+    ladder on the validation rows."""
+
+    out = [f"diagnosis of rig {doc['rig']!r} (chains)", f"decision rule: {doc['rule']}"]
+    for r, scores in enumerate(doc["rounds"], start=1):
+        out += ["", f"round {r}: each candidate added to the model named so far"]
+        out.append(format_table(
+            ["candidate", "added parameters", "selection mm", "elpd diff", "needs", "passes"],
+            [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
+              f"{s['selection_error_after_mm']:.2f}",
+              f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}", f"{s['threshold']:.1f}",
+              "yes" if s["passes"] else "no"] for s in scores]))
+        if r > len(doc["steps"]):
+            continue  # nothing named in this round: no comparison with a named effect
+        chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
+        for s in (s for s in scores if "z_vs_named" in s):
+            if s["effect"] in rivals:
+                out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
+                           f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
+                           "poses do not tell them apart")
+            elif s["z_vs_named"] < -Z:
+                out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
+                           f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
+                           "against its fewer: named later if it still passes on top of it")
+    rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
+             *_ladder_cells(doc["baseline"])]]
+    rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"
+                                     if s.get("sag_steps", 1) > 1 else ""),
+              str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
+    out += ["", "ladder on the validation rows (never used to decide):",
+            format_table(["step", "fitted", "mean mm", "sd mm", "max mm"], rows), "",
+            f"named effects: {', '.join(doc['effects']) or 'none'} ({doc['seconds']:.0f} s)",
+            *doc["notes"]]
+    return "\n".join(out)
+
+
+def _ladder_cells(row: dict) -> list[str]:
+    return [f"{row[k]:.2f}" for k in ("heldout_error_mm", "heldout_error_sd_mm",
+                                       "heldout_error_max_mm")]

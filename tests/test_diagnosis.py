@@ -20,16 +20,16 @@ from bayesrob.validation.planar_generators import Case, make_rig
 import bayesrob  # noqa: F401  (x64)
 from bayesrob import effects as fx
 from bayesrob import kinematics as kin
-from bayesrob.diagnosis import (
+from bayesrob.diagnose.refits import (
     ArmData,
     ArmEval,
-    DecisionRule,
     _crossfit,
     diagnose,
     evaluate_arm,
     neighbour_pairs,
     workspace_regions,
 )
+from bayesrob.diagnose.rule import DecisionRule
 from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import default_rig_dir, load_rig
 
@@ -166,7 +166,7 @@ def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
 def test_every_chain_effect_is_a_planar_effect_or_says_why_not():
     """A chain effect's name on a planar rig is either its planar instance or a reason: a new
     chain effect must be placed in one of them, not left to a bare 'unknown effect'."""
-    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
+    from bayesrob.diagnose.groups import CHAIN_EFFECTS
 
     for name in CHAIN_EFFECTS:
         assert (name in fx.REGISTRY) + (name in fx.ALIASES) + (name in fx.CHAIN_ONLY) == 1, name
@@ -272,9 +272,14 @@ def test_decision_rule_text_and_logic():
     assert rule.passes({**s, "heldout_error_before_mm": None, "heldout_error_after_mm": None})
     assert DecisionRule(require_heldout=False).passes({**s, "heldout_error_after_mm": 1.1})
     assert DecisionRule(require_cv=False).passes({**s, "cv_error_after_mm": 1.2})
-    assert rule.text() == ("cross-fitted elpd_diff > 2 * se and > 4 AND validation error "
-                           "shrinks AND cross-validated error shrinks (holdout rows only "
-                           "report)")
+    assert rule.text().startswith("held-out elpd_diff > 2 * se and > max(4, ")
+    # the parameter guard: a candidate's gain must exceed what its parameters can explain
+    many = {**s, "parameters": 2 * int(s["elpd_diff"] / rule.nats_per_parameter)}
+    assert rule.threshold(many["parameters"]) > s["elpd_diff"] and not rule.passes(many)
+    assert rule.passes({**s, "parameters": 1})
+    # of those that pass, the one with the largest gain per added parameter is named
+    assert rule.best([{**s, "effect": "a", "parameters": 6},
+                      {**s, "effect": "b", "elpd_diff": 8.0, "parameters": 2}])["effect"] == "b"
 
 
 def _arm_eval(name: str, cv_lpd: np.ndarray) -> ArmEval:
@@ -446,7 +451,7 @@ def test_figures_are_figures(diagnoses):
 
 
 def test_jacobian_of_every_model_is_finite(clean_rig_dir):
-    from bayesrob.diagnosis import model_fns
+    from bayesrob.diagnose.refits import model_fns
 
     rig = load_rig(clean_rig_dir)
     data = ArmData.from_rig(rig, "top")

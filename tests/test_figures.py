@@ -239,14 +239,14 @@ def test_the_predict_figure_fits_its_content(config):
         plt.close(fig)
 
 
-def test_the_chain_residual_figure_fits_its_content():
+def test_the_marker_residual_figure_fits_its_content():
     """Justin's figure had its last title cut ('mean 3.21 m'): long model labels, two arms."""
-    from bayesrob.plots.diagnosis import chain_residual_figure
+    from bayesrob.plots.diagnosis import marker_residual_figure
 
     rng = np.random.default_rng(0)
     pts = {a: (rng.normal(0, 300, (40, 3)), rng.normal(0, 3, (40, 3))) for a in ("left", "right")}
     residuals = {"geometric": pts, "+ joint_compliance + lateral_compliance": pts}
-    fig = chain_residual_figure(residuals, "justin")
+    fig = marker_residual_figure(residuals, "justin")
     assert _clipped_texts(fig) == []
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == ["left", "right"]

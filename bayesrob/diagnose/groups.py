@@ -11,17 +11,20 @@ so it is tried once joint compliance is named: without masses only a fitted defl
 which side a joint rests on). Effects are named
 greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
 it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
-same side). A candidate passes when its paired per-row error drop on the selection poses is
-more than ``Z_MIN`` standard errors; of those that pass, the one whose mean selection error
-drops the most per parameter it adds is named. An effect can mimic part of another (an
+same side). The selection rows' log predictive densities (Gaussian, with the scale each fit
+leaves on its train rows) before and after the candidate are the evidence
+:class:`bayesrob.diagnose.rule.DecisionRule` decides on, the same rule as a planar arm's
+leave-one-out refits: the gain beyond ``z`` standard errors and beyond what its parameter
+count can explain, the mean selection error shrinking; of those that pass, the one with the
+largest gain per parameter it adds is named. An effect can mimic part of another (an
 encoder's sinusoid in a shoulder's angle takes up part of its gravity sag, with fewer
 parameters): the one that explains more per parameter goes first, and the mimic then no
 longer passes on top of it. A candidate that passed beside the named one with selection errors
-within ``Z_MIN`` standard errors of its is reported as its *rival*: these poses cannot tell the
-two apart, and the name is the rule's choice between them. A candidate whose own group the
-rank analysis leaves no parameter never passes. The ``validation`` rows are never
-looked at while deciding: the ladder (mean / sd / max error after each named effect, refitted
-on every train row) is reported on them.
+within ``z`` standard errors of its (a paired z of the errors) is reported as its *rival*:
+these poses cannot tell the two apart, and the name is the rule's choice between them. A
+candidate whose own group the rank analysis leaves no parameter never passes. The
+``validation`` rows are never looked at while deciding: the ladder (mean / sd / max error
+after each named effect, refitted on every train row) is reported on them.
 """
 
 from __future__ import annotations
@@ -35,10 +38,10 @@ from bayesrob.calibration import (
     SAG_CONVERGED_MM,
     ChainCalibration,
     calibrate_chain,
-    chain_distances,
     chain_residuals,
     sag_convergence,
 )
+from bayesrob.diagnose.rule import DecisionRule, gaussian_lpd, paired_gain
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
@@ -63,9 +66,6 @@ WARM_NFEV = 40
 ALIASES = {planar: chain for chain, planar in PLANAR_ALIASES.items()}
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
-# A paired z on the selection rows: the drop must be twice its standard error. Not tuned on
-# any rig: the usual two-sided 5% level, so that noise alone rarely names an effect.
-Z_MIN = 2.0
 # Least-squares evaluations per stage of a selection fit (compared, not reported): on Justin
 # its fits with joint compliance used 320 evaluations; stopped at 140 per stage, every
 # selection error came out as before to 0.01 mm (drops between candidates: 0.1-5 mm), in
@@ -73,12 +73,12 @@ Z_MIN = 2.0
 SELECTION_NFEV = 140
 
 
-class ChainDiagnosisError(ValueError):
-    """A chain rig cannot be diagnosed as asked; the message is one line."""
+class DiagnosisError(ValueError):
+    """A rig cannot be diagnosed as asked; the message is one line."""
 
 
 @dataclass
-class ChainDiagnosis:
+class GroupDiagnosis:
     rig: str
     effects: list[str]
     rounds: list[list[dict]]
@@ -92,6 +92,7 @@ class ChainDiagnosis:
     # geometric calibration and the final model (figures only; not in the JSON)
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
         default_factory=dict, repr=False)
+    rule: DecisionRule = field(default_factory=DecisionRule)
 
     def to_dict(self) -> dict:
         """``bayesrob diagnose RIG --json``'s document on a chain rig (as :meth:`to_json`)."""
@@ -101,11 +102,9 @@ class ChainDiagnosis:
         last = self.steps[-1] if self.steps else self.baseline
         return {
             "rig": self.rig, "robot": "chain", "effects": self.effects,
-            "rule": (f"of the candidates whose paired error drop on the selection poses "
-                     f"({self.selection_rows} train rows held back) exceeds {Z_MIN:g} "
-                     "standard errors, name the one with the largest drop per added "
-                     "parameter (backlash is tried once joint_compliance is named; a "
-                     "candidate left no identifiable parameter never passes); validation "
+            "rule": (f"on the selection poses ({self.selection_rows} train rows held back): "
+                     f"{self.rule.text()}; backlash is tried once joint_compliance is named, "
+                     "a candidate left no identifiable parameter never passes; validation "
                      "rows only report"),
             "steps": self.steps, "rounds": self.rounds,
             "baseline": self.baseline,
@@ -123,7 +122,7 @@ def resolve_effects(names: Sequence[str] | None) -> list[str]:
     for n in names:
         n = ALIASES.get(n, n)
         if n not in CHAIN_EFFECTS:
-            raise ChainDiagnosisError(
+            raise DiagnosisError(
                 f"effect {n!r} is not modelled for URDF/DH chains (choose from "
                 f"{', '.join([*CHAIN_EFFECTS, *ALIASES])})")
         if n not in out:
@@ -152,9 +151,17 @@ def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
     return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 else 0.0
 
 
-def _row_errors(rig: Rig, cal: ChainCalibration, set: str) -> np.ndarray:
-    dist = chain_distances(rig, cal.robot, cal.x, set)
-    return np.concatenate([dist[a] for a in sorted(dist)]) if dist else np.zeros(0)
+def _selection_rows(rig: Rig, cal: ChainCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """Per selection row: the marker error (mm) and its log predictive density, Gaussian in
+    each axis with the variance the fit leaves on its train rows (its degrees of freedom
+    counted): a fit that only follows the train rows' noise pays for it twice, in a tighter
+    scale and in larger selection errors."""
+    train = chain_residuals(rig, cal.robot, cal.x, "train")
+    r = np.concatenate([train[a][1] for a in sorted(train)])
+    var = float(np.sum(r * r)) / max(r.size - int(cal.ident.free.sum()), 1)
+    sel = chain_residuals(rig, cal.robot, cal.x, "selection")
+    r = np.concatenate([sel[a][1] for a in sorted(sel)])
+    return np.linalg.norm(r, axis=1), gaussian_lpd(r, var)
 
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str],
@@ -187,9 +194,10 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
     return calibrate_chain(rig, groups)
 
 
-def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
-                   progress: bool = False, sag_steps: int = 1) -> ChainDiagnosis:
-    """Name the effects the geometric calibration of a chain rig misses (module docstring).
+def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
+                    progress: bool = False, sag_steps: int = 1,
+                    rule: DecisionRule | None = None) -> GroupDiagnosis:
+    """Name the effects the geometric calibration of a rig misses (module docstring).
 
     ``sag_steps``: the ladder's fits with joints giving way take the gravity torques that many
     times, each at the pose the last sagged into (:func:`_ladder_fit`); the selection of the
@@ -199,11 +207,12 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     from bayesrob.progress import progress as make_progress
 
     t0 = time.perf_counter()
+    rule = rule or DecisionRule()
     if sag_steps < 1:
-        raise ChainDiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
+        raise DiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     candidates = resolve_effects(effects)
     if not len(rig.rows(rig.robot.measured_arms()[0], "validation")[0]):
-        raise ChainDiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
+        raise DiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
                                   "ladder on")
     split = _split(rig, seed)
     n_sel = int((split.measurements.set == "selection").sum())
@@ -215,7 +224,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         cal = calibrate_chain(split, groups, polish=False, max_nfev=SELECTION_NFEV)
-        before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
+        before, n_before = _selection_rows(split, cal), int(cal.ident.free.sum())
         # each named effect's selection fit: the last one is the named model's, which the
         # WARM_STARTED candidates start from; each is its ladder step's equilibrium check
         selected: dict[str, np.ndarray] = {}
@@ -229,34 +238,38 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                                       **({"max_nfev": WARM_NFEV, "start": selected[named[-1]]}
                                          if eff in WARM_STARTED and named
                                          else {"max_nfev": SELECTION_NFEV}))
-                after = _row_errors(split, cal, "selection")
+                after = _selection_rows(split, cal)
                 bar.update(1)
-                z = _paired_z(before, after)
                 added = int(cal.ident.free.sum()) - n_before
                 # its own group, not the net count: freeing the links' masses may change
                 # that count by itself
                 own = bool(cal.ident.free[cal.robot.layout.group_mask(
                     (CHAIN_EFFECTS[eff],))].any())
-                scores.append({"effect": eff, "parameters": added,
-                               "selection_error_before_mm": float(before.mean()),
-                               "selection_error_after_mm": float(after.mean()), "z": z,
-                               "drop_per_parameter_mm": float(before.mean() - after.mean())
-                               / max(added, 1),
-                               # a candidate the rank analysis leaves nothing to fit
-                               # (lateral bending under gravity in a planar arm's plane)
-                               # moves the errors by rounding alone: its z is noise
-                               "passes": bool(own and z > Z_MIN),
-                               "_after": after, "_x": cal.x})
+                gain, gain_se = paired_gain(before[1], after[1])
+                err0, err1 = float(before[0].mean()), float(after[0].mean())
+                s = {"effect": eff, "parameters": added,
+                     "selection_error_before_mm": err0, "selection_error_after_mm": err1,
+                     "z": gain / gain_se if gain_se > 0 else 0.0,
+                     "error_z": _paired_z(before[0], after[0]),
+                     "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
+                     "elpd_diff": gain, "elpd_diff_se": gain_se,
+                     "gain_per_parameter": gain / max(added, 1),
+                     "threshold": rule.threshold(added),
+                     "cv_error_before_mm": err0, "cv_error_after_mm": err1,
+                     "_after": after, "_x": cal.x}
+                # a candidate the rank analysis leaves nothing to fit (lateral bending
+                # under gravity in a planar arm's plane) moves the errors by rounding
+                # alone: its gain is noise
+                s["passes"] = bool(own and rule.passes(s))
+                scores.append(s)
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:
-                # of the candidates that pass, the one that explains the most per parameter
-                # it adds: the largest drop of the mean selection error per added parameter
-                best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
+                best = rule.best(passing)
                 for s in passing:
                     if s is not best:
                         # positive where the named effect leaves the smaller errors
-                        s["z_vs_named"] = _paired_z(s["_after"], best["_after"])
+                        s["z_vs_named"] = _paired_z(s["_after"][0], best["_after"][0])
             rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
                            for s in scores])
             if best is None:
@@ -264,7 +277,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             # a passing candidate the selection poses cannot tell from the named one: the
             # name is the rule's choice between fits the data hold equally good
             rivals.append([s["effect"] for s in passing
-                           if abs(s.get("z_vs_named", np.inf)) <= Z_MIN])
+                           if abs(s.get("z_vs_named", np.inf)) <= rule.z])
             named.append(best["effect"])
             selected[best["effect"]] = best["_x"]
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
@@ -310,8 +323,8 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
-    return ChainDiagnosis(rig.name, named, rounds, steps, baseline,
-                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals)
+    return GroupDiagnosis(rig.name, named, rounds, steps, baseline,
+                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals, rule)
 
 
 def parse_published(text: str) -> dict[str, float]:
@@ -323,81 +336,15 @@ def parse_published(text: str) -> dict[str, float]:
         label = label.strip().lstrip("+").strip()
         label = ALIASES.get(label, label)
         if not sep or label not in ("geometric", *CHAIN_EFFECTS):
-            raise ChainDiagnosisError(
+            raise DiagnosisError(
                 f"--published: expected STEP=MM with STEP one of geometric, "
                 f"{', '.join(CHAIN_EFFECTS)}; got {item!r}")
         try:
             mm = float(value)
         except ValueError:
-            raise ChainDiagnosisError(f"--published: {label}: expected a number of mm, got "
+            raise DiagnosisError(f"--published: {label}: expected a number of mm, got "
                                       f"{value.strip()!r}") from None
         if not mm >= 0:
-            raise ChainDiagnosisError(f"--published: {label}: a mean error is >= 0, got {mm}")
+            raise DiagnosisError(f"--published: {label}: a mean error is >= 0, got {mm}")
         out["geometric" if label == "geometric" else f"+{label}"] = mm
     return out
-
-
-def format_chain_diagnosis(doc: dict) -> str:
-    """The terminal report: each round's candidates, then the ladder on the validation rows."""
-    from bayesrob.report import format_table
-
-    out = [f"diagnosis of rig {doc['rig']!r} (chains)", f"decision rule: {doc['rule']}"]
-    for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: each candidate added to the model named so far"]
-        out.append(format_table(
-            ["candidate", "added parameters", "selection mm", "z", "passes"],
-            [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
-              f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
-              "yes" if s["passes"] else "no"] for s in scores]))
-        if r > len(doc["steps"]):
-            continue  # nothing named in this round: no comparison with a named effect
-        chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
-        for s in (s for s in scores if "z_vs_named" in s):
-            if s["effect"] in rivals:
-                out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
-                           f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
-                           "poses do not tell them apart")
-            elif s["z_vs_named"] < -Z_MIN:
-                out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
-                           f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
-                           "against its fewer: named later if it still passes on top of it")
-    rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
-             *_ladder_cells(doc["baseline"])]]
-    rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"
-                                     if s.get("sag_steps", 1) > 1 else ""),
-              str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
-    out += ["", "ladder on the validation rows (never used to decide):",
-            format_table(["step", "fitted", "mean mm", "sd mm", "max mm"], rows), "",
-            f"named effects: {', '.join(doc['effects']) or 'none'} ({doc['seconds']:.0f} s)",
-            *doc["notes"]]
-    return "\n".join(out)
-
-
-def _ladder_cells(row: dict) -> list[str]:
-    return [f"{row[k]:.2f}" for k in ("heldout_error_mm", "heldout_error_sd_mm",
-                                       "heldout_error_max_mm")]
-
-
-def ladder_figure(doc: dict, published: dict[str, float] | None = None):
-    """Mean validation error (bars: sd) after each step; ``published`` (step label -> mean mm)
-    drawn beside it when given."""
-    import matplotlib.pyplot as plt
-
-    rows = [("geometric", doc["baseline"])] + [(f"+{s['effect']}", s) for s in doc["steps"]]
-    fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2.5, 3.6), layout="constrained")
-    xs = np.arange(len(rows))
-    ax.bar(xs, [r["heldout_error_mm"] for _, r in rows],
-           yerr=[r["heldout_error_sd_mm"] for _, r in rows], color="tab:blue", capsize=4,
-           label="ours (validation mean, sd)", width=0.55)
-    for x, (_, r) in zip(xs, rows, strict=True):
-        ax.plot(x, r["heldout_error_max_mm"], "v", color="tab:blue")
-    if published:
-        for x, (label, _) in zip(xs, rows, strict=True):
-            if label in published:
-                ax.plot(x, published[label], "D", color="tab:red", ms=8)
-        ax.plot([], [], "D", color="tab:red", label="published")
-    ax.set_xticks(xs, [label for label, _ in rows])
-    ax.set_ylabel("marker error (mm)")
-    ax.set_title(f"{doc['rig']}: error after each named effect (v: max)", fontsize=10)
-    ax.legend(fontsize=8)
-    return fig

@@ -18,8 +18,12 @@ says which effect is missing, how big it is and how much the model gains from it
    elpd difference and its standard error. Where the rig has ``holdout`` rows (new poses,
    not the repeated training commands ``validation`` holds), the models are scored on them
    too, and reported beside validation; they decide nothing.
-4. Name the best candidate that passes :class:`DecisionRule`, add it, repeat until none
-   passes (see the rule for pairs of effects that only pay together). The arms an effect is
+4. Name the best candidate that passes the one decision rule of every robot
+   (:class:`bayesrob.diagnose.rule.DecisionRule`, here on the pooled cross-validated log
+   densities and errors), add it, repeat until none passes. When no single candidate passes
+   in the first round, pairs are tried: a pair is named (as two steps) when it passes against
+   the base model and against each member alone (sag bends the map backlash is judged
+   against, so the two may only pay together). The arms an effect is
    added to are chosen on one half of the train rows and scored on the other (cross-fitting),
    so the choice does not flatter the score.
 
@@ -49,57 +53,10 @@ import scipy.stats
 
 from bayesrob import effects as fx
 from bayesrob import kinematics as kin
+from bayesrob.diagnose.rule import DecisionRule
 from bayesrob.rig import ArmSpec, Rig
 
 N_BASE = len(kin.PARAM_NAMES)
-
-
-# ------------------------------------------------------------------------------ decision
-
-
-@dataclass(frozen=True)
-class DecisionRule:
-    """When a candidate effect counts as missing from the model.
-
-    A candidate is named when, pooled over the arms it is added to,
-    - its cross-validated elpd gain exceeds ``z`` standard errors of the difference
-      (``elpd_diff > z * elpd_diff_se``) and ``min_elpd_diff`` nats, and
-    - the mean error on the ``validation`` rows shrinks (they repeat the training commands
-      with fresh noise: an effect that only fits the train rows' noise fails here), and
-    - the K-fold cross-validated mean error over ``train`` shrinks.
-    An arm gets the effect when it raises that arm's cross-validated elpd, or when the arm's
-    cross-validated error falls by 10% or more; an arm that does not get it may get it in a
-    later round. The arms are chosen on one half of the train rows and the gain is scored on
-    the other half (and the halves swapped), so that picking the arms an effect helps cannot
-    make the pooled score look better than it is. Among the candidates that pass, the one
-    with the largest elpd gain is named first. When no single candidate passes in the first
-    round, pairs are tried: a pair is named (as two steps) when it passes against the base
-    model and against each member alone. The ``holdout`` rows (new poses) decide nothing:
-    they report the gap.
-    """
-
-    z: float = 2.0
-    min_elpd_diff: float = 4.0
-    require_heldout: bool = True
-    require_cv: bool = True
-
-    def passes(self, s: dict) -> bool:
-        if not s["arms"]:
-            return False
-        ok = s["elpd_diff"] > self.z * s["elpd_diff_se"] and s["elpd_diff"] > self.min_elpd_diff
-        if self.require_heldout and s["heldout_error_before_mm"] is not None:
-            ok &= s["heldout_error_after_mm"] < s["heldout_error_before_mm"]
-        if self.require_cv:
-            ok &= s["cv_error_after_mm"] < s["cv_error_before_mm"]
-        return bool(ok)
-
-    def text(self) -> str:
-        parts = [f"cross-fitted elpd_diff > {self.z:g} * se and > {self.min_elpd_diff:g}"]
-        if self.require_heldout:
-            parts.append("validation error shrinks")
-        if self.require_cv:
-            parts.append("cross-validated error shrinks")
-        return " AND ".join(parts) + " (holdout rows only report)"
 
 
 # ------------------------------------------------------------------------------ data
@@ -796,7 +753,10 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     cv, tr, cv_err = _crossfit(current, cand, seed)
     diff, dse = _elpd_diff(_pooled_lpd(current), (cv, tr))
     b, a = _pooled_errors(current), _pooled_errors(after)
-    s = {"effect": name, "arms": arms, "heldout_error_before_mm": b["heldout"],
+    # the parameters the candidate adds to the arms that take it
+    added = sum(cand[x].v.size - current[x].v.size for x in arms)
+    s = {"effect": name, "arms": arms, "parameters": int(added),
+         "heldout_error_before_mm": b["heldout"],
          "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
          "cv_error_before_mm": b["cv"], "cv_error_after_mm": float(np.mean(cv_err)),
          "elpd_gain_per_arm": {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
@@ -846,7 +806,8 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
                     alone = {**current, **fitted[member]}
                     diff, dse = _elpd_diff(_pooled_lpd(alone), (cv, tr))
                     s[f"elpd_diff_over_{member}"] = [diff, dse]
-                    s["passes"] &= bool(diff > rule.z * dse and diff > rule.min_elpd_diff)
+                    s["passes"] &= bool(diff > rule.z * dse
+                                        and diff > rule.threshold(s["parameters"]))
             out.append(s)
     return out
 
@@ -923,7 +884,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             joint = [s for s in pairs if s["passes"]]
             if not joint:
                 break
-            best = max(joint, key=lambda s: s["elpd_diff"])
+            best = rule.best(joint)
             first, second = best["pair"]
             mid = fitted[first]
             take(first, [a for a in best["arms"] if a in mid], mid, joint_with=second,
@@ -935,7 +896,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
         rounds.append(scores)
         if not passing:
             break
-        best = max(passing, key=lambda s: s["elpd_diff"])
+        best = rule.best(passing)
         take(best["effect"], best["arms"], fitted[best["effect"]])
     if bar.total and bar.n < bar.total:
         # the plan counted a step for every candidate; the search stops at the first round in
@@ -955,73 +916,6 @@ def _bar(enabled: bool, total: int):
     return progress(total, "diagnose", "fits", enabled=enabled)
 
 
-# ------------------------------------------------------------------------------ output
-
-
-def format_diagnosis(doc: dict) -> str:
-    """The terminal report: residual structure, each round's candidates, the named effects."""
-    from bayesrob.report import format_table
-
-    def f(x: float | None, nd: int = 2) -> str:
-        return "-" if x is None else f"{x:.{nd}f}"
-
-    out = [f"diagnosis of rig {doc['rig']!r}", f"decision rule: {doc['rule']}", "",
-           "residual structure of the base model (p values: small means not noise)"]
-    rows = []
-    for a, t in doc["residual_tests"]["before"].items():
-        lof = t.get("lack_of_fit", {})
-        jump = t.get("largest_jump", {})
-        w = t["worst_region"]
-        rows.append([a, f(lof.get("p_value"), 3), f(t["morans_i"]["p_value"], 3),
-                     f"{f(jump.get('mm'))} ({f(jump.get('p_value'), 3)})",
-                     f"{w['region']} {f(w['mean_mm'])} vs {f(w['elsewhere_mm'])}",
-                     " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
-    out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
-                             "worst region (mm)", "signature p"], rows))
-    for t in doc["residual_tests"]["before"].values():
-        w, jump = t["worst_region"], t.get("largest_jump")
-        line = (f"  {t['arm']} arm: largest residuals {w['region']} ({w['mean_mm']:.2f} mm "
-                f"against {w['elsewhere_mm']:.2f} mm elsewhere)")
-        if jump:
-            line += f"; largest jump between neighbours {jump['mm']:.2f} mm, {jump['where']}"
-        out.append(line)
-    for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: each candidate added to the model named so far"]
-        rows = [[s["effect"], ",".join(s["arms"]) or "-",
-                 f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
-                 f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
-                 f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
-                 "yes" if s["passes"] else "no"] for s in scores]
-        out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
-                                 "elpd diff", "passes"], rows))
-    out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
-    gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
-    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
-            for s in doc["steps"]]
-    out.append("held-out error per step: " + " -> ".join(gap))
-    if doc.get("baseline_holdout_error_mm") is not None:
-        hold = [f"base {f(doc['baseline_holdout_error_mm'])} mm"]
-        hold += [f"+{s['effect']} {f(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
-        out.append("  (held-out above: validation rows, which repeat the training commands; "
-                   "at new poses, the holdout rows: " + " -> ".join(hold) + ")")
-    if doc["steps"]:
-        # From the final model, where every named effect is fitted jointly (a step's own
-        # record keeps the values at the time it was named).
-        out.append("fitted magnitudes (final model):")
-        for name in doc["effects"]:
-            for a, arm in doc["arms"].items():
-                if name in arm["magnitudes"]:
-                    out.append(f"  {name} in {a}: {arm['magnitudes'][name]['text']}")
-    after = doc["residual_tests"]["after"]
-    lof = ", ".join(f"{a} {t['lack_of_fit']['p_value']:.3g}" for a, t in after.items()
-                    if "lack_of_fit" in t)
-    moran = ", ".join(f"{a} {t['morans_i']['p_value']:.3g}" for a, t in after.items())
-    out.append(f"final residuals: lack-of-fit p ({lof or '-'}); Moran's I p ({moran})")
-    if not doc["steps"]:
-        out.append("no candidate effect improves the held-out fit: none is named")
-    return "\n".join(out)
-
-
 def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
                  progress: bool = False, **kwargs) -> Diagnosis:
     """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
@@ -1031,4 +925,4 @@ def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
 
 
 __all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
-           "evaluate_arm", "format_diagnosis", "residual_tests"]
+           "evaluate_arm", "residual_tests"]

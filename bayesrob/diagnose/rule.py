@@ -1,0 +1,100 @@
+"""The diagnosis's one decision rule, for every robot: when a candidate effect counts as
+missing from the model, and which of several that count is named.
+
+The evidence is the same kind on every rig: the pointwise log predictive density of rows the
+candidate's fit did not see (a planar arm's leave-one-out refits, a chain's selection poses),
+before and after the candidate is added. A candidate passes when
+
+- its gain is more than ``z`` standard errors of the paired difference (``elpd_diff > z *
+  elpd_diff_se``): the rows agree that it helps, noise alone rarely does;
+- its gain is more than ``min_gain`` nats and more than ``nats_per_parameter`` nats for every
+  parameter it adds (the *parameter guard*): held-out rows are unbiased but noisy, and a
+  candidate with many parameters can win a small, consistent gain on them that does not carry
+  to new data (a real 7-joint arm named a 24-parameter encoder error at selection z 4.9 whose
+  step made the validation error worse, 1.01 -> 1.06 mm);
+- its mean error on those rows shrinks (``require_cv``), and, where the rig repeats its
+  training commands (a planar rig's ``validation`` rows), on the repeats too
+  (``require_heldout``).
+
+Of the candidates that pass, the one with the largest gain per added parameter is named: an
+effect can mimic part of another with fewer parameters, and the one that explains more per
+parameter goes first. Rows that report (a chain's validation poses, a planar rig's holdout
+poses) decide nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+# The usual two-sided 5% level: not tuned on any rig.
+Z = 2.0
+# The planar engine's floor since its tuning rigs (seeds 21-35): a gain of a few nats is what
+# one lucky row can give.
+MIN_GAIN_NATS = 4.0
+# The parameter guard: AIC's price of a parameter, 1 nat, asked of a gain on rows the fit did
+# not see (where chance alone gives a parameter less than nothing on average). Checked on the
+# tuning rigs (planar seeds 21-35, 6-joint seed 61) before any report rig ran: every true
+# effect named there gained 2.8-10.7 nats per parameter, and the candidates it stops gained
+# 0.3 or less (lateral compliance on top of joint compliance on an arm whose bearings tilt,
+# paired z 2.0). docs/diagnose.md, "The parameter guard".
+NATS_PER_PARAMETER = 1.0
+
+
+@dataclass(frozen=True)
+class DecisionRule:
+    """When a candidate counts as missing (module docstring). ``passes`` reads a candidate's
+    score: ``elpd_diff``, ``elpd_diff_se``, ``parameters`` (added), ``cv_error_before_mm`` /
+    ``cv_error_after_mm`` (the rows the fit did not see), and where the rig repeats its
+    training commands ``heldout_error_before_mm`` / ``heldout_error_after_mm``."""
+
+    z: float = Z
+    min_gain: float = MIN_GAIN_NATS
+    nats_per_parameter: float = NATS_PER_PARAMETER
+    require_heldout: bool = True
+    require_cv: bool = True
+
+    def threshold(self, parameters: int) -> float:
+        """The gain (nats) a candidate adding ``parameters`` must exceed."""
+        return max(self.min_gain, self.nats_per_parameter * parameters)
+
+    def passes(self, s: dict) -> bool:
+        if "arms" in s and not s["arms"]:
+            return False  # added to no arm: nothing to name
+        diff = s["elpd_diff"]
+        ok = diff > self.z * s["elpd_diff_se"] and diff > self.threshold(s.get("parameters", 0))
+        if self.require_heldout and s.get("heldout_error_before_mm") is not None:
+            ok &= s["heldout_error_after_mm"] < s["heldout_error_before_mm"]
+        if self.require_cv:
+            ok &= s["cv_error_after_mm"] < s["cv_error_before_mm"]
+        return bool(ok)
+
+    def best(self, passing: Sequence[dict]) -> dict:
+        """The passing candidate named: the largest gain per added parameter."""
+        return max(passing, key=lambda s: s["elpd_diff"] / max(s.get("parameters", 1), 1))
+
+    def text(self) -> str:
+        parts = [f"held-out elpd_diff > {self.z:g} * se and > max({self.min_gain:g}, "
+                 f"{self.nats_per_parameter:g} * added parameters)"]
+        if self.require_heldout:
+            parts.append("error on repeated commands shrinks")
+        if self.require_cv:
+            parts.append("held-out error shrinks")
+        return (" AND ".join(parts) + "; of those, the largest elpd_diff per added parameter "
+                "(reporting rows decide nothing)")
+
+
+def paired_gain(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """Summed pointwise gain ``after - before`` (nats) and its standard error, as
+    ``arviz.compare`` takes it: sqrt(n) times the sd of the pointwise differences."""
+    d = np.asarray(after) - np.asarray(before)
+    return float(d.sum()), float(np.sqrt(len(d) * np.var(d))) if len(d) else 0.0
+
+
+def gaussian_lpd(residuals: np.ndarray, var: float) -> np.ndarray:
+    """log N(r | 0, var I) of each row of residuals (n, k)."""
+    r = np.asarray(residuals)
+    k = r.shape[1]
+    return -0.5 * k * np.log(2 * np.pi * var) - 0.5 * np.sum(r * r, axis=1) / var
