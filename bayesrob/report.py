@@ -96,9 +96,6 @@ def grouped_notes(warnings: Sequence[str], notes: Sequence[str]) -> list[str]:
 def format_diagnosis(doc: dict) -> str:
     """``bayesrob diagnose``'s report on a planar rig: residual structure, each round's
     candidates, the named effects."""
-    def f(x: float | None, nd: int = 2) -> str:
-        return "-" if x is None else f"{x:.{nd}f}"
-
     out = [f"diagnosis of rig {doc['rig']!r}", f"decision rule: {doc['rule']}", "",
            "residual structure of the base model (p values: small means not noise)"]
     rows = []
@@ -106,10 +103,10 @@ def format_diagnosis(doc: dict) -> str:
         lof = t.get("lack_of_fit", {})
         jump = t.get("largest_jump", {})
         w = t["worst_region"]
-        rows.append([a, f(lof.get("p_value"), 3), f(t["morans_i"]["p_value"], 3),
-                     f"{f(jump.get('mm'))} ({f(jump.get('p_value'), 3)})",
-                     f"{w['region']} {f(w['mean_mm'])} vs {f(w['elsewhere_mm'])}",
-                     " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
+        rows.append([a, _fmt(lof.get("p_value"), 3), _fmt(t["morans_i"]["p_value"], 3),
+                     f"{_fmt(jump.get('mm'))} ({_fmt(jump.get('p_value'), 3)})",
+                     f"{w['region']} {_fmt(w['mean_mm'])} vs {_fmt(w['elsewhere_mm'])}",
+                     " ".join(f"{k}:{_fmt(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
     out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
                              "worst region (mm)", "signature p"], rows))
     for t in doc["residual_tests"]["before"].values():
@@ -122,20 +119,20 @@ def format_diagnosis(doc: dict) -> str:
     for r, scores in enumerate(doc["rounds"], start=1):
         out += ["", f"round {r}: each candidate added to the model named so far"]
         rows = [[s["effect"], ",".join(s["arms"]) or "-",
-                 f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
-                 f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
+                 f"{_fmt(s['heldout_error_before_mm'])} -> {_fmt(s['heldout_error_after_mm'])}",
+                 f"{_fmt(s['cv_error_before_mm'])} -> {_fmt(s['cv_error_after_mm'])}",
                  f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
                  "yes" if s["passes"] else "no"] for s in scores]
         out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
                                  "elpd diff", "passes"], rows))
     out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
-    gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
-    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
+    gap = [f"base {_fmt(doc['baseline_heldout_error_mm'])} mm"]
+    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {_fmt(s['heldout_error_after_mm'])} mm"
             for s in doc["steps"]]
     out.append("held-out error per step: " + " -> ".join(gap))
     if doc.get("baseline_holdout_error_mm") is not None:
-        hold = [f"base {f(doc['baseline_holdout_error_mm'])} mm"]
-        hold += [f"+{s['effect']} {f(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
+        hold = [f"base {_fmt(doc['baseline_holdout_error_mm'])} mm"]
+        hold += [f"+{s['effect']} {_fmt(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
         out.append("  (held-out above: validation rows, which repeat the training commands; "
                    "at new poses, the holdout rows: " + " -> ".join(hold) + ")")
     if doc["steps"]:

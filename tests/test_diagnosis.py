@@ -304,7 +304,7 @@ def test_choosing_the_arms_an_effect_helps_does_not_flatter_its_score():
     for trial in range(200):
         cur = {f"a{i}": _arm_eval(f"a{i}", rng.normal(-1.0, 0.1, 16)) for i in range(6)}
         cand = {a: _arm_eval(a, e.cv_lpd + rng.normal(0.0, 0.5, 16)) for a, e in cur.items()}
-        cv, _, _ = _crossfit(cur, cand, seed=trial)
+        cv, _ = _crossfit(cur, cand, seed=trial)
         base = np.concatenate([e.cv_lpd for e in cur.values()])
         crossfit.append(np.sum(cv - base))
         helped = [a for a in cur if np.sum(cand[a].cv_lpd - cur[a].cv_lpd) > 0]

@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.stats
 
 from bayesrob.calibration import (
     SAG_CONVERGED_MM,
@@ -41,7 +42,7 @@ from bayesrob.calibration import (
     chain_residuals,
     sag_convergence,
 )
-from bayesrob.diagnose.rule import DecisionRule, gaussian_lpd, paired_gain
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
@@ -161,7 +162,8 @@ def _selection_rows(rig: Rig, cal: ChainCalibration) -> tuple[np.ndarray, np.nda
     var = float(np.sum(r * r)) / max(r.size - int(cal.ident.free.sum()), 1)
     sel = chain_residuals(rig, cal.robot, cal.x, "selection")
     r = np.concatenate([sel[a][1] for a in sorted(sel)])
-    return np.linalg.norm(r, axis=1), gaussian_lpd(r, var)
+    return (np.linalg.norm(r, axis=1),
+            scipy.stats.norm.logpdf(r, scale=np.sqrt(var)).sum(axis=1))
 
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str],
@@ -245,7 +247,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                 # that count by itself
                 own = bool(cal.ident.free[cal.robot.layout.group_mask(
                     (CHAIN_EFFECTS[eff],))].any())
-                gain, gain_se = paired_gain(before[1], after[1])
+                gain, gain_se = elpd_diff(before[1], after[1])
                 err0, err1 = float(before[0].mean()), float(after[0].mean())
                 s = {"effect": eff, "parameters": added,
                      "selection_error_before_mm": err0, "selection_error_after_mm": err1,

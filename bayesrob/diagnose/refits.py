@@ -23,14 +23,9 @@ says which effect is missing, how big it is and how much the model gains from it
    densities and errors), add it, repeat until none passes. When no single candidate passes
    in the first round, pairs are tried: a pair is named (as two steps) when it passes against
    the base model and against each member alone (sag bends the map backlash is judged
-   against, so the two may only pay together). The arms an effect is
-   added to are chosen on one half of the train rows and scored on the other (cross-fitting),
-   so the choice does not flatter the score.
-
-Why refits and not PSIS-LOO from one fit: with 16 points and 8-14 parameters, leaving a
-point out moves the posterior too far for importance sampling (Pareto k > 1 on most points
-when tried with a linearised posterior); the refits are cheap, so the exact values are used
-and handed to arviz as ``ELPDData``.
+   against, so the two may only pay together). The arms an effect is added to are chosen
+   on one half of the train rows and scored on the other (cross-fitting), so the choice does
+   not flatter the score. Refits, not PSIS-LOO from one fit: :func:`rule.elpd_diff`.
 
 Everything works on the rig files alone; nothing here knows how the data were made.
 """
@@ -39,7 +34,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
@@ -53,7 +47,7 @@ import scipy.stats
 
 from bayesrob import effects as fx
 from bayesrob import kinematics as kin
-from bayesrob.diagnose.rule import DecisionRule
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff
 from bayesrob.rig import ArmSpec, Rig
 
 N_BASE = len(kin.PARAM_NAMES)
@@ -276,29 +270,6 @@ class ArmEval:
     @property
     def params(self) -> kin.ArmParams:
         return kin.ArmParams.from_vector(jnp.asarray(self.v[:N_BASE]))
-
-
-def elpd_data(cv_lpd: np.ndarray, train_lpd: np.ndarray):
-    """Cross-validated pointwise log predictive densities as arviz ``ELPDData`` ("loo").
-
-    The values are exact (refitted) leave-one-out or K-fold predictive densities, not PSIS
-    estimates: with 16 points and 8-14 parameters the posterior moves too much when a point
-    is left out for importance sampling from the full posterior (Pareto k > 1 on most points
-    when tried), so the refits are done instead. Wrapped this way, ``az.compare`` computes
-    the difference and its standard error from the pointwise values as usual.
-    """
-    import arviz as az
-    import xarray as xr
-
-    n = len(cv_lpd)
-    obs = {"obs": np.arange(n)}
-    return az.ELPDData(
-        data=[float(np.sum(cv_lpd)), float(np.sqrt(n * np.var(cv_lpd))),
-              float(np.sum(train_lpd) - np.sum(cv_lpd)), 1, n, False,
-              xr.DataArray(cv_lpd, dims=["obs"], coords=obs, name="loo_i"),
-              xr.DataArray(np.zeros(n), dims=["obs"], coords=obs), "log", 0.7],
-        index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning", "loo_i",
-               "pareto_k", "scale", "good_k"])
 
 
 def _folds(n: int, k: int | None, seed: int) -> list[np.ndarray]:
@@ -671,29 +642,8 @@ def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
                                                     after.v, strict=True)}}
 
 
-def _pooled_lpd(model: dict[str, ArmEval]) -> tuple[np.ndarray, np.ndarray]:
-    return (np.concatenate([model[a].cv_lpd for a in model]),
-            np.concatenate([model[a].train_lpd for a in model]))
-
-
-def _elpd_diff(current: tuple[np.ndarray, np.ndarray], candidate: tuple[np.ndarray, np.ndarray]
-               ) -> tuple[float, float]:
-    """elpd difference (candidate - current) and its standard error, via ``az.compare``, of
-    pooled pointwise (cross-validated, in-sample) log densities."""
-    import arviz as az
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # stacking weights of two models: nothing to warn
-        cmp = az.compare({"current": elpd_data(*current), "candidate": elpd_data(*candidate)},
-                         ic="loo")
-    diff = float(cmp.loc["candidate", "elpd_loo"] - cmp.loc["current", "elpd_loo"])
-    return diff, float(cmp["dse"].max())
-
-
-def compare_models(current: dict[str, ArmEval], candidate: dict[str, ArmEval]
-                   ) -> tuple[float, float]:
-    """elpd difference (candidate - current) and its standard error, via ``az.compare``."""
-    return _elpd_diff(_pooled_lpd(current), _pooled_lpd(candidate))
+def _pooled_lpd(model: dict[str, ArmEval]) -> np.ndarray:
+    return np.concatenate([model[a].cv_lpd for a in model])
 
 
 def halves(n: int, seed: int) -> np.ndarray:
@@ -721,11 +671,11 @@ def _takes(before: ArmEval, after: ArmEval, rows: np.ndarray) -> bool:
 
 
 def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled cross-validated lpd, in-sample lpd and cross-validated errors of the model in
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled cross-validated lpd and cross-validated errors of the model in
     which each half of an arm's train rows is predicted by the model chosen on the other
     half (the candidate where the other half says the arm takes it, else the current one)."""
-    cv, tr, err = [], [], []
+    cv, err = [], []
     for a, cur in current.items():
         n = len(cur.cv_lpd)
         half = halves(n, seed)
@@ -735,9 +685,8 @@ def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
                 pick[half == h] = _takes(cur, cand[a], half != h)
         new = cand.get(a, cur)
         cv.append(np.where(pick, new.cv_lpd, cur.cv_lpd))
-        tr.append(np.where(pick, new.train_lpd, cur.train_lpd))
         err.append(np.where(pick, new.cv_errors, cur.cv_errors))
-    return np.concatenate(cv), np.concatenate(tr), np.concatenate(err)
+    return np.concatenate(cv), np.concatenate(err)
 
 
 def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, ArmEval],
@@ -750,8 +699,8 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     arms = [a for a in cand
             if _takes(current[a], cand[a], np.ones(len(current[a].cv_lpd), bool))]
     after = {a: (cand[a] if a in arms else current[a]) for a in current}
-    cv, tr, cv_err = _crossfit(current, cand, seed)
-    diff, dse = _elpd_diff(_pooled_lpd(current), (cv, tr))
+    cv, cv_err = _crossfit(current, cand, seed)
+    diff, dse = elpd_diff(_pooled_lpd(current), cv)
     b, a = _pooled_errors(current), _pooled_errors(after)
     # the parameters the candidate adds to the arms that take it
     added = sum(cand[x].v.size - current[x].v.size for x in arms)
@@ -771,7 +720,7 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
 def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
                  after: dict[str, ArmEval]) -> dict:
     """One named step: the effect, its arms and the gap before and after."""
-    diff, dse = compare_models(before, after)
+    diff, dse = elpd_diff(_pooled_lpd(before), _pooled_lpd(after))
     b, a = _pooled_errors(before), _pooled_errors(after)
     return {"effect": name, "arms": list(arms), "heldout_error_before_mm": b["heldout"],
             "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
@@ -801,10 +750,10 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
             s = _score_candidate(f"{first}+{second}", current, full, rule, seed)
             s["pair"] = [first, second]
             if s["passes"]:
-                cv, tr, _ = _crossfit(current, full, seed)
+                cv, _ = _crossfit(current, full, seed)
                 for member in (first, second):
                     alone = {**current, **fitted[member]}
-                    diff, dse = _elpd_diff(_pooled_lpd(alone), (cv, tr))
+                    diff, dse = elpd_diff(_pooled_lpd(alone), cv)
                     s[f"elpd_diff_over_{member}"] = [diff, dse]
                     s["passes"] &= bool(diff > rule.z * dse
                                         and diff > rule.threshold(s["parameters"]))
