@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from bayesrob.diagnose.rule import Z
 from bayesrob.kinematics import PARAM_NAMES
 
 
@@ -174,7 +173,7 @@ def format_group_diagnosis(doc: dict) -> str:
                 out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
                            f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
                            "poses do not tell them apart")
-            elif s["z_vs_named"] < -Z:
+            elif s["z_vs_named"] < -doc["rule_z"]:
                 out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
                            f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
                            "against its fewer: named later if it still passes on top of it")

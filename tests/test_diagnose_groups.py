@@ -257,7 +257,7 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
     named effect clearly beats does not."""
     row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True,
            "elpd_diff": 40.0, "elpd_diff_se": 8.0, "threshold": 6.5}
-    doc = {"rig": "r", "rule": "rule", "effects": ["joint_compliance"],
+    doc = {"rig": "r", "rule": "rule", "rule_z": Z, "effects": ["joint_compliance"],
            "rounds": [[{**row, "effect": "joint_compliance", "selection_error_after_mm": 0.20,
                         "z": 5.0},
                        {**row, "effect": "lateral_compliance", "selection_error_after_mm": 0.19,

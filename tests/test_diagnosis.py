@@ -29,7 +29,7 @@ from bayesrob.diagnose.refits import (
     neighbour_pairs,
     workspace_regions,
 )
-from bayesrob.diagnose.rule import DecisionRule
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff
 from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import default_rig_dir, load_rig
 
@@ -277,6 +277,13 @@ def test_decision_rule_text_and_logic():
     many = {**s, "parameters": 2 * int(s["elpd_diff"] / rule.nats_per_parameter)}
     assert rule.threshold(many["parameters"]) > s["elpd_diff"] and not rule.passes(many)
     assert rule.passes({**s, "parameters": 1})
+    # the gain and its standard error are arviz's paired ones: the summed pointwise
+    # difference and sqrt(n) times its sd (to rounding)
+    rng = np.random.default_rng(1)
+    before, after = rng.normal(size=40), rng.normal(0.3, 1.0, size=40)
+    d = after - before
+    assert elpd_diff(before, after) == pytest.approx((d.sum(), np.sqrt(40 * d.var())),
+                                                     rel=1e-12)
     # of those that pass, the one with the largest gain per added parameter is named
     assert rule.best([{**s, "effect": "a", "parameters": 6},
                       {**s, "effect": "b", "elpd_diff": 8.0, "parameters": 2}])["effect"] == "b"

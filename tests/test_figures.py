@@ -143,14 +143,14 @@ def test_fig7_has_colour_bars_named_model_and_panels_that_hold_the_density(built
 
 def _fake_comparison():
     """A comparison of two models with fixed pointwise scores: enough to draw the figure."""
-    from bayesrob.comparison import ModelComparison, _elpd_data
+    from bayesrob.comparison import ModelComparison, elpd_data
     from bayesrob.noise_models import discover_models
 
     specs = discover_models(names=["ind", "cond_paper"])
     rng = np.random.default_rng(0)
     held = {"ind": rng.normal(-2.5, 0.5, 48), "cond_paper": rng.normal(-30.0, 20.0, 48)}
     loo = {"ind": rng.normal(-2.6, 0.4, 32), "cond_paper": rng.normal(-150.0, 50.0, 32)}
-    tables = [az.compare({k: _elpd_data(v, 1.0) for k, v in d.items()}, method="stacking")
+    tables = [az.compare({k: elpd_data(v, 1.0) for k, v in d.items()}, method="stacking")
               for d in (held, loo)]
     return ModelComparison(SimpleNamespace(name="rig"), specs,
                            {k: {"top": SimpleNamespace(lpd=v)} for k, v in held.items()},

@@ -11,15 +11,11 @@ so it is tried once joint compliance is named: without masses only a fitted defl
 which side a joint rests on). Effects are named
 greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
 it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
-same side). The selection rows' log predictive densities (Gaussian, with the scale each fit
-leaves on its train rows) before and after the candidate are the evidence
-:class:`bayesrob.diagnose.rule.DecisionRule` decides on, the same rule as a planar arm's
-leave-one-out refits: the gain beyond ``z`` standard errors and beyond what its parameter
-count can explain, the mean selection error shrinking; of those that pass, the one with the
-largest gain per parameter it adds is named. An effect can mimic part of another (an
-encoder's sinusoid in a shoulder's angle takes up part of its gravity sag, with fewer
-parameters): the one that explains more per parameter goes first, and the mimic then no
-longer passes on top of it. A candidate that passed beside the named one with selection errors
+same side); the selection rows' log predictive densities (Gaussian, with the scale each fit
+leaves on its train rows) are what :class:`bayesrob.diagnose.rule.DecisionRule` decides on.
+An encoder's sinusoid in a shoulder's angle takes up part of its gravity sag with fewer
+parameters: compliance explains more per parameter, goes first, and the mimic then no longer
+passes on top of it. A candidate that passed beside the named one with selection errors
 within ``z`` standard errors of its (a paired z of the errors) is reported as its *rival*:
 these poses cannot tell the two apart, and the name is the rule's choice between them. A
 candidate whose own group the rank analysis leaves no parameter never passes. The
@@ -103,6 +99,7 @@ class GroupDiagnosis:
         last = self.steps[-1] if self.steps else self.baseline
         return {
             "rig": self.rig, "robot": "chain", "effects": self.effects,
+            "rule_z": self.rule.z,
             "rule": (f"on the selection poses ({self.selection_rows} train rows held back): "
                      f"{self.rule.text()}; backlash is tried once joint_compliance is named, "
                      "a candidate left no identifiable parameter never passes; validation "

@@ -698,33 +698,28 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     """
     arms = [a for a in cand
             if _takes(current[a], cand[a], np.ones(len(current[a].cv_lpd), bool))]
-    after = {a: (cand[a] if a in arms else current[a]) for a in current}
     cv, cv_err = _crossfit(current, cand, seed)
-    diff, dse = elpd_diff(_pooled_lpd(current), cv)
-    b, a = _pooled_errors(current), _pooled_errors(after)
+    s = _step_record(name, arms, current, {a: (cand[a] if a in arms else current[a])
+                                           for a in current}, cv, float(np.mean(cv_err)))
     # the parameters the candidate adds to the arms that take it
-    added = sum(cand[x].v.size - current[x].v.size for x in arms)
-    s = {"effect": name, "arms": arms, "parameters": int(added),
-         "heldout_error_before_mm": b["heldout"],
-         "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
-         "cv_error_before_mm": b["cv"], "cv_error_after_mm": float(np.mean(cv_err)),
-         "elpd_gain_per_arm": {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
-                               for x in cand},
-         "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - current[x].val_lpd)
-                                        for x in current)),
-         "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
+    s["parameters"] = int(sum(cand[x].v.size - current[x].v.size for x in arms))
+    s["elpd_gain_per_arm"] = {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
+                              for x in cand}
     s["passes"] = rule.passes(s)
     return s
 
 
 def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
-                 after: dict[str, ArmEval]) -> dict:
-    """One named step: the effect, its arms and the gap before and after."""
-    diff, dse = elpd_diff(_pooled_lpd(before), _pooled_lpd(after))
+                 after: dict[str, ArmEval], cv: np.ndarray | None = None,
+                 cv_error: float | None = None) -> dict:
+    """One named step (or a candidate's score): the effect, its arms and the gap before and
+    after; ``cv``, ``cv_error``: the cross-fitted lpd and error in place of ``after``'s."""
+    diff, dse = elpd_diff(_pooled_lpd(before), _pooled_lpd(after) if cv is None else cv)
     b, a = _pooled_errors(before), _pooled_errors(after)
     return {"effect": name, "arms": list(arms), "heldout_error_before_mm": b["heldout"],
             "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
-            "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
+            "cv_error_before_mm": b["cv"],
+            "cv_error_after_mm": a["cv"] if cv_error is None else cv_error,
             "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - before[x].val_lpd)
                                            for x in before)),
             "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
@@ -770,12 +765,15 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     effect's name asks for its planar instance (``joint_compliance``: ``gravity_sag``), and
     one with none is a one-line ``ValueError`` (:func:`bayesrob.effects.resolve_effects`).
     """
+    from bayesrob.progress import progress as make_progress
+
     rule = rule or DecisionRule()
     candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
     # Rounds are not known in advance; the total is the usual case (one step per effect).
-    bar = _bar(progress, len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2))
+    bar = make_progress(len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2),
+                        "diagnose", "fits", enabled=progress)
 
     cache: dict[tuple[str, tuple[str, ...]], ArmEval] = {}
 
@@ -859,12 +857,6 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
                      rounds, tests_before, tests_after, data)
 
 
-def _bar(enabled: bool, total: int):
-    from bayesrob.progress import progress
-
-    return progress(total, "diagnose", "fits", enabled=enabled)
-
-
 def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
                  progress: bool = False, **kwargs) -> Diagnosis:
     """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
@@ -873,5 +865,5 @@ def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
     return diagnose(load_rig(path), candidates, progress=progress, **kwargs)
 
 
-__all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
+__all__ = ["ArmData", "ArmEval", "Diagnosis", "diagnose", "diagnose_rig",
            "evaluate_arm", "residual_tests"]

@@ -1,25 +1,15 @@
-"""The diagnosis's one decision rule, for every robot: when a candidate effect counts as
-missing from the model, and which of several that count is named.
+"""The diagnosis's one decision rule, for every robot (docs/diagnose.md, "The parameter guard").
 
-The evidence is the same kind on every rig: the pointwise log predictive density of rows the
-candidate's fit did not see (a planar arm's leave-one-out refits, a chain's selection poses),
-before and after the candidate is added. A candidate passes when
-
-- its gain is more than ``z`` standard errors of the paired difference (``elpd_diff > z *
-  elpd_diff_se``): the rows agree that it helps, noise alone rarely does;
-- its gain is more than ``min_gain`` nats and more than ``nats_per_parameter`` nats for every
-  parameter it adds (the *parameter guard*): held-out rows are unbiased but noisy, and a
-  candidate with many parameters can win a small, consistent gain on them that does not carry
-  to new data (a real 7-joint arm named a 24-parameter encoder error at selection z 4.9 whose
-  step made the validation error worse, 1.01 -> 1.06 mm);
-- its mean error on those rows shrinks (``require_cv``), and, where the rig repeats its
-  training commands (a planar rig's ``validation`` rows), on the repeats too
-  (``require_heldout``).
-
-Of the candidates that pass, the one with the largest gain per added parameter is named: an
-effect can mimic part of another with fewer parameters, and the one that explains more per
-parameter goes first. Rows that report (a chain's validation poses, a planar rig's holdout
-poses) decide nothing.
+The evidence is the pointwise log predictive density of rows the candidate's fit did not see
+(a planar arm's leave-one-out refits, a chain's selection poses), before and after it is
+added. A candidate passes when its gain is more than ``z`` standard errors of the paired
+difference, more than ``min_gain`` nats and more than ``nats_per_parameter`` per parameter it
+adds (a many-parameter candidate can win a small gain consistent row by row that does not
+carry to new data: on a real 7-joint arm a 24-parameter encoder error at selection z 4.9 made
+the validation error worse, 1.01 -> 1.06 mm), and its error on those rows shrinks (on repeated
+training commands too, where the rig has them). Of those, the largest gain per added parameter
+is named: an effect can mimic part of another with fewer parameters. Rows that report decide
+nothing.
 """
 
 from __future__ import annotations
@@ -38,9 +28,9 @@ MIN_GAIN_NATS = 4.0
 # The parameter guard: AIC's price of a parameter, 1 nat, asked of a gain on rows the fit did
 # not see (where chance alone gives a parameter less than nothing on average). Checked on the
 # tuning rigs (planar seeds 21-35, 6-joint seed 61) before any report rig ran: every true
-# effect named there gained 2.8-10.7 nats per parameter, and the candidates it stops gained
-# 0.3 or less (lateral compliance on top of joint compliance on an arm whose bearings tilt,
-# paired z 2.0). docs/diagnose.md, "The parameter guard".
+# effect named there gained 2.8-10.7 nats per parameter, the closest call among the rest 0.26
+# (lateral compliance on top of joint compliance on an arm whose bearings tilt, paired z 1.97).
+# docs/diagnose.md, "The parameter guard".
 NATS_PER_PARAMETER = 1.0
 
 
@@ -86,32 +76,19 @@ class DecisionRule:
                 "(reporting rows decide nothing)")
 
 
-def _elpd_data(lpd: np.ndarray):
-    """Held-out pointwise log densities as arviz ``ELPDData`` ("loo"). They are exact
+def elpd_diff(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """The held-out elpd gain ``after - before`` (nats) and its standard error, by
+    ``arviz.compare`` of the two pointwise log densities of the same rows. They are exact
     (refitted leave-one-out, or rows held back from the fit), not PSIS estimates: with 16
     points and 8-14 parameters a planar arm's posterior moves too much when a point is left
     out for importance sampling (Pareto k > 1 on most points when tried)."""
     import arviz as az
-    import xarray as xr
 
-    n = len(lpd)
-    obs = {"obs": np.arange(n)}
-    return az.ELPDData(
-        data=[float(np.sum(lpd)), float(np.sqrt(n * np.var(lpd))), 0.0, 1, n, False,
-              xr.DataArray(lpd, dims=["obs"], coords=obs, name="loo_i"),
-              xr.DataArray(np.zeros(n), dims=["obs"], coords=obs), "log", 0.7],
-        index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning", "loo_i",
-               "pareto_k", "scale", "good_k"])
-
-
-def elpd_diff(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
-    """The held-out elpd gain ``after - before`` (nats) and its standard error, by
-    ``arviz.compare`` of the two pointwise log densities of the same rows."""
-    import arviz as az
+    from bayesrob.comparison import elpd_data
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stacking weights of two models: nothing to warn
-        cmp = az.compare({"before": _elpd_data(np.asarray(before)),
-                          "after": _elpd_data(np.asarray(after))}, ic="loo")
+        cmp = az.compare({"before": elpd_data(np.asarray(before), 0.0),
+                          "after": elpd_data(np.asarray(after), 0.0)}, ic="loo")
     return (float(cmp.loc["after", "elpd_loo"] - cmp.loc["before", "elpd_loo"]),
             float(cmp["dse"].max()))
