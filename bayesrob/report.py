@@ -160,14 +160,18 @@ def format_group_diagnosis(doc: dict) -> str:
     for r, scores in enumerate(doc["rounds"], start=1):
         out += ["", f"round {r}: each candidate added to the model named so far"]
         out.append(format_table(
-            ["candidate", "added parameters", "selection mm", "elpd diff", "needs", "passes"],
+            ["candidate", "added parameters", "selection mm", "z", "passes"],
             [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
-              f"{s['selection_error_after_mm']:.2f}",
-              f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}", f"{s['threshold']:.1f}",
+              f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
               "yes" if s["passes"] else "no"] for s in scores]))
         if r > len(doc["steps"]):
             continue  # nothing named in this round: no comparison with a named effect
         chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
+        named = next(s for s in scores if s["effect"] == chosen)
+        if not named.get("guard_passes", True):
+            out.append(f"  {chosen} gains {named['elpd_diff']:+.1f} nats on the selection poses, "
+                       f"less than {named['guard_nats']:.0f} for its {named['parameters']} "
+                       "parameters (the parameter guard): its step may not carry to new poses")
         for s in (s for s in scores if "z_vs_named" in s):
             if s["effect"] in rivals:
                 out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "

@@ -256,7 +256,7 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
     of its, gets a line of its own, as does one clearly better with more parameters; one the
     named effect clearly beats does not."""
     row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True,
-           "elpd_diff": 40.0, "elpd_diff_se": 8.0, "threshold": 6.5}
+           "elpd_diff": 40.0, "elpd_diff_se": 8.0, "guard_nats": 13.0, "guard_passes": True}
     doc = {"rig": "r", "rule": "rule", "rule_z": Z, "effects": ["joint_compliance"],
            "rounds": [[{**row, "effect": "joint_compliance", "selection_error_after_mm": 0.20,
                         "z": 5.0},

@@ -11,16 +11,19 @@ so it is tried once joint compliance is named: without masses only a fitted defl
 which side a joint rests on). Effects are named
 greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
 it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
-same side); the selection rows' log predictive densities (Gaussian, with the scale each fit
-leaves on its train rows) are what :class:`bayesrob.diagnose.rule.DecisionRule` decides on.
-An encoder's sinusoid in a shoulder's angle takes up part of its gravity sag with fewer
-parameters: compliance explains more per parameter, goes first, and the mimic then no longer
-passes on top of it. A candidate that passed beside the named one with selection errors
-within ``z`` standard errors of its (a paired z of the errors) is reported as its *rival*:
-these poses cannot tell the two apart, and the name is the rule's choice between them. A
-candidate whose own group the rank analysis leaves no parameter never passes. The
-``validation`` rows are never looked at while deciding: the ladder (mean / sd / max error
-after each named effect, refitted on every train row) is reported on them.
+same side). A candidate passes when its paired per-row error drop on the selection poses is
+more than ``rule.Z`` standard errors; of those that pass, the one whose mean selection error
+drops the most per parameter it adds is named. An encoder's sinusoid in a shoulder's angle
+takes up part of its gravity sag with fewer parameters: compliance explains more per
+parameter, goes first, and the mimic then no longer passes on top of it. Beside the decision
+each candidate and named step reports its selection rows' log density gain and whether it
+clears the parameter guard of :mod:`bayesrob.diagnose.rule` (not deciding here). A
+candidate that passed beside the named one with selection errors within ``rule.Z`` standard
+errors of its is reported as its *rival*: these poses cannot tell the two apart, and the name
+is the rule's choice between them. A candidate whose own group the rank analysis leaves no
+parameter never passes. The ``validation`` rows are never looked at while deciding: the ladder
+(mean / sd / max error after each named effect, refitted on every train row) is reported on
+them.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from bayesrob.calibration import (
     chain_residuals,
     sag_convergence,
 )
-from bayesrob.diagnose.rule import DecisionRule, elpd_diff
+from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
@@ -68,6 +71,9 @@ SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
 # selection error came out as before to 0.01 mm (drops between candidates: 0.1-5 mm), in
 # half the time.
 SELECTION_NFEV = 140
+# The parameter guard (bayesrob.diagnose.rule) as chosen on the tuning rigs, reported beside
+# each candidate and step: deciding with it cost a true encoder error on a report arm.
+GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
 
 
 class DiagnosisError(ValueError):
@@ -89,7 +95,6 @@ class GroupDiagnosis:
     # geometric calibration and the final model (figures only; not in the JSON)
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
         default_factory=dict, repr=False)
-    rule: DecisionRule = field(default_factory=DecisionRule)
 
     def to_dict(self) -> dict:
         """``bayesrob diagnose RIG --json``'s document on a chain rig (as :meth:`to_json`)."""
@@ -99,10 +104,12 @@ class GroupDiagnosis:
         last = self.steps[-1] if self.steps else self.baseline
         return {
             "rig": self.rig, "robot": "chain", "effects": self.effects,
-            "rule_z": self.rule.z,
-            "rule": (f"on the selection poses ({self.selection_rows} train rows held back): "
-                     f"{self.rule.text()}; backlash is tried once joint_compliance is named, "
-                     "a candidate left no identifiable parameter never passes; validation "
+            "rule_z": Z,
+            "rule": (f"of the candidates whose paired error drop on the selection poses "
+                     f"({self.selection_rows} train rows held back) exceeds {Z:g} "
+                     "standard errors, name the one with the largest drop per added "
+                     "parameter (backlash is tried once joint_compliance is named; a "
+                     "candidate left no identifiable parameter never passes); validation "
                      "rows only report"),
             "steps": self.steps, "rounds": self.rounds,
             "baseline": self.baseline,
@@ -194,8 +201,7 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
 
 
 def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
-                    progress: bool = False, sag_steps: int = 1,
-                    rule: DecisionRule | None = None) -> GroupDiagnosis:
+                    progress: bool = False, sag_steps: int = 1) -> GroupDiagnosis:
     """Name the effects the geometric calibration of a rig misses (module docstring).
 
     ``sag_steps``: the ladder's fits with joints giving way take the gravity torques that many
@@ -206,7 +212,6 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     from bayesrob.progress import progress as make_progress
 
     t0 = time.perf_counter()
-    rule = rule or DecisionRule()
     if sag_steps < 1:
         raise DiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     candidates = resolve_effects(effects)
@@ -218,6 +223,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     groups = BASE_GROUPS
     named: list[str] = []
     rivals: list[list[str]] = []  # per named effect
+    guarded: list[bool] = []  # per named effect: its step clears the parameter guard
     rounds: list[list[dict]] = []
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
@@ -246,25 +252,28 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                     (CHAIN_EFFECTS[eff],))].any())
                 gain, gain_se = elpd_diff(before[1], after[1])
                 err0, err1 = float(before[0].mean()), float(after[0].mean())
-                s = {"effect": eff, "parameters": added,
-                     "selection_error_before_mm": err0, "selection_error_after_mm": err1,
-                     "z": gain / gain_se if gain_se > 0 else 0.0,
-                     "error_z": _paired_z(before[0], after[0]),
-                     "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
-                     "elpd_diff": gain, "elpd_diff_se": gain_se,
-                     "gain_per_parameter": gain / max(added, 1),
-                     "threshold": rule.threshold(added),
-                     "cv_error_before_mm": err0, "cv_error_after_mm": err1,
-                     "_after": after, "_x": cal.x}
-                # a candidate the rank analysis leaves nothing to fit (lateral bending
-                # under gravity in a planar arm's plane) moves the errors by rounding
-                # alone: its gain is noise
-                s["passes"] = bool(own and rule.passes(s))
-                scores.append(s)
+                z = _paired_z(before[0], after[0])
+                scores.append({"effect": eff, "parameters": added,
+                               "selection_error_before_mm": err0,
+                               "selection_error_after_mm": err1, "z": z,
+                               "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
+                               # the selection rows' log density gain and the parameter
+                               # guard's verdict on it: reported, not deciding
+                               # (docs/diagnose.md, "The parameter guard")
+                               "elpd_diff": gain, "elpd_diff_se": gain_se,
+                               "guard_nats": GUARD.threshold(added),
+                               "guard_passes": bool(gain > GUARD.threshold(added)),
+                               # a candidate the rank analysis leaves nothing to fit
+                               # (lateral bending under gravity in a planar arm's plane)
+                               # moves the errors by rounding alone: its z is noise
+                               "passes": bool(own and z > Z),
+                               "_after": after, "_x": cal.x})
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:
-                best = rule.best(passing)
+                # of the candidates that pass, the one that explains the most per parameter
+                # it adds: the largest drop of the mean selection error per added parameter
+                best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
                 for s in passing:
                     if s is not best:
                         # positive where the named effect leaves the smaller errors
@@ -276,7 +285,8 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             # a passing candidate the selection poses cannot tell from the named one: the
             # name is the rule's choice between fits the data hold equally good
             rivals.append([s["effect"] for s in passing
-                           if abs(s.get("z_vs_named", np.inf)) <= rule.z])
+                           if abs(s.get("z_vs_named", np.inf)) <= Z])
+            guarded.append(best["guard_passes"])
             named.append(best["effect"])
             selected[best["effect"]] = best["_x"]
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
@@ -316,14 +326,15 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             if k == 0:
                 baseline = row
             else:
-                steps.append({"effect": named[k - 1], "rivals": rivals[k - 1], **row})
+                steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
+                              "guard_passes": guarded[k - 1], **row})
     notes = ["not modelled for chains, so not tried: servo_nonlinearity (a chain's "
              "encoder_error takes its place)"]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
     return GroupDiagnosis(rig.name, named, rounds, steps, baseline,
-                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals, rule)
+                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals)
 
 
 def parse_published(text: str) -> dict[str, float]:
