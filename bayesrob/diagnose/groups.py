@@ -71,8 +71,7 @@ SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
 # selection error came out as before to 0.01 mm (drops between candidates: 0.1-5 mm), in
 # half the time.
 SELECTION_NFEV = 140
-# The parameter guard (bayesrob.diagnose.rule) as chosen on the tuning rigs, reported beside
-# each candidate and step: deciding with it cost a true encoder error on a report arm.
+# the parameter guard, reported beside each candidate and step (not deciding: rule.py)
 GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
 
 
@@ -158,9 +157,7 @@ def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
 
 def _selection_rows(rig: Rig, cal: ChainCalibration) -> tuple[np.ndarray, np.ndarray]:
     """Per selection row: the marker error (mm) and its log predictive density, Gaussian in
-    each axis with the variance the fit leaves on its train rows (its degrees of freedom
-    counted): a fit that only follows the train rows' noise pays for it twice, in a tighter
-    scale and in larger selection errors."""
+    each axis with the variance the fit leaves on its train rows (degrees of freedom counted)."""
     train = chain_residuals(rig, cal.robot, cal.x, "train")
     r = np.concatenate([train[a][1] for a in sorted(train)])
     var = float(np.sum(r * r)) / max(r.size - int(cal.ident.free.sum()), 1)

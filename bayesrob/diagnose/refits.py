@@ -18,14 +18,11 @@ says which effect is missing, how big it is and how much the model gains from it
    elpd difference and its standard error. Where the rig has ``holdout`` rows (new poses,
    not the repeated training commands ``validation`` holds), the models are scored on them
    too, and reported beside validation; they decide nothing.
-4. Name the best candidate that passes the one decision rule of every robot
-   (:class:`bayesrob.diagnose.rule.DecisionRule`, here on the pooled cross-validated log
-   densities and errors), add it, repeat until none passes. When no single candidate passes
-   in the first round, pairs are tried: a pair is named (as two steps) when it passes against
-   the base model and against each member alone (sag bends the map backlash is judged
-   against, so the two may only pay together). The arms an effect is added to are chosen
-   on one half of the train rows and scored on the other (cross-fitting), so the choice does
-   not flatter the score. Refits, not PSIS-LOO from one fit: :func:`rule.elpd_diff`.
+4. Name the best candidate that passes :class:`bayesrob.diagnose.rule.DecisionRule`, add
+   it, repeat until none passes; if none passes in the first round, pairs are tried (named
+   when they pass against the base model and each member alone). The arms an effect is added
+   to are chosen on one half of the train rows and scored on the other (cross-fitting), so
+   the choice does not flatter the score. Refits, not PSIS-LOO: :func:`rule.elpd_diff`.
 
 Everything works on the rig files alone; nothing here knows how the data were made.
 """

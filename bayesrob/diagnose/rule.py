@@ -1,17 +1,10 @@
 """The diagnosis's decision rule and its parameter guard (docs/diagnose.md, "The parameter
-guard").
-
-The evidence is the pointwise log predictive density of rows the candidate's fit did not see
-(a planar arm's leave-one-out refits, a chain's selection poses), before and after it is
-added. A planar candidate is named when its gain is more than ``z`` standard errors of the
-paired difference and more than ``min_gain`` nats, and its errors on held-out and repeated
-rows shrink; of those, the largest gain is named. The *parameter guard* asks, in addition,
-``nats_per_parameter`` nats of gain for every parameter a candidate adds: a many-parameter
-candidate can win a small gain consistent row by row that does not carry to new data (on a
-real 7-joint arm a 24-parameter encoder error at selection z 4.9 made the validation error
-worse, 1.01 -> 1.06 mm). It is off by default (``nats_per_parameter=0``): chosen on the tuning
-rigs at 1 nat per parameter, deciding with it cost a true effect on the report rigs, so a URDF/DH
-diagnosis reports its verdict (:data:`NATS_PER_PARAMETER`) beside each candidate and step.
+guard"). The evidence: pointwise log predictive densities of rows the candidate's fit did not
+see (leave-one-out refits, held-back selection poses), before and after it is added. The guard
+asks ``nats_per_parameter`` nats of gain for each added parameter (on a real 7-joint arm a
+24-parameter encoder error at selection z 4.9 made the validation error worse, 1.01 -> 1.06
+mm); it is off in the rule and reported beside URDF/DH candidates, having cost a true effect on
+the report rigs.
 """
 
 from __future__ import annotations
@@ -27,11 +20,9 @@ Z = 2.0
 # The planar engine's floor since its tuning rigs (seeds 21-35): a gain of a few nats is what
 # one lucky row can give.
 MIN_GAIN_NATS = 4.0
-# The parameter guard as reported: AIC's price of a parameter, 1 nat, asked of a gain on rows
-# the fit did not see. Chosen on the tuning rigs (planar seeds 21-35, 6-joint seed 61): every
-# true effect named there gained 2.8-10.7 nats per parameter, the closest call among the rest
-# 0.26. On report seed 76 it would have stopped a true encoder error named on top of joint
-# compliance (9.2 nats for 11 parameters), hence reported, not deciding.
+# The guard as reported: AIC's price of a parameter, chosen on the tuning rigs (planar seeds
+# 21-35, 6-joint seed 61: true effects gained 2.8-10.7 nats per parameter, the closest call
+# among the rest 0.26); on report seed 76 it stops a true encoder error (9.2 nats, 11 params).
 NATS_PER_PARAMETER = 1.0
 
 
