@@ -40,8 +40,8 @@ _API = {
     "dh_chain": "kinematics", "GROUPS": "kinematics",
     "Calibration": "calibrate", "calibrate_arms": "calibrate",
     "predict_assembly": "predict.assembly", "compare_models": "comparison",
-    "sample_linked": "inference", "diagnose_rig": "diagnosis",
-    "diagnose_chain": "chain_diagnosis", "discover_models": "noise_models",
+    "sample_linked": "inference", "diagnose_rig": "diagnose.refits",
+    "diagnose_groups": "diagnose.groups", "discover_models": "noise_models",
 }
 __all__ = ["__version__", "cache_dir", "release_compiled_programs", "calibrate", *_API]
 

@@ -779,64 +779,42 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
                      "show the gap shrink")(_diagnose_args)
 def _diagnose(args: argparse.Namespace) -> int:
-    from bayesrob.diagnosis import diagnose, format_diagnosis
+    from bayesrob.diagnose.groups import DiagnosisError, diagnose_groups, parse_published
+    from bayesrob.diagnose.refits import diagnose
     from bayesrob.effects import resolve_effects
     from bayesrob.outputs import write_diagnosis_report
+    from bayesrob.report import format_diagnosis, format_group_diagnosis
 
     rig = _load_rig_arg(args.rig)
+    published = None
     if rig.is_chain:
-        return _diagnose_chain(rig, args)
-    if args.published:
-        raise UsageError("--published draws a published ladder for URDF/DH rigs; "
-                         f"{rig.name!r} is planar")
-    if args.sag_steps != 1:
-        raise UsageError(f"--sag-steps is for URDF/DH rigs; {rig.name!r} is planar (its "
-                         "gravity_sag takes the torques at the pose it sags into already)")
-    try:
-        effects = None if args.effects is None else resolve_effects(args.effects)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    diag = diagnose(rig, effects, seed=args.seed, progress=_progress(args))
+        try:
+            published = parse_published(args.published) if args.published else None
+            diag = diagnose_groups(rig, args.effects, seed=args.seed, progress=_progress(args),
+                                   sag_steps=args.sag_steps)
+        except DiagnosisError as e:
+            raise UsageError(str(e)) from None
+    else:
+        if args.published:
+            raise UsageError("--published draws a published ladder for URDF/DH rigs; "
+                             f"{rig.name!r} is planar")
+        if args.sag_steps != 1:
+            raise UsageError(f"--sag-steps is for URDF/DH rigs; {rig.name!r} is planar (its "
+                             "gravity_sag takes the torques at the pose it sags into already)")
+        try:
+            effects = None if args.effects is None else resolve_effects(args.effects)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        diag = diagnose(rig, effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
     if args.json != "-":
-        print(format_diagnosis(doc))
+        print((format_group_diagnosis if rig.is_chain else format_diagnosis)(doc))
     if args.report:
         with staged_directory(args.report) as scratch:
             written = [Path(args.report) / p.name
-                       for p in write_diagnosis_report(diag, scratch)]
+                       for p in write_diagnosis_report(diag, scratch, published)]
         for path in written:
             _wrote(path, args.json)
-    _write_json(doc, args.json)
-    return 0
-
-
-def _diagnose_chain(rig, args: argparse.Namespace) -> int:
-    from bayesrob.chain_diagnosis import (
-        ChainDiagnosisError,
-        diagnose_chain,
-        format_chain_diagnosis,
-        ladder_figure,
-        parse_published,
-    )
-    from bayesrob.plots.diagnosis import chain_residual_figure
-
-    try:
-        published = parse_published(args.published) if args.published else None
-        diag = diagnose_chain(rig, args.effects, seed=args.seed, progress=_progress(args),
-                              sag_steps=args.sag_steps)
-    except ChainDiagnosisError as e:
-        raise UsageError(str(e)) from None
-    doc = diag.to_json()
-    if args.json != "-":
-        print(format_chain_diagnosis(doc))
-    if args.report:
-        figures = (("ladder.png", ladder_figure(doc, published)),
-                   ("residuals.png", chain_residual_figure(diag.residuals, doc["rig"])))
-        with staged_directory(args.report) as scratch:
-            for name, fig in figures:
-                fig.savefig(scratch / name, dpi=120)
-        for name, _ in figures:
-            _wrote(Path(args.report) / name, args.json)
     _write_json(doc, args.json)
     return 0
 

@@ -255,7 +255,7 @@ def _in_sample_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel) -> np.nda
     return scores.lpd
 
 
-def _elpd_data(pointwise: np.ndarray, p: float) -> Any:
+def elpd_data(pointwise: np.ndarray, p: float) -> Any:
     """An arviz ``ELPDData`` (kind loo) holding exact pointwise values, for ``az.compare``."""
     n = pointwise.size
     return az.ELPDData(
@@ -272,7 +272,7 @@ def _elpd_tables(specs: Sequence[ModelSpec], heldout: dict[str, dict[str, PointS
     """arviz's stacking comparisons of every model's held-out, leave-one-out (p: in-sample
     minus LOO) and holdout elpd (None without holdout rows)."""
     def table(pointwise: dict[str, np.ndarray], p: dict[str, float] | None = None) -> Any:
-        return az.compare({s.name: _elpd_data(pointwise[s.name],
+        return az.compare({s.name: elpd_data(pointwise[s.name],
                                               float("nan") if p is None else p[s.name])
                            for s in specs}, method="stacking")
 

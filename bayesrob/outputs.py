@@ -14,7 +14,8 @@ from pathlib import Path
 from bayesrob import kinematics as kin
 from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms, observed_accuracy
 from bayesrob.calibrate.bayes import calibrate_arms_bayes, report_extras
-from bayesrob.diagnosis import Diagnosis
+from bayesrob.diagnose.groups import GroupDiagnosis
+from bayesrob.diagnose.refits import Diagnosis
 from bayesrob.reproduction import Reproduction
 from bayesrob.rig import Rig
 
@@ -71,23 +72,27 @@ def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
     return written
 
 
-def write_diagnosis_report(diag: Diagnosis, directory: str | Path) -> list[Path]:
-    """Save the diagnosis figures (PNG) into ``directory``; returns the files written."""
-    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
-
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for a in diag.arms:
-        fig = residual_quiver_figure(diag, a)
-        path = out / f"residuals_{a}.png"
-        fig.savefig(path, dpi=110)
-        written.append(path)
-    fig = gap_figure(diag)
-    path = out / "gap_per_step.png"
-    fig.savefig(path, dpi=110)
-    written.append(path)
+def write_diagnosis_report(diag: Diagnosis | GroupDiagnosis, directory: str | Path,
+                           published: dict[str, float] | None = None) -> list[Path]:
+    """Save the diagnosis figures (PNG) into ``directory``; returns the files written. A
+    planar rig's: residual arrows per arm and the gap per step; any other robot's: the ladder
+    (``published``, step label -> mean mm, drawn beside it) and the residual arrows."""
     import matplotlib.pyplot as plt
 
+    from bayesrob.plots import diagnosis as plots
+
+    if isinstance(diag, GroupDiagnosis):
+        doc = diag.to_json()
+        figures = [("ladder.png", plots.ladder_figure(doc, published)),
+                   ("residuals.png", plots.marker_residual_figure(diag.residuals, doc["rig"]))]
+        dpi = 120
+    else:
+        figures = [(f"residuals_{a}.png", plots.residual_quiver_figure(diag, a))
+                   for a in diag.arms] + [("gap_per_step.png", plots.gap_figure(diag))]
+        dpi = 110
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, fig in figures:
+        fig.savefig(out / name, dpi=dpi)
     plt.close("all")
-    return written
+    return [out / name for name, _ in figures]

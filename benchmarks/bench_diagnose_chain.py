@@ -40,7 +40,7 @@ def main() -> None:
     p.add_argument("--sag-steps", type=int, default=1,
                    help="torque steps of the ladder's fits with gravity (the target is for 1)")
     args = p.parse_args()
-    from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.rig import load_rig
     from bayesrob.sim.truth import ChainTruth
 
@@ -50,7 +50,7 @@ def main() -> None:
                 if justin_or_simulated(args.data, rig_dir, ChainTruth(seed=11, compliance=True))
                 else "simulated_arm6_compliant (Justin data not found)")
         t0 = time.perf_counter()
-        doc = diagnose_chain(load_rig(rig_dir), sag_steps=args.sag_steps).to_json()
+        doc = diagnose_groups(load_rig(rig_dir), sag_steps=args.sag_steps).to_json()
         seconds = time.perf_counter() - t0
     ladder = [doc["baseline"]["heldout_error_mm"]] + [s["heldout_error_mm"]
                                                       for s in doc["steps"]]

@@ -16,8 +16,9 @@ import sys
 from pathlib import Path
 
 import bayesrob  # noqa: F401  (64-bit JAX)
-from bayesrob.diagnosis import Diagnosis, diagnose, format_diagnosis
+from bayesrob.diagnose.refits import Diagnosis, diagnose
 from bayesrob.outputs import write_diagnosis_report
+from bayesrob.report import format_diagnosis
 from bayesrob.rig import default_rig_dir, load_rig
 
 

@@ -20,16 +20,16 @@ from bayesrob.validation.planar_generators import Case, make_rig
 import bayesrob  # noqa: F401  (x64)
 from bayesrob import effects as fx
 from bayesrob import kinematics as kin
-from bayesrob.diagnosis import (
+from bayesrob.diagnose.refits import (
     ArmData,
     ArmEval,
-    DecisionRule,
     _crossfit,
     diagnose,
     evaluate_arm,
     neighbour_pairs,
     workspace_regions,
 )
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff
 from bayesrob.kinematics.chain import G_N_PER_KG
 from bayesrob.rig import default_rig_dir, load_rig
 
@@ -166,7 +166,7 @@ def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
 def test_every_chain_effect_is_a_planar_effect_or_says_why_not():
     """A chain effect's name on a planar rig is either its planar instance or a reason: a new
     chain effect must be placed in one of them, not left to a bare 'unknown effect'."""
-    from bayesrob.chain_diagnosis import CHAIN_EFFECTS
+    from bayesrob.diagnose.groups import CHAIN_EFFECTS
 
     for name in CHAIN_EFFECTS:
         assert (name in fx.REGISTRY) + (name in fx.ALIASES) + (name in fx.CHAIN_ONLY) == 1, name
@@ -275,6 +275,21 @@ def test_decision_rule_text_and_logic():
     assert rule.text() == ("cross-fitted elpd_diff > 2 * se and > 4 AND validation error "
                            "shrinks AND cross-validated error shrinks (holdout rows only "
                            "report)")
+    # the parameter guard (off by default): a gain must exceed what its parameters explain
+    guard = DecisionRule(nats_per_parameter=1.0)
+    assert guard.passes({**s, "parameters": 2}) and rule.passes({**s, "parameters": 20})
+    assert guard.threshold(20) == 20 and not guard.passes({**s, "parameters": 20})
+    assert "and > 1 * added parameters" in guard.text()
+    # the gain and its standard error are arviz's paired ones: the summed pointwise
+    # difference and sqrt(n) times its sd (to rounding)
+    rng = np.random.default_rng(1)
+    before, after = rng.normal(size=40), rng.normal(0.3, 1.0, size=40)
+    d = after - before
+    assert elpd_diff(before, after) == pytest.approx((d.sum(), np.sqrt(40 * d.var())),
+                                                     rel=1e-12)
+    # of those that pass, the one with the largest gain is named
+    assert rule.best([{**s, "effect": "a", "parameters": 6},
+                      {**s, "effect": "b", "elpd_diff": 8.0, "parameters": 2}])["effect"] == "a"
 
 
 def _arm_eval(name: str, cv_lpd: np.ndarray) -> ArmEval:
@@ -299,7 +314,7 @@ def test_choosing_the_arms_an_effect_helps_does_not_flatter_its_score():
     for trial in range(200):
         cur = {f"a{i}": _arm_eval(f"a{i}", rng.normal(-1.0, 0.1, 16)) for i in range(6)}
         cand = {a: _arm_eval(a, e.cv_lpd + rng.normal(0.0, 0.5, 16)) for a, e in cur.items()}
-        cv, _, _ = _crossfit(cur, cand, seed=trial)
+        cv, _ = _crossfit(cur, cand, seed=trial)
         base = np.concatenate([e.cv_lpd for e in cur.values()])
         crossfit.append(np.sum(cv - base))
         helped = [a for a in cur if np.sum(cand[a].cv_lpd - cur[a].cv_lpd) > 0]
@@ -446,7 +461,7 @@ def test_figures_are_figures(diagnoses):
 
 
 def test_jacobian_of_every_model_is_finite(clean_rig_dir):
-    from bayesrob.diagnosis import model_fns
+    from bayesrob.diagnose.refits import model_fns
 
     rig = load_rig(clean_rig_dir)
     data = ArmData.from_rig(rig, "top")

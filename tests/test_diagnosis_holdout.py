@@ -16,7 +16,8 @@ import pytest
 
 import bayesrob  # noqa: F401  (x64)
 from bayesrob import kinematics as kin
-from bayesrob.diagnosis import ArmData, diagnose, evaluate_arm, format_diagnosis
+from bayesrob.diagnose.refits import ArmData, diagnose, evaluate_arm
+from bayesrob.report import format_diagnosis
 from bayesrob.rig import default_rig_dir, load_rig
 
 

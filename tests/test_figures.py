@@ -143,14 +143,14 @@ def test_fig7_has_colour_bars_named_model_and_panels_that_hold_the_density(built
 
 def _fake_comparison():
     """A comparison of two models with fixed pointwise scores: enough to draw the figure."""
-    from bayesrob.comparison import ModelComparison, _elpd_data
+    from bayesrob.comparison import ModelComparison, elpd_data
     from bayesrob.noise_models import discover_models
 
     specs = discover_models(names=["ind", "cond_paper"])
     rng = np.random.default_rng(0)
     held = {"ind": rng.normal(-2.5, 0.5, 48), "cond_paper": rng.normal(-30.0, 20.0, 48)}
     loo = {"ind": rng.normal(-2.6, 0.4, 32), "cond_paper": rng.normal(-150.0, 50.0, 32)}
-    tables = [az.compare({k: _elpd_data(v, 1.0) for k, v in d.items()}, method="stacking")
+    tables = [az.compare({k: elpd_data(v, 1.0) for k, v in d.items()}, method="stacking")
               for d in (held, loo)]
     return ModelComparison(SimpleNamespace(name="rig"), specs,
                            {k: {"top": SimpleNamespace(lpd=v)} for k, v in held.items()},
@@ -239,14 +239,14 @@ def test_the_predict_figure_fits_its_content(config):
         plt.close(fig)
 
 
-def test_the_chain_residual_figure_fits_its_content():
+def test_the_marker_residual_figure_fits_its_content():
     """Justin's figure had its last title cut ('mean 3.21 m'): long model labels, two arms."""
-    from bayesrob.plots.diagnosis import chain_residual_figure
+    from bayesrob.plots.diagnosis import marker_residual_figure
 
     rng = np.random.default_rng(0)
     pts = {a: (rng.normal(0, 300, (40, 3)), rng.normal(0, 3, (40, 3))) for a in ("left", "right")}
     residuals = {"geometric": pts, "+ joint_compliance + lateral_compliance": pts}
-    fig = chain_residual_figure(residuals, "justin")
+    fig = marker_residual_figure(residuals, "justin")
     assert _clipped_texts(fig) == []
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels == ["left", "right"]

@@ -267,8 +267,7 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monk
     defaults, i.e. the fit ``calibrate(rig, groups)`` computes (it is deterministic)."""
     import inspect
 
-    import bayesrob.calibration
-
+    import bayesrob.calibrate.least_squares
     import bayesrob.predict.draws
     from bayesrob.predict.stiffness import STIFFNESS_SOURCES
 
@@ -279,8 +278,8 @@ def test_predict_planar_arms_through_their_fitted_physics(tmp_path, capsys, monk
         return fits[-1][1]
 
     # wherever the prediction calls it from: the module that defines it, or one that imported it
-    for module in (bayesrob.calibration, bayesrob.predict.draws):
-        monkeypatch.setattr(module, "calibrate_chain", kept)
+    for module in (bayesrob.calibrate.least_squares, bayesrob.predict.draws):
+        monkeypatch.setattr(module, "calibrate", kept)
     targets = tmp_path / "t.csv"
     targets.write_text("x,y\n160,240\n200,200\n")
     out, png = tmp_path / "p.json", tmp_path / "p.png"

@@ -14,8 +14,8 @@ import pytest
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms
 from bayesrob.cli import main
 from bayesrob.comparison import (
-    _elpd_data,
     compare_models,
+    elpd_data,
     format_comparison,
     loo_calibrations,
     loo_training_scores,
@@ -33,7 +33,7 @@ def test_az_compare_on_exact_pointwise_values_gives_the_textbook_figures():
     rng = np.random.default_rng(0)
     a = rng.normal(-2.0, 0.5, 40)
     b = a - 0.3 + rng.normal(0, 0.2, 40)
-    df = az.compare({"a": _elpd_data(a, 1.0), "b": _elpd_data(b, 2.0)})
+    df = az.compare({"a": elpd_data(a, 1.0), "b": elpd_data(b, 2.0)})
     assert list(df.index) == ["a", "b"]
     diff = a - b
     assert df.loc["b", "elpd_diff"] == pytest.approx(diff.sum())

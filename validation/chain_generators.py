@@ -1,5 +1,5 @@
 """6-joint 3-D rig generators whose physics deliberately differs from the chain diagnosis's
-candidates (:mod:`bayesrob.chain_diagnosis`), for the proof on hidden effects.
+candidates (:mod:`bayesrob.diagnose.groups`), for the proof on hidden effects.
 
 The candidates are calibration groups of :mod:`bayesrob.kinematics.chain`: ``compliance``
 (each joint gives way by its gravity torque over a *linear* stiffness, the torque from the
@@ -224,12 +224,12 @@ def diagnose_chain_case(case: ChainCase) -> dict:
     what was named and how strong the hidden effects are (the geometric calibration's mean
     validation error over the clean twin's)."""
     from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.rig import load_rig
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        doc = diagnose_chain(load_rig(make_chain_rig(case, Path(tmp) / "rig"))).to_json()
+        doc = diagnose_groups(load_rig(make_chain_rig(case, Path(tmp) / "rig"))).to_json()
         base = doc["baseline_heldout_error_mm"]
         twin = base
         if case.effects:

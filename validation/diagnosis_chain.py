@@ -83,7 +83,7 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
     joint compliance then backlash, and the validation error after each step. ``quick``
     chooses between joint compliance and backlash only (a smoke run of the same check)."""
     from bayesrob import release_compiled_programs
-    from bayesrob.chain_diagnosis import diagnose_chain
+    from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_chain_rig
     from bayesrob.sim.truth import ChainTruth
@@ -94,7 +94,7 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
         with tempfile.TemporaryDirectory(prefix="bayesrob-play-") as tmp:
             rig = simulate_chain_rig(Path(tmp) / "rig", ChainTruth(
                 seed=seed, compliance=True, joint_play_rad=2e-3))
-            doc = diagnose_chain(load_rig(rig), candidates).to_json()
+            doc = diagnose_groups(load_rig(rig), candidates).to_json()
         ladder = [s["heldout_error_mm"] for s in doc["steps"]]
         rows.append({"seed": seed, "candidates": candidates or "all",
                      "effects": doc["effects"], "ladder_mm": ladder,

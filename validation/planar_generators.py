@@ -399,7 +399,7 @@ def report_cases() -> list[Case]:
 
 def base_holdout_error(rig) -> float:
     """Mean error of the base model (no effect) at the rig's holdout rows, arms pooled."""
-    from bayesrob.diagnosis import ArmData, evaluate_arm
+    from bayesrob.diagnose.refits import ArmData, evaluate_arm
 
     errs = [evaluate_arm(ArmData.from_rig(rig, a), (), k_folds=2).hold_errors for a in rig.arms]
     return float(np.mean(np.concatenate(errs)))
@@ -417,7 +417,7 @@ def diagnose_case(case: Case) -> dict:
     import time
     from dataclasses import asdict
 
-    from bayesrob.diagnosis import diagnose
+    from bayesrob.diagnose.refits import diagnose
     from bayesrob.rig import load_rig
 
     t0 = time.perf_counter()

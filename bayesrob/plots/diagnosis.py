@@ -1,6 +1,7 @@
-"""Figures of the model-criticism workflow (:mod:`bayesrob.diagnosis`).
+"""Figures of the model-criticism workflow (:mod:`bayesrob.diagnose`).
 
-Each function takes a :class:`~bayesrob.diagnosis.Diagnosis` and returns a matplotlib
+Each function takes a diagnosis (:class:`~bayesrob.diagnose.refits.Diagnosis`, or a
+:class:`~bayesrob.diagnose.groups.GroupDiagnosis`'s document) and returns a matplotlib
 Figure; saving is the caller's business (:func:`bayesrob.outputs.write_diagnosis_report`).
 """
 
@@ -14,7 +15,7 @@ import numpy as np
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from bayesrob.diagnosis import ArmData, ArmEval, Diagnosis
+    from bayesrob.diagnose.refits import ArmData, ArmEval, Diagnosis
 
 
 def residual_field(data: ArmData, ev: ArmEval) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +127,7 @@ def _noise_floor(diag: Diagnosis) -> float | None:
 PLANES = ((0, 1), (0, 2))  # the x-y and x-z planes of a 3-D rig
 
 
-def chain_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
+def marker_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
                           rig: str) -> Figure:
     """Residual arrows of a chain rig's markers, projected on the x-y and x-z planes: a row
     per model (the geometric calibration, then the final one), a colour per marker arm.
@@ -167,4 +168,29 @@ def chain_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.nd
     axes[0][0].legend(fontsize=8, loc="upper left", title="markers on", title_fontsize=8)
     fig.suptitle(f"{rig}: validation residuals, observed - model (arrows x{mag:.0f})",
                  fontsize=11)
+    return fig
+
+
+def ladder_figure(doc: dict, published: dict[str, float] | None = None):
+    """Mean validation error (bars: sd) after each step; ``published`` (step label -> mean mm)
+    drawn beside it when given."""
+    import matplotlib.pyplot as plt
+
+    rows = [("geometric", doc["baseline"])] + [(f"+{s['effect']}", s) for s in doc["steps"]]
+    fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2.5, 3.6), layout="constrained")
+    xs = np.arange(len(rows))
+    ax.bar(xs, [r["heldout_error_mm"] for _, r in rows],
+           yerr=[r["heldout_error_sd_mm"] for _, r in rows], color="tab:blue", capsize=4,
+           label="ours (validation mean, sd)", width=0.55)
+    for x, (_, r) in zip(xs, rows, strict=True):
+        ax.plot(x, r["heldout_error_max_mm"], "v", color="tab:blue")
+    if published:
+        for x, (label, _) in zip(xs, rows, strict=True):
+            if label in published:
+                ax.plot(x, published[label], "D", color="tab:red", ms=8)
+        ax.plot([], [], "D", color="tab:red", label="published")
+    ax.set_xticks(xs, [label for label, _ in rows])
+    ax.set_ylabel("marker error (mm)")
+    ax.set_title(f"{doc['rig']}: error after each named effect (v: max)", fontsize=10)
+    ax.legend(fontsize=8)
     return fig

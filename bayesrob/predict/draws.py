@@ -154,10 +154,10 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
     too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
     residual scaling for the fit's degrees of freedom having already widened them.
-    ``masses`` ("fitted" or "description"): as :func:`calibrate_chain`'s, for the calibration
+    ``masses`` ("fitted" or "description"): as :func:`calibrate`'s, for the calibration
     made here (a ``calibration`` given carries its own); with the description's masses and a
     compliance group, the arms' stiffnesses come from the fitted compliances instead of the
-    prior. ``sag_steps``: as :func:`calibrate_chain`'s (the joint-error fits and predictions
+    prior. ``sag_steps``: as :func:`calibrate`'s (the joint-error fits and predictions
     use the calibration's robot, so its sag model too). ``targets``: aim ``arms`` at them
     (:func:`aim`, kept in ``commands``) before the joint-error fits, which take most of the
     time, so a target out of reach is refused after the calibration alone.

@@ -10,15 +10,15 @@ import json
 import numpy as np
 import pytest
 
-from bayesrob.chain_diagnosis import (
-    Z_MIN,
-    ChainDiagnosisError,
-    diagnose_chain,
-    format_chain_diagnosis,
+from bayesrob.cli import main
+from bayesrob.diagnose.groups import (
+    DiagnosisError,
+    diagnose_groups,
     parse_published,
     resolve_effects,
 )
-from bayesrob.cli import main
+from bayesrob.diagnose.rule import Z
+from bayesrob.report import format_group_diagnosis
 from bayesrob.rig import load_rig
 from bayesrob.sim.physics import play_offsets
 from bayesrob.sim.rigs import simulate_chain_rig
@@ -43,7 +43,7 @@ def _fits_done() -> dict:
 
 @pytest.fixture
 def shared_fits(_fits_done, monkeypatch):
-    """``chain_diagnosis.calibrate``, each distinct fit computed once per module.
+    """``diagnose.groups.calibrate``, each distinct fit computed once per module.
 
     Three tests diagnose the same compliant rig, through the command and through the library,
     and so ask for the same least-squares fits (the geometric and joint-compliance selection
@@ -54,7 +54,7 @@ def shared_fits(_fits_done, monkeypatch):
     (a wrong ``sag_steps``, another start, another split) is computed afresh, so what each
     test asserts about which fit the diagnosis makes is checked as before. Returns the
     wrapper (call it for a test's own fits)."""
-    import bayesrob.chain_diagnosis as cd
+    import bayesrob.diagnose.groups as cd
 
     real = cd.calibrate
     signature = inspect.signature(real)
@@ -111,12 +111,12 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
     doc = json.loads(out.read_text())
     assert doc["effects"] == named
     # each naming round compares the named effect with every other candidate that passed;
-    # those within Z_MIN standard errors of it are its rivals
+    # those within Z standard errors of it are its rivals
     for r, effect in enumerate(named):
         others = [s for s in doc["rounds"][r] if s["passes"] and s["effect"] != effect]
         assert all("z_vs_named" in s for s in others)
         assert doc["steps"][r]["rivals"] == [s["effect"] for s in others
-                                             if abs(s["z_vs_named"]) <= Z_MIN]
+                                             if abs(s["z_vs_named"]) <= Z]
     assert (tmp_path / "rep" / "ladder.png").stat().st_size > 5_000
     assert (tmp_path / "rep" / "residuals.png").stat().st_size > 20_000
     for key in ("steps", "baseline_heldout_error_mm", "final_heldout_error_mm"):
@@ -133,7 +133,7 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
 def test_planar_only_effects_are_refused_for_chains_in_one_line():
     assert resolve_effects(["gravity_sag"]) == ["joint_compliance"]  # the planar alias
     assert resolve_effects(["backlash"]) == ["backlash"]
-    with pytest.raises(ChainDiagnosisError, match="'servo_nonlinearity' is not modelled"):
+    with pytest.raises(DiagnosisError, match="'servo_nonlinearity' is not modelled"):
         resolve_effects(["servo_nonlinearity"])
 
 
@@ -151,7 +151,7 @@ def test_published_ladder_is_parsed_or_refused_in_one_line():
         "geometric": 10.5, "+joint_compliance": 5.0}
     for bad, message in (("geometric", "expected STEP=MM"), ("wobble=1", "expected STEP=MM"),
                          ("geometric=ten", "expected a number"), ("geometric=-1", ">= 0")):
-        with pytest.raises(ChainDiagnosisError, match=message):
+        with pytest.raises(DiagnosisError, match=message):
             parse_published(bad)
 
 
@@ -160,10 +160,10 @@ def test_residual_figure_draws_every_validation_marker_on_two_planes(compliant_r
     """The report's residual arrows: one arrow per validation row, in the x-y and x-z
     planes, for the geometric and the final model, all on one magnification. On the
     module's compliant arm (seed 11), its fits shared (``shared_fits``)."""
-    from bayesrob.plots.diagnosis import chain_residual_figure
+    from bayesrob.plots.diagnosis import marker_residual_figure
 
     rig = load_rig(compliant_rig)
-    diag = diagnose_chain(rig)
+    diag = diagnose_groups(rig)
     assert list(diag.residuals) == ["geometric", "+ joint_compliance"]
     n = len(rig.rows(rig.robot.measured_arms()[0], "validation")[0])
     res = [r for by_arm in diag.residuals.values() for _, r in by_arm.values()]
@@ -171,7 +171,7 @@ def test_residual_figure_draws_every_validation_marker_on_two_planes(compliant_r
     # the final model's residuals are the ones its ladder step reports
     assert np.linalg.norm(res[1], axis=1).mean() == pytest.approx(
         diag.steps[-1]["heldout_error_mm"], rel=1e-9)
-    fig = chain_residual_figure(diag.residuals, rig.name)
+    fig = marker_residual_figure(diag.residuals, rig.name)
     quivers = [c for ax in fig.axes for c in ax.collections if hasattr(c, "U")]
     assert len(quivers) == 4 and all(len(q.U) == n for q in quivers)
     # panels in reading order: (geometric x-y, x-z), (final x-y, x-z)
@@ -217,7 +217,7 @@ def test_ladder_with_torque_steps_is_at_equilibrium_or_says_why_not(tmp_path, ca
     the same geometric, one-step and six-step fits again; a fallback that asked for another
     fit than the one-step ladder's would be computed afresh and fail the 1e-9 comparison."""
     rig = compliant_rig
-    one = diagnose_chain(load_rig(rig), ["joint_compliance"]).to_json()
+    one = diagnose_groups(load_rig(rig), ["joint_compliance"]).to_json()
     out = tmp_path / "d.json"
     assert main(["diagnose", str(rig), "--effects", "joint_compliance", "--sag-steps", "6",
                  "--json", str(out), "--no-progress"]) == 0
@@ -229,7 +229,7 @@ def test_ladder_with_torque_steps_is_at_equilibrium_or_says_why_not(tmp_path, ca
     assert one["steps"][0]["sag_steps"] == 1
     assert step["heldout_error_mm"] == pytest.approx(one["steps"][0]["heldout_error_mm"],
                                                      rel=0.1)
-    import bayesrob.chain_diagnosis as cd
+    import bayesrob.diagnose.groups as cd
 
     groups = ("frames", "geometric", "compliance")
     first = shared_fits(load_rig(rig), groups)
@@ -254,11 +254,12 @@ def test_torque_steps_are_refused_for_planar_rigs_in_one_line(capsys):
 
 
 def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart():
-    """A candidate that passed beside the named one, with errors within Z_MIN standard errors
+    """A candidate that passed beside the named one, with errors within Z standard errors
     of its, gets a line of its own, as does one clearly better with more parameters; one the
     named effect clearly beats does not."""
-    row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True}
-    doc = {"rig": "r", "rule": "rule", "effects": ["joint_compliance"],
+    row = {"parameters": 13, "selection_error_before_mm": 0.4, "passes": True,
+           "elpd_diff": 40.0, "elpd_diff_se": 8.0, "guard_nats": 13.0, "guard_passes": True}
+    doc = {"rig": "r", "rule": "rule", "rule_z": Z, "effects": ["joint_compliance"],
            "rounds": [[{**row, "effect": "joint_compliance", "selection_error_after_mm": 0.20,
                         "z": 5.0},
                        {**row, "effect": "lateral_compliance", "selection_error_after_mm": 0.19,
@@ -272,7 +273,7 @@ def test_the_report_says_which_candidates_the_selection_poses_cannot_tell_apart(
            "steps": [{"effect": "joint_compliance", "rivals": ["lateral_compliance"],
                       "n_free": 89, "heldout_error_mm": 0.2, "heldout_error_sd_mm": 0.1,
                       "heldout_error_max_mm": 0.5}], "seconds": 1.0, "notes": []}
-    text = format_chain_diagnosis(doc)
+    text = format_group_diagnosis(doc)
     assert ("lateral_compliance fits the selection poses as well as joint_compliance (paired "
             "z -1.5") in text
     notes = [ln.strip() for ln in text.splitlines() if ln.startswith("  ")]
@@ -288,7 +289,7 @@ def test_a_candidate_with_nothing_identifiable_to_fit_never_passes():
     effect that changed nothing)."""
     from bayesrob.rig import default_rig_dir
 
-    doc = diagnose_chain(load_rig(default_rig_dir()), ["lateral_compliance"]).to_json()
+    doc = diagnose_groups(load_rig(default_rig_dir()), ["lateral_compliance"]).to_json()
     (cand,) = doc["rounds"][0]
     assert cand["parameters"] == 0
     assert abs(cand["selection_error_after_mm"] - cand["selection_error_before_mm"]) < 1e-6

@@ -18,15 +18,11 @@ says which effect is missing, how big it is and how much the model gains from it
    elpd difference and its standard error. Where the rig has ``holdout`` rows (new poses,
    not the repeated training commands ``validation`` holds), the models are scored on them
    too, and reported beside validation; they decide nothing.
-4. Name the best candidate that passes :class:`DecisionRule`, add it, repeat until none
-   passes (see the rule for pairs of effects that only pay together). The arms an effect is
-   added to are chosen on one half of the train rows and scored on the other (cross-fitting),
-   so the choice does not flatter the score.
-
-Why refits and not PSIS-LOO from one fit: with 16 points and 8-14 parameters, leaving a
-point out moves the posterior too far for importance sampling (Pareto k > 1 on most points
-when tried with a linearised posterior); the refits are cheap, so the exact values are used
-and handed to arviz as ``ELPDData``.
+4. Name the best candidate that passes :class:`bayesrob.diagnose.rule.DecisionRule`, add
+   it, repeat until none passes; if none passes in the first round, pairs are tried (named
+   when they pass against the base model and each member alone). The arms an effect is added
+   to are chosen on one half of the train rows and scored on the other (cross-fitting), so
+   the choice does not flatter the score. Refits, not PSIS-LOO: :func:`rule.elpd_diff`.
 
 Everything works on the rig files alone; nothing here knows how the data were made.
 """
@@ -35,7 +31,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
@@ -49,57 +44,10 @@ import scipy.stats
 
 from bayesrob import effects as fx
 from bayesrob import kinematics as kin
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff
 from bayesrob.rig import ArmSpec, Rig
 
 N_BASE = len(kin.PARAM_NAMES)
-
-
-# ------------------------------------------------------------------------------ decision
-
-
-@dataclass(frozen=True)
-class DecisionRule:
-    """When a candidate effect counts as missing from the model.
-
-    A candidate is named when, pooled over the arms it is added to,
-    - its cross-validated elpd gain exceeds ``z`` standard errors of the difference
-      (``elpd_diff > z * elpd_diff_se``) and ``min_elpd_diff`` nats, and
-    - the mean error on the ``validation`` rows shrinks (they repeat the training commands
-      with fresh noise: an effect that only fits the train rows' noise fails here), and
-    - the K-fold cross-validated mean error over ``train`` shrinks.
-    An arm gets the effect when it raises that arm's cross-validated elpd, or when the arm's
-    cross-validated error falls by 10% or more; an arm that does not get it may get it in a
-    later round. The arms are chosen on one half of the train rows and the gain is scored on
-    the other half (and the halves swapped), so that picking the arms an effect helps cannot
-    make the pooled score look better than it is. Among the candidates that pass, the one
-    with the largest elpd gain is named first. When no single candidate passes in the first
-    round, pairs are tried: a pair is named (as two steps) when it passes against the base
-    model and against each member alone. The ``holdout`` rows (new poses) decide nothing:
-    they report the gap.
-    """
-
-    z: float = 2.0
-    min_elpd_diff: float = 4.0
-    require_heldout: bool = True
-    require_cv: bool = True
-
-    def passes(self, s: dict) -> bool:
-        if not s["arms"]:
-            return False
-        ok = s["elpd_diff"] > self.z * s["elpd_diff_se"] and s["elpd_diff"] > self.min_elpd_diff
-        if self.require_heldout and s["heldout_error_before_mm"] is not None:
-            ok &= s["heldout_error_after_mm"] < s["heldout_error_before_mm"]
-        if self.require_cv:
-            ok &= s["cv_error_after_mm"] < s["cv_error_before_mm"]
-        return bool(ok)
-
-    def text(self) -> str:
-        parts = [f"cross-fitted elpd_diff > {self.z:g} * se and > {self.min_elpd_diff:g}"]
-        if self.require_heldout:
-            parts.append("validation error shrinks")
-        if self.require_cv:
-            parts.append("cross-validated error shrinks")
-        return " AND ".join(parts) + " (holdout rows only report)"
 
 
 # ------------------------------------------------------------------------------ data
@@ -319,29 +267,6 @@ class ArmEval:
     @property
     def params(self) -> kin.ArmParams:
         return kin.ArmParams.from_vector(jnp.asarray(self.v[:N_BASE]))
-
-
-def elpd_data(cv_lpd: np.ndarray, train_lpd: np.ndarray):
-    """Cross-validated pointwise log predictive densities as arviz ``ELPDData`` ("loo").
-
-    The values are exact (refitted) leave-one-out or K-fold predictive densities, not PSIS
-    estimates: with 16 points and 8-14 parameters the posterior moves too much when a point
-    is left out for importance sampling from the full posterior (Pareto k > 1 on most points
-    when tried), so the refits are done instead. Wrapped this way, ``az.compare`` computes
-    the difference and its standard error from the pointwise values as usual.
-    """
-    import arviz as az
-    import xarray as xr
-
-    n = len(cv_lpd)
-    obs = {"obs": np.arange(n)}
-    return az.ELPDData(
-        data=[float(np.sum(cv_lpd)), float(np.sqrt(n * np.var(cv_lpd))),
-              float(np.sum(train_lpd) - np.sum(cv_lpd)), 1, n, False,
-              xr.DataArray(cv_lpd, dims=["obs"], coords=obs, name="loo_i"),
-              xr.DataArray(np.zeros(n), dims=["obs"], coords=obs), "log", 0.7],
-        index=["elpd_loo", "se", "p_loo", "n_samples", "n_data_points", "warning", "loo_i",
-               "pareto_k", "scale", "good_k"])
 
 
 def _folds(n: int, k: int | None, seed: int) -> list[np.ndarray]:
@@ -714,29 +639,8 @@ def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
                                                     after.v, strict=True)}}
 
 
-def _pooled_lpd(model: dict[str, ArmEval]) -> tuple[np.ndarray, np.ndarray]:
-    return (np.concatenate([model[a].cv_lpd for a in model]),
-            np.concatenate([model[a].train_lpd for a in model]))
-
-
-def _elpd_diff(current: tuple[np.ndarray, np.ndarray], candidate: tuple[np.ndarray, np.ndarray]
-               ) -> tuple[float, float]:
-    """elpd difference (candidate - current) and its standard error, via ``az.compare``, of
-    pooled pointwise (cross-validated, in-sample) log densities."""
-    import arviz as az
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # stacking weights of two models: nothing to warn
-        cmp = az.compare({"current": elpd_data(*current), "candidate": elpd_data(*candidate)},
-                         ic="loo")
-    diff = float(cmp.loc["candidate", "elpd_loo"] - cmp.loc["current", "elpd_loo"])
-    return diff, float(cmp["dse"].max())
-
-
-def compare_models(current: dict[str, ArmEval], candidate: dict[str, ArmEval]
-                   ) -> tuple[float, float]:
-    """elpd difference (candidate - current) and its standard error, via ``az.compare``."""
-    return _elpd_diff(_pooled_lpd(current), _pooled_lpd(candidate))
+def _pooled_lpd(model: dict[str, ArmEval]) -> np.ndarray:
+    return np.concatenate([model[a].cv_lpd for a in model])
 
 
 def halves(n: int, seed: int) -> np.ndarray:
@@ -764,11 +668,11 @@ def _takes(before: ArmEval, after: ArmEval, rows: np.ndarray) -> bool:
 
 
 def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled cross-validated lpd, in-sample lpd and cross-validated errors of the model in
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled cross-validated lpd and cross-validated errors of the model in
     which each half of an arm's train rows is predicted by the model chosen on the other
     half (the candidate where the other half says the arm takes it, else the current one)."""
-    cv, tr, err = [], [], []
+    cv, err = [], []
     for a, cur in current.items():
         n = len(cur.cv_lpd)
         half = halves(n, seed)
@@ -778,9 +682,8 @@ def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
                 pick[half == h] = _takes(cur, cand[a], half != h)
         new = cand.get(a, cur)
         cv.append(np.where(pick, new.cv_lpd, cur.cv_lpd))
-        tr.append(np.where(pick, new.train_lpd, cur.train_lpd))
         err.append(np.where(pick, new.cv_errors, cur.cv_errors))
-    return np.concatenate(cv), np.concatenate(tr), np.concatenate(err)
+    return np.concatenate(cv), np.concatenate(err)
 
 
 def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, ArmEval],
@@ -792,30 +695,28 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
     """
     arms = [a for a in cand
             if _takes(current[a], cand[a], np.ones(len(current[a].cv_lpd), bool))]
-    after = {a: (cand[a] if a in arms else current[a]) for a in current}
-    cv, tr, cv_err = _crossfit(current, cand, seed)
-    diff, dse = _elpd_diff(_pooled_lpd(current), (cv, tr))
-    b, a = _pooled_errors(current), _pooled_errors(after)
-    s = {"effect": name, "arms": arms, "heldout_error_before_mm": b["heldout"],
-         "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
-         "cv_error_before_mm": b["cv"], "cv_error_after_mm": float(np.mean(cv_err)),
-         "elpd_gain_per_arm": {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
-                               for x in cand},
-         "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - current[x].val_lpd)
-                                        for x in current)),
-         "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
+    cv, cv_err = _crossfit(current, cand, seed)
+    s = _step_record(name, arms, current, {a: (cand[a] if a in arms else current[a])
+                                           for a in current}, cv, float(np.mean(cv_err)))
+    # the parameters the candidate adds to the arms that take it
+    s["parameters"] = int(sum(cand[x].v.size - current[x].v.size for x in arms))
+    s["elpd_gain_per_arm"] = {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
+                              for x in cand}
     s["passes"] = rule.passes(s)
     return s
 
 
 def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
-                 after: dict[str, ArmEval]) -> dict:
-    """One named step: the effect, its arms and the gap before and after."""
-    diff, dse = compare_models(before, after)
+                 after: dict[str, ArmEval], cv: np.ndarray | None = None,
+                 cv_error: float | None = None) -> dict:
+    """One named step (or a candidate's score): the effect, its arms and the gap before and
+    after; ``cv``, ``cv_error``: the cross-fitted lpd and error in place of ``after``'s."""
+    diff, dse = elpd_diff(_pooled_lpd(before), _pooled_lpd(after) if cv is None else cv)
     b, a = _pooled_errors(before), _pooled_errors(after)
     return {"effect": name, "arms": list(arms), "heldout_error_before_mm": b["heldout"],
             "heldout_error_after_mm": a["heldout"], "elpd_diff": diff, "elpd_diff_se": dse,
-            "cv_error_before_mm": b["cv"], "cv_error_after_mm": a["cv"],
+            "cv_error_before_mm": b["cv"],
+            "cv_error_after_mm": a["cv"] if cv_error is None else cv_error,
             "heldout_elpd_diff": float(sum(np.sum(after[x].val_lpd - before[x].val_lpd)
                                            for x in before)),
             "holdout_error_before_mm": b["holdout"], "holdout_error_after_mm": a["holdout"]}
@@ -841,12 +742,13 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
             s = _score_candidate(f"{first}+{second}", current, full, rule, seed)
             s["pair"] = [first, second]
             if s["passes"]:
-                cv, tr, _ = _crossfit(current, full, seed)
+                cv, _ = _crossfit(current, full, seed)
                 for member in (first, second):
                     alone = {**current, **fitted[member]}
-                    diff, dse = _elpd_diff(_pooled_lpd(alone), (cv, tr))
+                    diff, dse = elpd_diff(_pooled_lpd(alone), cv)
                     s[f"elpd_diff_over_{member}"] = [diff, dse]
-                    s["passes"] &= bool(diff > rule.z * dse and diff > rule.min_elpd_diff)
+                    s["passes"] &= bool(diff > rule.z * dse
+                                        and diff > rule.threshold(s["parameters"]))
             out.append(s)
     return out
 
@@ -860,12 +762,15 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     effect's name asks for its planar instance (``joint_compliance``: ``gravity_sag``), and
     one with none is a one-line ``ValueError`` (:func:`bayesrob.effects.resolve_effects`).
     """
+    from bayesrob.progress import progress as make_progress
+
     rule = rule or DecisionRule()
     candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
     # Rounds are not known in advance; the total is the usual case (one step per effect).
-    bar = _bar(progress, len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2))
+    bar = make_progress(len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2),
+                        "diagnose", "fits", enabled=progress)
 
     cache: dict[tuple[str, tuple[str, ...]], ArmEval] = {}
 
@@ -923,7 +828,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             joint = [s for s in pairs if s["passes"]]
             if not joint:
                 break
-            best = max(joint, key=lambda s: s["elpd_diff"])
+            best = rule.best(joint)
             first, second = best["pair"]
             mid = fitted[first]
             take(first, [a for a in best["arms"] if a in mid], mid, joint_with=second,
@@ -935,7 +840,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
         rounds.append(scores)
         if not passing:
             break
-        best = max(passing, key=lambda s: s["elpd_diff"])
+        best = rule.best(passing)
         take(best["effect"], best["arms"], fitted[best["effect"]])
     if bar.total and bar.n < bar.total:
         # the plan counted a step for every candidate; the search stops at the first round in
@@ -949,79 +854,6 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
                      rounds, tests_before, tests_after, data)
 
 
-def _bar(enabled: bool, total: int):
-    from bayesrob.progress import progress
-
-    return progress(total, "diagnose", "fits", enabled=enabled)
-
-
-# ------------------------------------------------------------------------------ output
-
-
-def format_diagnosis(doc: dict) -> str:
-    """The terminal report: residual structure, each round's candidates, the named effects."""
-    from bayesrob.report import format_table
-
-    def f(x: float | None, nd: int = 2) -> str:
-        return "-" if x is None else f"{x:.{nd}f}"
-
-    out = [f"diagnosis of rig {doc['rig']!r}", f"decision rule: {doc['rule']}", "",
-           "residual structure of the base model (p values: small means not noise)"]
-    rows = []
-    for a, t in doc["residual_tests"]["before"].items():
-        lof = t.get("lack_of_fit", {})
-        jump = t.get("largest_jump", {})
-        w = t["worst_region"]
-        rows.append([a, f(lof.get("p_value"), 3), f(t["morans_i"]["p_value"], 3),
-                     f"{f(jump.get('mm'))} ({f(jump.get('p_value'), 3)})",
-                     f"{w['region']} {f(w['mean_mm'])} vs {f(w['elsewhere_mm'])}",
-                     " ".join(f"{k}:{f(v['p_value'], 3)}" for k, v in t["score_tests"].items())])
-    out.append(format_table(["arm", "lack of fit", "Moran I", "max jump mm (p)",
-                             "worst region (mm)", "signature p"], rows))
-    for t in doc["residual_tests"]["before"].values():
-        w, jump = t["worst_region"], t.get("largest_jump")
-        line = (f"  {t['arm']} arm: largest residuals {w['region']} ({w['mean_mm']:.2f} mm "
-                f"against {w['elsewhere_mm']:.2f} mm elsewhere)")
-        if jump:
-            line += f"; largest jump between neighbours {jump['mm']:.2f} mm, {jump['where']}"
-        out.append(line)
-    for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: each candidate added to the model named so far"]
-        rows = [[s["effect"], ",".join(s["arms"]) or "-",
-                 f"{f(s['heldout_error_before_mm'])} -> {f(s['heldout_error_after_mm'])}",
-                 f"{f(s['cv_error_before_mm'])} -> {f(s['cv_error_after_mm'])}",
-                 f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
-                 "yes" if s["passes"] else "no"] for s in scores]
-        out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
-                                 "elpd diff", "passes"], rows))
-    out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
-    gap = [f"base {f(doc['baseline_heldout_error_mm'])} mm"]
-    gap += [f"+{s['effect']} ({','.join(s['arms'])}) {f(s['heldout_error_after_mm'])} mm"
-            for s in doc["steps"]]
-    out.append("held-out error per step: " + " -> ".join(gap))
-    if doc.get("baseline_holdout_error_mm") is not None:
-        hold = [f"base {f(doc['baseline_holdout_error_mm'])} mm"]
-        hold += [f"+{s['effect']} {f(s.get('holdout_error_after_mm'))} mm" for s in doc["steps"]]
-        out.append("  (held-out above: validation rows, which repeat the training commands; "
-                   "at new poses, the holdout rows: " + " -> ".join(hold) + ")")
-    if doc["steps"]:
-        # From the final model, where every named effect is fitted jointly (a step's own
-        # record keeps the values at the time it was named).
-        out.append("fitted magnitudes (final model):")
-        for name in doc["effects"]:
-            for a, arm in doc["arms"].items():
-                if name in arm["magnitudes"]:
-                    out.append(f"  {name} in {a}: {arm['magnitudes'][name]['text']}")
-    after = doc["residual_tests"]["after"]
-    lof = ", ".join(f"{a} {t['lack_of_fit']['p_value']:.3g}" for a, t in after.items()
-                    if "lack_of_fit" in t)
-    moran = ", ".join(f"{a} {t['morans_i']['p_value']:.3g}" for a, t in after.items())
-    out.append(f"final residuals: lack-of-fit p ({lof or '-'}); Moran's I p ({moran})")
-    if not doc["steps"]:
-        out.append("no candidate effect improves the held-out fit: none is named")
-    return "\n".join(out)
-
-
 def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
                  progress: bool = False, **kwargs) -> Diagnosis:
     """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
@@ -1030,5 +862,5 @@ def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
     return diagnose(load_rig(path), candidates, progress=progress, **kwargs)
 
 
-__all__ = ["ArmData", "ArmEval", "DecisionRule", "Diagnosis", "diagnose", "diagnose_rig",
-           "evaluate_arm", "format_diagnosis", "residual_tests"]
+__all__ = ["ArmData", "ArmEval", "Diagnosis", "diagnose", "diagnose_rig",
+           "evaluate_arm", "residual_tests"]

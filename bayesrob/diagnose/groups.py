@@ -12,16 +12,18 @@ which side a joint rests on). Effects are named
 greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
 it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
 same side). A candidate passes when its paired per-row error drop on the selection poses is
-more than ``Z_MIN`` standard errors; of those that pass, the one whose mean selection error
-drops the most per parameter it adds is named. An effect can mimic part of another (an
-encoder's sinusoid in a shoulder's angle takes up part of its gravity sag, with fewer
-parameters): the one that explains more per parameter goes first, and the mimic then no
-longer passes on top of it. A candidate that passed beside the named one with selection errors
-within ``Z_MIN`` standard errors of its is reported as its *rival*: these poses cannot tell the
-two apart, and the name is the rule's choice between them. A candidate whose own group the
-rank analysis leaves no parameter never passes. The ``validation`` rows are never
-looked at while deciding: the ladder (mean / sd / max error after each named effect, refitted
-on every train row) is reported on them.
+more than ``rule.Z`` standard errors; of those that pass, the one whose mean selection error
+drops the most per parameter it adds is named. An encoder's sinusoid in a shoulder's angle
+takes up part of its gravity sag with fewer parameters: compliance explains more per
+parameter, goes first, and the mimic then no longer passes on top of it. Beside the decision
+each candidate and named step reports its selection rows' log density gain and whether it
+clears the parameter guard of :mod:`bayesrob.diagnose.rule` (not deciding here). A
+candidate that passed beside the named one with selection errors within ``rule.Z`` standard
+errors of its is reported as its *rival*: these poses cannot tell the two apart, and the name
+is the rule's choice between them. A candidate whose own group the rank analysis leaves no
+parameter never passes. The ``validation`` rows are never looked at while deciding: the ladder
+(mean / sd / max error after each named effect, refitted on every train row) is reported on
+them.
 """
 
 from __future__ import annotations
@@ -30,15 +32,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.stats
 
 from bayesrob.calibrate.least_squares import (
     SAG_CONVERGED_MM,
     Calibration,
     calibrate,
-    marker_distances,
     marker_residuals,
     sag_convergence,
 )
+from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
 from bayesrob.effects import ALIASES as PLANAR_ALIASES
 from bayesrob.kinematics import SAG_GROUPS
 from bayesrob.rig import Rig
@@ -63,22 +66,21 @@ WARM_NFEV = 40
 ALIASES = {planar: chain for chain, planar in PLANAR_ALIASES.items()}
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
-# A paired z on the selection rows: the drop must be twice its standard error. Not tuned on
-# any rig: the usual two-sided 5% level, so that noise alone rarely names an effect.
-Z_MIN = 2.0
 # Least-squares evaluations per stage of a selection fit (compared, not reported): on Justin
 # its fits with joint compliance used 320 evaluations; stopped at 140 per stage, every
 # selection error came out as before to 0.01 mm (drops between candidates: 0.1-5 mm), in
 # half the time.
 SELECTION_NFEV = 140
+# the parameter guard, reported beside each candidate and step (not deciding: rule.py)
+GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
 
 
-class ChainDiagnosisError(ValueError):
-    """A chain rig cannot be diagnosed as asked; the message is one line."""
+class DiagnosisError(ValueError):
+    """A rig cannot be diagnosed as asked; the message is one line."""
 
 
 @dataclass
-class ChainDiagnosis:
+class GroupDiagnosis:
     rig: str
     effects: list[str]
     rounds: list[list[dict]]
@@ -101,8 +103,9 @@ class ChainDiagnosis:
         last = self.steps[-1] if self.steps else self.baseline
         return {
             "rig": self.rig, "robot": "chain", "effects": self.effects,
+            "rule_z": Z,
             "rule": (f"of the candidates whose paired error drop on the selection poses "
-                     f"({self.selection_rows} train rows held back) exceeds {Z_MIN:g} "
+                     f"({self.selection_rows} train rows held back) exceeds {Z:g} "
                      "standard errors, name the one with the largest drop per added "
                      "parameter (backlash is tried once joint_compliance is named; a "
                      "candidate left no identifiable parameter never passes); validation "
@@ -123,7 +126,7 @@ def resolve_effects(names: Sequence[str] | None) -> list[str]:
     for n in names:
         n = ALIASES.get(n, n)
         if n not in CHAIN_EFFECTS:
-            raise ChainDiagnosisError(
+            raise DiagnosisError(
                 f"effect {n!r} is not modelled for URDF/DH chains (choose from "
                 f"{', '.join([*CHAIN_EFFECTS, *ALIASES])})")
         if n not in out:
@@ -152,9 +155,16 @@ def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
     return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 else 0.0
 
 
-def _row_errors(rig: Rig, cal: Calibration, set: str) -> np.ndarray:
-    dist = marker_distances(rig, cal.robot, cal.x, set)
-    return np.concatenate([dist[a] for a in sorted(dist)]) if dist else np.zeros(0)
+def _selection_rows(rig: Rig, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """Per selection row: the marker error (mm) and its log predictive density, Gaussian in
+    each axis with the variance the fit leaves on its train rows (degrees of freedom counted)."""
+    train = marker_residuals(rig, cal.robot, cal.x, "train")
+    r = np.concatenate([train[a][1] for a in sorted(train)])
+    var = float(np.sum(r * r)) / max(r.size - int(cal.ident.free.sum()), 1)
+    sel = marker_residuals(rig, cal.robot, cal.x, "selection")
+    r = np.concatenate([sel[a][1] for a in sorted(sel)])
+    return (np.linalg.norm(r, axis=1),
+            scipy.stats.norm.logpdf(r, scale=np.sqrt(var)).sum(axis=1))
 
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str],
@@ -187,9 +197,9 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
     return calibrate(rig, groups)
 
 
-def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
-                   progress: bool = False, sag_steps: int = 1) -> ChainDiagnosis:
-    """Name the effects the geometric calibration of a chain rig misses (module docstring).
+def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
+                    progress: bool = False, sag_steps: int = 1) -> GroupDiagnosis:
+    """Name the effects the geometric calibration of a rig misses (module docstring).
 
     ``sag_steps``: the ladder's fits with joints giving way take the gravity torques that many
     times, each at the pose the last sagged into (:func:`_ladder_fit`); the selection of the
@@ -200,22 +210,23 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
 
     t0 = time.perf_counter()
     if sag_steps < 1:
-        raise ChainDiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
+        raise DiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     candidates = resolve_effects(effects)
     if not len(rig.rows(rig.robot.measured_arms()[0], "validation")[0]):
-        raise ChainDiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
+        raise DiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
                                   "ladder on")
     split = _split(rig, seed)
     n_sel = int((split.measurements.set == "selection").sum())
     groups = BASE_GROUPS
     named: list[str] = []
     rivals: list[list[str]] = []  # per named effect
+    guarded: list[bool] = []  # per named effect: its step clears the parameter guard
     rounds: list[list[dict]] = []
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         cal = calibrate(split, groups, polish=False, max_nfev=SELECTION_NFEV)
-        before, n_before = _row_errors(split, cal, "selection"), int(cal.ident.free.sum())
+        before, n_before = _selection_rows(split, cal), int(cal.ident.free.sum())
         # each named effect's selection fit: the last one is the named model's, which the
         # WARM_STARTED candidates start from; each is its ladder step's equilibrium check
         selected: dict[str, np.ndarray] = {}
@@ -229,23 +240,30 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                                       **({"max_nfev": WARM_NFEV, "start": selected[named[-1]]}
                                          if eff in WARM_STARTED and named
                                          else {"max_nfev": SELECTION_NFEV}))
-                after = _row_errors(split, cal, "selection")
+                after = _selection_rows(split, cal)
                 bar.update(1)
-                z = _paired_z(before, after)
                 added = int(cal.ident.free.sum()) - n_before
                 # its own group, not the net count: freeing the links' masses may change
                 # that count by itself
                 own = bool(cal.ident.free[cal.robot.layout.group_mask(
                     (CHAIN_EFFECTS[eff],))].any())
+                gain, gain_se = elpd_diff(before[1], after[1])
+                err0, err1 = float(before[0].mean()), float(after[0].mean())
+                z = _paired_z(before[0], after[0])
                 scores.append({"effect": eff, "parameters": added,
-                               "selection_error_before_mm": float(before.mean()),
-                               "selection_error_after_mm": float(after.mean()), "z": z,
-                               "drop_per_parameter_mm": float(before.mean() - after.mean())
-                               / max(added, 1),
+                               "selection_error_before_mm": err0,
+                               "selection_error_after_mm": err1, "z": z,
+                               "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
+                               # the selection rows' log density gain and the parameter
+                               # guard's verdict on it: reported, not deciding
+                               # (docs/diagnose.md, "The parameter guard")
+                               "elpd_diff": gain, "elpd_diff_se": gain_se,
+                               "guard_nats": GUARD.threshold(added),
+                               "guard_passes": bool(gain > GUARD.threshold(added)),
                                # a candidate the rank analysis leaves nothing to fit
                                # (lateral bending under gravity in a planar arm's plane)
                                # moves the errors by rounding alone: its z is noise
-                               "passes": bool(own and z > Z_MIN),
+                               "passes": bool(own and z > Z),
                                "_after": after, "_x": cal.x})
             passing = [s for s in scores if s["passes"]]
             best = None
@@ -256,7 +274,7 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
                 for s in passing:
                     if s is not best:
                         # positive where the named effect leaves the smaller errors
-                        s["z_vs_named"] = _paired_z(s["_after"], best["_after"])
+                        s["z_vs_named"] = _paired_z(s["_after"][0], best["_after"][0])
             rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
                            for s in scores])
             if best is None:
@@ -264,7 +282,8 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             # a passing candidate the selection poses cannot tell from the named one: the
             # name is the rule's choice between fits the data hold equally good
             rivals.append([s["effect"] for s in passing
-                           if abs(s.get("z_vs_named", np.inf)) <= Z_MIN])
+                           if abs(s.get("z_vs_named", np.inf)) <= Z])
+            guarded.append(best["guard_passes"])
             named.append(best["effect"])
             selected[best["effect"]] = best["_x"]
             groups = (*groups, CHAIN_EFFECTS[best["effect"]])
@@ -304,13 +323,14 @@ def diagnose_chain(rig: Rig, effects: Sequence[str] | None = None, *, seed: int 
             if k == 0:
                 baseline = row
             else:
-                steps.append({"effect": named[k - 1], "rivals": rivals[k - 1], **row})
+                steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
+                              "guard_passes": guarded[k - 1], **row})
     notes = ["not modelled for chains, so not tried: servo_nonlinearity (a chain's "
              "encoder_error takes its place)"]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
-    return ChainDiagnosis(rig.name, named, rounds, steps, baseline,
+    return GroupDiagnosis(rig.name, named, rounds, steps, baseline,
                           time.perf_counter() - t0, n_sel, notes, sag_steps, residuals)
 
 
@@ -323,81 +343,15 @@ def parse_published(text: str) -> dict[str, float]:
         label = label.strip().lstrip("+").strip()
         label = ALIASES.get(label, label)
         if not sep or label not in ("geometric", *CHAIN_EFFECTS):
-            raise ChainDiagnosisError(
+            raise DiagnosisError(
                 f"--published: expected STEP=MM with STEP one of geometric, "
                 f"{', '.join(CHAIN_EFFECTS)}; got {item!r}")
         try:
             mm = float(value)
         except ValueError:
-            raise ChainDiagnosisError(f"--published: {label}: expected a number of mm, got "
+            raise DiagnosisError(f"--published: {label}: expected a number of mm, got "
                                       f"{value.strip()!r}") from None
         if not mm >= 0:
-            raise ChainDiagnosisError(f"--published: {label}: a mean error is >= 0, got {mm}")
+            raise DiagnosisError(f"--published: {label}: a mean error is >= 0, got {mm}")
         out["geometric" if label == "geometric" else f"+{label}"] = mm
     return out
-
-
-def format_chain_diagnosis(doc: dict) -> str:
-    """The terminal report: each round's candidates, then the ladder on the validation rows."""
-    from bayesrob.report import format_table
-
-    out = [f"diagnosis of rig {doc['rig']!r} (chains)", f"decision rule: {doc['rule']}"]
-    for r, scores in enumerate(doc["rounds"], start=1):
-        out += ["", f"round {r}: each candidate added to the model named so far"]
-        out.append(format_table(
-            ["candidate", "added parameters", "selection mm", "z", "passes"],
-            [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
-              f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
-              "yes" if s["passes"] else "no"] for s in scores]))
-        if r > len(doc["steps"]):
-            continue  # nothing named in this round: no comparison with a named effect
-        chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
-        for s in (s for s in scores if "z_vs_named" in s):
-            if s["effect"] in rivals:
-                out.append(f"  {s['effect']} fits the selection poses as well as {chosen} "
-                           f"(paired z {s['z_vs_named']:+.1f} of the two fits' errors): these "
-                           "poses do not tell them apart")
-            elif s["z_vs_named"] < -Z_MIN:
-                out.append(f"  {s['effect']} leaves smaller errors than {chosen} (paired z "
-                           f"{s['z_vs_named']:+.1f}) with {s['parameters']} parameters "
-                           "against its fewer: named later if it still passes on top of it")
-    rows = [["geometric calibration", str(doc["baseline"]["n_free"]),
-             *_ladder_cells(doc["baseline"])]]
-    rows += [[f"+ {s['effect']}" + (f" (torques at equilibrium, {s['sag_steps']} steps)"
-                                     if s.get("sag_steps", 1) > 1 else ""),
-              str(s["n_free"]), *_ladder_cells(s)] for s in doc["steps"]]
-    out += ["", "ladder on the validation rows (never used to decide):",
-            format_table(["step", "fitted", "mean mm", "sd mm", "max mm"], rows), "",
-            f"named effects: {', '.join(doc['effects']) or 'none'} ({doc['seconds']:.0f} s)",
-            *doc["notes"]]
-    return "\n".join(out)
-
-
-def _ladder_cells(row: dict) -> list[str]:
-    return [f"{row[k]:.2f}" for k in ("heldout_error_mm", "heldout_error_sd_mm",
-                                       "heldout_error_max_mm")]
-
-
-def ladder_figure(doc: dict, published: dict[str, float] | None = None):
-    """Mean validation error (bars: sd) after each step; ``published`` (step label -> mean mm)
-    drawn beside it when given."""
-    import matplotlib.pyplot as plt
-
-    rows = [("geometric", doc["baseline"])] + [(f"+{s['effect']}", s) for s in doc["steps"]]
-    fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2.5, 3.6), layout="constrained")
-    xs = np.arange(len(rows))
-    ax.bar(xs, [r["heldout_error_mm"] for _, r in rows],
-           yerr=[r["heldout_error_sd_mm"] for _, r in rows], color="tab:blue", capsize=4,
-           label="ours (validation mean, sd)", width=0.55)
-    for x, (_, r) in zip(xs, rows, strict=True):
-        ax.plot(x, r["heldout_error_max_mm"], "v", color="tab:blue")
-    if published:
-        for x, (label, _) in zip(xs, rows, strict=True):
-            if label in published:
-                ax.plot(x, published[label], "D", color="tab:red", ms=8)
-        ax.plot([], [], "D", color="tab:red", label="published")
-    ax.set_xticks(xs, [label for label, _ in rows])
-    ax.set_ylabel("marker error (mm)")
-    ax.set_title(f"{doc['rig']}: error after each named effect (v: max)", fontsize=10)
-    ax.legend(fontsize=8)
-    return fig
