@@ -32,9 +32,10 @@ TARGET_S = 30.0
 
 
 def speed(data: Path, work: Path) -> dict:
-    from bayesrob.plan import load_plan_rig, plan_poses
     from bayesrob.validation.justin import convert
     from bayesrob.validation.plan import subset
+
+    from bayesrob.plan import load_plan_rig, plan_poses
 
     if data.is_file():
         convert(data, work / "rig")
@@ -76,7 +77,7 @@ def figure(curves: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ns = curves["ns"]
-    for i, (seed, c) in enumerate(curves["seeds"].items()):
+    for i, c in enumerate(curves["seeds"].values()):
         ax.plot(ns, c["planned"], "o-", color="C0", label="planned" if i == 0 else None)
         ax.plot(ns, c["random_median"], "s--", color="C1",
                 label="random (median of draws)" if i == 0 else None)
