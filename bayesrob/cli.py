@@ -815,6 +815,15 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "gravity with their torques taken N times, towards equilibrium; a step "
                         "that has not reached it is reported with one step, noted (default 1; "
                         "the effects are chosen with one step either way)")
+    p.add_argument("--plan", type=_int_at_least(1), default=None, metavar="N",
+                   help="URDF/DH rigs: after the diagnosis, plan N poses that tell apart the "
+                        "effects it could not (a named effect's rivals within noise, and the "
+                        "candidates not named), written to --plan-out")
+    p.add_argument("--plan-out", default=None, metavar="FILE",
+                   help="where --plan writes its poses.csv (default poses.csv)")
+    p.add_argument("--pool", default=None, metavar="FILE",
+                   help="--plan's candidate poses (as 'bayesrob plan --pool'; default 2000 "
+                        "drawn inside the joint limits)")
 
 
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
@@ -827,6 +836,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig)
     if rig.is_chain:
         return _diagnose_chain(rig, args)
+    if args.plan is not None or args.pool is not None or args.plan_out is not None:
+        raise UsageError("--plan, --plan-out and --pool plan discriminating poses for URDF/DH "
+                         f"rigs; {rig.name!r} is planar")
     if args.published:
         raise UsageError("--published draws a published ladder for URDF/DH rigs; "
                          f"{rig.name!r} is planar")
@@ -879,7 +891,29 @@ def _diagnose_chain(rig, args: argparse.Namespace) -> int:
         for name, _ in figures:
             _wrote(Path(args.report) / name, args.json)
     _write_json(doc, args.json)
+    if args.plan is not None:
+        _diagnose_plan(rig, doc, args)
     return 0
+
+
+def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
+    """``diagnose --plan N``: poses that tell apart what the diagnosis could not. The named
+    effects without a rival within noise join the base model; every other chain effect (the
+    named ones with rivals, their rivals, the candidates not named) is to be told apart."""
+    from bayesrob.plan import plan_poses, write_poses
+    from bayesrob.plan.planner import BASE_GROUPS
+    from bayesrob.vocabulary import CHAIN_EFFECTS
+
+    settled = [s["effect"] for s in doc["steps"] if not s.get("rivals")]
+    base = (*BASE_GROUPS, *(CHAIN_EFFECTS[e] for e in settled))
+    plan = plan_poses(rig, args.plan, criterion="discriminate", groups=base, pool=args.pool,
+                      seed=args.seed)
+    out = args.plan_out or "poses.csv"
+    write_poses(plan, out)
+    say = sys.stderr if args.json == "-" else sys.stdout
+    print(f"plan: {', '.join(plan.effects)} to tell apart beside "
+          f"{', '.join(base)}: {plan.summary()}", file=say)
+    _wrote(out, args.json)
 
 
 # ------------------------------------------------------------------------------ sample
@@ -1271,7 +1305,8 @@ OUTPUTS: dict[str, list[tuple[str, str, str]]] = {
     "simulate": [("out_dir", DIRECTORY, "OUT_DIR")],
     "calibrate": [("json", FILE, "--json"), ("urdf_out", FILE, "--urdf-out")],
     "reproduce": [("out", DIRECTORY, "--out")],
-    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report")],
+    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report"),
+                 ("plan_out", FILE, "--plan-out")],
     "sample": [("json", FILE, "--json")],
     "predict": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
     "compare": [("json", FILE, "--json"), ("plot", FILE, "--plot")],

@@ -202,3 +202,23 @@ def test_discriminate_plans_poses_the_effects_differ_at(arm6):
         plan_poses(rig, 3, criterion="discriminate", pool=arm6 / "pool.csv",
                    groups=("frames", "geometric", "compliance", "lateral", "encoder",
                            "backlash"))
+
+
+def test_diagnose_plan_separates_what_the_diagnosis_could_not(arm6, tmp_path):
+    """``diagnose --plan``: a named effect with a rival within noise stays to be told apart;
+    one named without a rival joins the base model and is no longer a candidate."""
+    import argparse
+
+    from bayesrob.cli import _diagnose_plan
+
+    rig = load_plan_rig(arm6 / "rig")
+    out = tmp_path / "d.csv"
+    args = argparse.Namespace(plan=4, pool=str(arm6 / "pool.csv"), seed=0, plan_out=str(out),
+                              json=None)
+    _diagnose_plan(rig, {"steps": [{"effect": "joint_compliance",
+                                    "rivals": ["lateral_compliance"]}]}, args)
+    with out.open() as fh:
+        assert len(list(csv.reader(fh))) == 5
+    plan = plan_poses(rig, 4, criterion="discriminate", pool=arm6 / "pool.csv",
+                      groups=("frames", "geometric", "compliance"))
+    assert plan.effects == ["lateral_compliance", "encoder_error", "backlash"]
