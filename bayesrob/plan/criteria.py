@@ -47,11 +47,13 @@ class Accuracy:
     def value(self, cov: np.ndarray) -> float:
         return float(np.sqrt(max(np.trace(self.task @ cov), 0.0)))
 
-    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray
-              ) -> np.ndarray:
+    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray,
+              ba: np.ndarray | None = None) -> np.ndarray:
+        """``ba``: B_i A for every candidate, where the caller keeps it up to date."""
         n, dim, p = b.shape
-        m = (b.reshape(-1, p) @ self.task).reshape(n, dim, p) @ b.transpose(0, 2, 1)
-        return np.einsum("nde,ned->n", s_inv, m)
+        if ba is None:
+            ba = (b.reshape(-1, p) @ self.task).reshape(n, dim, p)
+        return np.einsum("nde,ned->n", s_inv, ba @ b.transpose(0, 2, 1))
 
 
 @dataclass
@@ -63,8 +65,8 @@ class Identify:
     def value(self, cov: np.ndarray) -> float:
         return float(-_logdet(cov))
 
-    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray
-              ) -> np.ndarray:
+    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray,
+              ba: np.ndarray | None = None) -> np.ndarray:
         return -_logdet(s_inv)
 
 
@@ -79,8 +81,8 @@ class Discriminate:
     def value(self, cov: np.ndarray) -> float:
         return float(sum(-_logdet(cov[np.ix_(i, i)]) for i in self.effects.values()))
 
-    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray
-              ) -> np.ndarray:
+    def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray,
+              ba: np.ndarray | None = None) -> np.ndarray:
         eye = np.eye(jac.shape[1])
         total = np.zeros(len(jac))
         for idx in self.effects.values():

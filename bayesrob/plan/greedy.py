@@ -37,23 +37,31 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
     n_cand, dim, p = jac.shape
     flat = jac.reshape(-1, p)
     b = (flat @ cov).reshape(jac.shape)
+    s = np.eye(dim) + jac @ b.transpose(0, 2, 1)
+    # the accuracy criterion's B_i A, kept up to date like B: O(N dim^2 p) a step, not p^2
+    task = getattr(criterion, "task", None)
+    ba = None if task is None else (b.reshape(-1, p) @ task).reshape(jac.shape)
     before = criterion.value(cov)
-    taken = np.zeros(len(jac), bool)
+    taken = np.zeros(n_cand, bool)
     order, gains, values = [], [], []
     for _ in range(n):
-        s = np.eye(dim) + jac @ b.transpose(0, 2, 1)
         s_inv = np.linalg.inv(s)
-        g = np.asarray(criterion.gains(jac, b, s_inv, cov), float)
+        g = np.asarray(criterion.gains(jac, b, s_inv, cov, ba), float)
         g[taken | ~np.isfinite(g)] = -np.inf
         k = int(np.argmax(g))
         taken[k] = True
-        # C' = C - B_k^T S_k^-1 B_k, and every B_i = J_i C with it
-        cov = cov - b[k].T @ s_inv[k] @ b[k]
+        # C' = C - B_k^T S_k^-1 B_k; every B_i = J_i C, S_i = I + J_i C J_i^T and B_i A with it
+        bk, sk = b[k].copy(), s_inv[k].copy()
+        jb = (flat @ bk.T).reshape(n_cand, dim, dim)  # J_i B_k^T
+        cov = cov - bk.T @ sk @ bk
         cov = (cov + cov.T) / 2
-        b = b - (flat @ b[k].T @ (s_inv[k] @ b[k])).reshape(jac.shape)
+        b = b - (jb.reshape(-1, dim) @ (sk @ bk)).reshape(jac.shape)
+        s = s - jb @ sk @ jb.transpose(0, 2, 1)
+        if ba is not None:
+            ba = ba - (jb.reshape(-1, dim) @ (sk @ (bk @ task))).reshape(jac.shape)
         order.append(k)
         values.append(criterion.value(cov))
-        gains.append((values[-2] if len(values) > 1 else before) - values[-1]
-                     if isinstance(criterion, Accuracy) else values[-1]
-                     - (values[-2] if len(values) > 1 else before))
+        last = values[-2] if len(values) > 1 else before
+        gains.append(last - values[-1] if isinstance(criterion, Accuracy)
+                     else values[-1] - last)
     return Selection(np.array(order, int), np.array(gains), before, np.array(values))

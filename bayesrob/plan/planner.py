@@ -212,21 +212,29 @@ def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
     if n > len(cands):
         raise RigError(f"--n {n} is more poses than the pool's {len(cands)} ({cands.source})")
     robot, x, free = _linearisation(rig, groups)
-    scale = robot.layout.scales[free]
+    scale = robot.layout.scales
 
     def jac(p: Pool) -> np.ndarray:
-        return pose_jacobians(robot, x, p)[:, :, free] * scale
+        return pose_jacobians(robot, x, p)[:, :, free] * scale[free]
 
     measured = measured_pool(rig)
+    j_meas = jac(measured) if len(measured) else np.zeros((0, robot.dim, int(free.sum())))
+    j_cand = jac(cands)
+    j_task = (jac(_task_pool(task, rig, cands, robot, x, limits))
+              if task is not None and criterion == "accuracy" else j_cand)
+    # parameters no row here moves (another arm's, a mass no compliance shows) keep their
+    # prior whatever is measured: left out, they cost the greedy steps nothing
+    seen = np.zeros(int(free.sum()), bool)
+    for j in (j_meas, j_cand, j_task):
+        seen |= np.abs(j).max(axis=(0, 1), initial=0.0) > 0
+    j_meas, j_cand, j_task = (j[:, :, seen] for j in (j_meas, j_cand, j_task))
+    free[np.flatnonzero(free)[~seen]] = False
     info = np.eye(int(free.sum())) / PRIOR_SD**2
     if len(measured):
-        j0 = jac(measured).reshape(-1, int(free.sum())) / noise_mm
+        j0 = j_meas.reshape(-1, int(free.sum())) / noise_mm
         info += j0.T @ j0
-    j_cand = jac(cands)
     if criterion == "accuracy":
-        g = (jac(_task_pool(task, rig, cands, robot, x, limits)) if task is not None
-             else j_cand)
-        crit = Accuracy(np.einsum("ndp,ndq->pq", g, g) / len(g))
+        crit = Accuracy(np.einsum("ndp,ndq->pq", j_task, j_task) / len(j_task))
     elif criterion == "identify":
         crit = Identify()
     else:
