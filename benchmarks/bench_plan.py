@@ -77,17 +77,20 @@ def figure(curves: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ns = curves["ns"]
-    for i, c in enumerate(curves["seeds"].values()):
-        ax.plot(ns, c["planned"], "o-", color="C0", label="planned" if i == 0 else None)
-        ax.plot(ns, c["random_median"], "s--", color="C1",
-                label="random (median of draws)" if i == 0 else None)
+    runs = list(curves["seeds"].values())
+    for key, color, mark, label in (("planned", "C0", "o-", "planned"),
+                                    ("random_median", "C1", "s--", "random (median of draws)")):
+        for c in runs:
+            ax.plot(ns, c[key], mark, color=color, alpha=0.25, lw=0.8, ms=3)
+        ax.plot(ns, np.median([c[key] for c in runs], axis=0), mark, color=color, lw=2.2,
+                label=f"{label}, median of {len(runs)} arms")
     ax.set_xlabel("poses measured (N)")
     ax.set_ylabel("held-out error against the true arm (mm)")
     ax.set_yscale("log")
-    ax.set_title("arm6: accuracy plan vs random poses, one curve per seed")
+    ax.set_title("arm6: accuracy plan against random poses from one pool")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=100)
 
 
 def main() -> None:
@@ -96,7 +99,16 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="*", default=[801, 802])
     p.add_argument("--figure", type=Path, default=None)
     p.add_argument("--speed-only", action="store_true")
+    p.add_argument("--from-validation", type=Path, default=None, metavar="JSON",
+                   help="draw --figure from a validation.json holding plan_sim's run instead")
     args = p.parse_args()
+    if args.from_validation is not None:
+        details = json.loads(args.from_validation.read_text())["studies"]["plan_sim"][
+            "details"]
+        figure({"ns": details["ns"], "seeds": {
+            r["seed"]: {"planned": r["planned_mm"], "random_median": r["random_median_mm"]}
+            for r in details["rigs"]}}, args.figure)
+        return
     from bayesrob.validation.plan import NS, sim_curves
 
     out: dict = {}

@@ -45,7 +45,7 @@ class Accuracy:
     unit = "mm"
 
     def value(self, cov: np.ndarray) -> float:
-        return float(np.sqrt(max(np.trace(self.task @ cov), 0.0)))
+        return float(np.sqrt(max(np.einsum("ij,ji->", self.task, cov), 0.0)))
 
     def gains(self, jac: np.ndarray, b: np.ndarray, s_inv: np.ndarray, cov: np.ndarray,
               ba: np.ndarray | None = None) -> np.ndarray:

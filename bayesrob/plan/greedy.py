@@ -55,10 +55,10 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
         jb = (flat @ bk.T).reshape(n_cand, dim, dim)  # J_i B_k^T
         cov = cov - bk.T @ sk @ bk
         cov = (cov + cov.T) / 2
-        b = b - (jb.reshape(-1, dim) @ (sk @ bk)).reshape(jac.shape)
-        s = s - jb @ sk @ jb.transpose(0, 2, 1)
+        b -= (jb.reshape(-1, dim) @ (sk @ bk)).reshape(jac.shape)
+        s -= jb @ sk @ jb.transpose(0, 2, 1)
         if ba is not None:
-            ba = ba - (jb.reshape(-1, dim) @ (sk @ (bk @ task))).reshape(jac.shape)
+            ba -= (jb.reshape(-1, dim) @ (sk @ (bk @ task))).reshape(jac.shape)
         order.append(k)
         values.append(criterion.value(cov))
         last = values[-2] if len(values) > 1 else before

@@ -158,36 +158,49 @@ def read_pool(path: str | Path, rig: Rig, limits: dict[str, np.ndarray | None],
                        f"{', '.join(measured)}: each row names its arm)")
     idx = {h: i for i, h in enumerate(header)}
     body = [(k + 2, r) for k, r in enumerate(rows[1:]) if any(c.strip() for c in r)]
-    config = np.empty(len(body), dtype=object)
-    commands = {c: np.full((len(body), ch.n_columns), np.nan) for c, ch in robot.chains.items()}
-    for r, (line, row) in enumerate(body):
-        where = f"{path}: line {line}"
-        if len(row) != len(header):
-            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
-        arm = row[idx["config"]].strip() if "config" in idx else measured[0]
-        if arm not in measured:
-            raise RigError(f"{where}: column 'config' = {arm!r} is not a measured arm of the "
-                           f"rig ({', '.join(measured)})")
-        config[r] = arm
-        on_path = {c.name for c in robot.path(arm)}
-        for c, ch in robot.chains.items():
-            for k in range(ch.n_columns):
-                col = f"{c}_u{k + 1}"
-                if col not in idx:
-                    if c in on_path:
-                        raise RigError(f"{path}: missing column {col!r} (arm {arm!r}'s "
-                                       "commands)")
-                    continue
-                commands[c][r, k] = parse_number(row[idx[col]], where, col,
-                                                 allow_empty=c not in on_path)
-            lim = limits.get(c)
-            u = commands[c][r]
-            if lim is not None and np.any(bad := (u < lim[:, 0]) | (u > lim[:, 1])):
-                k = int(np.flatnonzero(bad)[0])
-                raise RigError(f"{where}: column '{c}_u{k + 1}' = {u[k]:g} is outside arm "
-                               f"{c!r}'s limits [{lim[k, 0]:g}, {lim[k, 1]:g}]")
     if not body:
         raise RigError(f"{path}: no rows in the {what} file")
+    for line, row in body:
+        if len(row) != len(header):
+            raise RigError(f"{path}: line {line}: expected {len(header)} fields, found "
+                           f"{len(row)}")
+    lines = [line for line, _ in body]
+    config = (np.array([r[idx["config"]].strip() for _, r in body]) if "config" in idx
+              else np.full(len(body), measured[0]))
+    for line, arm in zip(lines, config, strict=True):
+        if arm not in measured:
+            raise RigError(f"{path}: line {line}: column 'config' = {arm!r} is not a measured "
+                           f"arm of the rig ({', '.join(measured)})")
+    # column by column (a pool of thousands of rows): a cell that does not parse is named by
+    # parse_number, row by row, only once the column is known to hold one
+    commands = {c: np.full((len(body), ch.n_columns), np.nan) for c, ch in robot.chains.items()}
+    for c, ch in robot.chains.items():
+        on = np.isin(config, [a for a in measured if c in {x.name for x in robot.path(a)}])
+        for k in range(ch.n_columns):
+            col = f"{c}_u{k + 1}"
+            if col not in idx:
+                if on.any():
+                    raise RigError(f"{path}: missing column {col!r} (the commands of arm "
+                                   f"{str(config[on][0])!r})")
+                continue
+            cells = [r[idx[col]].strip() for _, r in body]
+            filled = np.array([v != "" for v in cells])
+            try:
+                values = np.array([float(v) if v else np.nan for v in cells])
+            except ValueError:
+                values = np.full(len(cells), np.inf)
+            if (on & ~filled).any() or not np.isfinite(values[filled]).all():
+                for line, v, need in zip(lines, cells, on, strict=True):
+                    parse_number(v, f"{path}: line {line}", col, allow_empty=not need)
+            commands[c][:, k] = values
+        lim = limits.get(c)
+        if lim is not None:
+            u = commands[c]
+            bad = (u < lim[:, 0]) | (u > lim[:, 1])
+            if bad.any():
+                r, k = (int(v[0]) for v in np.nonzero(bad))
+                raise RigError(f"{path}: line {lines[r]}: column '{c}_u{k + 1}' = {u[r, k]:g} "
+                               f"is outside arm {c!r}'s limits [{lim[k, 0]:g}, {lim[k, 1]:g}]")
     return Pool(config.astype(str), commands, header, [list(r) for _, r in body], str(path))
 
 
