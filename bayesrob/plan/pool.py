@@ -167,7 +167,7 @@ def read_pool(path: str | Path, rig: Rig, limits: dict[str, np.ndarray | None],
     lines = [line for line, _ in body]
     config = (np.array([r[idx["config"]].strip() for _, r in body]) if "config" in idx
               else np.full(len(body), measured[0]))
-    for line, arm in zip(lines, config, strict=True):
+    for line, arm in zip(lines, config.tolist(), strict=True):
         if arm not in measured:
             raise RigError(f"{path}: line {line}: column 'config' = {arm!r} is not a measured "
                            f"arm of the rig ({', '.join(measured)})")
