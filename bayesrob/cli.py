@@ -1174,8 +1174,9 @@ def _plan_args(p: argparse.ArgumentParser) -> None:
                         "poses that tell the candidate effects apart")
     p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
                    help="the groups the calibration will fit, as 'bayesrob calibrate "
-                        "--params' (default frames,offsets,geometric,servo; for discriminate "
-                        "the base model beside whose rivals, default frames,geometric)")
+                        "--params' (default frames,offsets,geometric,servo); for "
+                        "discriminate, the base model whose rivals are told apart (default "
+                        "frames,geometric)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--pool", metavar="FILE",
                      help="candidate poses: a CSV with the rig's command columns (and config)")
