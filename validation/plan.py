@@ -9,7 +9,7 @@ rows are calibrated (``frames,offsets,geometric,servo``) and scored on 200 holdo
 their own (new poses). A figure per N: the planned error over the median of the random
 draws' (below 1: the plan wins).
 
-``run_justin``: Agile Justin's 300 train poses (600 rows, one per hand) as the pool, scored on
+``justin_curves``: Agile Justin's 300 train poses (600 rows, one per hand) as the pool, scored on
 its validation poses: the plan's first N rows against random subsets of N and 2N rows.
 """
 
