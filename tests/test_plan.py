@@ -222,3 +222,20 @@ def test_diagnose_plan_separates_what_the_diagnosis_could_not(arm6, tmp_path):
     plan = plan_poses(rig, 4, criterion="discriminate", pool=arm6 / "pool.csv",
                       groups=("frames", "geometric", "compliance"))
     assert plan.effects == ["lateral_compliance", "encoder_error", "backlash"]
+
+
+def test_rig_toml_limits_bound_the_samples_and_are_checked(arm6, tmp_path):
+    """rig.toml ``limits`` (command units) win over the URDF's; a malformed one is one line."""
+    from bayesrob.plan.pool import command_limits
+
+    rig = tmp_path / "rig"
+    shutil.copytree(arm6 / "rig", rig)
+    text = (rig / "rig.toml").read_text()
+    lim = "limits = [[-1.0, 1.0], [-2.0, -1.0], [0.0, 0.5], [-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0]]"
+    (rig / "rig.toml").write_text(text.replace("[arms.arm]\n", f"[arms.arm]\n{lim}\n"))
+    plan = plan_poses(load_plan_rig(rig), 10, samples=200, criterion="identify")
+    u = plan.pool.commands["arm"]
+    assert u[:, 1].min() >= -2.0 and u[:, 1].max() <= -1.0 and u[:, 2].max() <= 0.5
+    (rig / "rig.toml").write_text(text.replace("[arms.arm]\n", "[arms.arm]\nlimits = [1, 2]\n"))
+    with pytest.raises(RigError, match=r"arms.arm.limits: expected 6 pairs"):
+        command_limits(load_plan_rig(rig))
