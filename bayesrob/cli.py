@@ -205,9 +205,10 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--play-mrad", type=_non_negative_float, default=None, metavar="MRAD",
                    help="arm6: play in every joint (whole width, mrad), taken up on the side "
                         "gravity pushes the joint to (approach side where the torque is weak)")
-    p.add_argument("--poses", type=_positive_int, nargs=3, default=None,
-                   metavar=("TRAIN", "VALIDATION", "HOLDOUT"),
-                   help="arm6: random poses per set (80 40 40), each set at its own poses")
+    p.add_argument("--poses", nargs="+", default=None, metavar="N",
+                   help="arm6: TRAIN VALIDATION HOLDOUT random poses per set (80 40 40), each "
+                        "set at its own poses; or a poses.csv (bayesrob plan) to measure, in "
+                        "its order, on the simulated rig in OUT_DIR, appending its rows")
     p.add_argument("--linked", action="store_true",
                    help="arm6: two arms (left, right) facing each other, single-arm rows for "
                         "each (--poses per arm) and 24 left+right test rows with their markers "
@@ -327,6 +328,33 @@ def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
     return 0
 
 
+def _simulate_poses(args: argparse.Namespace, out_dir: Path, poses: Path) -> int:
+    """Measure a poses.csv's rows, in order, on the simulated rig in ``out_dir``."""
+    from bayesrob.hardware.collect import append_planned
+    from bayesrob.sim.truth import TRUTH_FILE
+
+    truth = out_dir / TRUTH_FILE
+    if not truth.is_file():
+        raise UsageError(f"{truth}: file not found (--poses FILE measures on a rig made by "
+                         "'bayesrob simulate'; use 'bayesrob collect --plan' on hardware)")
+    if "chain_truth" in truth.read_text():
+        from bayesrob.hardware.collect import read_plan
+        from bayesrob.sim.rigs import measure_arm6_poses
+
+        _, sets, cmds = read_plan(poses, {"arm": 6})
+        n = measure_arm6_poses(out_dir, sets, cmds["arm"], seed=args.seed)
+    elif "linked_chain_truth" in truth.read_text():
+        raise UsageError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
+                         "rigs are not measured at planned poses")
+    else:
+        from bayesrob.sim.rigs import measure_planned
+
+        append_planned(out_dir, poses)
+        n, _ = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
+    print(f"measured {n} poses of {poses} into {out_dir / 'measurements.csv'}")
+    return 0
+
+
 @command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
                      "arm) with chosen physical effects")(
     _simulate_args)
@@ -339,6 +367,15 @@ def _simulate(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
+    if args.poses is not None and len(args.poses) == 1:
+        return _simulate_poses(args, out_dir, Path(args.poses[0]))
+    if args.poses is not None:
+        if len(args.poses) != 3:
+            raise UsageError("--poses takes TRAIN VALIDATION HOLDOUT counts or one poses.csv")
+        try:
+            args.poses = [_positive_int(v) for v in args.poses]
+        except argparse.ArgumentTypeError as exc:
+            raise UsageError(f"--poses: {exc}") from None
     if args.planned:
         if args.linked or args.third_arm:
             raise UsageError("--planned measures the rows the rig in OUT_DIR plans, with the "
@@ -587,7 +624,8 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
     p.add_argument("--plan", default="train,validation,test",
                    help="sets to collect, run in this order (train,validation,test); add "
-                        "holdout for rows at new poses (the grid's cell centres)")
+                        "holdout for rows at new poses (the grid's cell centres); or a "
+                        "poses.csv of 'bayesrob plan', whose rows are measured in its order")
     p.add_argument("--settle", type=_hw_number(float, 0.0), default=1.0, metavar="SECONDS",
                    help="wait after the controller reports a move done, before measuring (1.0)")
     p.add_argument("--resume", action="store_true",
@@ -639,11 +677,13 @@ def _collect(args: argparse.Namespace) -> int:
         terminal_confirm,
     )
 
+    poses = args.plan if args.plan.endswith(".csv") or Path(args.plan).is_file() else None
     try:
         result = collect_on_ports(
             args.rig, servo_port=args.servo_port, protocol=args.protocol,
             channels=parse_channels(args.channels), tracker_port=args.tracker_port,
-            manual=args.manual, grid=args.grid, plan=parse_plan(args.plan),
+            manual=args.manual, grid=args.grid, poses=poses,
+            plan=parse_plan("train" if poses else args.plan),
             settle_s=args.settle, resume=args.resume, tracker_format=args.tracker_format,
             tracker_baud=args.tracker_baud, samples=args.samples, baud=args.baud,
             maestro_protocol=args.maestro_protocol, device_number=args.device_number,
@@ -774,6 +814,15 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "gravity with their torques taken N times, towards equilibrium; a step "
                         "that has not reached it is reported with one step, noted (default 1; "
                         "the effects are chosen with one step either way)")
+    p.add_argument("--plan", type=_int_at_least(1), default=None, metavar="N",
+                   help="URDF/DH rigs: after the diagnosis, plan N poses that tell apart the "
+                        "effects it could not (a named effect's rivals within noise, and the "
+                        "candidates not named), written to --plan-out")
+    p.add_argument("--plan-out", default=None, metavar="FILE",
+                   help="where --plan writes its poses.csv (default poses.csv)")
+    p.add_argument("--pool", default=None, metavar="FILE",
+                   help="--plan's candidate poses (as 'bayesrob plan --pool'; default 2000 "
+                        "drawn inside the joint limits)")
 
 
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
@@ -795,6 +844,9 @@ def _diagnose(args: argparse.Namespace) -> int:
         except DiagnosisError as e:
             raise UsageError(str(e)) from None
     else:
+        if args.plan is not None or args.pool is not None or args.plan_out is not None:
+            raise UsageError("--plan, --plan-out and --pool plan discriminating poses for "
+                             f"URDF/DH rigs; {rig.name!r} is planar")
         if args.published:
             raise UsageError("--published draws a published ladder for URDF/DH rigs; "
                              f"{rig.name!r} is planar")
@@ -816,7 +868,29 @@ def _diagnose(args: argparse.Namespace) -> int:
         for path in written:
             _wrote(path, args.json)
     _write_json(doc, args.json)
+    if rig.is_chain and args.plan is not None:
+        _diagnose_plan(rig, doc, args)
     return 0
+
+
+def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
+    """``diagnose --plan N``: poses that tell apart what the diagnosis could not. The named
+    effects without a rival within noise join the base model; every other chain effect (the
+    named ones with rivals, their rivals, the candidates not named) is to be told apart."""
+    from bayesrob.plan import plan_poses, write_poses
+    from bayesrob.plan.planner import BASE_GROUPS
+    from bayesrob.vocabulary import CHAIN_EFFECTS
+
+    settled = [s["effect"] for s in doc["steps"] if not s.get("rivals")]
+    base = (*BASE_GROUPS, *(CHAIN_EFFECTS[e] for e in settled))
+    plan = plan_poses(rig, args.plan, criterion="discriminate", groups=base, pool=args.pool,
+                      seed=args.seed)
+    out = args.plan_out or "poses.csv"
+    write_poses(plan, out)
+    say = sys.stderr if args.json == "-" else sys.stdout
+    print(f"plan: {', '.join(plan.effects)} to tell apart beside "
+          f"{', '.join(base)}: {plan.summary()}", file=say)
+    _wrote(out, args.json)
 
 
 # ------------------------------------------------------------------------------ sample
@@ -1063,6 +1137,58 @@ def _design(args: argparse.Namespace) -> int:
     return 0 if result.met else 1
 
 
+# ------------------------------------------------------------------------------ plan
+
+
+def _plan_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("rig", help="rig directory (its measurements.csv may be missing or empty)")
+    p.add_argument("--n", type=_int_at_least(1), required=True, help="poses to plan")
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="poses.csv to write: config, set, the command columns as the pool "
+                        "wrote them, the pool's other columns, gain")
+    p.add_argument("--for", dest="criterion", choices=["accuracy", "identify", "discriminate"],
+                   default="accuracy",
+                   help="accuracy: the smallest predicted end-point error over the task region "
+                        "(default); identify: D-optimal in the parameters; discriminate: "
+                        "poses that tell the candidate effects apart")
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
+                   help="the groups the calibration will fit, as 'bayesrob calibrate "
+                        "--params' (default frames,offsets,geometric,servo); for "
+                        "discriminate, the base model whose rivals are told apart (default "
+                        "frames,geometric)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--pool", metavar="FILE",
+                     help="candidate poses: a CSV with the rig's command columns (and config)")
+    src.add_argument("--samples", type=_int_at_least(1), metavar="M",
+                     help="candidates drawn inside the joint limits (default 2000)")
+    p.add_argument("--task", metavar="FILE",
+                   help="the task region (accuracy): poses (command columns) or targets (x, y"
+                        "[, z]); default the pool")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the samples (0)")
+    p.add_argument("--noise-mm", type=_non_negative_float, default=0.1,
+                   help="measurement noise sd (mm) the predicted error is taken with (0.1)")
+    p.add_argument("--json", metavar="OUT", help="write the plan's summary as JSON")
+
+
+@command("plan", "choose the poses to measure: most accuracy over a task region, most "
+                 "information, or most separation of the candidate effects")(_plan_args)
+def _plan(args: argparse.Namespace) -> int:
+    from bayesrob.plan import load_plan_rig, plan_poses, write_poses
+
+    if args.noise_mm <= 0:
+        raise UsageError(f"--noise-mm must be positive, not {args.noise_mm:g}")
+    rig = load_plan_rig(args.rig)
+    plan = plan_poses(rig, args.n, criterion=args.criterion, groups=args.params,
+                      pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
+                      noise_mm=args.noise_mm)
+    print(plan.summary())
+    write_poses(plan, args.out)
+    print(f"wrote {args.out}")
+    if args.json is not None:
+        _write_json(plan.to_dict(), args.json)
+    return 0
+
+
 # ------------------------------------------------------------------------------ validate
 
 
@@ -1159,11 +1285,13 @@ OUTPUTS: dict[str, list[tuple[str, str, str]]] = {
     "simulate": [("out_dir", DIRECTORY, "OUT_DIR")],
     "calibrate": [("json", FILE, "--json"), ("urdf_out", FILE, "--urdf-out")],
     "reproduce": [("out", DIRECTORY, "--out")],
-    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report")],
+    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report"),
+                 ("plan_out", FILE, "--plan-out")],
     "sample": [("json", FILE, "--json")],
     "predict": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
     "compare": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
     "design": [("out", DIRECTORY, "--out")],
+    "plan": [("out", FILE, "--out"), ("json", FILE, "--json")],
     "validate": [("out", DIRECTORY, "--out")],
 }
 

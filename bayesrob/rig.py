@@ -31,7 +31,8 @@ SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "stiffness", "meta")
 # Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
-              "gain", "offset", "mount", "origin", "tool", "coupling", "stiffness", "meta")
+              "gain", "offset", "mount", "origin", "tool", "coupling", "stiffness", "limits",
+              "meta")
 TOP_KEYS = ("name", "gravity", "workspace", "arms", "meta")
 N_ARM_PARAMS = 8
 # A target a little outside the nominal reach is still accepted: nominal lengths are a

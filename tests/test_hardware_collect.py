@@ -910,3 +910,28 @@ def test_sim_device_command_serves_the_maestro_quirks(sim_rig) -> None:
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
+
+
+def test_collect_measures_a_plan_in_its_order_and_resumes_it(plant, sim_rig, rig_dir) -> None:
+    """``collect --plan poses.csv``: the planned rows (from ``bayesrob plan``), arm by arm (the
+    tracker moves once per arm) and each arm's in the file's order, no grid and no linked
+    rows; a second run with --resume finds them all recorded."""
+    poses = rig_dir.parent / "poses.csv"
+    assert main(["plan", str(sim_rig), "--n", "6", "--out", str(poses), "--samples",
+                 "300"]) == 0
+    with poses.open(newline="") as fh:
+        planned = list(csv.DictReader(fh))
+    with device(plant, seed=4) as dev:
+        res = run(dev, rig_dir, poses=poses)
+    assert res.complete and (res.recorded, res.total) == (6, 6)
+    with (rig_dir / "measurements.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    planned = [p for arm in ("top", "bottom") for p in planned if p["config"] == arm]
+    assert [r["config"] for r in rows] == [p["config"] for p in planned]
+    for r, p in zip(rows, planned, strict=True):
+        arm = p["config"]
+        for k in (1, 2):  # quantised to the controller's resolution (0.25 us)
+            assert abs(float(r[f"{arm}_u{k}"]) - float(p[f"{arm}_u{k}"])) <= 0.125
+    with device(plant, seed=4) as dev:
+        again = run(dev, rig_dir, poses=poses, resume=True)
+    assert (again.recorded, again.skipped) == (0, 6)

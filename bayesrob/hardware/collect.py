@@ -198,6 +198,73 @@ def single_arm_steps(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
     return steps
 
 
+def read_plan(path: str | Path, arms: dict[str, int]
+              ) -> tuple[list[str], list[str], dict[str, np.ndarray]]:
+    """A ``poses.csv`` of ``bayesrob plan``: each row's config (the arm measured; may be left
+    out when there is one arm), set, and every arm's ``<arm>_u1..`` (``arms``: arm -> columns;
+    NaN where a row leaves an arm out). A mistake is a RigError naming line and column."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read the poses file: {exc.strerror}") from None
+    rows = list(csv.reader(io.StringIO(text, newline="")))
+    header = [h.strip() for h in rows[0]] if rows else []
+    idx = {h: i for i, h in enumerate(header)}
+    if "config" not in idx and len(arms) > 1:
+        raise RigError(f"{path}: missing column 'config'")
+    configs, sets = [], []
+    cmds: dict[str, list[list[float]]] = {a: [] for a in arms}
+    for line, row in enumerate(rows[1:], start=2):
+        if not any(c.strip() for c in row):
+            continue
+        where = f"{path}: line {line}"
+        if len(row) != len(header):
+            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+        arm = row[idx["config"]].strip() if "config" in idx else next(iter(arms))
+        if arm not in arms:
+            raise RigError(f"{where}: config {arm!r} is not an arm of the rig "
+                           f"({', '.join(arms)})")
+        st = row[idx["set"]].strip() if "set" in idx else "train"
+        if st not in SETS:
+            raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
+        for a, m in arms.items():
+            cols = [f"{a}_u{k + 1}" for k in range(m)]
+            missing = [c for c in cols if c not in idx]
+            if missing and a == arm:
+                raise RigError(f"{path}: missing column {missing[0]!r}")
+            cmds[a].append([parse_number(row[idx[c]], where, c, allow_empty=a != arm)
+                            if c in idx else float("nan") for c in cols])
+        configs.append(arm)
+        sets.append(st)
+    if not configs:
+        raise RigError(f"{path}: no poses in the file")
+    return configs, sets, {a: np.array(v, float) for a, v in cmds.items()}
+
+
+def plan_steps(path: str | Path, specs: dict[str, ArmSpec],
+               quantize: Callable[[Iterable[float]], tuple[float, ...]]) -> list[Step]:
+    """The rows of a ``poses.csv`` as steps, in its order (each measures its config's arm)."""
+    configs, sets, cmds = read_plan(path, {n: 2 for n in specs})
+    return [Step(c, s, {c: quantize(cmds[c][i])})
+            for i, (c, s) in enumerate(zip(configs, sets, strict=True))]
+
+
+def append_planned(rig_dir: str | Path, path: str | Path) -> int:
+    """Append a ``poses.csv``'s rows to a planar rig's measurements.csv as planned rows (x, y
+    empty), for ``simulate --poses`` to measure. Returns how many."""
+    rig_dir = Path(rig_dir)
+    names = list(load_rig_toml(rig_dir / RIG_FILE)["arms"])
+    configs, sets, cmds = read_plan(path, {n: 2 for n in names})
+    lines = [_csv_line(format_row(names, c, s, None, {c: cmds[c][i]},
+                                  (float("nan"), float("nan"))))
+             for i, (c, s) in enumerate(zip(configs, sets, strict=True))]
+    target = rig_dir / MEASUREMENTS_FILE
+    with target.open("a", encoding="utf-8", newline="") as fh:
+        fh.write("".join(lines))
+    return len(lines)
+
+
 def linked_steps(specs: dict[str, ArmSpec], arms: dict[str, Arm], workspace: Workspace,
                  grid: int,
                  quantize: Callable[[Iterable[float]], tuple[float, ...]],
@@ -463,8 +530,11 @@ def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
 def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, *,
             grid: int = 4, plan: Sequence[str] = DEFAULT_PLAN, settle_s: float = 1.0,
             resume: bool = False, confirm: Callable[[str], bool] | None = None,
-            progress: bool = False, log: Callable[[str], None] | None = None) -> CollectResult:
+            progress: bool = False, log: Callable[[str], None] | None = None,
+            poses: str | Path | None = None) -> CollectResult:
     """Run the paper's procedure on a connected controller and tracker; see the module doc.
+    ``poses``: a ``poses.csv`` of ``bayesrob plan`` whose rows are measured instead, in its
+    order (no grid, no linked rows; resume matches them as it matches the grid's).
 
     ``confirm`` is asked before each arm's rows (to put the tracker on it; only for a
     streaming tracker) and before the linked rows (to link the arms); ``None`` confirms
@@ -478,7 +548,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     meta = load_rig_toml(rig_dir / RIG_FILE)
     specs: dict[str, ArmSpec] = meta["arms"]
     workspace = meta["workspace"]
-    if workspace is None:
+    if workspace is None and poses is None:
         raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
                        "to lay out the grid")
     if grid < 2:
@@ -488,9 +558,11 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         if name not in controller.channels:
             raise HardwareError(f"arm {name!r} has no channels on the controller")
         controller.limits[name] = specs[name].pulse_limits
-    singles = single_arm_steps(specs, workspace, grid, controller.quantize, plan)
+    singles = (plan_steps(poses, specs, controller.quantize) if poses is not None else
+               single_arm_steps(specs, workspace, grid, controller.quantize, plan))
     check_plan(singles, specs)
-    linked_sets = [s for s in LINKED_SETS if s in plan] if len(names) > 1 else []
+    linked_sets = ([s for s in LINKED_SETS if s in plan] if len(names) > 1 and poses is None
+                   else [])
     do_test = bool(linked_sets)
     n_test = sum(len(grid_targets(workspace, grid, s)) for s in linked_sets)
     if "test" in plan and len(names) < 2:
@@ -678,7 +750,8 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
                      maestro_model: str | None = None, auto_baud: bool = False,
                      confirm: Callable[[str], bool] | None = terminal_confirm,
                      progress: bool = False,
-                     log: Callable[[str], None] | None = None) -> CollectResult:
+                     log: Callable[[str], None] | None = None,
+                     poses: str | Path | None = None) -> CollectResult:
     """What ``bayesrob collect`` does: check the arguments, open the ports, run :func:`collect`.
 
     Everything that can be checked without hardware (rig.toml, channels, the planned pulses
@@ -690,21 +763,23 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
     meta = load_rig_toml(rig_dir / RIG_FILE)
     check_channels(channels, meta["arms"], n_channels(protocol, maestro_model),
                    controller_name(protocol, maestro_model))
-    if meta["workspace"] is None:
+    if meta["workspace"] is None and poses is None:
         raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
                        "to lay out the grid")
     cls = controller_class(protocol)
     def quantize(u: Iterable[float]) -> tuple[float, ...]:
         return quantize_us(u, cls.resolution_us)
 
-    singles = single_arm_steps(meta["arms"], meta["workspace"], grid, quantize, plan)
+    singles = (plan_steps(poses, meta["arms"], quantize) if poses is not None else
+               single_arm_steps(meta["arms"], meta["workspace"], grid, quantize, plan))
     check_plan(singles, meta["arms"])
     # Refuse to touch an existing file without --resume, or to resume a different plan,
     # before any port is opened.
     existing = MeasurementLog(rig_dir / MEASUREMENTS_FILE, list(meta["arms"]), resume,
                               check_only=True)
     if existing.rows:
-        linked = [s for s in LINKED_SETS if s in plan] if len(meta["arms"]) > 1 else []
+        linked = ([s for s in LINKED_SETS if s in plan] if len(meta["arms"]) > 1
+                  and poses is None else [])
         match_recorded(meta["arms"], meta["workspace"], grid, quantize, singles, bool(linked),
                        existing.rows, existing.path, linked_sets=linked)
     limits = {n: s.pulse_limits for n, s in meta["arms"].items()}
@@ -725,7 +800,7 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
             tracker = StreamTracker(tlink, tracker_format, samples,
                                     timeout_s=max(3.0, 10 * timeout_s))
         return collect(rig_dir, controller, tracker, grid=grid, plan=plan, settle_s=settle_s,
-                       resume=resume, confirm=confirm, progress=progress, log=log)
+                       resume=resume, confirm=confirm, progress=progress, log=log, poses=poses)
     finally:
         controller.close()
         if tlink is not None:

@@ -60,12 +60,15 @@ def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) ->
 
 
 def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
-                 rng: np.random.Generator) -> np.ndarray:
+                 rng: np.random.Generator, approach: np.ndarray | None = None) -> np.ndarray:
     """Where each joint rests in its play (N, n) rad: half the play towards its gravity torque
     ``tau`` (N mm), or, where the torque is weaker than ``stick_nmm``, towards the side it
-    was approached from (drawn from ``rng``)."""
-    approach = rng.choice([-1.0, 1.0], size=tau.shape)
-    side = np.where(np.abs(tau) > stick_nmm, np.sign(tau), approach)
+    was approached from: ``approach`` (N, n; +1, -1) where given and non-zero, else drawn
+    from ``rng``."""
+    drawn = rng.choice([-1.0, 1.0], size=tau.shape)
+    if approach is not None:
+        drawn = np.where(approach != 0, np.sign(approach), drawn)
+    side = np.where(np.abs(tau) > stick_nmm, np.sign(tau), drawn)
     return 0.5 * play * side
 
 

@@ -16,7 +16,7 @@ import io
 import os
 import shutil
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -283,52 +283,139 @@ def true_parameters(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -
 
 
 
+@dataclass
+class _Arm6Plant:
+    """A simulated arm6 as it really is: the robots and true parameters its rows come from."""
+
+    truth: ChainTruth
+    robot: Robot
+    x_true: np.ndarray
+    base_robot: Robot
+    x_base: np.ndarray
+    phase: np.ndarray
+
+    @classmethod
+    def build(cls, truth: ChainTruth, rng: np.random.Generator) -> _Arm6Plant:
+        """The plant of ``truth``: its true parameters as ``truth.true_params`` has them, or,
+        before they are drawn, drawn from ``rng``."""
+        nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
+                             marker=truth.marker_nominal_mm,
+                             instrument=truth.instrument_nominal)
+        robot = Robot({"arm": nominal}, 3)
+        x_true = (np.array([truth.true_params[n] for n in robot.layout.names])
+                  if truth.true_params else true_parameters(robot, truth, rng))
+        # The instrument sees gravity along -z of the robot base; frames for torques are
+        # taken with the base at the identity so that direction holds.
+        base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0",
+                                              "arm")}, 3)
+        x_base = np.array(x_true, float)
+        x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
+        phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(
+            -np.pi, np.pi, 6)
+        return cls(truth, robot, np.asarray(x_true, float), base_robot, x_base, phase)
+
+    def measure(self, q_cmd: np.ndarray, rng: np.random.Generator,
+                approach_rng: np.random.Generator, approach: np.ndarray | None = None
+                ) -> np.ndarray:
+        """Marker points (N, 3) mm at the commanded joint angles ``q_cmd`` (N, 6); each
+        joint's ``approach`` side (N, 6; +1, -1, 0: unknown) where the rows record it."""
+        truth, masses = self.truth, np.asarray(self.truth.masses_kg)
+        down = np.array([0.0, 0.0, -1.0])
+        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
+        if truth.encoder_eccentricity:
+            q = q + physics.encoder_error(q_cmd, truth.encoder_eccentricity, self.phase)
+        if truth.joint_play_rad:
+            tau = physics.gravity_torques(self.base_robot, self.x_base, "arm", q, masses, down)
+            q = q + physics.play_offsets(tau, truth.joint_play_rad, truth.play_stick_nmm,
+                                         approach_rng, approach)
+        if truth.compliance:
+            q = q + physics.gravity_deflection(self.base_robot, self.x_base, "arm", q, masses,
+                                               np.asarray(truth.stiffness_nmm_per_rad), down)
+        p = np.asarray(self.robot.compiled_points("arm")(jnp.asarray(self.x_true),
+                                                         jnp.asarray(q)))
+        return p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+
+
 def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
     """Write rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(truth.seed)
-    nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
-                         marker=truth.marker_nominal_mm, instrument=truth.instrument_nominal)
-    robot = Robot({"arm": nominal}, 3)
-    x_true = true_parameters(robot, truth, rng)
-    # The instrument sees gravity along -z of the robot base; frames for torques are taken with
-    # the base at the identity so that direction holds.
-    base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")}, 3)
-    x_base = x_true.copy()
-    x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
-    phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(-np.pi, np.pi,
-                                                                                6)
+    plant = _Arm6Plant.build(truth, rng)
     if truth.encoder_eccentricity:
-        truth.encoder_phase_rad = tuple(float(v) for v in phase)
+        truth.encoder_phase_rad = tuple(float(v) for v in plant.phase)
     approach = np.random.default_rng([truth.seed, physics.PLAY_STREAM])
-    masses = np.asarray(truth.masses_kg)
-    down = np.array([0.0, 0.0, -1.0])
     rows = []
     for set_name, n in (("train", truth.n_train), ("validation", truth.n_validation),
                         ("holdout", truth.n_holdout)):
         if n == 0:
             continue
         q_cmd = random_poses(rng, n)
-        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
-        if truth.encoder_eccentricity:
-            q = q + physics.encoder_error(q_cmd, truth.encoder_eccentricity, phase)
-        if truth.joint_play_rad:
-            tau = physics.gravity_torques(base_robot, x_base, "arm", q, masses, down)
-            q = q + physics.play_offsets(tau, truth.joint_play_rad, truth.play_stick_nmm,
-                                         approach)
-        if truth.compliance:
-            q = q + physics.gravity_deflection(base_robot, x_base, "arm", q, masses,
-                                               np.asarray(truth.stiffness_nmm_per_rad), down)
-        p = np.asarray(robot.compiled_points("arm")(jnp.asarray(x_true), jnp.asarray(q)))
-        p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+        p = plant.measure(q_cmd, rng, approach)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
     write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
-    truth.true_params = {name: float(v) for name, v in zip(robot.layout.names, x_true,
-                                                            strict=True)}
+    truth.true_params = {name: float(v) for name, v in zip(plant.robot.layout.names,
+                                                            plant.x_true, strict=True)}
     doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
     (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": doc}))
     return out
+
+
+POSES_STREAM = 9  # the noise of rows measured at given poses: apart from the rig's own
+
+
+def approach_sides(q_cmd: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """Each joint's approach side (N, n): the sign of its move from the command before (the
+    row before, or ``previous`` for the first; 0 where that is unknown or it did not move)."""
+    before = np.vstack([np.full((1, q_cmd.shape[1]), np.nan) if previous is None
+                        else np.asarray(previous, float)[None], q_cmd[:-1]])
+    return np.nan_to_num(np.sign(q_cmd - before))
+
+
+def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarray,
+                        seed: int = 0) -> int:
+    """Measure the joint commands ``q_cmd`` (N, 6), in this order, on the simulated arm6 in
+    ``rig_dir`` (its truth.toml) and append them to its measurements.csv with their ``sets``
+    and each joint's approach side (``arm_d1..6``, from the command before: the arm moves
+    from pose to pose). Returns the rows appended."""
+    import tomllib
+
+    out = Path(rig_dir)
+    table = dict(tomllib.loads((out / "truth.toml").read_text())["chain_truth"])
+    names = [f.name for f in ChainTruth.__dataclass_fields__.values()]
+    truth = ChainTruth(**{k: (tuple(v) if isinstance(v, list) else v)
+                          for k, v in table.items() if k in names})
+    rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
+    plant = _Arm6Plant.build(truth, rng)
+    path = out / "measurements.csv"
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    header, body = rows[0], rows[1:]
+    cmd_cols = [f"arm_u{k + 1}" for k in range(6)]
+    dir_cols = [f"arm_d{k + 1}" for k in range(6)]
+    if dir_cols[0] not in header:
+        header = [*header, *dir_cols]
+        body = [r + [""] * 6 for r in body]
+    idx = {h: i for i, h in enumerate(header)}
+    previous = (np.array([float(body[-1][idx[c]]) for c in cmd_cols]) if body else None)
+    approach = approach_sides(np.asarray(q_cmd, float), previous)
+    p = plant.measure(np.asarray(q_cmd, float), rng, rng, approach)
+    for s, qc, d, pc in zip(sets, q_cmd, approach, p, strict=True):
+        row = [""] * len(header)
+        row[idx["config"]], row[idx["set"]] = "arm", s
+        for c, v in zip(cmd_cols, qc, strict=True):
+            row[idx[c]] = f"{v:.10g}"
+        for c, v in zip(dir_cols, d, strict=True):
+            row[idx[c]] = f"{v:g}"
+        for a, v in zip("xyz", pc, strict=True):
+            row[idx[a]] = f"{v:.4f}"
+        body.append(row)
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows([header, *body])
+    tmp = path.with_suffix(".csv.tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+    return len(q_cmd)
 
 
 def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],

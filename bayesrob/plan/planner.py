@@ -1,0 +1,270 @@
+"""``bayesrob plan``: choose the poses to measure next, and write them as ``poses.csv``.
+
+Given what a rig has measured already (possibly nothing) and the parameter groups its
+calibration will fit, the planner linearises the calibration at the nominal robot (the
+compliances at one typical size, so the effects that gravity drives show their signature),
+scores every candidate pose by :mod:`bayesrob.plan.criteria` and picks them greedily
+(:mod:`bayesrob.plan.greedy`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import time
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bayesrob import kinematics as kin
+from bayesrob.calibrate.least_squares import link_mask, with_gravity
+from bayesrob.plan.criteria import PRIOR_SD, Accuracy, Discriminate, Identify
+from bayesrob.plan.greedy import Selection, greedy
+from bayesrob.plan.pool import Pool, command_limits, read_pool, read_text, sample_pool
+from bayesrob.predict.aiming import aim
+from bayesrob.rig import Measurements, Rig, RigError, parse_number
+from bayesrob.vocabulary import CHAIN_EFFECTS, GROUPS
+
+DEFAULT_SAMPLES = 2000
+DEFAULT_NOISE_MM = 0.1
+BASE_GROUPS = ("frames", "geometric")  # the model whose rivals ``discriminate`` separates
+SOFT_GROUPS = ("compliance", "lateral")  # linearised at one typical size, not at zero
+
+
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _jacobian_program(structure: kin.RobotStructure, arm: str, values: dict, x: jax.Array,
+                      u: jax.Array, side: dict | None) -> jax.Array:
+    return structure.robot(values).marker_jacobian(x, arm, u, side)
+
+
+# rows per call of the compiled Jacobian: one program serves pools and rigs of any size
+CHUNK = 512
+
+
+def pose_jacobians(robot: kin.Robot, x: np.ndarray, pool: Pool) -> np.ndarray:
+    """d marker / d parameters (N, dim, P) at every pose of ``pool``."""
+    out = np.zeros((len(pool), robot.dim, len(x)))
+    for arm in dict.fromkeys(pool.config.tolist()):
+        rows = np.flatnonzero(pool.config == arm)
+        side = pool.side(robot, arm, rows)
+        u = pool.columns(robot, arm, rows)
+        for start in range(0, len(rows), CHUNK):
+            part = np.arange(start, min(start + CHUNK, len(rows)))
+            pad = np.concatenate([part, np.full(CHUNK - len(part), part[-1])])
+            jac = _jacobian_program(
+                robot.structure, arm, robot.nominal_values, jnp.asarray(x),
+                jnp.asarray(u[pad]),
+                None if side is None else {b: jnp.asarray(v[pad]) for b, v in side.items()})
+            out[rows[part]] = np.asarray(jac)[: len(part)]
+    return out
+
+
+def measured_pool(rig: Rig, set: str = "train") -> Pool:
+    """A rig's rows of one set as a pool (the poses measured already, or a task region)."""
+    meas = rig.measurements
+    m = meas.set == set
+    return Pool(meas.config[m], {c: u[m] for c, u in meas.commands.items()}, [], [], set)
+
+
+@dataclass
+class Plan:
+    """The planned poses (pool rows, best first) and what the criterion predicts of them."""
+
+    criterion: str
+    groups: tuple[str, ...]
+    pool: Pool
+    selection: Selection
+    unit: str
+    noise_mm: float
+    n_measured: int
+    seconds: float
+    effects: list[str] = field(default_factory=list)
+
+    @property
+    def before(self) -> float:
+        return self.selection.before
+
+    @property
+    def after(self) -> float:
+        return float(self.selection.values[-1])
+
+    def to_dict(self) -> dict:
+        return {"criterion": self.criterion, "params": list(self.groups),
+                "effects": self.effects, "n": len(self.selection.order),
+                "pool": self.pool.source, "pool_size": len(self.pool),
+                "n_measured": self.n_measured, "noise_mm": self.noise_mm, "unit": self.unit,
+                "before": self.before, "after": self.after,
+                "values": self.selection.values.tolist(),
+                "gains": self.selection.gains.tolist(), "seconds": self.seconds}
+
+    def summary(self) -> str:
+        what = {"accuracy": "predicted end-point error over the task region",
+                "identify": "log det of the parameters' information",
+                "discriminate": "summed log det of the effects' own information"}[
+            self.criterion]
+        return (f"{self.criterion}: {what}: {self.before:.4g} {self.unit} before "
+                f"({self.n_measured} rows measured), {self.after:.4g} {self.unit} after the "
+                f"{len(self.selection.order)} planned poses (from {len(self.pool)} "
+                f"candidates, {self.seconds:.1f} s)")
+
+
+def resolve_groups(rig: Rig, groups: tuple[str, ...] | None, criterion: str
+                   ) -> tuple[tuple[str, ...], list[str]]:
+    """The groups the planned calibration fits (frames always) and, for ``discriminate``,
+    the candidate effects beside them (every chain effect the base does not fit)."""
+    base = tuple(groups) if groups else (BASE_GROUPS if criterion == "discriminate" else GROUPS)
+    effects = ([e for e, g in CHAIN_EFFECTS.items() if g not in base]
+               if criterion == "discriminate" else [])
+    fitted = {"frames", *base, *(CHAIN_EFFECTS[e] for e in effects)}
+    return tuple(g for g in kin.ALL_GROUPS if g in fitted), effects
+
+
+def _linearisation(rig: Rig, groups: tuple[str, ...]) -> tuple[kin.Robot, np.ndarray,
+                                                                np.ndarray]:
+    """The robot, the parameter vector the plan linearises at, and the fitted parameters."""
+    sags = bool(set(kin.SAG_GROUPS) & set(groups))
+    robot = with_gravity(rig) if sags else rig.robot
+    layout = robot.layout
+    x = layout.nominal.copy()
+    soft = layout.group_mask(tuple(g for g in SOFT_GROUPS if g in groups))
+    x[soft] += layout.scales[soft]
+    free = layout.group_mask(groups)
+    if sags:
+        free |= link_mask(layout)
+    return robot, x, free
+
+
+def _task_pool(path: str | Path, rig: Rig, pool: Pool, robot: kin.Robot, x: np.ndarray,
+               limits: dict) -> Pool:
+    """A task file: poses (command columns) or targets (``x,y[,z]``), a target aimed at from
+    the pool's nearest poses and refused in one line where no pose of the pool's range
+    reaches it."""
+    path = Path(path)
+    text = read_text(path, "task")
+    header = [h.strip() for h in next(csv.reader(io.StringIO(text)), [])]
+    axes = "xyz"[:robot.dim]
+    if not all(a in header for a in axes):
+        return read_pool(path, rig, limits, "task", text)
+    measured = robot.measured_arms()
+    rows = [r for r in csv.DictReader(io.StringIO(text)) if any((v or "").strip()
+                                                                 for v in r.values())]
+    if not rows:
+        raise RigError(f"{path}: no rows in the task file")
+    targets = np.array([[parse_number(r[a] or "", f"{path}: line {i + 2}", a) for a in axes]
+                        for i, r in enumerate(rows)])
+    config = np.array([(r.get("config") or measured[0]).strip() for r in rows])
+    # the pool as a rig whose train rows are the pool's poses at their nominal end points:
+    # the aim starts from the nearest and stays inside the pool's range of commands
+    seen = np.concatenate([np.asarray(robot.marker_points(
+        jnp.asarray(x), a, jnp.asarray(pool.columns(robot, a, pool.config == a))))
+        if (pool.config == a).any() else np.zeros((0, robot.dim)) for a in measured])
+    cfg = np.concatenate([pool.config[pool.config == a] for a in measured])
+    cmds = {c: np.concatenate([pool.commands[c][pool.config == a] for a in measured])
+            for c in pool.commands}
+    pool_rig = Rig(rig.name, rig.arms, Measurements(cfg, np.full(len(cfg), "train"),
+                                                    np.full_like(seen, np.nan), cmds, seen,
+                                                    np.arange(len(cfg))), robot=robot)
+    commands = {c: np.full((len(rows), ch.n_columns), np.nan) for c, ch in robot.chains.items()}
+    for arm in dict.fromkeys(config.tolist()):
+        if arm not in measured:
+            raise RigError(f"{path}: column 'config' = {arm!r} is not a measured arm of the "
+                           f"rig ({', '.join(measured)})")
+        if not (pool.config == arm).any():
+            raise RigError(f"{path}: arm {arm!r} has no pose in the pool to aim from")
+        m = config == arm
+        try:
+            u = aim(pool_rig, robot, x, arm, targets[m])
+        except (RigError, ValueError) as exc:
+            raise RigError(f"{path}: {exc}") from None
+        col = 0
+        for c in robot.path(arm):
+            commands[c.name][m] = u[:, col:col + c.n_columns]
+            col += c.n_columns
+        # the rest of the pose (what the other arms weigh) as the nearest pool pose has it
+        near = np.flatnonzero(pool.config == arm)[np.argmin(np.linalg.norm(
+            pool.columns(robot, arm, pool.config == arm)[None] - u[:, None], axis=-1), axis=1)]
+        for c in pool.commands:
+            if np.isnan(commands[c][m]).all():
+                commands[c][m] = pool.commands[c][near]
+    return Pool(config, commands, [], [], str(path))
+
+
+def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
+               groups: tuple[str, ...] | None = None, pool: str | Path | None = None,
+               samples: int | None = None, task: str | Path | None = None, seed: int = 0,
+               noise_mm: float = DEFAULT_NOISE_MM) -> Plan:
+    """Choose ``n`` poses for ``rig`` (see the module's docstring); bad input is a
+    :class:`~bayesrob.rig.RigError` naming file, row and column."""
+    t0 = time.perf_counter()
+    if criterion not in ("accuracy", "identify", "discriminate"):
+        raise RigError(f"unknown criterion {criterion!r} (accuracy, identify, discriminate)")
+    if n < 1:
+        raise RigError(f"--n must be at least 1, not {n}")
+    groups, effects = resolve_groups(rig, groups, criterion)
+    limits = command_limits(rig)
+    cands = (read_pool(pool, rig, limits) if pool is not None else
+             sample_pool(rig, limits, samples or DEFAULT_SAMPLES, np.random.default_rng(seed)))
+    if n > len(cands):
+        raise RigError(f"--n {n} is more poses than the pool's {len(cands)} ({cands.source})")
+    robot, x, free = _linearisation(rig, groups)
+    scale = robot.layout.scales
+
+    def jac(p: Pool) -> np.ndarray:
+        return pose_jacobians(robot, x, p)[:, :, free] * scale[free]
+
+    measured = measured_pool(rig)
+    j_meas = jac(measured) if len(measured) else np.zeros((0, robot.dim, int(free.sum())))
+    j_cand = jac(cands)
+    j_task = (jac(_task_pool(task, rig, cands, robot, x, limits))
+              if task is not None and criterion == "accuracy" else j_cand)
+    # parameters no row here moves (another arm's, a mass no compliance shows) keep their
+    # prior whatever is measured: left out, they cost the greedy steps nothing
+    seen = np.zeros(int(free.sum()), bool)
+    for j in (j_meas, j_cand, j_task):
+        seen |= np.abs(j).max(axis=(0, 1), initial=0.0) > 0
+    j_meas, j_cand, j_task = (j[:, :, seen] for j in (j_meas, j_cand, j_task))
+    free[np.flatnonzero(free)[~seen]] = False
+    info = np.eye(int(free.sum())) / PRIOR_SD**2
+    if len(measured):
+        j0 = j_meas.reshape(-1, int(free.sum())) / noise_mm
+        info += j0.T @ j0
+    if criterion == "accuracy":
+        crit = Accuracy(np.einsum("ndp,ndq->pq", j_task, j_task) / len(j_task))
+    elif criterion == "identify":
+        crit = Identify()
+    else:
+        names = np.array([p.group for p in robot.layout.params])[free]
+        crit = Discriminate({e: np.flatnonzero(names == CHAIN_EFFECTS[e]) for e in effects
+                             if (names == CHAIN_EFFECTS[e]).any()})
+        if not crit.effects:
+            raise RigError("discriminate: no candidate effect beside the groups "
+                           f"{', '.join(groups)}")
+    sel = greedy(j_cand / noise_mm, info, n, crit)
+    return Plan(criterion, groups, cands, sel, crit.unit, noise_mm, len(measured),
+                time.perf_counter() - t0, effects)
+
+
+def write_poses(plan: Plan, path: str | Path) -> Path:
+    """``poses.csv``: config, set (train), the command columns as the pool wrote them, the
+    pool's other columns, and each pose's gain; written whole or not at all."""
+    pool = plan.pool
+    header = ["config", "set", *[h for h in pool.header if h not in ("config", "set", "gain")],
+              "gain"]
+    idx = {h: i for i, h in enumerate(pool.header)}
+    lines = [header]
+    for k, g in zip(plan.selection.order, plan.selection.gains, strict=True):
+        row = pool.cells[k]
+        lines.append([str(pool.config[k]), "train", *[row[idx[h]] for h in header[2:-1]],
+                      f"{g:.6g}"])
+    path = Path(path)
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows(lines)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+    return path

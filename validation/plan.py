@@ -1,0 +1,154 @@
+"""Planned poses against random ones (``bayesrob plan``, issue 46): held-out error after the
+calibration, against the number of poses measured.
+
+``run_sim``: simulated 6-joint arms (arm6, geometry, offsets, marker and instrument pose
+perturbed; compliance off), one per seed. A pool of 2,000 poses is drawn over the arm's
+working range; the ``accuracy`` plan orders 120 of them; random orders draw 120 from the same
+pool. Each is measured on the simulated arm in its order, and for N in 20..120 the first N
+rows are calibrated (``frames,offsets,geometric,servo``) and scored on 200 holdout poses of
+their own (new poses). A figure per N: the planned error over the median of the random
+draws' (below 1: the plan wins).
+
+``justin_curves``: Agile Justin's 300 train poses (600 rows, one per hand) as the pool, scored on
+its validation poses: the plan's first N rows against random subsets of N and 2N rows.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import numpy as np
+from bayesrob.validation.calibration_chain import true_vector
+
+from bayesrob import release_compiled_programs
+from bayesrob.calibrate.least_squares import calibrate
+from bayesrob.plan import load_plan_rig, plan_poses
+from bayesrob.rig import Measurements, Rig, load_rig
+from bayesrob.sim.rigs import measure_arm6_poses, simulate_chain_rig
+from bayesrob.sim.truth import POSE_HI, POSE_LO, ChainTruth
+
+NS = (20, 40, 60, 80, 100, 120)
+POOL = 2000
+N_RANDOM = 5
+SIM_GROUPS = ("frames", "offsets", "geometric", "servo")
+
+
+def subset(rig: Rig, keep: np.ndarray) -> Rig:
+    """The rig with only the rows ``keep`` (bool, N)."""
+    m = rig.measurements
+    return replace(rig, measurements=Measurements(
+        m.config[keep], m.set[keep], m.target[keep], {c: u[keep] for c, u in m.commands.items()},
+        m.observed[keep], m.line[keep]))
+
+
+def first_train(rig: Rig, n: int) -> Rig:
+    """The rig with its first ``n`` train rows (file order) and every other row."""
+    train = rig.measurements.set == "train"
+    keep = ~train | (np.cumsum(train) <= n) & train
+    return subset(rig, keep)
+
+
+def heldout_error(rig: Rig, groups: Sequence[str], set: str) -> float:
+    """Mean marker error (mm) on the rows of ``set`` after calibrating on the train rows."""
+    release_compiled_programs()
+    cal = calibrate(rig, tuple(groups), polish=False)
+    return float(cal.errors[set]["all"]["mean_mm"])
+
+
+def model_error(rig: Rig, groups: Sequence[str], x_true: np.ndarray, q: np.ndarray) -> float:
+    """Mean distance (mm) between the calibrated and the true arm's marker at poses ``q``:
+    the held-out error without the noise of the rows it is scored on."""
+    import jax.numpy as jnp
+
+    release_compiled_programs()
+    cal = calibrate(rig, tuple(groups), polish=False)
+    f = rig.robot.compiled_points("arm")
+    diff = np.asarray(f(jnp.asarray(cal.x), jnp.asarray(q))) - np.asarray(
+        f(jnp.asarray(x_true), jnp.asarray(q)))
+    return float(np.linalg.norm(diff, axis=1).mean())
+
+
+def _write_pool(path: Path, q: np.ndarray) -> None:
+    lines = ["arm_u1,arm_u2,arm_u3,arm_u4,arm_u5,arm_u6"]
+    lines += [",".join(f"{v:.10g}" for v in row) for row in q]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def sim_curves(seed: int, work: Path, ns: Sequence[int] = NS, n_random: int = N_RANDOM,
+               groups: Sequence[str] = SIM_GROUPS) -> dict[str, Any]:
+    """One simulated arm's held-out errors (mm) at each N: planned, and each random draw."""
+    base = work / "rig"
+    simulate_chain_rig(base, ChainTruth(seed=seed, n_train=0, n_validation=0, n_holdout=200))
+    rng = np.random.default_rng([seed, 46])
+    q = rng.uniform(POSE_LO, POSE_HI, size=(POOL, 6))
+    _write_pool(work / "pool.csv", q)
+    n_max = max(ns)
+    plan = plan_poses(load_plan_rig(base), n_max, pool=work / "pool.csv", groups=tuple(groups))
+    orders = {"planned": plan.selection.order}
+    for r in range(n_random):
+        orders[f"random{r}"] = rng.permutation(POOL)[:n_max]
+    out: dict[str, Any] = {"plan_seconds": plan.seconds, "predicted_mm": plan.after}
+    q_new = rng.uniform(POSE_LO, POSE_HI, size=(200, 6))
+    for name, order in orders.items():
+        d = work / name
+        shutil.copytree(base, d)
+        measure_arm6_poses(d, ["train"] * n_max, q[order], seed=seed)
+        rig = load_rig(d)
+        x_true = true_vector(d, rig)
+        out[name] = [model_error(first_train(rig, n), groups, x_true, q_new) for n in ns]
+    return out
+
+
+def run_sim(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
+    ns = (20, 60) if quick else NS
+    rows = []
+    for seed in seeds:
+        with TemporaryDirectory() as tmp:
+            c = sim_curves(seed, Path(tmp), ns, 2 if quick else N_RANDOM)
+        med = np.median([c[k] for k in c if k.startswith("random")], axis=0)
+        rows.append({"seed": seed, "planned_mm": c["planned"], "random_median_mm": med.tolist(),
+                     "plan_seconds": c["plan_seconds"]})
+        say(f"seed {seed}: planned {np.round(c['planned'], 3).tolist()} random median "
+            f"{np.round(med, 3).tolist()} mm at N={list(ns)}")
+    ratio = np.array([np.array(r["planned_mm"]) / np.array(r["random_median_mm"])
+                      for r in rows])
+    figures: dict[str, Any] = {f"ratio_n{n}": float(np.median(ratio[:, i]))
+                               for i, n in enumerate(ns)}
+    figures["worst_ratio"] = float(ratio.max())
+    figures["planned_wins_share"] = float(np.mean(ratio < 1.0))
+    figures["details"] = {"ns": list(ns), "rigs": rows}
+    return figures
+
+
+def justin_curves(rig_dir: Path, groups: Sequence[str], ns: Sequence[int], n_random: int,
+                  seed: int, criterion: str = "accuracy") -> dict[str, Any]:
+    """Agile Justin: the ``criterion`` plan's first N train rows, and random subsets of N and
+    2N rows, each calibrated with ``groups`` and scored on the validation rows (mean mm)."""
+    rig = load_rig(rig_dir)
+    train = rig.measurements.set == "train"
+    pool_rows = np.flatnonzero(train)
+    lines = (rig_dir / "measurements.csv").read_text().splitlines()
+    set_col = lines[0].split(",").index("set")
+    pool = rig_dir / "pool.csv"
+    pool.write_text("\n".join([lines[0], *(ln for ln in lines[1:]
+                                            if ln.split(",")[set_col] == "train")]) + "\n")
+    plan = plan_poses(subset(rig, ~train), max(ns), criterion=criterion, pool=pool,
+                      groups=tuple(groups))
+
+    def score(chosen: np.ndarray) -> float:
+        keep = ~train
+        keep[pool_rows[chosen]] = True
+        return heldout_error(subset(rig, keep), groups, "validation")
+
+    rng = np.random.default_rng(seed)
+    out: dict[str, Any] = {"ns": list(ns), "plan_seconds": plan.seconds,
+                           "planned": [score(plan.selection.order[:n]) for n in ns]}
+    for k in (1, 2):
+        out[f"random_{k}n"] = [[score(rng.permutation(len(pool_rows))[:k * n])
+                                for _ in range(n_random)] for n in ns]
+    return out
