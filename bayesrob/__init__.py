@@ -8,7 +8,7 @@ It also turns on JAX's persistent compilation cache, so a new process reuses the
 programs earlier ones compiled (a KDE fit then costs its run time, not the 0.4-0.5 s of
 XLA compilation). The cache lives in ``$XDG_CACHE_HOME/bayesrob`` (default
 ``~/.cache/bayesrob``): JAX's entries in ``jax/``, the KDE bandwidth objectives as loadable
-executables in ``executables/`` (see :mod:`bayesrob.kde`). ``BAYESROB_CACHE_DIR`` moves it,
+executables in ``executables/`` (see :mod:`bayesrob.errors.kde`). ``BAYESROB_CACHE_DIR`` moves it,
 ``BAYESROB_NO_CACHE=1`` turns it off, and a cache directory set through JAX's own
 configuration is left alone. The cache holds executable code: keep it in a directory only
 you can write to.
@@ -34,14 +34,14 @@ __version__ = "0.1.0"
 # imported on first use, so ``import bayesrob`` (and every command's argument errors) stays
 # free of JAX and the rest of the numerical stack. docs/api.md walks through them.
 _API = {
-    "Rig": "rig", "Measurements": "rig", "ArmSpec": "rig", "RigError": "rig",
-    "load_rig": "rig", "default_rig_dir": "rig",
-    "Robot": "kinematics", "Chain": "kinematics", "urdf_chain": "kinematics",
-    "dh_chain": "kinematics", "GROUPS": "kinematics",
+    "Rig": "data.rig", "Measurements": "data.rig", "ArmSpec": "data.rig",
+    "RigError": "data.rig", "load_rig": "data.rig", "default_rig_dir": "data.rig",
+    "Robot": "robot", "Chain": "robot", "urdf_chain": "robot", "dh_chain": "robot",
+    "GROUPS": "robot",
     "Calibration": "calibrate", "calibrate_arms": "calibrate",
-    "predict_assembly": "predict.assembly", "compare_models": "comparison",
-    "sample_linked": "inference", "diagnose_rig": "diagnose.refits",
-    "diagnose_groups": "diagnose.groups", "discover_models": "noise_models",
+    "predict_assembly": "predict.assembly", "compare_models": "compare.comparison",
+    "sample_linked": "inference.sampling", "diagnose_rig": "diagnose.refits",
+    "diagnose_groups": "diagnose.groups", "discover_models": "errors.noise_models",
 }
 __all__ = ["__version__", "cache_dir", "release_compiled_programs", "calibrate", *_API]
 

@@ -17,7 +17,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
-from bayesrob.output_paths import (
+from bayesrob.data.vocabulary import (
+    ALL_GROUPS,
+    CHAIN_EFFECTS,
+    DEFAULT_FUSION,
+    EFFECTS,
+    FUSIONS,
+    MASS_SOURCES,
+)
+from bayesrob.progress import FIRST_LINE_S
+from bayesrob.report.output_paths import (
     DIRECTORY,
     FILE,
     OutputPathError,
@@ -25,15 +34,6 @@ from bayesrob.output_paths import (
     save_figure,
     staged_directory,
     write_text,
-)
-from bayesrob.progress import FIRST_LINE_S
-from bayesrob.vocabulary import (
-    ALL_GROUPS,
-    CHAIN_EFFECTS,
-    DEFAULT_FUSION,
-    EFFECTS,
-    FUSIONS,
-    MASS_SOURCES,
 )
 
 # name -> (one-line help, add_arguments(parser), run(args) -> exit code)
@@ -165,7 +165,7 @@ def _load_rig_arg(path: str | None, chains: bool = True):
     ``chains`` False: the command is the paper's (reproduce: its Figures 3-8 are of planar
     arms), and a URDF/DH rig is refused with one line rather than failing deep inside.
     """
-    from bayesrob.rig import default_rig_dir, load_rig
+    from bayesrob.data.rig import default_rig_dir, load_rig
 
     rig = load_rig(path if path is not None else default_rig_dir())
     if rig.is_chain and not chains:
@@ -360,7 +360,7 @@ def _simulate_poses(args: argparse.Namespace, out_dir: Path, poses: Path) -> int
     _simulate_args)
 def _simulate(args: argparse.Namespace) -> int:
 
-    from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE
+    from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE
     from bayesrob.sim.rigs import simulate_rig
     from bayesrob.sim.truth import TRUTH_FILE, paper_truth, three_arm_truth
 
@@ -462,10 +462,10 @@ def _param_groups(text: str) -> tuple[str, ...]:
 
 def _calibrate_groups(args: argparse.Namespace, rig) -> int:
     from bayesrob.calibrate.least_squares import calibrate, calibrated_rig_document
-    from bayesrob.kinematics import GROUPS, OPTIONAL_GROUPS, write_urdf
+    from bayesrob.data.rig import dump_toml
     from bayesrob.progress import progress
-    from bayesrob.report import format_chain_calibration
-    from bayesrob.rig import dump_toml
+    from bayesrob.report.tables import format_chain_calibration
+    from bayesrob.robot import GROUPS, OPTIONAL_GROUPS, write_urdf
 
     if args.method == "hill-climb":
         raise UsageError("--method hill-climb is the paper's eight-parameter planar fit; "
@@ -514,9 +514,9 @@ def _calibrate_groups(args: argparse.Namespace, rig) -> int:
 @command("calibrate", "fit each arm's parameters (planar, URDF or DH arms) and report accuracy")(
     _calibrate_args)
 def _calibrate(args: argparse.Namespace) -> int:
-    from bayesrob.outputs import calibration_report
     from bayesrob.progress import progress
-    from bayesrob.report import format_calibration
+    from bayesrob.report.outputs import calibration_report
+    from bayesrob.report.tables import format_calibration
 
     rig = _load_rig_arg(args.rig)
     if rig.is_chain or args.params is not None or args.urdf_out:
@@ -556,16 +556,16 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
 @command("reproduce", "run the paper end to end: calibrate, fit IND/CORR/COND, predict, "
                       "write Figures 3-8 and accuracy.json")(_reproduce_args)
 def _reproduce(args: argparse.Namespace) -> int:
-    from bayesrob.noise_models import ModelFileError
-    from bayesrob.outputs import write_reproduction
-    from bayesrob.predict.grid import Grid
-    from bayesrob.report import grouped_notes
-    from bayesrob.reproduction import (
+    from bayesrob.errors.noise_models import ModelFileError
+    from bayesrob.paper.reproduction import (
         bound_notes,
         format_accuracy,
         grid_warnings,
         run_reproduction,
     )
+    from bayesrob.predict.grid import Grid
+    from bayesrob.report.outputs import write_reproduction
+    from bayesrob.report.tables import grouped_notes
 
     rig = _load_rig_arg(args.rig, chains=False)
     try:
@@ -830,9 +830,9 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
 def _diagnose(args: argparse.Namespace) -> int:
     from bayesrob.diagnose.groups import DiagnosisError, diagnose_groups, parse_published
     from bayesrob.diagnose.refits import diagnose
-    from bayesrob.effects import resolve_effects
-    from bayesrob.outputs import write_diagnosis_report
-    from bayesrob.report import format_diagnosis, format_group_diagnosis
+    from bayesrob.report.outputs import write_diagnosis_report
+    from bayesrob.report.tables import format_diagnosis, format_group_diagnosis
+    from bayesrob.robot.effects import resolve_effects
 
     rig = _load_rig_arg(args.rig)
     published = None
@@ -877,9 +877,9 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
     """``diagnose --plan N``: poses that tell apart what the diagnosis could not. The named
     effects without a rival within noise join the base model; every other chain effect (the
     named ones with rivals, their rivals, the candidates not named) is to be told apart."""
+    from bayesrob.data.vocabulary import CHAIN_EFFECTS
     from bayesrob.plan import plan_poses, write_poses
     from bayesrob.plan.planner import BASE_GROUPS
-    from bayesrob.vocabulary import CHAIN_EFFECTS
 
     settled = [s["effect"] for s in doc["steps"] if not s.get("rivals")]
     base = (*BASE_GROUPS, *(CHAIN_EFFECTS[e] for e in settled))
@@ -932,8 +932,8 @@ def _sample(args: argparse.Namespace) -> int:
     # the samplers' libraries take a second or two to import: a clock until sample_linked's own
     with progress(None, "sample", enabled=_progress(args), postfix="loading",
                   first_after=FIRST_LINE_S) as loading:
-        from bayesrob.inference import format_sample, sample_linked
-        from bayesrob.noise_models import ModelFileError
+        from bayesrob.errors.noise_models import ModelFileError
+        from bayesrob.inference.sampling import format_sample, sample_linked
 
         rig = _load_rig_arg(args.rig)
         loading.close(done=False)
@@ -1000,7 +1000,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
 @command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
                     "before it is built, from its modules' single-arm rows")(_predict_args)
 def _predict(args: argparse.Namespace) -> int:
-    from bayesrob.noise_models import ModelFileError
+    from bayesrob.errors.noise_models import ModelFileError
     from bayesrob.predict.assembly import (
         assembly_figure,
         grid_targets,
@@ -1050,9 +1050,9 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
 @command("compare", "score every joint-error model on held-out end points and by "
                     "leave-one-out, with arviz's comparison table")(_compare_args)
 def _compare(args: argparse.Namespace) -> int:
-    from bayesrob.comparison import compare_models, comparison_figure, format_comparison
-    from bayesrob.noise_models import ModelFileError
-    from bayesrob.rig import RigError
+    from bayesrob.compare.comparison import compare_models, comparison_figure, format_comparison
+    from bayesrob.data.rig import RigError
+    from bayesrob.errors.noise_models import ModelFileError
 
     rig = _load_rig_arg(args.rig)
     try:
@@ -1110,7 +1110,7 @@ def _design(args: argparse.Namespace) -> int:
                   first_after=FIRST_LINE_S):
         from bayesrob.design.modules import load_modules
         from bayesrob.design.search import run_design, write_candidate_rig
-        from bayesrob.plots.design import design_figure
+        from bayesrob.report.plots.design import design_figure
 
         try:
             modules = load_modules(design)
@@ -1347,7 +1347,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         # A RigError can only come from the rig module, imported by the commands that read
         # one: looked up here so that argument errors never import it.
-        rig = sys.modules.get("bayesrob.rig")
+        rig = sys.modules.get("bayesrob.data.rig")
         if not isinstance(exc, UsageError | OutputPathError) and not (
                 rig and isinstance(exc, rig.RigError)):
             raise

@@ -26,7 +26,7 @@ WARM_TARGET_S, FRESH_TARGET_S = 10.0, 30.0
 FRESH = """
 import time, json, sys
 t0 = time.perf_counter()
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
 from bayesrob.calibrate.least_squares import calibrate
 t1 = time.perf_counter()
 rig = load_rig(sys.argv[1])

@@ -84,7 +84,7 @@ from bayesrob.validation.design_proof import (
     proof,
 )
 
-from bayesrob.kinematics import MASS_SOURCES
+from bayesrob.robot import MASS_SOURCES
 
 TUNING_EVERY = 10  # one multi-arm candidate in this many is built (all single arms are)
 SCALE_CANDIDATES = 1000

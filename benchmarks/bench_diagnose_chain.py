@@ -40,8 +40,8 @@ def main() -> None:
     p.add_argument("--sag-steps", type=int, default=1,
                    help="torque steps of the ladder's fits with gravity (the target is for 1)")
     args = p.parse_args()
+    from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.rig import load_rig
     from bayesrob.sim.truth import ChainTruth
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -6,7 +6,7 @@ One JSON line per (method, number of targets) on the embedded default rig: the f
 target alone, then all 16 targets. Every timing is warm: compilation is done first and
 reported separately (``compile_s``), and each method runs once untimed before the timed run.
 
-- ``grid``: :func:`bayesrob.inference.grid_posterior` (the checks' reference: a coarse
+- ``grid``: :func:`bayesrob.inference.sampling.grid_posterior` (the checks' reference: a coarse
   +-30 mm grid, then a zoomed grid over the mass) and, for comparison, the paper's plain
   100 x 100 grid (:func:`bayesrob.predict.grid.predict`).
 - ``nuts``: numpyro's NUTS with the package defaults (4 chains x (300 warm-up + 4000 draws)
@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import bayesrob  # noqa: F401  (float64)
-from bayesrob import inference as inf
 from bayesrob.calibrate.arms import calibrate_arms
-from bayesrob.noise_models import discover_models, fit_noise_models
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.noise_models import discover_models, fit_noise_models
+from bayesrob.inference.sampling import sampling as inf
 from bayesrob.predict.grid import Grid, predict
-from bayesrob.rig import default_rig_dir, load_rig
 
 
 def emit(**fields) -> None:

@@ -1,4 +1,4 @@
-"""Benchmark bayesrob.kde against statsmodels and scipy; one JSON line per case.
+"""Benchmark bayesrob.errors.kde against statsmodels and scipy; one JSON line per case.
 
     python benchmarks/bench_kde.py [--quick] [--case CASE ...] [--sizes N ...]
 
@@ -78,7 +78,7 @@ def logpdf_data(n: int, m: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _fit_fn(case: str, n: int):
-    from bayesrob.kde import KDE, ConditionalKDE
+    from bayesrob.errors.kde import KDE, ConditionalKDE
 
     if case == "loo-ml-diag":
         data = skewed_bimodal(n)
@@ -101,7 +101,7 @@ def _worker(case: str, mode: str, sizes: list[int], m: int, repeats: int) -> dic
     import jax.numpy as jnp
 
     import bayesrob  # noqa: F401
-    from bayesrob.kde import KDE
+    from bayesrob.errors.kde import KDE
 
     jnp.zeros(1).block_until_ready()  # backend start-up is not compilation
     startup = time.perf_counter() - t0

@@ -52,8 +52,8 @@ def main() -> None:
         print(json.dumps(three_arm_study(seeds, tuple(args.params.split(",")), model)))
         return
 
+    from bayesrob.data.rig import default_rig_dir, load_rig
     from bayesrob.predict.assembly import predict_assembly
-    from bayesrob.rig import default_rig_dir, load_rig
 
     rig = load_rig(default_rig_dir())
     targets = rig.config_rows("top+bottom", "test")["target"]

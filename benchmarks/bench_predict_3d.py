@@ -77,7 +77,7 @@ from bayesrob.validation.linked_chain import (
     coverage,
 )
 
-from bayesrob.kinematics import MASS_SOURCES
+from bayesrob.robot import MASS_SOURCES
 
 WARM_TARGET_S = 5.0  # issue 45
 # (centre, per-joint log sd, arm term's centre, arm term's log sd), as chosen_prior() names them
@@ -169,11 +169,11 @@ def main() -> None:
                                   MANY_LINKED if args.many_rigs else None)))
         return
 
+    from bayesrob.data.rig import load_rig
     from bayesrob.predict.aiming import aim
     from bayesrob.predict.assembly import predict_assembly
     from bayesrob.predict.draws import assembly_draws, fit_modules
     from bayesrob.predict.regions import hdr_sizes
-    from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth
 

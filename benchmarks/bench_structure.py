@@ -64,7 +64,7 @@ def memory(n_robots: int, tmp: Path) -> None:
     import bayesrob
     from bayesrob.calibrate import least_squares
     from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
 
     # off, so the figures show what the programs hold rather than when they were dropped
     least_squares.release_compiled_programs = lambda *a, **k: False

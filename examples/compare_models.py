@@ -21,14 +21,14 @@ import sys
 from pathlib import Path
 
 import bayesrob  # noqa: F401  (64-bit JAX)
-from bayesrob.comparison import (
+from bayesrob.compare.comparison import (
     ModelComparison,
     compare_models,
     comparison_figure,
     format_comparison,
 )
-from bayesrob.inference import format_sample, sample_linked
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.inference.sampling import format_sample, sample_linked
 
 
 def main(rig_dir: str | None = None, out_dir: str | Path = "compare-default") -> ModelComparison:

@@ -16,10 +16,10 @@ import sys
 from pathlib import Path
 
 import bayesrob  # noqa: F401  (64-bit JAX)
+from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.diagnose.refits import Diagnosis, diagnose
-from bayesrob.outputs import write_diagnosis_report
-from bayesrob.report import format_diagnosis
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.report.outputs import write_diagnosis_report
+from bayesrob.report.tables import format_diagnosis
 
 
 def main(report_dir: str | Path = "diagnosis-default") -> Diagnosis:

@@ -1,1 +1,1 @@
-"""Declarative joint-error model files, one per variant; discovered by bayesrob.noise_models."""
+"""Declarative joint-error model files, one per variant; read by bayesrob.errors.noise_models."""

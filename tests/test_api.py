@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import bayesrob
-from bayesrob.rig import Measurements, Rig, RigError, default_rig_dir, load_rig
+from bayesrob.data.rig import Measurements, Rig, RigError, default_rig_dir, load_rig
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth
 

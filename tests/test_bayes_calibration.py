@@ -14,8 +14,8 @@ import pytest
 from bayesrob.validation.calibration_sbc import narrowed_ranks
 
 from bayesrob.calibrate import bayes as bc
-from bayesrob.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
+from bayesrob.report.outputs import CALIBRATION_METHODS, calibrate_rig, calibration_report
 from bayesrob.sim.truth import Truth
 
 ARMS = ("top", "bottom")

@@ -7,10 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms, mean_ci95
-from bayesrob.outputs import calibration_report
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
+from bayesrob.report.outputs import calibration_report
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 
@@ -73,7 +73,7 @@ def test_hill_climb_baseline_fits_and_stops(clean_rig):
 
 
 def test_linked_arms_are_more_accurate_on_the_default_rig():
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     rig = load_rig(default_rig_dir())
     acc = calibration_report(rig)["accuracy"]
@@ -135,7 +135,7 @@ def test_the_eight_parameters_are_the_group_fit_of_the_arms_chain():
     from fractions import Fraction
 
     from bayesrob.calibrate.arms import calibrate_arm
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     rig = load_rig(default_rig_dir())
     spec = rig.arms["top"]

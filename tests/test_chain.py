@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob import kinematics as kin
-from bayesrob.rig import Rig, default_rig_dir, dump_toml, load_rig, load_rig_toml
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig, default_rig_dir, dump_toml, load_rig, load_rig_toml
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
 

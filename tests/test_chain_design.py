@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from bayesrob.cli import main
+from bayesrob.data.rig import load_rig
 from bayesrob.design.file import load_design
 from bayesrob.design.modules import load_modules
 from bayesrob.design.search import (
@@ -33,7 +34,6 @@ from bayesrob.design.search import (
     write_candidate_rig,
 )
 from bayesrob.predict.fusion import equilibrium
-from bayesrob.rig import load_rig
 
 RIG_TRUTH = dict(seed=0, n_train=40, n_validation=10, n_holdout=10, n_linked=8)
 FAR = [3000.0, 0.0, 0.0]  # no arm6 (about 1 m of reach) serves a task 2.5 m away
@@ -184,7 +184,7 @@ def test_equal_robots_built_apart_share_one_compiled_program(rig_dir, monkeypatc
     apart (another value, of the same structure), runs the program the first traced and
     computes its own points, while a robot one axis apart (another structure) traces its
     own."""
-    from bayesrob import kinematics as kin
+    from bayesrob import robot as kin
 
     traced = []
     marker_points = kin.Robot.marker_points

@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from bayesrob.calibrate.least_squares import calibrate
 from bayesrob.cli import main
-from bayesrob.rig import MEASUREMENTS_FILE, RigError, load_rig
+from bayesrob.data.rig import MEASUREMENTS_FILE, RigError, load_rig
 from bayesrob.sim.equilibrium import linked_energy, linked_equilibrium, position_ik
 from bayesrob.sim.physics import gravity_deflection
 from bayesrob.sim.rigs import simulate_linked_chain_rig
@@ -421,7 +421,7 @@ def test_linked_arms_true_masses_are_drawn_about_the_urdfs(tmp_path, capsys):
     each arm's are the URDF's times a log-normal factor per link, the same for a seed every
     time and different between the arms. ``--mass-spread`` sets it for arm6 --linked only
     (one line, exit 2, elsewhere)."""
-    from bayesrob.kinematics import urdf_chain
+    from bayesrob.robot import urdf_chain
     from bayesrob.sim.truth import arm6_urdf_path, drawn_masses
 
     described = np.array(urdf_chain(arm6_urdf_path(), "base_link", "tool0", "a")

@@ -12,15 +12,15 @@ import scipy.stats
 import bayesrob.predict.aiming as aiming
 import bayesrob.predict.draws as cp
 import bayesrob.predict.stiffness as st
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.cli import main
+from bayesrob.data.rig import RigError, load_rig
 from bayesrob.predict.aiming import aim
 from bayesrob.predict.assembly import grid_targets, predict_assembly, read_targets
 from bayesrob.predict.draws import assembly_draws, fit_modules
 from bayesrob.predict.grid import hdr_area
 from bayesrob.predict.regions import hdr_levels, hdr_sizes
 from bayesrob.predict.stiffness import StiffnessPrior
-from bayesrob.rig import RigError, load_rig
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth
 
@@ -62,7 +62,7 @@ def test_one_region_routine_serves_grid_cells_and_draws():
 @pytest.mark.parametrize("dim", [2, 3])
 def test_the_population_density_of_a_row_is_scipys_gaussian(dim):
     """The latent fit's closed-form Gaussian log density of residual rows equals scipy's."""
-    from bayesrob.latent_errors import _gaussian_log_density
+    from bayesrob.errors.latent_errors import _gaussian_log_density
 
     rng = np.random.default_rng(dim)
     a = rng.normal(size=(20, dim, dim))
@@ -167,7 +167,7 @@ def test_aim_reaches_targets_with_a_planar_arms_pulse_columns():
     within 0.5 us."""
     from bayesrob.calibrate.arms import calibrate_arms
     from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     rig = load_rig(default_rig_dir())
     cal = calibrate(rig, kin.GROUPS)

@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from bayesrob.cli import COMMANDS, main
-from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, load_rig
+from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE, load_rig
 
 
 def bayesrob(*args: str, cwd: Path, columns: int = 80) -> subprocess.CompletedProcess:
@@ -341,10 +341,10 @@ def test_help_and_argument_errors_import_no_numerical_library(argv):
 
 
 def test_the_names_the_command_line_checks_are_the_registered_ones():
-    """The command line checks effect names against bayesrob.vocabulary without importing the
+    """The command line checks effect names against bayesrob.data.vocabulary without importing the
     diagnosis: the planar effects registered there must be exactly those names."""
-    from bayesrob.effects import effect_names
-    from bayesrob.vocabulary import EFFECTS
+    from bayesrob.data.vocabulary import EFFECTS
+    from bayesrob.robot.effects import effect_names
 
     assert set(effect_names()) == set(EFFECTS)
 
@@ -435,7 +435,7 @@ def test_a_planar_targets_file_with_z_is_refused(tmp_path, capsys):
     """A z column would be dropped for planar arms: refused, naming the file and column."""
     targets = tmp_path / "t.csv"
     targets.write_text("x,y,z\n140,220,5\n")
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     assert main(["predict", str(default_rig_dir()), "--config", "top+bottom", "--targets",
                  str(targets)]) == 2
@@ -444,7 +444,7 @@ def test_a_planar_targets_file_with_z_is_refused(tmp_path, capsys):
 
 
 def test_calibrate_help_names_every_parameter_group(capsys):
-    from bayesrob.vocabulary import ALL_GROUPS
+    from bayesrob.data.vocabulary import ALL_GROUPS
 
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])

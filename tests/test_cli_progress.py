@@ -9,8 +9,8 @@ import re
 import pytest
 
 from bayesrob.cli import main
-from bayesrob.report import NOTES_HEADING, WARNINGS_HEADING, grouped_notes
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
+from bayesrob.report.tables import NOTES_HEADING, WARNINGS_HEADING, grouped_notes
 
 # A status line of bayesrob.progress: "desc: n/total unit (pct%), seconds s[, ...]".
 STATUS = r"{desc}: \d+/\d+ {unit} \(\d+%\), \d+\.\d s(, .+)?"
@@ -136,7 +136,7 @@ def test_reproduce_groups_its_notes_and_reports_progress(clean_rig_dir, tmp_path
 
 
 def test_sample_notes_are_under_the_notes_heading():
-    from bayesrob.inference import SampleReport, format_sample
+    from bayesrob.inference.sampling import SampleReport, format_sample
 
     grid = {"mean": [140.0, 220.0], "cov": [[0.2, 0.0], [0.0, 0.3]], "seconds": 0.5,
             "n": 150, "cell_mm": [0.05, 0.05], "edge_mass": 0.0}
@@ -155,7 +155,7 @@ def test_sample_notes_are_under_the_notes_heading():
 def test_predict_reports_progress_from_its_start_to_done(tmp_path, capsys):
     """predict had been silent for minutes off a terminal: its first line comes at once, its
     last says done."""
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     assert main(["predict", str(default_rig_dir()), "--config", "top", "--grid", "2",
                  "--json", str(tmp_path / "p.json")]) == 0

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_hardware_collect import device, keys, plant, rig_dir, run, sim_rig  # noqa: F401
 
+from bayesrob.data.rig import RigError, load_rig, load_rig_toml
 from bayesrob.hardware.collect import (
     DEFAULT_PLAN,
     linked_steps,
@@ -16,8 +17,7 @@ from bayesrob.hardware.collect import (
     single_arm_steps,
 )
 from bayesrob.hardware.controller import quantize_us
-from bayesrob.kinematics import Arm
-from bayesrob.rig import RigError, load_rig, load_rig_toml
+from bayesrob.robot import Arm
 from bayesrob.sim.rigs import holdout_points
 
 ALL = ("train", "validation", "test", "holdout")

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from bayesrob.cli import main
+from bayesrob.data.rig import load_rig
 from bayesrob.design.file import load_design
 from bayesrob.design.modules import load_modules, mounted_truth
 from bayesrob.design.search import (
@@ -23,7 +24,6 @@ from bayesrob.design.search import (
     task_targets,
     write_candidate_rig,
 )
-from bayesrob.rig import load_rig
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "design"
 

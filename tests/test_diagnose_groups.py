@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from bayesrob.cli import main
+from bayesrob.data.rig import load_rig
 from bayesrob.diagnose.groups import (
     DiagnosisError,
     diagnose_groups,
@@ -18,8 +19,7 @@ from bayesrob.diagnose.groups import (
     resolve_effects,
 )
 from bayesrob.diagnose.rule import Z
-from bayesrob.report import format_group_diagnosis
-from bayesrob.rig import load_rig
+from bayesrob.report.tables import format_group_diagnosis
 from bayesrob.sim.physics import play_offsets
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth
@@ -160,7 +160,7 @@ def test_residual_figure_draws_every_validation_marker_on_two_planes(compliant_r
     """The report's residual arrows: one arrow per validation row, in the x-y and x-z
     planes, for the geometric and the final model, all on one magnification. On the
     module's compliant arm (seed 11), its fits shared (``shared_fits``)."""
-    from bayesrob.plots.diagnosis import marker_residual_figure
+    from bayesrob.report.plots.diagnosis import marker_residual_figure
 
     rig = load_rig(compliant_rig)
     diag = diagnose_groups(rig)
@@ -287,7 +287,7 @@ def test_a_candidate_with_nothing_identifiable_to_fit_never_passes():
     the rank analysis leaves it no parameter: its selection errors move by rounding alone,
     whose paired z is noise (measured 2.3 on the default rig before this guard, naming an
     effect that changed nothing)."""
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     doc = diagnose_groups(load_rig(default_rig_dir()), ["lateral_compliance"]).to_json()
     (cand,) = doc["rounds"][0]

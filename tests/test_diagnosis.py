@@ -18,8 +18,8 @@ import pytest
 from bayesrob.validation.planar_generators import Case, make_rig
 
 import bayesrob  # noqa: F401  (x64)
-from bayesrob import effects as fx
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
+from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.diagnose.refits import (
     ArmData,
     ArmEval,
@@ -30,8 +30,8 @@ from bayesrob.diagnose.refits import (
     workspace_regions,
 )
 from bayesrob.diagnose.rule import DecisionRule, elpd_diff
-from bayesrob.kinematics.chain import G_N_PER_KG
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.robot import effects as fx
+from bayesrob.robot.chain import G_N_PER_KG
 
 CONTRACT_KEYS = {"effects", "steps", "baseline_heldout_error_mm", "final_heldout_error_mm"}
 STEP_KEYS = {"effect", "arms", "heldout_error_before_mm", "heldout_error_after_mm", "elpd_diff",
@@ -452,7 +452,7 @@ def test_command_rejects_an_unknown_effect(clean_rig_dir, capsys):
 def test_figures_are_figures(diagnoses):
     from matplotlib.figure import Figure
 
-    from bayesrob.plots.diagnosis import gap_figure, residual_quiver_figure
+    from bayesrob.report.plots.diagnosis import gap_figure, residual_quiver_figure
 
     diag = diagnoses["default_rig"]
     assert isinstance(gap_figure(diag), Figure)
@@ -479,7 +479,7 @@ def test_jacobian_of_every_model_is_finite(clean_rig_dir):
 def test_three_arm_rig_from_another_tool(handmade_rig_dir, tmp_path):
     """Other arm names, three arms, no repeated commands: runs, and names nothing on data
     that follow the nominal model."""
-    from bayesrob.outputs import write_diagnosis_report
+    from bayesrob.report.outputs import write_diagnosis_report
 
     diag = diagnose(load_rig(handmade_rig_dir))
     assert diag.arms == ["left", "right", "middle"] and diag.effects == []

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import bayesrob  # noqa: F401  (x64)
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
+from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.diagnose.refits import ArmData, diagnose, evaluate_arm
-from bayesrob.report import format_diagnosis
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.report.tables import format_diagnosis
 
 
 @pytest.fixture(scope="module")

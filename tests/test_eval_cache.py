@@ -16,7 +16,7 @@ FIT = """
 import numpy as np
 import jax
 import bayesrob
-from bayesrob.kde import KDE
+from bayesrob.errors.kde import KDE
 print(jax.config.jax_compilation_cache_dir)
 x = np.random.default_rng(0).normal(size=(300, 3))
 kde = KDE.fit(x, "loo-ml-diag")

@@ -20,7 +20,7 @@ import pytest  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from bayesrob.plots import paper as figs  # noqa: E402
+from bayesrob.report.plots import paper as figs  # noqa: E402
 
 MODELS = ["ind_paper", "ind", "corr", "cond_paper"]
 MAKERS = {
@@ -35,8 +35,8 @@ MAKERS = {
 
 @pytest.fixture(scope="module")
 def rep():
-    from bayesrob.reproduction import run_reproduction
-    from bayesrob.rig import default_rig_dir, load_rig
+    from bayesrob.data.rig import default_rig_dir, load_rig
+    from bayesrob.paper.reproduction import run_reproduction
 
     return run_reproduction(load_rig(default_rig_dir()), models=MODELS)
 
@@ -143,8 +143,8 @@ def test_fig7_has_colour_bars_named_model_and_panels_that_hold_the_density(built
 
 def _fake_comparison():
     """A comparison of two models with fixed pointwise scores: enough to draw the figure."""
-    from bayesrob.comparison import ModelComparison, elpd_data
-    from bayesrob.noise_models import discover_models
+    from bayesrob.compare.comparison import ModelComparison, elpd_data
+    from bayesrob.errors.noise_models import discover_models
 
     specs = discover_models(names=["ind", "cond_paper"])
     rng = np.random.default_rng(0)
@@ -158,7 +158,7 @@ def _fake_comparison():
 
 
 def test_comparison_figure_has_units_and_labels():
-    from bayesrob.comparison import comparison_figure
+    from bayesrob.compare.comparison import comparison_figure
 
     fig = comparison_figure(_fake_comparison())
     try:
@@ -217,8 +217,8 @@ def test_no_text_of_the_papers_figures_is_cut_off(built, name):
 def test_the_predict_figure_fits_its_content(config):
     """Every text inside the figure, every target and arm base inside the map's axes, and a
     title that names a fusion only for linked arms."""
+    from bayesrob.data.rig import default_rig_dir, load_rig
     from bayesrob.predict.assembly import assembly_figure, grid_targets, predict_assembly
-    from bayesrob.rig import default_rig_dir, load_rig
 
     rig = load_rig(default_rig_dir())
     pred = predict_assembly(rig, config, grid_targets(rig, 3), "ind")
@@ -241,7 +241,7 @@ def test_the_predict_figure_fits_its_content(config):
 
 def test_the_marker_residual_figure_fits_its_content():
     """Justin's figure had its last title cut ('mean 3.21 m'): long model labels, two arms."""
-    from bayesrob.plots.diagnosis import marker_residual_figure
+    from bayesrob.report.plots.diagnosis import marker_residual_figure
 
     rng = np.random.default_rng(0)
     pts = {a: (rng.normal(0, 300, (40, 3)), rng.normal(0, 3, (40, 3))) for a in ("left", "right")}
@@ -260,7 +260,7 @@ def test_fig8_has_a_colour_scale_for_each_model(built):
 
 
 def test_a_design_with_no_candidate_draws_a_figure_that_says_so():
-    from bayesrob.plots.design import design_figure
+    from bayesrob.report.plots.design import design_figure
 
     region = np.array([[120.0, 220.0], [140.0, 240.0]])
     result = SimpleNamespace(candidates=[], design=SimpleNamespace(region=region),

@@ -16,15 +16,15 @@ import pytest
 import scipy.stats
 from bayesrob.validation.linked_planar import single_arm_copy
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
-from bayesrob.noise_models import discover_models, fit_noise_models
+from bayesrob.data.rig import RigError, default_rig_dir, load_rig
+from bayesrob.errors.noise_models import discover_models, fit_noise_models
 from bayesrob.predict import fusion
 from bayesrob.predict.assembly import predict_assembly, read_targets
 from bayesrob.predict.grid import setup_rows
 from bayesrob.predict.regions import kde_log_density
-from bayesrob.rig import RigError, default_rig_dir, load_rig
 from bayesrob.sim.equilibrium import PhysicalRig
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
@@ -149,7 +149,7 @@ def test_compare_scores_both_fusions(clean_rig_dir):
     JSON, plot and holdout rows are test_inference_compare's (its two models each get both
     fusions there too), and the leave-one-out refits of the calibration (recalibrate), which
     only the LOO scores see, are left out: every entry checked here is a held-out score."""
-    from bayesrob.comparison import compare_models
+    from bayesrob.compare.comparison import compare_models
 
     comparison = compare_models(load_rig(clean_rig_dir), ["ind", "cond"], recalibrate=False)
     doc = json.loads(json.dumps(comparison.document(), allow_nan=True))  # as the command writes

@@ -23,6 +23,8 @@ import pytest
 import serial
 
 from bayesrob.cli import main
+from bayesrob.data.rig import RigError, dump_toml, load_measurements, load_rig, load_rig_toml
+from bayesrob.data.rig import rig_toml_dict as _rig_toml_dict
 from bayesrob.hardware import DisconnectedError, HardwareError, LimitError
 from bayesrob.hardware.collect import (
     MeasurementLog,
@@ -35,9 +37,7 @@ from bayesrob.hardware.collect import (
 from bayesrob.hardware.controller import SerialLink, open_port, quantize_us
 from bayesrob.hardware.simdevice import Faults, SimDevice
 from bayesrob.hardware.tracker import ManualTracker, StreamTracker
-from bayesrob.kinematics import Arm
-from bayesrob.rig import RigError, dump_toml, load_measurements, load_rig, load_rig_toml
-from bayesrob.rig import rig_toml_dict as _rig_toml_dict
+from bayesrob.robot import Arm
 from bayesrob.sim.equilibrium import PhysicalRig
 from bayesrob.sim.rigs import nominal_specs
 from bayesrob.sim.truth import paper_truth
@@ -137,7 +137,7 @@ def keys(rig_dir: Path) -> list[tuple[str, ...]]:
 def planned(rig_dir: Path, grid: int, protocol: str = "maestro",
             sets=("train", "validation", "test")) -> list[tuple[str, ...]]:
     """The rows a run with nominal test commands (grid 2: too few train rows) must produce."""
-    from bayesrob.rig import format_row
+    from bayesrob.data.rig import format_row
 
     meta = load_rig_toml(rig_dir / "rig.toml")
     specs = meta["arms"]

@@ -18,13 +18,13 @@ import pytest
 from numpyro.infer.util import log_density
 from scipy.ndimage import maximum_filter
 
-from bayesrob import inference as inf
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
-from bayesrob.kde import ConditionalKDE
-from bayesrob.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.kde import ConditionalKDE
+from bayesrob.errors.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
+from bayesrob.inference.sampling import sampling as inf
 from bayesrob.predict.grid import Grid, arm_log_likelihood, predict
-from bayesrob.rig import default_rig_dir, load_rig
 
 # Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.
 FIXED = {
@@ -434,12 +434,12 @@ def test_sample_refuses_an_unreachable_target_before_fitting_anything(
         target, arm, distance, capsys, monkeypatch):
     """One line naming the target, the arm and its reach; exit 2; no model fitted (so
     nothing compiled or sampled)."""
-    import bayesrob.noise_models
+    import bayesrob.errors.noise_models
 
     def no_fit(*args, **kwargs):
         raise AssertionError("a model was fitted for an unreachable target")
 
-    monkeypatch.setattr(bayesrob.noise_models, "fit_noise_models", no_fit)
+    monkeypatch.setattr(bayesrob.errors.noise_models, "fit_noise_models", no_fit)
     for sampler in ("grid", "all"):
         assert main(["sample", "--target", *target, "--sampler", sampler]) == 2
         err = capsys.readouterr().err

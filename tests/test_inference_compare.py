@@ -13,7 +13,7 @@ import pytest
 
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms
 from bayesrob.cli import main
-from bayesrob.comparison import (
+from bayesrob.compare.comparison import (
     compare_models,
     elpd_data,
     format_comparison,
@@ -23,8 +23,8 @@ from bayesrob.comparison import (
     refit_without,
     score_points,
 )
-from bayesrob.noise_models import discover_models, fit_noise_models, joint_errors, models_dir
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.noise_models import discover_models, fit_noise_models, joint_errors, models_dir
 
 
 @pytest.mark.filterwarnings("ignore:The inplace keyword")  # arviz's own pandas call

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from bayesrob.validation.justin import RIG_TOML, convert, justin_data
 
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
 
 
 def _authors_file(path, n: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests for bayesrob.kde: densities, bandwidth selectors, conditionals, sampling, gradients.
+"""Tests for bayesrob.errors.kde: densities, bandwidth selectors, conditionals, sampling, gradients.
 
 References are scipy's gaussian_kde (densities) and statsmodels' KDEMultivariate /
 KDEMultivariateConditional with bw="cv_ml" (bandwidths). Every random draw is seeded; each
@@ -17,8 +17,8 @@ import pytest
 from scipy.stats import gaussian_kde
 
 import bayesrob  # noqa: F401  (enables float64 before any array is made)
-import bayesrob.kde as kde_mod
-from bayesrob.kde import (
+import bayesrob.errors.kde as kde_mod
+from bayesrob.errors.kde import (
     KDE,
     BandwidthOnBoundWarning,
     ConditionalKDE,

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 
 PARAMS = kin.ArmParams(jnp.array([20.0, -20.0]), jnp.array([220.0, 200.0]),
                        jnp.array([0.0015, 0.00155]), jnp.array([-0.5, -4.1]))
@@ -107,7 +107,7 @@ _URDF = """<robot name="r">
 ])
 def test_a_urdf_naming_what_it_does_not_have_is_refused(tmp_path, p1, mimic, words):
     """Checked whatever chain is asked for: a misspelt link would silently cut a tree."""
-    from bayesrob.kinematics import KinematicsError, urdf_chain
+    from bayesrob.robot import KinematicsError, urdf_chain
 
     path = tmp_path / "r.urdf"
     path.write_text(_URDF.format(p1=p1, mimic=mimic))

@@ -15,8 +15,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayesrob import kinematics as kin
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob import robot as kin
+from bayesrob.data.rig import default_rig_dir, load_rig
 
 
 def _robot() -> kin.Robot:
@@ -148,7 +148,7 @@ def test_a_changed_nominal_value_changes_what_the_compiled_program_computes():
 def test_a_robots_hash_is_the_same_in_every_process():
     """A robot pickled to a Dask worker carries its cached hash: it must be what the worker
     would compute itself, whatever its string hashing seed."""
-    code = ("from bayesrob.rig import default_rig_dir, load_rig; "
+    code = ("from bayesrob.data.rig import default_rig_dir, load_rig; "
             "r = load_rig(default_rig_dir()).robot; print(hash(r), hash(r.structure))")
     hashes = set()
     for seed in ("1", "2"):

@@ -1,4 +1,4 @@
-"""IND, CORR and COND on URDF/DH arms as marker densities (bayesrob.marker_density), and the
+"""IND, CORR and COND on URDF/DH arms as marker densities (bayesrob.errors.marker_density), and the
 commands that use them: `compare` and `sample` on a simulated 6-joint arm."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 import scipy.stats
 
 from bayesrob.cli import main
-from bayesrob.kde import ConditionalKDE
-from bayesrob.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
+from bayesrob.errors.kde import ConditionalKDE
+from bayesrob.errors.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth
 
@@ -113,9 +113,9 @@ def test_sample_needs_three_coordinates_on_a_3d_rig(small_arm6, capsys):
 
 
 def test_a_planar_rig_given_params_is_compared_and_sampled_as_2_joint_chains(tmp_path):
-    from bayesrob.comparison import compare_models
-    from bayesrob.inference import sample_linked
-    from bayesrob.rig import default_rig_dir, load_rig
+    from bayesrob.compare.comparison import compare_models
+    from bayesrob.data.rig import default_rig_dir, load_rig
+    from bayesrob.inference.sampling import sample_linked
 
     rig = load_rig(default_rig_dir())
     groups = ("frames", "offsets", "geometric", "servo")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bayesrob.output_paths import (
+from bayesrob.report.output_paths import (
     DIRECTORY,
     FILE,
     OutputPathError,

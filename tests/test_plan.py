@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from bayesrob.cli import main
+from bayesrob.data.rig import RigError, load_rig
 from bayesrob.plan import load_plan_rig, plan_poses
 from bayesrob.plan.criteria import Accuracy, Identify
 from bayesrob.plan.greedy import greedy
-from bayesrob.rig import RigError, load_rig
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import POSE_HI, POSE_LO, ChainTruth
 

@@ -28,11 +28,11 @@ import scipy.stats
 from bayesrob.validation.model_coverage import holdout_scores
 from bayesrob.validation.model_coverage import levels as pooled_levels
 
-from bayesrob import inference as inf
 from bayesrob.calibrate.arms import calibrate_arms
-from bayesrob.comparison import heldout_scores
-from bayesrob.noise_models import ModelSpec, discover_models, joint_errors
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.compare.comparison import heldout_scores
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.noise_models import ModelSpec, discover_models, joint_errors
+from bayesrob.inference.sampling import sampling as inf
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 

@@ -5,9 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
-from bayesrob.noise_models import (
+from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.noise_models import (
     ModelFileError,
     ModelSpec,
     discover_models,
@@ -16,7 +17,6 @@ from bayesrob.noise_models import (
     without_tracker_noise,
 )
 from bayesrob.predict.grid import Grid, predict, setup_rows, setups
-from bayesrob.rig import default_rig_dir, load_rig
 
 
 @pytest.fixture(scope="module")

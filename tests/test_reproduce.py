@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayesrob.noise_models import discover_models
-from bayesrob.reproduction import FIGURES
+from bayesrob.errors.noise_models import discover_models
+from bayesrob.paper.reproduction import FIGURES
 
 
 @pytest.fixture(scope="module")

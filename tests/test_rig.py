@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, SETS, RigError, load_rig
+from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE, SETS, RigError, load_rig
 
 # ----------------------------------------------------------------------------- helpers
 

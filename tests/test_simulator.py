@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.sim.equilibrium import PhysicalRig
 from bayesrob.sim.rigs import grid_points, holdout_points, simulate_rig
 from bayesrob.sim.truth import TRUTH_FILE, Truth, paper_truth, three_arm_truth
@@ -174,7 +174,7 @@ def test_holdout_points_lie_between_the_grid_points_inside_the_workspace():
 
 
 def test_holdout_rows_are_appended_without_changing_the_other_rows(tmp_path):
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
 
     truth = paper_truth(("gravity_sag", "backlash"), seed=5, grid=3)
     with_h = simulate_rig(tmp_path / "with", truth)
@@ -204,7 +204,7 @@ def test_the_default_rig_regenerates_byte_for_byte(tmp_path):
     change to the simulator's physics, its random streams or the files' formatting that would
     silently leave the embedded default rig (and every figure published from it) behind the
     code fails here. About 10 s on two busy cores."""
-    from bayesrob.rig import default_rig_dir
+    from bayesrob.data.rig import default_rig_dir
 
     truth = paper_truth(("gravity_sag", "backlash"), seed=2009)
     out = simulate_rig(tmp_path / "rig", truth)

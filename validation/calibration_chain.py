@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob import kinematics as kin
 from bayesrob import release_compiled_programs
-from bayesrob.rig import Rig, load_rig
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig, load_rig
 from bayesrob.sim.physics import gravity_deflection
 from bayesrob.sim.rigs import simulate_chain_rig
 from bayesrob.sim.truth import ChainTruth, arm6_urdf_path, load_true_params

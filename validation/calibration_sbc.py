@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from bayesrob.calibrate import bayes as bc
-from bayesrob.rig import load_rig
+from bayesrob.data.rig import load_rig
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 

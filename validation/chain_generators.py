@@ -1,7 +1,7 @@
 """6-joint 3-D rig generators whose physics deliberately differs from the chain diagnosis's
 candidates (:mod:`bayesrob.diagnose.groups`), for the proof on hidden effects.
 
-The candidates are calibration groups of :mod:`bayesrob.kinematics.chain`: ``compliance``
+The candidates are calibration groups of :mod:`bayesrob.robot.chain`: ``compliance``
 (each joint gives way by its gravity torque over a *linear* stiffness, the torque from the
 links' first moments), ``lateral`` (the same torques bend each joint across its axis,
 linearly) and ``encoder`` (q + a sin q + b cos q per revolute joint). The rigs here are made
@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.kinematics import Robot, urdf_chain
+from bayesrob.robot import Robot, urdf_chain
 from bayesrob.sim.rigs import random_poses, simulate_chain_rig, true_parameters, write_arm6_rig
 from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
 
@@ -224,8 +224,8 @@ def diagnose_chain_case(case: ChainCase) -> dict:
     what was named and how strong the hidden effects are (the geometric calibration's mean
     validation error over the clean twin's)."""
     from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.rig import load_rig
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:

@@ -17,8 +17,8 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
-from bayesrob.comparison import compare_models
-from bayesrob.rig import default_rig_dir, load_rig
+from bayesrob.compare.comparison import compare_models
+from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 

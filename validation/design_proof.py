@@ -218,10 +218,10 @@ def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0,
     arm's true link masses stray from the URDF's. ``met`` per placement: every quantile's
     share within two standard errors of nominal at the pooled rows, and the error ratio in
     0.85-1.15 (the criterion written down before the first report rigs ran)."""
+    from bayesrob.data.rig import load_rig
     from bayesrob.design.file import load_design
     from bayesrob.design.modules import PopulationModule, load_modules
     from bayesrob.design.search import Job, reach_table
-    from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
 

@@ -83,8 +83,8 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
     joint compliance then backlash, and the validation error after each step. ``quick``
     chooses between joint compliance and backlash only (a smoke run of the same check)."""
     from bayesrob import release_compiled_programs
+    from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_chain_rig
     from bayesrob.sim.truth import ChainTruth
 

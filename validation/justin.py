@@ -136,9 +136,9 @@ def ladder(rig_dir: Path, steps: Sequence[str] = STEPS,
            max_nfev: int = 300) -> list[dict]:
     """One row per step: its fitted parameter count and train / validation marker errors.
     ``polish`` and ``max_nfev``: as :func:`~bayesrob.calibrate.least_squares.calibrate`'s."""
-    from bayesrob import kinematics as kin
+    from bayesrob import robot as kin
     from bayesrob.calibrate.least_squares import calibrate, sag_convergence
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
 
     rig = load_rig(rig_dir)
     out = []
@@ -215,9 +215,9 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     point). The other arm's pose is given: its weight bends the torso. ``polish`` and
     ``max_nfev``: the calibration's, as :func:`~bayesrob.calibrate.least_squares.calibrate`'s."""
     from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.data.rig import load_rig
     from bayesrob.predict.draws import assembly_draws, fit_modules
     from bayesrob.predict.regions import hdr_levels
-    from bayesrob.rig import load_rig
 
     def note(text: str) -> None:
         (say or (lambda t: print(t, file=sys.stderr)))(text)
@@ -280,8 +280,8 @@ def run_compare(seeds: list[int], *, quick: bool, say: Callable[[str], None]
     """``bayesrob compare`` on the real data with the model the diagnosis names: every joint-
     error model's held-out elpd and coverage at the 200 validation poses of each hand, and
     leave-one-out over the 300 train poses. quick: the rigid geometric model, ind and cond."""
-    from bayesrob.comparison import compare_models
-    from bayesrob.rig import load_rig
+    from bayesrob.compare.comparison import compare_models
+    from bayesrob.data.rig import load_rig
 
     if len(seeds) != 1:
         raise ValueError(f"the compare study is one seeded run on the real data, not {seeds}")

@@ -75,7 +75,7 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     calibration's steps of the sag's torques; ``n_linked``: the rig's linked points (None: the
     simulator's default); ``three``: three arms joined (left, right and front)."""
     import bayesrob.predict.draws as cp
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
 

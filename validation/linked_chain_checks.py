@@ -96,8 +96,8 @@ def _described(rig: Any, stiffness: dict) -> dict[str, Any]:
 
 def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[str, Any]:
     """The three checks on each rig of ``seeds`` (one rig each, the worst over them)."""
+    from bayesrob.data.rig import load_rig
     from bayesrob.predict.draws import fit_modules
-    from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_linked_chain_rig
     from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
 

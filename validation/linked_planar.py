@@ -57,8 +57,8 @@ def single_arm_copy(rig_dir: Path, out: Path) -> Path:
 def fit_model(rig_dir: Path, model: str) -> tuple[Any, dict, dict]:
     """The rig, its arms calibrated on their train rows, and ``model`` fitted to each arm."""
     from bayesrob.calibrate.arms import calibrate_arms
-    from bayesrob.noise_models import discover_models, fit_noise_models
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
+    from bayesrob.errors.noise_models import discover_models, fit_noise_models
 
     rig = load_rig(rig_dir)
     arms = {n: c.arm for n, c in calibrate_arms(rig).items()}
@@ -70,7 +70,7 @@ def linked_scores(rig: Any, arms: dict, fitted: dict, config: str, fusion_rule: 
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """HDR levels of the test rows of ``config`` under ``fusion_rule``, and per row the
     predicted mean distance from the target and the observed one."""
-    from bayesrob.comparison import score_points
+    from bayesrob.compare.comparison import score_points
     from bayesrob.predict.grid import setup_rows
 
     rows = setup_rows(rig, arms, config)
@@ -141,8 +141,8 @@ def three_arms_kde(seeds: list[int], *, quick: bool, say: Callable[[str], None]
     """Three arms predicted from single-arm rows (eight-parameter fits, KDE models): each
     point's HDR level under the equilibrium of the rig's own linked rows, and the mean error
     ``predict`` gives against the observed."""
+    from bayesrob.data.rig import load_rig
     from bayesrob.predict.assembly import predict_assembly
-    from bayesrob.rig import load_rig
     from bayesrob.sim.rigs import simulate_rig
     from bayesrob.sim.truth import three_arm_truth
 
@@ -184,9 +184,9 @@ def three_arm_study(seeds: Sequence[int], groups: tuple[str, ...] = THREE_ARM_GR
     they are not what ``predict`` would build). Returns the linked points, the share inside
     the 50% / 90% regions, the predicted / observed mean error, and per rig in ``rigs`` (each
     also said as a JSON line)."""
+    from bayesrob.data.rig import load_rig
     from bayesrob.predict.assembly import predict_assembly
     from bayesrob.predict.regions import hdr_levels
-    from bayesrob.rig import load_rig
     from bayesrob.sim.equilibrium import PhysicalRig
     from bayesrob.sim.rigs import round_pulse, simulate_rig
     from bayesrob.sim.truth import three_arm_truth

@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 
 from bayesrob.calibrate.arms import calibrate_arms, predicted_points
-from bayesrob.comparison import PointScores, heldout_scores, score_points
-from bayesrob.noise_models import discover_models, fit_noise_models
-from bayesrob.rig import Rig, load_rig
+from bayesrob.compare.comparison import PointScores, heldout_scores, score_points
+from bayesrob.data.rig import Rig, load_rig
+from bayesrob.errors.noise_models import discover_models, fit_noise_models
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 

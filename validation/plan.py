@@ -27,8 +27,8 @@ from bayesrob.validation.calibration_chain import true_vector
 
 from bayesrob import release_compiled_programs
 from bayesrob.calibrate.least_squares import calibrate
+from bayesrob.data.rig import Measurements, Rig, load_rig
 from bayesrob.plan import load_plan_rig, plan_poses
-from bayesrob.rig import Measurements, Rig, load_rig
 from bayesrob.sim.rigs import measure_arm6_poses, simulate_chain_rig
 from bayesrob.sim.truth import POSE_HI, POSE_LO, ChainTruth
 

@@ -39,8 +39,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
-from bayesrob.rig import ArmSpec, dump_toml, format_row, measurement_header, rig_toml_dict
+from bayesrob import robot as kin
+from bayesrob.data.rig import ArmSpec, dump_toml, format_row, measurement_header, rig_toml_dict
 from bayesrob.sim.rigs import holdout_points
 
 G_ACC = 9.81
@@ -417,8 +417,8 @@ def diagnose_case(case: Case) -> dict:
     import time
     from dataclasses import asdict
 
+    from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.refits import diagnose
-    from bayesrob.rig import load_rig
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:

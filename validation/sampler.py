@@ -24,12 +24,12 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import inference as inf
 from bayesrob import release_compiled_programs
 from bayesrob.calibrate.arms import calibrate_arms
-from bayesrob.kinematics import Arm
-from bayesrob.noise_models import discover_models, joint_errors
-from bayesrob.rig import Rig, default_rig_dir, load_rig
+from bayesrob.data.rig import Rig, default_rig_dir, load_rig
+from bayesrob.errors.noise_models import discover_models, joint_errors
+from bayesrob.inference.sampling import sampling as inf
+from bayesrob.robot import Arm
 
 SAMPLERS = ("nuts", "emcee")
 EMCEE_STEPS, EMCEE_BURN = 1000, 200

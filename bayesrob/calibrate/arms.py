@@ -19,14 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.hill_climb import hill_climb
 from bayesrob.calibrate.least_squares import covariance, fit, residual_function
-from bayesrob.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
+from bayesrob.data.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
 Method = Literal["least-squares", "hill-climb"]
 # The Bayesian method lives one layer up (bayesrob.calibrate.bayes builds on this module);
-# bayesrob.outputs.calibrate_rig dispatches to all three.
+# bayesrob.report.outputs.calibrate_rig dispatches to all three.
 METHODS: tuple[str, ...] = ("least-squares", "hill-climb")
 
 # The chain's name for an arm fitted on its own: one name for every planar arm, so that all of

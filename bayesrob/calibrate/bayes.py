@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import (
     ArmCalibration,
     calibrate_arm,
@@ -72,7 +72,7 @@ from bayesrob.calibrate.least_squares import (
     residual_function,
     set_rows,
 )
-from bayesrob.rig import ArmSpec, Rig
+from bayesrob.data.rig import ArmSpec, Rig
 
 N_PARAMS = len(kin.PARAM_NAMES)
 COVERAGE_LEVELS = (0.5, 0.9, 0.95)

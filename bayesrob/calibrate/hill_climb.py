@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 
 
 @jax.jit

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 
 # Groups are tried in this order when the rank analysis decides which of two redundant
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from bayesrob import kinematics as kin
 from bayesrob import release_compiled_programs
+from bayesrob import robot as kin
 from bayesrob.calibrate.identifiability import Identifiability, identifiability
-from bayesrob.rig import SETS, Rig
+from bayesrob.data.rig import SETS, Rig
 
 # arm -> (commands (N, c), observed markers (N, dim), the rest of the pose or None)
 Rows = dict[str, tuple[np.ndarray, np.ndarray, "dict[str, jax.Array] | None"]]
@@ -461,7 +461,7 @@ def marker_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
 
 def calibrated_rig_document(rig: Rig, cal: Calibration, urdf_name: str) -> dict:
     """rig.toml of the calibrated robot, its arms read from the URDF ``urdf_name`` that
-    :func:`bayesrob.kinematics.write_urdf` wrote: origins and offsets are in the URDF, marker
+    :func:`bayesrob.robot.write_urdf` wrote: origins and offsets are in the URDF, marker
     positions and instrument poses (not part of a URDF) here."""
     calibrated = cal.robot.with_values(cal.x)
     keys = kin.urdf.generated_arm_keys(calibrated)

@@ -6,6 +6,6 @@ and linked how, meet a required accuracy over a task region.
 - :mod:`bayesrob.design.modules`: calibrated modules of any rig, mounted, aimed and drawn;
 - :mod:`bayesrob.design.search`: candidates, the requirement, ranking, the Dask runner.
 
-The figure is :func:`bayesrob.plots.design.design_figure`. Nothing is imported here, so that
+The figure is :func:`bayesrob.report.plots.design.design_figure`. Nothing is imported here, so that
 reading a design file stays light.
 """

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob.vocabulary import ALL_GROUPS, DEFAULT_FUSION, FUSIONS, MASS_SOURCES
+from bayesrob.data.vocabulary import ALL_GROUPS, DEFAULT_FUSION, FUSIONS, MASS_SOURCES
 
 __all__ = ["DesignError", "DesignSpec", "ModuleSpec", "load_design", "DRAWS", "DEFAULT_MODEL"]
 

@@ -33,16 +33,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
+from bayesrob.data.rig import ArmSpec, Rig, RigError
 from bayesrob.design.file import DesignError, DesignSpec, ModuleSpec
-from bayesrob.inference import error_arrays, error_kind, is_sampleable
-from bayesrob.latent_errors import joint_jacobian
-from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.errors.latent_errors import joint_jacobian
+from bayesrob.errors.noise_models import FittedNoiseModel
+from bayesrob.inference.sampling import error_arrays, error_kind, is_sampleable
 from bayesrob.predict.aiming import aim
 from bayesrob.predict.draws import CalibratedModules, free_draws, parameter_draws
 from bayesrob.predict.fusion import equilibrium, equilibrium_program, fused_posterior
 from bayesrob.predict.stiffness import StiffnessPrior, sag_scaled_priors, stiffness_draws
-from bayesrob.rig import ArmSpec, Rig, RigError
 
 if TYPE_CHECKING:
     from bayesrob.sim.truth import ArmTruth, Truth
@@ -59,7 +59,7 @@ COV_JITTER = 1e-9
 
 def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module]:
     """Calibrate each module's arm on its rig's train rows and fit its joint-error model."""
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
 
     by_rig: dict[Path, list[ModuleSpec]] = {}
     for m in design.modules.values():
@@ -139,7 +139,7 @@ class DensityModule:
     def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
              by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, DensityModule]:
         from bayesrob.calibrate.arms import arm_covariance, calibrate_arms
-        from bayesrob.noise_models import (
+        from bayesrob.errors.noise_models import (
             ModelFileError,
             discover_models,
             joint_errors,
@@ -233,7 +233,7 @@ class DensityModule:
         import csv
         import math
 
-        from bayesrob.rig import (
+        from bayesrob.data.rig import (
             MEASUREMENTS_FILE,
             RIG_FILE,
             dump_toml,
@@ -399,7 +399,7 @@ class PopulationModule:
         """Calibrate each rig once (the groups its modules name) and fit each module's
         joint-error population on its own train rows."""
         from bayesrob.calibrate.least_squares import calibrate, parameter_covariance
-        from bayesrob.latent_errors import check_latent_model, fit_latent_errors
+        from bayesrob.errors.latent_errors import check_latent_model, fit_latent_errors
         from bayesrob.predict.stiffness import stiffness_prior
 
         if design.fusion != "equilibrium" and design.max_arms > 1 and design.linked:
@@ -472,7 +472,7 @@ class PopulationModule:
         import csv
 
         from bayesrob.calibrate.least_squares import arm_table
-        from bayesrob.rig import MEASUREMENTS_FILE, RIG_FILE, dump_toml
+        from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE, dump_toml
 
         names = candidate["arms"]
         first = modules[names[0]]

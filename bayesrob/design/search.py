@@ -247,7 +247,7 @@ class DesignResult:
         }
 
     def format(self, top: int = 10) -> str:
-        from bayesrob.report import format_table
+        from bayesrob.report.tables import format_table
 
         d = self.design
         q = f"q{round(100 * d.quantile)}"

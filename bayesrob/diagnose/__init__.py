@@ -5,7 +5,7 @@ for every robot (:mod:`bayesrob.diagnose.rule`).
 Two searches feed the rule its evidence: :mod:`bayesrob.diagnose.groups` (any robot: the
 candidates are calibration groups, scored on held-back selection poses) and
 :mod:`bayesrob.diagnose.refits` (a planar rig's arms, each its own robot: the candidates are
-the angle corrections of :mod:`bayesrob.effects`, scored by leave-one-out refits, which its
-16-36 train points per arm need). Report text is :mod:`bayesrob.report`'s, figures
-:mod:`bayesrob.plots.diagnosis`'s.
+the angle corrections of :mod:`bayesrob.robot.effects`, scored by leave-one-out refits, which its
+16-36 train points per arm need). Report text is :mod:`bayesrob.report.tables`'s, figures
+:mod:`bayesrob.report.plots.diagnosis`'s.
 """

@@ -2,7 +2,7 @@
 geometric calibration miss?
 
 Starting from the geometric calibration (``frames,geometric``), each candidate effect is a
-calibration group of :mod:`bayesrob.kinematics.chain` (``joint_compliance`` is the
+calibration group of :mod:`bayesrob.robot.chain` (``joint_compliance`` is the
 ``compliance`` group: joints giving way under gravity, masses unknown; ``lateral_compliance``
 is ``lateral``: the same torques bending each joint across its axis; ``encoder_error`` is
 ``encoder``: a once-per-revolution sinusoid in each revolute joint's angle; ``backlash`` is
@@ -41,11 +41,11 @@ from bayesrob.calibrate.least_squares import (
     marker_residuals,
     sag_convergence,
 )
+from bayesrob.data.rig import Rig
+from bayesrob.data.vocabulary import CHAIN_EFFECTS
 from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
-from bayesrob.effects import ALIASES as PLANAR_ALIASES
-from bayesrob.kinematics import SAG_GROUPS
-from bayesrob.rig import Rig
-from bayesrob.vocabulary import CHAIN_EFFECTS
+from bayesrob.robot import SAG_GROUPS
+from bayesrob.robot.effects import ALIASES as PLANAR_ALIASES
 
 # effect name -> the calibration group that models it
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no

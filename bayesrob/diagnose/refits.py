@@ -9,7 +9,7 @@ says which effect is missing, how big it is and how much the model gains from it
    repeated (``validation``) measurements, spatial autocorrelation (Moran's I, permutation
    test), the residuals regressed on each candidate effect's signature (a score test) and
    jumps between neighbouring points; and say where in the workspace the disagreement is.
-3. Fit every candidate effect (:mod:`bayesrob.effects`) added to the current model, arm by
+3. Fit every candidate effect (:mod:`bayesrob.robot.effects`) added to the current model, arm by
    arm (scipy least squares, JAX Jacobian), and score it on data it was not fitted on: the
    ``validation`` rows and leave-one-out refits over ``train`` (exact LOO up to 40 points,
    10-fold beyond; each refit profiles the structural settings again without its rows).
@@ -42,10 +42,10 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
-from bayesrob import effects as fx
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
+from bayesrob.data.rig import ArmSpec, Rig
 from bayesrob.diagnose.rule import DecisionRule, elpd_diff
-from bayesrob.rig import ArmSpec, Rig
+from bayesrob.robot import effects as fx
 
 N_BASE = len(kin.PARAM_NAMES)
 
@@ -760,7 +760,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
 
     ``candidates``: effect names to try (default: every registered effect); a chain
     effect's name asks for its planar instance (``joint_compliance``: ``gravity_sag``), and
-    one with none is a one-line ``ValueError`` (:func:`bayesrob.effects.resolve_effects`).
+    one with none is a one-line ``ValueError`` (:func:`bayesrob.robot.effects.resolve_effects`).
     """
     from bayesrob.progress import progress as make_progress
 
@@ -857,7 +857,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
 def diagnose_rig(path: str | Path, candidates: Sequence[str] | None = None,
                  progress: bool = False, **kwargs) -> Diagnosis:
     """Load a rig directory and diagnose it (the ``bayesrob diagnose`` command's work)."""
-    from bayesrob.rig import load_rig
+    from bayesrob.data.rig import load_rig
 
     return diagnose(load_rig(path), candidates, progress=progress, **kwargs)
 

@@ -76,7 +76,7 @@ def elpd_diff(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
     out for importance sampling (Pareto k > 1 on most points when tried)."""
     import arviz as az
 
-    from bayesrob.comparison import elpd_data
+    from bayesrob.compare.comparison import elpd_data
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stacking weights of two models: nothing to warn

@@ -28,6 +28,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from bayesrob.data.rig import (
+    MEASUREMENTS_FILE,
+    N_ARM_PARAMS,
+    RIG_FILE,
+    SETS,
+    ArmSpec,
+    RigError,
+    format_row,
+    load_rig_toml,
+    measurement_header,
+    parse_number,
+)
 from bayesrob.hardware.controller import (
     DEFAULT_RETRIES,
     DEFAULT_SPEED_US_PER_S,
@@ -42,21 +54,9 @@ from bayesrob.hardware.controller import (
     quantize_us,
 )
 from bayesrob.hardware.tracker import ManualTracker, StreamTracker, Tracker, TrackerFormat
-from bayesrob.rig import (
-    MEASUREMENTS_FILE,
-    N_ARM_PARAMS,
-    RIG_FILE,
-    SETS,
-    ArmSpec,
-    RigError,
-    format_row,
-    load_rig_toml,
-    measurement_header,
-    parse_number,
-)
 
 if TYPE_CHECKING:
-    from bayesrob.kinematics import Arm
+    from bayesrob.robot import Arm
 
 PROTOCOLS = ("maestro", "ssc32")
 # Measurements of one row before giving up on a controller that keeps dropping its targets.
@@ -186,7 +186,7 @@ def single_arm_steps(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
                      sets: Sequence[str] = SETS) -> list[Step]:
     """Train, validation then holdout rows of each arm, in rig order, aimed through the
     nominal model (holdout rows at the grid's cell centres)."""
-    from bayesrob.kinematics import Arm
+    from bayesrob.robot import Arm
 
     steps = []
     for name, spec in specs.items():
@@ -304,7 +304,7 @@ def arm_models(specs: dict[str, ArmSpec], rows: Sequence[RecordedRow],
     linked rows exactly as the interrupted one did.
     """
     from bayesrob.calibrate.arms import calibrate_arm
-    from bayesrob.kinematics import Arm
+    from bayesrob.robot import Arm
 
     first_test = next((i for i, r in enumerate(rows) if "+" in r.config), len(rows))
     models, kinds = {}, {}

@@ -690,7 +690,7 @@ def run_sim_device(rig_dir: str | Path, protocol: str = "maestro", *,
     """
     import signal
 
-    from bayesrob.rig import RigError
+    from bayesrob.data.rig import RigError
     from bayesrob.sim.equilibrium import PhysicalRig
     from bayesrob.sim.truth import TRUTH_FILE, Truth
 

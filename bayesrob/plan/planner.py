@@ -21,14 +21,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.least_squares import link_mask, with_gravity
+from bayesrob.data.rig import Measurements, Rig, RigError, parse_number
+from bayesrob.data.vocabulary import CHAIN_EFFECTS, GROUPS
 from bayesrob.plan.criteria import PRIOR_SD, Accuracy, Discriminate, Identify
 from bayesrob.plan.greedy import Selection, greedy
 from bayesrob.plan.pool import Pool, command_limits, read_pool, read_text, sample_pool
 from bayesrob.predict.aiming import aim
-from bayesrob.rig import Measurements, Rig, RigError, parse_number
-from bayesrob.vocabulary import CHAIN_EFFECTS, GROUPS
 
 DEFAULT_SAMPLES = 2000
 DEFAULT_NOISE_MM = 0.1
@@ -199,7 +199,7 @@ def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
                samples: int | None = None, task: str | Path | None = None, seed: int = 0,
                noise_mm: float = DEFAULT_NOISE_MM) -> Plan:
     """Choose ``n`` poses for ``rig`` (see the module's docstring); bad input is a
-    :class:`~bayesrob.rig.RigError` naming file, row and column."""
+    :class:`~bayesrob.data.rig.RigError` naming file, row and column."""
     t0 = time.perf_counter()
     if criterion not in ("accuracy", "identify", "discriminate"):
         raise RigError(f"unknown criterion {criterion!r} (accuracy, identify, discriminate)")

@@ -5,7 +5,7 @@ columns ``<arm>_u1..N``, a ``config`` column naming the measured arm where the r
 several), or samples drawn inside the joint limits (rig.toml ``limits`` per arm in command
 units; else a URDF's ``<limit lower upper>``; a planar arm's ``pulse_limits``). A rig may be
 planned for before its first measurement: no ``measurements.csv``, or one with a header only.
-Every mistake in these files is a :class:`~bayesrob.rig.RigError` naming file, row and column.
+Every mistake in these files is a :class:`~bayesrob.data.rig.RigError` naming file, row and column.
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesrob.kinematics import Chain, Robot
-from bayesrob.rig import (
+from bayesrob.data.rig import (
     MEASUREMENTS_FILE,
     RIG_FILE,
     Measurements,
@@ -31,6 +30,7 @@ from bayesrob.rig import (
     load_rig_toml,
     parse_number,
 )
+from bayesrob.robot import Chain, Robot
 
 M_TO_MM = 1000.0
 
@@ -63,7 +63,7 @@ class Pool:
 
 
 def load_plan_rig(directory: str | Path) -> Rig:
-    """The rig to plan for: :func:`~bayesrob.rig.load_rig`, but a rig with no
+    """The rig to plan for: :func:`~bayesrob.data.rig.load_rig`, but a rig with no
     ``measurements.csv`` yet, or one with a header only, loads with no rows."""
     directory = Path(directory)
     if not directory.is_dir():
@@ -245,7 +245,7 @@ def _aimed_samples(rig: Rig, arm: str, n: int, rng: np.random.Generator) -> np.n
     """Pulses (n, 2) aiming planar ``arm``'s nominal model at points drawn in the workspace."""
     import jax.numpy as jnp
 
-    from bayesrob.kinematics import Arm
+    from bayesrob.robot import Arm
 
     model = Arm.nominal(rig.arms[arm])
     ws = np.asarray(rig.workspace)

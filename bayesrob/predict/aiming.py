@@ -3,7 +3,7 @@ refusals of a target it cannot reach.
 
 Any arm (a URDF/DH chain, or a planar arm as a 2-joint chain) is aimed by :func:`aim`:
 position-only damped Gauss-Newton through its calibrated model, from the train poses nearest
-the target. The planar arm's closed form (:meth:`bayesrob.kinematics.Arm.command`) is its
+the target. The planar arm's closed form (:meth:`bayesrob.robot.Arm.command`) is its
 specialisation, which the paper's pipeline uses.
 """
 
@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
-from bayesrob.rig import Rig, RigError
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig, RigError
 
 __all__ = ["aim", "check_reach", "check_pulse_limits", "IK_TOL_MM"]
 

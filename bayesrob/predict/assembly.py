@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from bayesrob import kinematics as kin
-from bayesrob.latent_errors import LATENT_MODELS
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig, RigError
+from bayesrob.errors.latent_errors import LATENT_MODELS
 from bayesrob.predict.draws import fit_modules, fit_paper_modules
 from bayesrob.predict.fusion import DEFAULT_FUSION, DRAWS, FUSIONS
 from bayesrob.predict.regions import hdr_levels, hdr_sizes
 from bayesrob.predict.stiffness import STIFFNESS_SOURCES
-from bayesrob.rig import Rig, RigError
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -134,7 +134,7 @@ class AssemblyPrediction:
                 "the prediction may be too narrow")
 
     def format(self) -> str:
-        from bayesrob.report import format_table
+        from bayesrob.report.tables import format_table
 
         rows = [[", ".join(f"{v:.1f}" for v in t), ", ".join(f"{v:.2f}" for v in p), f"{e:.2f}",
                  f"{a50:.3g}", f"{a90:.3g}"]

@@ -1,9 +1,9 @@
 """Draws of where an assembly's end point lands: one arm, or any number linked, 2-D or 3-D.
 
 Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
-residuals (:mod:`bayesrob.latent_errors`). At a target, each arm is aimed through its calibrated
-model (:mod:`.aiming`), and its *free* end point is the push-forward of the population: draws
-of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated robot, plus
+residuals (:mod:`bayesrob.errors.latent_errors`). At a target, each arm is aimed through its
+calibrated model (:mod:`.aiming`), and its *free* end point is the push-forward of the
+population: draws of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated robot, plus
 N(0, s^2) for what no joint explains.
 
 Linked arms share one point (:mod:`.fusion`):
@@ -32,20 +32,20 @@ import numpyro
 import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.calibrate.least_squares import Calibration, calibrate, parameter_covariance
-from bayesrob.latent_errors import (
+from bayesrob.data.rig import Rig, RigError
+from bayesrob.errors.latent_errors import (
     LatentJointErrors,
     check_latent_model,
     fit_latent_errors,
     joint_jacobian,
 )
-from bayesrob.noise_models import FittedNoiseModel, discover_models, fit_noise_models
+from bayesrob.errors.noise_models import FittedNoiseModel, discover_models, fit_noise_models
 from bayesrob.predict.aiming import aim, check_reach
 from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium, fused_draws
 from bayesrob.predict.stiffness import StiffnessPrior, stiffness_draws, stiffness_priors
-from bayesrob.rig import Rig, RigError
 
 __all__ = ["CalibratedModules", "PaperModules", "fit_modules", "fit_paper_modules",
            "check_module_arms", "assembly_draws",
@@ -88,7 +88,7 @@ class CalibratedModules:
 @dataclass
 class PaperModules:
     """The paper's planar arms: each calibrated by its eight parameters, with a kernel
-    joint-error model of :mod:`bayesrob.noise_models` (the paper's or an improved one)."""
+    joint-error model of :mod:`bayesrob.errors.noise_models` (the paper's or an improved one)."""
 
     arms: dict[str, kin.Arm]
     fitted: dict[str, FittedNoiseModel]

@@ -2,7 +2,7 @@
 
 - ``product`` (the paper's rule, kept as the baseline): the linked end point's density is the
   product of the arms' likelihoods (:mod:`bayesrob.predict.grid`,
-  :func:`bayesrob.inference.grid_posterior`).
+  :func:`bayesrob.inference.sampling.grid_posterior`).
 - ``equilibrium``: linked arms are springs. Left alone, arm a would hold its end point at d_a,
   its *free* end point, whose distribution is the arm's own single-arm prediction at its
   commands. Linked, the end point settles where the arms' elastic forces balance. Linearised
@@ -25,9 +25,9 @@ arm and joint, shared by every target of a draw: an arm is as stiff at one targe
 next).
 
 :func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
-model (the KDE distributions of :mod:`bayesrob.inference`), pushed through the arm, then the
-stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction; their density
-is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid (:func:`draws_posterior`) where
+model (the KDE distributions of :mod:`bayesrob.inference.sampling`), pushed through the arm,
+then the stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction;
+their density is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid (:func:`draws_posterior`) where
 a grid posterior is asked for, and exact at the scored points. The paper's histogram COND has
 a density but no sampler: its free end points are drawn from its single-arm grid prediction
 instead, which for a model without the Jacobian is that model's own single-arm prediction as
@@ -48,8 +48,10 @@ import numpyro.distributions as dist
 import scipy.signal
 from numpyro.infer import Predictive
 
-from bayesrob import kinematics as kin
-from bayesrob.inference import (
+from bayesrob import robot as kin
+from bayesrob.data.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
+from bayesrob.errors.noise_models import FittedNoiseModel
+from bayesrob.inference.sampling import (
     COARSE_GRID,
     GridPosterior,
     error_arrays,
@@ -58,9 +60,7 @@ from bayesrob.inference import (
     grid_posterior,
     is_sampleable,
 )
-from bayesrob.noise_models import FittedNoiseModel
 from bayesrob.predict.regions import kernels
-from bayesrob.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
 
 __all__ = [
     "FUSIONS",
@@ -182,7 +182,7 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     """Arms linked at their end point, settling where their stiffnesses balance.
 
     For each arm k with commands (T, 2): theta_err_k ~ its joint-error model (``kinds`` and
-    ``arrays``: :func:`bayesrob.inference.error_arrays`, so a compiled caller such as the
+    ``arrays``: :func:`bayesrob.inference.sampling.error_arrays`, so a compiled caller such as the
     configuration designer traces them rather than baking them in), theta_k = g(u) +
     theta_err_k, free point d_k = f(theta_k); log stiffnesses from ``stiffness`` ((2,)
     N mm/rad per arm, None for unknown) or the prior; then the linked point ``d`` =
@@ -197,7 +197,7 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     averages it down (to sum_a W_a W_a^T sigma^2, W_a = (sum K)^-1 K_a); but the linked point
     is measured once, with all of it. The missing sigma^2 (I - sum_a W_a W_a^T) is added back.
     ``densities_hold_tracker`` False: the densities were fitted with the tracker's noise taken
-    out (:func:`bayesrob.noise_models.without_tracker_noise`), so all of it is added, to a
+    out (:func:`bayesrob.errors.noise_models.without_tracker_noise`), so all of it is added, to a
     single arm's point as to a linked one.
     """
     frees, held = [], []

@@ -17,11 +17,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import mean_ci95, observed_errors, predicted_points
-from bayesrob.noise_models import FittedNoiseModel
+from bayesrob.data.rig import Rig
+from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.regions import region_sizes
-from bayesrob.rig import Rig
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import numpyro.distributions as dist
 from numpyro.infer import Predictive
 
 from bayesrob.calibrate.least_squares import Calibration
-from bayesrob.rig import Rig
+from bayesrob.data.rig import Rig
 
 __all__ = ["StiffnessPrior", "STIFFNESS_SOURCES", "stiffness_prior", "arm_sags",
            "sag_scaled_priors", "stiffness_priors", "stiffness_draws"]

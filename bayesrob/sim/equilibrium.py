@@ -8,7 +8,7 @@ an average. Two solvers, one physics:
 - :class:`PhysicalRig`, the paper's servo-driven planar arms (pulse widths in, end points
   out): BFGS on the energy of each arm (the general energy's closed form on a 2-joint chain),
   linked arms eliminated through their closed-form inverse
-  (:func:`bayesrob.kinematics.inverse`), so the dead band's kink needs no Hessian;
+  (:func:`bayesrob.robot.inverse`), so the dead band's kink needs no Hessian;
 - :func:`linked_equilibrium`, arms of revolute joints in 3-D: Newton's method on the Lagrange
   conditions with closed-form first and second derivatives of one forward pass.
 
@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from bayesrob import kinematics as kin
-from bayesrob.kinematics import Robot, RobotStructure
+from bayesrob import robot as kin
+from bayesrob.robot import Robot, RobotStructure
 from bayesrob.sim.physics import G_N_PER_KG, STIFF_FACTOR, dead_band, link_weights, servo_ripple
 from bayesrob.sim.truth import GRAVITY, POSE_HI, POSE_LO, TRUTH_FILE, ArmTruth, Truth
 

@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.kinematics import Robot, RobotStructure
-from bayesrob.kinematics.chain import G_N_PER_KG
+from bayesrob.robot import Robot, RobotStructure
+from bayesrob.robot.chain import G_N_PER_KG
 
 # Without gravity_sag a planar arm's servos are this much stiffer: gravity still decides which
 # side of a dead band a joint rests on, but no longer deflects it measurably.

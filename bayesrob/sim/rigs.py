@@ -23,10 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from bayesrob import kinematics as kin
-from bayesrob.kinematics import Robot, urdf_chain
-from bayesrob.progress import progress as progress_bar
-from bayesrob.rig import (
+from bayesrob import robot as kin
+from bayesrob.data.rig import (
     MEASUREMENTS_FILE,
     RIG_FILE,
     ArmSpec,
@@ -38,6 +36,8 @@ from bayesrob.rig import (
     measurement_header,
     rig_toml_dict,
 )
+from bayesrob.progress import progress as progress_bar
+from bayesrob.robot import Robot, urdf_chain
 from bayesrob.sim import physics
 from bayesrob.sim.equilibrium import PhysicalRig, linked_equilibrium, position_ik
 from bayesrob.sim.truth import (

@@ -32,10 +32,10 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
-from bayesrob.rig import dump_toml
+from bayesrob import robot as kin
+from bayesrob.data.rig import dump_toml
+from bayesrob.data.vocabulary import EFFECTS
 from bayesrob.sim.physics import draw_stiffnesses
-from bayesrob.vocabulary import EFFECTS
 
 TRUTH_FILE = "truth.toml"
 ARM6_URDF = "arm6.urdf"

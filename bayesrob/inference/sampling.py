@@ -8,7 +8,7 @@ a 2-D box. Here the same models are probabilistic programs, so standard Bayesian
   uniform ``w`` (IND: one such 1-D mixture per joint; CORR: one 2-D mixture; COND: the mixing
   weights are the kernel-conditional weights at the command u). The paper's histogram COND has
   no sampler, only a density, so it enters programs as a ``numpyro.factor``; its value is the
-  table's and its gradient a smooth guide's (:func:`bayesrob.kde.guided_histogram_lookup`),
+  table's and its gradient a smooth guide's (:func:`bayesrob.errors.kde.guided_histogram_lookup`),
   which lets NUTS sample a density that is piecewise constant.
 - :func:`arm_model`, one arm: u -> theta = g(u) + theta_err, theta_err ~ model -> d = f(theta)
   (+ optional measurement noise). Its prior predictive is the push-forward of the joint-error
@@ -49,15 +49,15 @@ from numpyro.infer.util import log_density
 from scipy.special import logsumexp, softmax
 from threadpoolctl import threadpool_limits
 
-from bayesrob import kinematics as kin
-from bayesrob.kde import guided_histogram_lookup, kernel_conditional_weights
-from bayesrob.noise_models import FittedNoiseModel
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig
+from bayesrob.errors.kde import guided_histogram_lookup, kernel_conditional_weights
+from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.aiming import check_pulse_limits, check_reach
 from bayesrob.predict.grid import Grid
 from bayesrob.predict.regions import density_levels
 from bayesrob.progress import FIRST_LINE_S
-from bayesrob.report import grouped_notes
-from bayesrob.rig import Rig
+from bayesrob.report.tables import grouped_notes
 
 __all__ = [
     "SAMPLERS",
@@ -1138,12 +1138,12 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     the document's ``check`` says whether it passed and lists every failure.
 
     A rig of URDF/DH arms (2-D or 3-D) is calibrated over ``groups`` (default
-    :data:`bayesrob.kinematics.GROUPS`), each arm aimed by :func:`bayesrob.predict.aiming.aim`,
+    :data:`bayesrob.robot.GROUPS`), each arm aimed by :func:`bayesrob.predict.aiming.aim`,
     and the point sampled under its arms' marker densities (:func:`_sample_markers`); so is a
     planar rig given ``groups``, its arms as the 2-joint chains they are.
     """
     from bayesrob.calibrate.arms import calibrate_arms
-    from bayesrob.noise_models import discover_models, fit_noise_models
+    from bayesrob.errors.noise_models import discover_models, fit_noise_models
 
     if sampler not in (*SAMPLERS, "all"):
         raise ValueError(f"sampler must be one of {SAMPLERS} or 'all', got {sampler!r}")
@@ -1236,13 +1236,13 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                     tol: CheckTolerances) -> SampleReport:
     """:func:`sample_linked` on a rig of URDF/DH arms: the shared point of arms aimed at
     ``target`` has the density prod_a p_a(point | u_a) of the arms' marker densities
-    (:class:`bayesrob.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample it and
-    a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
+    (:class:`bayesrob.errors.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample
+    it and a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
     from bayesrob.calibrate.least_squares import calibrate
-    from bayesrob.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
-    from bayesrob.noise_models import discover_models
+    from bayesrob.data.rig import RigError
+    from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
+    from bayesrob.errors.noise_models import discover_models
     from bayesrob.predict.aiming import aim
-    from bayesrob.rig import RigError
 
     members = config.split("+")
     measured = rig.robot.measured_arms()
@@ -1313,7 +1313,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
 
 def format_sample(report: SampleReport) -> str:
     """Terminal summary: arviz diagnostics per sampler, moments side by side, the check."""
-    from bayesrob.report import format_table
+    from bayesrob.report.tables import format_table
 
     doc = report.document
     dim = len(doc["target"])

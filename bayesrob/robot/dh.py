@@ -8,7 +8,7 @@ Rows are ``[d, theta, a, alpha]`` (mm, rad), the joint value adding to theta (re
 - standard: ``T_i = Rz(theta + q) Tz(d) Tx(a) Rx(alpha)``: the joint's motion about z comes
   first, and the fixed part ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` becomes the next joint's origin
   (the last one becomes the tool).
-A DH table is one description of the general :class:`~bayesrob.kinematics.chain.Chain`; the
+A DH table is one description of the general :class:`~bayesrob.robot.chain.Chain`; the
 calibration corrects every origin with six numbers, so the DH singularity of near-parallel
 axes (which Hayati's extra beta angle works around) does not arise.
 """
@@ -19,8 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-import bayesrob.kinematics.transforms as tf
-from bayesrob.kinematics.chain import Chain, KinematicsError
+import bayesrob.robot.transforms as tf
+from bayesrob.robot.chain import Chain, KinematicsError
 
 CONVENTIONS = ("modified", "standard")
 

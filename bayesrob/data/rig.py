@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob.kinematics import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
-from bayesrob.kinematics import transforms as tf
+from bayesrob.robot import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
+from bayesrob.robot import transforms as tf
 
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
@@ -173,8 +173,8 @@ class Rig:
                     name: str = "rig", gravity: Sequence[float] | None = None,
                     stiffness: dict[str, Sequence[float]] | None = None) -> Rig:
         """A rig built in memory, no directory needed: ``arms`` the paper's planar arms
-        (:class:`ArmSpec`) or chains (:func:`bayesrob.kinematics.urdf_chain` with a file or
-        ``text=``, :func:`~bayesrob.kinematics.dh_chain`), and their rows
+        (:class:`ArmSpec`) or chains (:func:`bayesrob.robot.urdf_chain` with a file or
+        ``text=``, :func:`~bayesrob.robot.dh_chain`), and their rows
         (:meth:`Measurements.from_arrays`). ``gravity`` as rig.toml's (default straight down:
         -y in the plane, -z in 3-D); ``stiffness``: joint stiffnesses per chain, where known.
         Checked as :func:`load_rig` checks a directory: every config names arms of the rig,

@@ -2,7 +2,7 @@
 
 Each function takes a diagnosis (:class:`~bayesrob.diagnose.refits.Diagnosis`, or a
 :class:`~bayesrob.diagnose.groups.GroupDiagnosis`'s document) and returns a matplotlib
-Figure; saving is the caller's business (:func:`bayesrob.outputs.write_diagnosis_report`).
+Figure; saving is the caller's business (:func:`bayesrob.report.outputs.write_diagnosis_report`).
 """
 
 from __future__ import annotations

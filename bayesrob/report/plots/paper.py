@@ -1,4 +1,4 @@
-"""The paper's Figures 3-8, drawn from a :class:`bayesrob.reproduction.Reproduction`.
+"""The paper's Figures 3-8, drawn from a :class:`bayesrob.paper.reproduction.Reproduction`.
 
 Positions are in mm (the paper plots cm). Each function returns a Figure; the caller saves it.
 """
@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
-    from bayesrob.reproduction import Reproduction
+    from bayesrob.paper.reproduction import Reproduction
 
 
 def _pick(rep: Reproduction, family: str, prefer_paper: bool | None = None) -> list[str]:

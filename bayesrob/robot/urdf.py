@@ -5,7 +5,7 @@ Only what kinematics needs is read, with the standard XML parser: each joint's `
 ``limit`` effort, and each link's ``inertial`` mass and centre (a sagging chain's weights when
 the file's masses are to be trusted). Meshes and inertia tensors are left alone, and written
 back untouched. The chain between two
-named links becomes a :class:`~bayesrob.kinematics.chain.Chain` in mm: fixed joints are folded
+named links becomes a :class:`~bayesrob.robot.chain.Chain` in mm: fixed joints are folded
 into the next joint's origin (or into the tool), ``continuous`` joints are revolute, and a
 ``mimic`` joint is a coupled passive joint (its multiplier goes into the coupling matrix, its
 offset into its origin, where a turn about the joint's own axis is exact).
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-import bayesrob.kinematics.transforms as tf
-from bayesrob.kinematics.chain import Chain, KinematicsError, Robot
+import bayesrob.robot.transforms as tf
+from bayesrob.robot.chain import Chain, KinematicsError, Robot
 
 M_TO_MM = 1000.0
 

@@ -24,9 +24,9 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
-from bayesrob.kde import KDE, ConditionalKDE
-from bayesrob.rig import Rig
+from bayesrob import robot as kin
+from bayesrob.data.rig import Rig
+from bayesrob.errors.kde import KDE, ConditionalKDE
 
 FAMILIES = ("IND", "CORR", "COND")
 

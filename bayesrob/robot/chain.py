@@ -30,13 +30,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import bayesrob.kinematics.transforms as tf
+import bayesrob.robot.transforms as tf
 
 # The parameter groups (the optional ones: joints that give way under gravity, see
 # Robot.deflections; revolute joints read through an eccentric encoder, see Robot.joint_values;
 # play in the joints that gravity takes up, see Robot.sag) and the links' mass sources are
 # names the command line checks before it imports this module: they are defined there.
-from bayesrob.vocabulary import ALL_GROUPS, GROUPS, MASS_SOURCES, OPTIONAL_GROUPS  # noqa: F401
+from bayesrob.data.vocabulary import ALL_GROUPS, GROUPS, MASS_SOURCES, OPTIONAL_GROUPS  # noqa: F401
 
 JOINT_KINDS = ("revolute", "prismatic")
 SAG_GROUPS = ("compliance", "lateral", "backlash")  # the groups gravity's torques drive

@@ -2,7 +2,7 @@
 
 On the paper's planar arms a row's joint errors are read off its residual: two joints, two
 coordinates, so theta_err = J^-1 r, and a KDE over those errors is the density
-(:mod:`bayesrob.noise_models`). A 6- or 11-joint chain measured at a 3-D marker cannot be
+(:mod:`bayesrob.errors.noise_models`). A 6- or 11-joint chain measured at a 3-D marker cannot be
 inverted that way: every residual is explained by a 3-D family of joint errors. So the joint
 errors of each row are latent, and what is fitted is their population density:
 
@@ -34,9 +34,9 @@ import numpyro
 import numpyro.distributions as dist
 from numpyro.infer import MCMC, NUTS
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.least_squares import side_rows
-from bayesrob.rig import Rig, RigError
+from bayesrob.data.rig import Rig, RigError
 
 __all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",
            "joint_jacobian", "joint_names", "scaled_train_residuals"]

@@ -2,7 +2,7 @@
 
 The score of a point is its log predictive density: the log of the model's predicted density
 (per mm^2) of the observed end point, normalised over the grid box like every grid
-prediction (:func:`bayesrob.inference.grid_posterior`). The points:
+prediction (:func:`bayesrob.inference.sampling.grid_posterior`). The points:
 
 - held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
   linked ``test`` rows (predicted from both arms' models), the data no model has seen; when the
@@ -40,22 +40,22 @@ import numpy as np
 import scipy.stats
 import xarray as xr
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
-from bayesrob.inference import GridPosterior, grid_posterior, point_log_density
-from bayesrob.kde import KDE, ConditionalKDE
-from bayesrob.noise_models import (
+from bayesrob.data.rig import Rig
+from bayesrob.errors.kde import KDE, ConditionalKDE
+from bayesrob.errors.noise_models import (
     FittedNoiseModel,
     ModelSpec,
     discover_models,
     fit_noise_models,
     joint_errors,
 )
+from bayesrob.inference.sampling import GridPosterior, grid_posterior, point_log_density
 from bayesrob.predict.fusion import fused_posterior
 from bayesrob.predict.grid import setup_rows, setups
 from bayesrob.predict.regions import kde_log_density
-from bayesrob.report import format_table
-from bayesrob.rig import Rig
+from bayesrob.report.tables import format_table
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -337,7 +337,7 @@ class ModelComparison:
     # the same setups with linked ones fused by the equilibrium rule (model -> setup -> scores)
     fused: dict[str, dict[str, PointScores]] = field(default_factory=dict)
     fused_holdout: dict[str, dict[str, PointScores]] = field(default_factory=dict)
-    # URDF/DH rigs: what each model is on their arms (bayesrob.marker_density), and the score
+    # URDF/DH rigs: what each model is on their arms (bayesrob.errors.marker_density), and the score
     kinds: dict[str, str] = field(default_factory=dict)
     score: str = ("log predictive density per mm^2 of the observed end point, normalised "
                   "over the grid box; elpd = sum over points")
@@ -425,7 +425,7 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     Held out are the validation/test rows and, when the rig has them, the ``holdout`` rows
     (scored separately). ``recalibrate``: leave-one-out refits each arm's calibration without
     the left-out row as well (see :func:`loo_training_scores`). A rig of URDF/DH arms is
-    calibrated over ``groups`` (default :data:`bayesrob.kinematics.GROUPS`) and scored by its
+    calibrated over ``groups`` (default :data:`bayesrob.robot.GROUPS`) and scored by its
     markers' densities (:func:`_compare_marker_models`); so is a planar rig given ``groups``,
     its arms as the 2-joint chains they are.
     """
@@ -493,10 +493,14 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
                            models_dir: str | Path | None, progress: bool,
                            groups: tuple[str, ...] | None) -> ModelComparison:
     """:func:`compare_models` on a rig of URDF/DH arms: every measured arm's validation rows
-    (and holdout rows) scored by :class:`bayesrob.marker_density.MarkerDensity`, and
+    (and holdout rows) scored by :class:`bayesrob.errors.marker_density.MarkerDensity`, and
     leave-one-out over its train rows with the calibration kept."""
     from bayesrob.calibrate.least_squares import calibrate, side_rows
-    from bayesrob.marker_density import fit_marker_model, loo_marker_scores, marker_model_kind
+    from bayesrob.errors.marker_density import (
+        fit_marker_model,
+        loo_marker_scores,
+        marker_model_kind,
+    )
     from bayesrob.progress import progress as progress_report
 
     t0 = time.perf_counter()
@@ -531,7 +535,7 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
     notes = [
         "held out: validation rows of each measured arm; models fitted on train rows",
         "score: log density per mm^3 (per mm^2 on a 2-D rig) of the observed marker under the "
-        "arm's marker density at its commands (bayesrob.marker_density): ind and corr the "
+        "arm's marker density at its commands (bayesrob.errors.marker_density): ind and corr the "
         "latent joint-error population, cond the kernel conditional of the marker residuals "
         "given the commands",
         "loo_train: leave-one-out over each arm's train residuals (scaled for the calibration's "

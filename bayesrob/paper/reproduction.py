@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import Method, calibrate_arms
-from bayesrob.noise_models import (
+from bayesrob.data.rig import Rig, RigError
+from bayesrob.errors.noise_models import (
     FittedNoiseModel,
     ModelSpec,
     discover_models,
@@ -23,8 +24,7 @@ from bayesrob.noise_models import (
     joint_errors,
 )
 from bayesrob.predict.grid import Grid, Prediction, accuracy_document, predict, setup_rows, setups
-from bayesrob.report import format_table
-from bayesrob.rig import Rig, RigError
+from bayesrob.report.tables import format_table
 
 FIGURES = (
     "fig3_workspace_errors.png",

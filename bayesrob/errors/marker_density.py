@@ -2,19 +2,19 @@
 on any robot: a Gaussian mixture per row, scored, sampled and multiplied the same way for all.
 
 IND and CORR (joint errors not observed: more joints than measured coordinates). The latent
-population of :mod:`bayesrob.latent_errors` is the density: e ~ N(0, Sigma), the marker
+population of :mod:`bayesrob.errors.latent_errors` is the density: e ~ N(0, Sigma), the marker
 r = J e + eps. Integrated over e, row t's residual is N(0, J_t Sigma_s J_t^T + s_s^2 I) for each
 posterior draw s of (Sigma, s), and the predictive is their equal-weight mixture.
 
 COND: the paper's COND conditions the error on the commands through a Parzen kernel in
 command space. On a chain the per-row quantity the rows observe is the marker residual (the
 joint errors are not), so COND is the kernel-conditional KDE of the train residuals given the
-path's commands, :class:`bayesrob.kde.ConditionalKDE` (LOO-ML widths, the command widths at
+path's commands, :class:`bayesrob.errors.kde.ConditionalKDE` (LOO-ML widths, the command widths at
 least ``command_bandwidth_floor`` nearest-neighbour spacings, as the planar COND's file
 says): row t's residual is sum_i w_i(u_t) N(r_i, diag(bw^2)).
 
 Both are fitted on the calibrated model's train residuals scaled by sqrt(N / (N - p)) for the
-p parameters the calibration took (:func:`bayesrob.latent_errors.fit_latent_errors`), so a
+p parameters the calibration took (:func:`bayesrob.errors.latent_errors.fit_latent_errors`), so a
 residual of a row no fit has seen is scored against the spread such rows have.
 
 The mixture is centred on the calibrated model's marker at each row's commands; its
@@ -36,15 +36,15 @@ import scipy.special
 from jax.scipy.special import logsumexp
 
 from bayesrob.calibrate.least_squares import Calibration, side_rows
-from bayesrob.kde import ConditionalKDE
-from bayesrob.latent_errors import (
+from bayesrob.data.rig import Rig, RigError
+from bayesrob.errors.kde import ConditionalKDE
+from bayesrob.errors.latent_errors import (
     LatentJointErrors,
     fit_latent_errors,
     joint_jacobian,
     scaled_train_residuals,
 )
-from bayesrob.noise_models import ModelSpec
-from bayesrob.rig import Rig, RigError
+from bayesrob.errors.noise_models import ModelSpec
 
 __all__ = ["MarkerDensity", "MarkerModel", "fit_marker_model", "marker_model_kind",
            "loo_marker_scores"]

@@ -6,7 +6,7 @@ to those angles,
 
     theta_actual = effect.apply(params, extra, u, theta)
 
-where ``params`` are the eight base parameters (:class:`~bayesrob.kinematics.ArmParams`),
+where ``params`` are the eight base parameters (:class:`~bayesrob.robot.ArmParams`),
 ``extra`` the effect's own unknowns (fitted together with ``params`` by least squares, so
 ``apply`` is written in JAX and the Jacobian comes from JAX), ``u`` the pulse widths and
 ``theta`` the angles before the effect. The end point is then ``f(theta_actual)``.
@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ The planar functions are re-exported here because the grid predictions, samplers
 diagnosis work on them directly (``from bayesrob import kinematics as kin; kin.forward_u``).
 """
 
-from bayesrob.kinematics.chain import (
+from bayesrob.robot.chain import (
     ALL_GROUPS,
     GROUPS,
     MASS_SOURCES,
@@ -19,8 +19,8 @@ from bayesrob.kinematics.chain import (
     Robot,
     RobotStructure,
 )
-from bayesrob.kinematics.dh import dh_chain
-from bayesrob.kinematics.planar import (
+from bayesrob.robot.dh import dh_chain
+from bayesrob.robot.planar import (
     PARAM_NAMES,
     Arm,
     ArmParams,
@@ -36,7 +36,7 @@ from bayesrob.kinematics.planar import (
     servo_inverse,
     wrap_angle,
 )
-from bayesrob.kinematics.urdf import urdf_chain, write_urdf
+from bayesrob.robot.urdf import urdf_chain, write_urdf
 
 __all__ = [
     "ALL_GROUPS", "GROUPS", "MASS_SOURCES", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD",

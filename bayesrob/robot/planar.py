@@ -6,7 +6,7 @@ Everything broadcasts over leading dimensions, so the same functions serve one p
 a grid of test points or a batch of targets, and they are differentiable for the
 samplers and the least-squares fit.
 
-The same arm is also a 2-joint planar :class:`~bayesrob.kinematics.chain.Chain`
+The same arm is also a 2-joint planar :class:`~bayesrob.robot.chain.Chain`
 (:func:`planar_chain`); the closed-form inverse here is kept for speed and tested equal to the
 general chain.
 """
@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.kinematics.chain import Chain
+from bayesrob.robot.chain import Chain
 
 
 class ArmSpec(Protocol):

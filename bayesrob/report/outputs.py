@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bayesrob import kinematics as kin
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms, observed_accuracy
 from bayesrob.calibrate.bayes import calibrate_arms_bayes, report_extras
+from bayesrob.data.rig import Rig
 from bayesrob.diagnose.groups import GroupDiagnosis
 from bayesrob.diagnose.refits import Diagnosis
-from bayesrob.reproduction import Reproduction
-from bayesrob.rig import Rig
+from bayesrob.paper.reproduction import Reproduction
 
 CALIBRATION_METHODS: tuple[str, ...] = (*METHODS, "bayes")
 
@@ -50,7 +50,7 @@ def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
     """Write accuracy.json and Figures 3-8 into ``out``; returns the paths written."""
     import matplotlib.pyplot as plt
 
-    from bayesrob.plots import paper as figs
+    from bayesrob.report.plots import paper as figs
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -79,7 +79,7 @@ def write_diagnosis_report(diag: Diagnosis | GroupDiagnosis, directory: str | Pa
     (``published``, step label -> mean mm, drawn beside it) and the residual arrows."""
     import matplotlib.pyplot as plt
 
-    from bayesrob.plots import diagnosis as plots
+    from bayesrob.report.plots import diagnosis as plots
 
     if isinstance(diag, GroupDiagnosis):
         doc = diag.to_json()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from bayesrob.kinematics import PARAM_NAMES
+from bayesrob.robot import PARAM_NAMES
 
 
 def _fmt(x: float | None, nd: int = 2) -> str:
