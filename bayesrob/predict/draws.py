@@ -3,7 +3,8 @@
 Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
 residuals (:mod:`bayesrob.errors.latent_errors`). At a target, each arm is aimed through its
 calibrated model (:mod:`.aiming`), and its *free* end point is the push-forward of the
-population: draws of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the calibrated robot, plus
+population: draws of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the
+calibrated robot, plus
 N(0, s^2) for what no joint explains.
 
 Linked arms share one point (:mod:`.fusion`):

@@ -27,7 +27,8 @@ next).
 :func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
 model (the KDE distributions of :mod:`bayesrob.inference.sampling`), pushed through the arm,
 then the stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction;
-their density is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid (:func:`draws_posterior`) where
+their density is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid
+(:func:`draws_posterior`) where
 a grid posterior is asked for, and exact at the scored points. The paper's histogram COND has
 a density but no sampler: its free end points are drawn from its single-arm grid prediction
 instead, which for a model without the Jacobian is that model's own single-arm prediction as
