@@ -33,7 +33,7 @@ import bayesrob  # noqa: F401  (float64)
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.errors.noise_models import discover_models, fit_noise_models
-from bayesrob.inference.sampling import sampling as inf
+from bayesrob.inference import sampling as inf
 from bayesrob.predict.grid import Grid, predict
 
 

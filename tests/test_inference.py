@@ -23,7 +23,7 @@ from bayesrob.cli import main
 from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.errors.kde import ConditionalKDE
 from bayesrob.errors.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
-from bayesrob.inference.sampling import sampling as inf
+from bayesrob.inference import sampling as inf
 from bayesrob.predict.grid import Grid, arm_log_likelihood, predict
 
 # Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.

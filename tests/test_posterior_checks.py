@@ -32,7 +32,7 @@ from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.compare.comparison import heldout_scores
 from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.errors.noise_models import ModelSpec, discover_models, joint_errors
-from bayesrob.inference.sampling import sampling as inf
+from bayesrob.inference import sampling as inf
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 

@@ -28,7 +28,7 @@ from bayesrob import release_compiled_programs
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.data.rig import Rig, default_rig_dir, load_rig
 from bayesrob.errors.noise_models import discover_models, joint_errors
-from bayesrob.inference.sampling import sampling as inf
+from bayesrob.inference import sampling as inf
 from bayesrob.robot import Arm
 
 SAMPLERS = ("nuts", "emcee")
