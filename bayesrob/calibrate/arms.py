@@ -106,9 +106,10 @@ def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = 
         raise ValueError(f"unknown calibration method {method!r}; use one of {METHODS}")
     u = np.asarray(u, float)
     d = np.asarray(d, float)
-    if len(u) * 2 <= N_ARM_PARAMS:
+    # four rows fix the eight exactly (standard errors NaN): `simulate --grid 2` rigs have four
+    if len(u) * 2 < N_ARM_PARAMS:
         raise ValueError(f"arm {spec.name!r}: {len(u)} train rows cannot fix {N_ARM_PARAMS} "
-                         "parameters with a degree of freedom left")
+                         "parameters")
     v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
     if method == "least-squares":
         robot, idx = arm_robot(v0)

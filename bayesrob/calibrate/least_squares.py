@@ -316,7 +316,7 @@ def fit(robot: kin.Robot, rows: Rows, groups: tuple[str, ...],
         if progress:
             progress("frames fitted")
     ident = identifiability(np.asarray(full_jac(jnp.asarray(x))), layout, candidates)
-    if int(ident.free.sum()) >= n_res:
+    if int(ident.free.sum()) > n_res:
         raise ValueError(f"{ident.free.sum()} identifiable parameters but only {n_res} "
                          "measured coordinates in the train rows")
     # a start with compliances fitted already shows the masses: the second round alone
