@@ -228,7 +228,7 @@ class Rig:
         cols = [meas.commands[c.name][m] for c in self.robot.path(arm)]
         return np.concatenate(cols, axis=1), meas.observed[m]
 
-    def chain_side_rows(self, arm: str, set: str) -> dict[str, np.ndarray] | None:
+    def side_rows(self, arm: str, set: str) -> dict[str, np.ndarray] | None:
         """The other measured arms' path columns in ``arm``'s rows of a set (the rest of each
         pose, whose weight bends shared chains), or None unless every such row carries them."""
         meas = self.measurements
@@ -352,7 +352,7 @@ def _numbers(value: object, n: int, where: str) -> np.ndarray:
     return np.asarray(value, float)
 
 
-def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> ChainSpec:
+def _parse_urdf_dh_arm(name: str, table: dict, where: str, directory: Path) -> ChainSpec:
     """An arm given by ``urdf`` (+ ``root``, ``tip``) or ``dh`` (+ ``convention``)."""
     _check_keys(table, CHAIN_KEYS, where, f"[arms.{name}]")
     key = f"{where}: arms.{name}"
@@ -485,7 +485,7 @@ def load_rig_toml(path: Path) -> dict:
                                "',', or start or end with a space")
             if not isinstance(arms_raw[name], dict):
                 raise RigError(f"{path}: [arms.{name}] must be a table")
-        arms: dict = {name: _parse_chain_arm(name, tbl, str(path), path.parent)
+        arms: dict = {name: _parse_urdf_dh_arm(name, tbl, str(path), path.parent)
                       for name, tbl in arms_raw.items()}
         chains = _ordered_chains(arms, str(path))
         arms = {n: arms[n] for n in chains}
@@ -681,7 +681,7 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     return meas
 
 
-def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
+def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
     """``measurements.csv`` of a chain rig: ``x,y`` or ``x,y,z`` (mm) and each chain's
     ``<arm>_u1..<arm>_uN``; a row's ``config`` names the arm whose marker was measured, and the
     row carries that arm's columns and its mounts' (targets are optional).
@@ -776,7 +776,7 @@ def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
     meta = load_rig_toml(directory / RIG_FILE)
     chains = meta.pop("chains")
     if any(isinstance(a, ChainSpec) for a in meta["arms"].values()):
-        meas, robot = load_chain_measurements(directory / MEASUREMENTS_FILE, chains)
+        meas, robot = load_robot_measurements(directory / MEASUREMENTS_FILE, chains)
         rig = Rig(measurements=meas, path=directory, robot=robot, **meta)
         for a in robot.measured_arms():
             if min_train_rows and not meas.mask(a, "train").any():
