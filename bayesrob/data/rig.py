@@ -145,6 +145,28 @@ class Measurements:
             raise RigError(f"target: expected {obs.shape}, got {tgt.shape}")
         return cls(config, sets, tgt, cmds, obs, np.arange(n))
 
+    @classmethod
+    def blank(cls, n: int, dim: int, widths: dict[str, int],
+              extra_cols: Sequence[str]) -> Measurements:
+        """``n`` rows for a loader to fill: NaN numbers, and no extra cells until it keeps a
+        row."""
+        return cls(config=np.empty(n, dtype=object), set=np.empty(n, dtype=object),
+                   target=np.full((n, dim), np.nan),
+                   commands={a: np.full((n, w), np.nan) for a, w in widths.items()},
+                   observed=np.full((n, dim), np.nan), line=np.zeros(n, int),
+                   extra={h: [] for h in extra_cols})
+
+    def kept(self, keep: np.ndarray, path: Path) -> Measurements:
+        """The rows in ``keep`` of a filled :meth:`blank`; a file with none is refused."""
+        meas = Measurements(config=self.config[keep].astype(str),
+                            set=self.set[keep].astype(str), target=self.target[keep],
+                            commands={a: c[keep] for a, c in self.commands.items()},
+                            observed=self.observed[keep], line=self.line[keep],
+                            extra=self.extra)
+        if len(meas) == 0:
+            raise RigError(f"{path}: no measurement rows")
+        return meas
+
     def mask(self, config: str | None = None, set: str | None = None) -> np.ndarray:
         m = np.ones(len(self), bool)
         if config is not None:
@@ -608,15 +630,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     known = set(required)
     extra_cols = [h for h in header if h not in known]
 
-    n = len(rows)
-    config = np.empty(n, dtype=object)
-    sets = np.empty(n, dtype=object)
-    target = np.full((n, 2), np.nan)
-    observed = np.full((n, 2), np.nan)
-    commands = {a: np.full((n, 2), np.nan) for a in arms}
-    lines = np.zeros(n, int)
-    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.zeros(n, bool)
+    m = Measurements.blank(len(rows), 2, dict.fromkeys(arms, 2), extra_cols)
+    keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in _records(path, header, rows, starts):
         keep[r] = True
         members = _config_members(row, idx, arms, where)
@@ -637,7 +652,7 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm {a!r}'s "
                         f"pulse_limits [{lo:g}, {hi:g}]"
                     )
-            commands[a][r] = u
+            m.commands[a][r] = u
         for a in arms:
             if a not in members:
                 for j in (1, 2):
@@ -658,27 +673,16 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s reach "
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
-        target[r] = tx, ty
+        m.target[r] = tx, ty
         if is_planned(row, idx):
             keep[r] = False
             continue
-        observed[r] = (parse_number(row[idx["x"]], where, "x"),
-                       parse_number(row[idx["y"]], where, "y"))
-        config[r], sets[r], lines[r] = cfg, st, lineno
+        m.observed[r] = (parse_number(row[idx["x"]], where, "x"),
+                         parse_number(row[idx["y"]], where, "y"))
+        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
         for h in extra_cols:
-            extra[h].append(row[idx[h]])
-    meas = Measurements(
-        config=config[keep].astype(str),
-        set=sets[keep].astype(str),
-        target=target[keep],
-        commands={a: c[keep] for a, c in commands.items()},
-        observed=observed[keep],
-        line=lines[keep],
-        extra=extra,
-    )
-    if len(meas) == 0:
-        raise RigError(f"{path}: no measurement rows")
-    return meas
+            m.extra[h].append(row[idx[h]])
+    return m.kept(keep, path)
 
 
 def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
@@ -710,15 +714,8 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     has_target = all(t in idx for t in targets)
     extra_cols = [h for h in header if h not in set(required) | set(targets)]
     measured = robot.measured_arms()
-    n = len(rows)
-    config = np.empty(n, dtype=object)
-    sets = np.empty(n, dtype=object)
-    target = np.full((n, dim), np.nan)
-    observed = np.full((n, dim), np.nan)
-    commands = {c: np.full((n, chains[c].n_columns), np.nan) for c in chains}
-    lines = np.zeros(n, int)
-    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.zeros(n, bool)
+    m = Measurements.blank(len(rows), dim, {c: chains[c].n_columns for c in chains}, extra_cols)
+    keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in _records(path, header, rows, starts):
         keep[r] = True
         members = _config_members(row, idx, chains, where)
@@ -744,23 +741,19 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                                    f"{owner[c.name]!r}'s {col!r}")
                 # a chain off the row's path may carry the rest of the pose: the other arms'
                 # weight on the chains they share with this one
-                commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
-                                                      allow_empty=not uses)
+                m.commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
+                                                        allow_empty=not uses)
         if is_planned(row, idx):
             keep[r] = False  # planned by ``bayesrob design``, not measured yet
             continue
-        observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
+        m.observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
         if has_target:
-            target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]
-        config[r], sets[r], lines[r] = cfg, st, lineno
+            m.target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True)
+                           for t in targets]
+        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
         for h in extra_cols:
-            extra[h].append(row[idx[h]])
-    meas = Measurements(config=config[keep].astype(str), set=sets[keep].astype(str),
-                        target=target[keep], commands={c: v[keep] for c, v in commands.items()},
-                        observed=observed[keep], line=lines[keep], extra=extra)
-    if len(meas) == 0:
-        raise RigError(f"{path}: no measurement rows")
-    return meas, robot
+            m.extra[h].append(row[idx[h]])
+    return m.kept(keep, path), robot
 
 
 def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
