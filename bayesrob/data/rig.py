@@ -24,6 +24,7 @@ import numpy as np
 
 from bayesrob.robot import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
 from bayesrob.robot import transforms as tf
+from bayesrob.robot.planar import ArmGeometry
 
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
@@ -57,16 +58,9 @@ def _unit_gravity(g: tuple[float, ...], message: str) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
-class ArmSpec:
+class ArmSpec(ArmGeometry):
     """Nominal values of one arm as a person measured them (calibration's starting point)."""
 
-    name: str
-    base: tuple[float, float]
-    links: tuple[float, float]
-    gain: tuple[float, float]
-    offset: tuple[float, float]
-    elbow: int = 1
-    pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
     # Joint stiffnesses (N mm / rad) when known: linked arms settle where these balance
     # (bayesrob.predict.fusion); None: a prior over them is used instead.
     stiffness: tuple[float, float] | None = None

@@ -35,6 +35,7 @@ import numpy as np
 from bayesrob import robot as kin
 from bayesrob.data.rig import dump_toml
 from bayesrob.data.vocabulary import EFFECTS
+from bayesrob.robot.planar import ArmGeometry
 from bayesrob.sim.physics import draw_stiffnesses
 
 TRUTH_FILE = "truth.toml"
@@ -47,16 +48,9 @@ MASS_STREAM = 19  # the arms' drawn masses' own random stream
 
 
 @dataclass(frozen=True)
-class ArmTruth:
+class ArmTruth(ArmGeometry):
     """True physical parameters of one arm (what ``truth.toml`` records)."""
 
-    name: str
-    base: tuple[float, float]
-    links: tuple[float, float]
-    gain: tuple[float, float]
-    offset: tuple[float, float]
-    elbow: int
-    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
     link_mass_kg: tuple[float, float] = (0.05, 0.04)
     elbow_mass_kg: float = 0.065  # the elbow servo
     end_mass_kg: float = 0.02
