@@ -150,7 +150,7 @@ def _non_negative_float(text: str) -> float:
     return v
 
 
-def _chain_params_arg(p: argparse.ArgumentParser) -> None:
+def _params_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
                    help="the parameter groups the arms are calibrated with, as 'bayesrob "
                         "calibrate --params' (URDF/DH default frames,offsets,geometric,servo). "
@@ -250,8 +250,8 @@ def _say_replaced(existing: list[Path]) -> None:
 
 def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
 
-    from bayesrob.sim.rigs import simulate_chain_rig
-    from bayesrob.sim.truth import ChainTruth
+    from bayesrob.sim.rigs import simulate_arm6_rig
+    from bayesrob.sim.truth import Arm6Truth
 
     if args.effects or args.grid != 4:
         raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
@@ -267,7 +267,7 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
     if args.stiffness_spread is not None:
         raise UsageError("--stiffness-spread is for planar rigs and arm6 --linked (a single "
                          "arm6 has one stiffness profile)")
-    truth = _truth_options(ChainTruth(seed=args.seed, compliance=bool(args.compliance),
+    truth = _truth_options(Arm6Truth(seed=args.seed, compliance=bool(args.compliance),
                                       joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
     from bayesrob.progress import progress
 
@@ -276,7 +276,7 @@ def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path
                   first_after=FIRST_LINE_S):
         # written whole or not at all: Ctrl-C part-way leaves out_dir as it was
         with staged_directory(out_dir) as scratch:
-            simulate_chain_rig(scratch, truth)
+            simulate_arm6_rig(scratch, truth)
     _say_replaced(existing)
     print(f"wrote {out_dir}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
           f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
@@ -289,10 +289,10 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
     from dataclasses import replace
 
     from bayesrob.sim.equilibrium import LinkedSimulationError
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth, three_arm6_truth
 
-    truth = (three_linked_chain_truth if args.third_arm else LinkedChainTruth)(seed=args.seed)
+    truth = (three_arm6_truth if args.third_arm else LinkedArm6Truth)(seed=args.seed)
     if args.stiffness_spread is not None:
         truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
     if args.mass_spread is not None:
@@ -309,7 +309,7 @@ def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: li
         with progress(None, "simulate", enabled=_progress(args),
                       postfix=f"arm6 {'+'.join(truth.arms)}", first_after=FIRST_LINE_S):
             with staged_directory(out_dir) as scratch:
-                simulate_linked_chain_rig(scratch, truth)
+                simulate_linked_arm6_rig(scratch, truth)
     except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
         raise UsageError(str(exc)) from None
     _say_replaced(existing)
@@ -464,7 +464,7 @@ def _calibrate_groups(args: argparse.Namespace, rig) -> int:
     from bayesrob.calibrate.least_squares import calibrate, calibrated_rig_document
     from bayesrob.data.rig import dump_toml
     from bayesrob.progress import progress
-    from bayesrob.report.tables import format_chain_calibration
+    from bayesrob.report.tables import format_group_calibration
     from bayesrob.robot import GROUPS, OPTIONAL_GROUPS, write_urdf
 
     if args.method == "hill-climb":
@@ -503,7 +503,7 @@ def _calibrate_groups(args: argparse.Namespace, rig) -> int:
                 f"the URDF and rig.toml hold the calibrated geometry; the fitted "
                 f"{', '.join(beyond)} values are in this document's parameters, not in them")
     if args.json != "-":
-        print(format_chain_calibration(doc))
+        print(format_group_calibration(doc))
     for key in ("urdf_out", "rig_toml_out"):
         if key in doc:
             print(f"wrote {doc[key]}", file=sys.stderr if args.json == "-" else sys.stdout)
@@ -916,7 +916,7 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
                         "from the grid)")
     p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
-    _chain_params_arg(p)
+    _params_arg(p)
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
                 "0.1 mm, covariance within 10% Frobenius, r_hat <= 1.01, bulk ESS >= 400), "
@@ -1040,7 +1040,7 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", nargs="+", metavar="NAME",
                    help="model names to compare (default: every file in models/)")
     p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
-    _chain_params_arg(p)
+    _params_arg(p)
     p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
     p.add_argument("--plot", metavar="PATH",
                    help="write the comparison plot (PNG) here (default: next to --json OUT, "

@@ -45,11 +45,11 @@ def main() -> None:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        from bayesrob.sim.truth import ChainTruth
+        from bayesrob.sim.truth import Arm6Truth
 
         rig = Path(tmp) / "rig"
         case = ("agile_justin_frames_geometric"
-                if justin_or_simulated(args.data, rig, ChainTruth(seed=0, n_train=300))
+                if justin_or_simulated(args.data, rig, Arm6Truth(seed=0, n_train=300))
                 else "simulated_arm6_frames_geometric (Justin data not found)")
         t0 = time.perf_counter()
         r = subprocess.run([sys.executable, "-c", FRESH, str(rig)], capture_output=True,

@@ -42,12 +42,12 @@ def main() -> None:
     args = p.parse_args()
     from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.sim.truth import ChainTruth
+    from bayesrob.sim.truth import Arm6Truth
 
     with tempfile.TemporaryDirectory() as tmp:
         rig_dir = Path(tmp) / "rig"
         case = ("agile_justin"
-                if justin_or_simulated(args.data, rig_dir, ChainTruth(seed=11, compliance=True))
+                if justin_or_simulated(args.data, rig_dir, Arm6Truth(seed=11, compliance=True))
                 else "simulated_arm6_compliant (Justin data not found)")
         t0 = time.perf_counter()
         doc = diagnose_groups(load_rig(rig_dir), sag_steps=args.sag_steps).to_json()

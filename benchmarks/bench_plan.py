@@ -41,10 +41,10 @@ def speed(data: Path, work: Path) -> dict:
         convert(data, work / "rig")
         case = "agile_justin right hand (10 columns, 11 joints)"
     else:
-        from bayesrob.sim.rigs import simulate_chain_rig
-        from bayesrob.sim.truth import ChainTruth
+        from bayesrob.sim.rigs import simulate_arm6_rig
+        from bayesrob.sim.truth import Arm6Truth
 
-        simulate_chain_rig(work / "rig", ChainTruth(seed=1))
+        simulate_arm6_rig(work / "rig", Arm6Truth(seed=1))
         case = "simulated arm6 (6 joints; Justin data not found)"
     rig = load_plan_rig(work / "rig")
     with (work / "rig" / "measurements.csv").open() as fh:

@@ -19,7 +19,7 @@ and the CPU seconds of every thread beside the wall seconds (what a shared machi
 inflate).
 
 Coverage (a line per rig, then the pooled figures): two arm6 arms with gravity sag, each
-seed's stiffnesses drawn about the simulator's profile (``LinkedChainTruth.stiffness_log_sd``),
+seed's stiffnesses drawn about the simulator's profile (``LinkedArm6Truth.stiffness_log_sd``),
 calibrated with joint compliance on their single-arm rows, predicted at the rig's 24 linked
 targets and commands with the stiffness prior (the rig gives no stiffness) and compared with the
 simulated measurements of the linked assembly: the share inside the predicted 50% / 90%
@@ -44,7 +44,7 @@ the prior whose arm term is centred on the arms' fitted sags
 
 ``--three-arms`` runs the same study on three arms joined at one point (left and right as
 above, and a third, front, facing the targets from the side:
-``sim.three_linked_chain_truth``), MANY_LINKED points per rig, with the prior
+``sim.three_arm6_truth``), MANY_LINKED points per rig, with the prior
 ``predict`` uses as it stands: THREE_TUNING_SEEDS checked that it runs, THREE_REPORT_SEEDS
 (fixed before any of them ran) report it.
 
@@ -174,11 +174,11 @@ def main() -> None:
     from bayesrob.predict.assembly import predict_assembly
     from bayesrob.predict.draws import assembly_draws, fit_modules
     from bayesrob.predict.regions import hdr_sizes
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth
 
     with tempfile.TemporaryDirectory() as tmp:
-        rig = load_rig(simulate_linked_chain_rig(Path(tmp) / "rig", LinkedChainTruth(seed=0)))
+        rig = load_rig(simulate_linked_arm6_rig(Path(tmp) / "rig", LinkedArm6Truth(seed=0)))
         targets = rig.measurements.target[rig.measurements.mask("left+right", "test")][:16]
         whole, step, single, cpu, step_cpu = [], [], [], [], []
         for k in range(args.repeats + 1):  # the first run compiles

@@ -50,10 +50,10 @@ def _rss_mb() -> float:
 SIMULATE = """
 import sys
 from pathlib import Path
-from bayesrob.sim.truth import ChainTruth
-from bayesrob.sim.rigs import simulate_chain_rig
+from bayesrob.sim.truth import Arm6Truth
+from bayesrob.sim.rigs import simulate_arm6_rig
 for seed in range(int(sys.argv[2])):
-    simulate_chain_rig(Path(sys.argv[1]) / f"seed{seed}", ChainTruth(
+    simulate_arm6_rig(Path(sys.argv[1]) / f"seed{seed}", Arm6Truth(
         seed=seed, n_train=40, n_validation=5, n_holdout=0))
 """
 

@@ -14,11 +14,11 @@ __all__ = ["DEFAULT_DATA", "justin_or_simulated"]
 
 def justin_or_simulated(data: Path, rig_dir: Path, truth: Any) -> bool:
     """Write the rig into ``rig_dir``: Justin's from ``data`` if it exists (True), else the
-    simulator's arm with ``truth`` (a ``ChainTruth``; False)."""
+    simulator's arm with ``truth`` (a ``Arm6Truth``; False)."""
     if data.is_file():
         convert(data, rig_dir)
         return True
-    from bayesrob.sim.rigs import simulate_chain_rig
+    from bayesrob.sim.rigs import simulate_arm6_rig
 
-    simulate_chain_rig(rig_dir, truth)
+    simulate_arm6_rig(rig_dir, truth)
     return False

@@ -10,8 +10,8 @@ import pytest
 
 import bayesrob
 from bayesrob.data.rig import Measurements, Rig, RigError, default_rig_dir, load_rig
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth
 
 
 def test_every_exported_name_resolves_and_the_import_stays_light():
@@ -33,7 +33,7 @@ def _arrays(meas: Measurements) -> dict:
 
 @pytest.fixture(scope="module")
 def arm6_dir(tmp_path_factory):
-    return simulate_chain_rig(tmp_path_factory.mktemp("arm6"), ChainTruth(seed=3))
+    return simulate_arm6_rig(tmp_path_factory.mktemp("arm6"), Arm6Truth(seed=3))
 
 
 def test_a_chain_rig_from_a_urdf_string_and_arrays_calibrates_as_its_directory(arm6_dir):

@@ -16,8 +16,8 @@ import pytest
 
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig, default_rig_dir, dump_toml, load_rig, load_rig_toml
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth, arm6_urdf_path
 
 JUSTIN_TOML = Path(__file__).resolve().parents[1] / "examples" / "agile_justin" / "rig.toml"
 # a Justin row's joint columns: the torso's three, then each arm's seven
@@ -113,7 +113,7 @@ def test_urdf_link_masses_fold_fixed_links_and_need_every_moving_link(tmp_path,
     chain = kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")
     m = np.array(chain.source["link_masses_kg"])
     h = np.array(chain.source["link_moments_kg_mm"])
-    np.testing.assert_allclose(m, ChainTruth().masses_kg)
+    np.testing.assert_allclose(m, Arm6Truth().masses_kg)
     # arm6 states the simulator's point masses: each link's middle, half way to the next origin
     np.testing.assert_allclose(h, m[:, None] * 0.5 * chain.origins[1:, :3], atol=1e-9)
     text = arm6_urdf_path().read_text()
@@ -147,8 +147,8 @@ def test_compliances_fitted_under_the_described_masses_are_the_joints_own(tmp_pa
     whose URDF does not weigh every moving link is refused by name."""
     from bayesrob.calibrate.least_squares import calibrate, described_links
 
-    truth = ChainTruth(seed=3, compliance=True)
-    rig = load_rig(simulate_chain_rig(tmp_path / "r", truth))
+    truth = Arm6Truth(seed=3, compliance=True)
+    rig = load_rig(simulate_arm6_rig(tmp_path / "r", truth))
     cal = calibrate(rig, ("frames", "offsets", "geometric", "compliance"),
                           masses="description")
     lay = cal.robot.layout
@@ -414,7 +414,7 @@ def test_justin_tree_shares_the_torso_and_couples_its_fourth_joint():
 
 @pytest.fixture(scope="module")
 def arm6_rig(tmp_path_factory):
-    return simulate_chain_rig(tmp_path_factory.mktemp("arm6"), ChainTruth(seed=11))
+    return simulate_arm6_rig(tmp_path_factory.mktemp("arm6"), Arm6Truth(seed=11))
 
 
 def test_geometric_calibration_reaches_the_noise_floor_on_new_poses(arm6_rig):
@@ -592,8 +592,8 @@ def _two_handed_rig(tmp_path: Path, rng: np.random.Generator) -> Rig:
             lines.append(f"{hand},train," + ",".join(f"{v:.6f}" for v in pose) + ",1,2,3")
     (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
     rig = load_rig(tmp_path, min_train_rows=0)
-    assert rig.chain_side_rows("right", "train") is not None
-    assert rig.chain_side_rows("left", "train") is not None
+    assert rig.side_rows("right", "train") is not None
+    assert rig.side_rows("left", "train") is not None
     return rig
 
 
@@ -637,7 +637,7 @@ def test_exact_jacobian_of_the_fits_is_forward_mode_autodiff(tmp_path):
     assert len(play) == 4
     assert _exact_against_forward_mode(rig, rng, 1e-7, play) < 1e-9
     planar = load_rig(default_rig_dir())
-    assert planar.robot.dim == 2 and planar.chain_side_rows("top", "train") is None
+    assert planar.robot.dim == 2 and planar.side_rows("top", "train") is None
     assert _exact_against_forward_mode(planar, rng, 1e-6) < 1e-9
 
 
@@ -652,14 +652,14 @@ def test_rows_may_carry_the_rest_of_the_pose(tmp_path):
     lines += ["right,train,0.1,0.1,0.1," + ",".join(["0.1"] * 7 + [""] * 7) + ",1,2,3"]
     (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
     rig = load_rig(tmp_path, min_train_rows=0)
-    assert rig.chain_side_rows("right", "train") is None  # one right row lacks the left arm
-    assert rig.chain_side_rows("left", "train") is None  # and one left row the right arm
+    assert rig.side_rows("right", "train") is None  # one right row lacks the left arm
+    assert rig.side_rows("left", "train") is None  # and one left row the right arm
     del lines[-2:]
     (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
     rig = load_rig(tmp_path, min_train_rows=0)
-    side = rig.chain_side_rows("right", "train")
+    side = rig.side_rows("right", "train")
     assert set(side) == {"left"} and side["left"].shape == (2, 10)
-    assert rig.chain_side_rows("left", "train")["right"].shape == (1, 10)
+    assert rig.side_rows("left", "train")["right"].shape == (1, 10)
     assert rig.rows("right", "train")[0].shape == (2, 10)
 
 

@@ -1,6 +1,6 @@
 """The configuration designer with chain modules: 6-joint 3-D arms (URDF) placed in space.
 
-One simulated two-arm rig (``simulate_linked_chain_rig``, seed 0, 40 train poses per arm) is
+One simulated two-arm rig (``simulate_linked_arm6_rig``, seed 0, 40 train poses per arm) is
 calibrated once for the module (about 25 s: a least-squares fit and two NUTS fits); the Dask
 test runs a real two-worker LocalCluster, as the command does. All draws are seeded. How the
 designer's linked chain modules hold against built assemblies on report rigs is measured by
@@ -74,11 +74,11 @@ MOUNTS = [[0.0, 0.0, 0.0], [900.0, 0.0, 0.0], FAR]
 
 @pytest.fixture(scope="module")
 def rig_dir(tmp_path_factory) -> Path:
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth
 
-    return simulate_linked_chain_rig(tmp_path_factory.mktemp("arms") / "rig",
-                                     LinkedChainTruth(**RIG_TRUTH))
+    return simulate_linked_arm6_rig(tmp_path_factory.mktemp("arms") / "rig",
+                                     LinkedArm6Truth(**RIG_TRUTH))
 
 
 @pytest.fixture(scope="module")

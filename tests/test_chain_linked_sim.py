@@ -1,4 +1,4 @@
-"""Two simulated 6-joint arms linked at their markers (``simulate_linked_chain_rig``): the rig
+"""Two simulated 6-joint arms linked at their markers (``simulate_linked_arm6_rig``): the rig
 loads with its ``left+right`` rows, calibration ignores them, the linked point is the exact
 constrained minimum of the arms' energy between their free points, and malformed linked rows
 are one-line errors naming the file and line.
@@ -24,18 +24,18 @@ from bayesrob.cli import main
 from bayesrob.data.rig import MEASUREMENTS_FILE, RigError, load_rig
 from bayesrob.sim.equilibrium import linked_energy, linked_equilibrium, position_ik
 from bayesrob.sim.physics import gravity_deflection
-from bayesrob.sim.rigs import simulate_linked_chain_rig
+from bayesrob.sim.rigs import simulate_linked_arm6_rig
 from bayesrob.sim.truth import (
     GRAVITY,
     LINKED_ARMS,
     POSE_HI,
     POSE_LO,
-    LinkedChainTruth,
+    LinkedArm6Truth,
     load_linked_truth,
     load_true_params,
 )
 
-TRUTH = LinkedChainTruth(seed=0, n_validation=10, n_holdout=10, n_linked=12)
+TRUTH = LinkedArm6Truth(seed=0, n_validation=10, n_holdout=10, n_linked=12)
 GROUPS = ("frames", "offsets", "geometric")
 HEADER = ["config", "set", "target_x", "target_y", "target_z",
           *[f"{a}_u{k}" for a in LINKED_ARMS for k in range(1, 7)], "x", "y", "z"]
@@ -43,7 +43,7 @@ HEADER = ["config", "set", "target_x", "target_y", "target_z",
 
 @pytest.fixture(scope="module")
 def rig_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate_linked_chain_rig(tmp_path_factory.mktemp("linked"), TRUTH)
+    return simulate_linked_arm6_rig(tmp_path_factory.mktemp("linked"), TRUTH)
 
 
 @pytest.fixture(scope="module")
@@ -371,12 +371,12 @@ def test_three_arms_joined_at_one_point_on_the_command_line(tmp_path, capsys):
     # the front arm's stiffnesses are drawn about its profile, 0.8 of the left one's, per
     # arm and per joint (log sd 0.3 each: all 6 joints within 4 sd of the profile, and not
     # one common factor)
-    profile = THIRD_ARM_STIFFNESS_SCALE * np.array(LinkedChainTruth().stiffness_nmm_per_rad[
+    profile = THIRD_ARM_STIFFNESS_SCALE * np.array(LinkedArm6Truth().stiffness_nmm_per_rad[
         "left"])
     log_ratio = np.log(np.array(table["stiffness_nmm_per_rad"][THIRD_ARM]) / profile)
     assert np.all(np.abs(log_ratio) < 4 * np.hypot(0.3, 0.3)) and np.ptp(log_ratio) > 0.05
     # the left and right arms draw what a two-arm rig of the seed draws
-    two = drawn_stiffness(LinkedChainTruth(seed=5))
+    two = drawn_stiffness(LinkedArm6Truth(seed=5))
     assert all(table["stiffness_nmm_per_rad"][a] == list(two[a]) for a in LINKED_ARMS)
 
 
@@ -387,7 +387,7 @@ def test_three_arms_joined_at_one_point_on_the_command_line(tmp_path, capsys):
 ])
 def test_linked_truth_names_what_its_arms_lack(arms, message):
     with pytest.raises(ValueError, match=message):
-        LinkedChainTruth(arms=arms)
+        LinkedArm6Truth(arms=arms)
 
 
 def test_third_arm_needs_linked(tmp_path, capsys):
@@ -404,12 +404,12 @@ def test_each_seed_draws_its_arms_stiffnesses():
     0.42 (within 10%: its sampling error at 1,200 values, correlated in sixes, is about 4%)."""
     from bayesrob.sim.truth import drawn_stiffness
 
-    profile = LinkedChainTruth().stiffness_nmm_per_rad
-    a, b = drawn_stiffness(LinkedChainTruth(seed=1)), drawn_stiffness(LinkedChainTruth(seed=2))
-    assert a != b and a == drawn_stiffness(LinkedChainTruth(seed=1))
-    assert drawn_stiffness(LinkedChainTruth(seed=1, stiffness_log_sd=0.0)) == {
+    profile = LinkedArm6Truth().stiffness_nmm_per_rad
+    a, b = drawn_stiffness(LinkedArm6Truth(seed=1)), drawn_stiffness(LinkedArm6Truth(seed=2))
+    assert a != b and a == drawn_stiffness(LinkedArm6Truth(seed=1))
+    assert drawn_stiffness(LinkedArm6Truth(seed=1, stiffness_log_sd=0.0)) == {
         k: tuple(v) for k, v in profile.items()}
-    logs = np.array([np.log(np.divide(drawn_stiffness(LinkedChainTruth(seed=s))[arm],
+    logs = np.array([np.log(np.divide(drawn_stiffness(LinkedArm6Truth(seed=s))[arm],
                                       profile[arm]))
                      for s in range(200) for arm in LINKED_ARMS])
     assert abs(logs.std() / np.hypot(0.3, 0.3) - 1) < 0.1
@@ -426,10 +426,10 @@ def test_linked_arms_true_masses_are_drawn_about_the_urdfs(tmp_path, capsys):
 
     described = np.array(urdf_chain(arm6_urdf_path(), "base_link", "tool0", "a")
                          .source["link_masses_kg"])
-    same = drawn_masses(LinkedChainTruth(seed=5))
+    same = drawn_masses(LinkedArm6Truth(seed=5))
     assert all(np.array_equal(m, described) for m in same.values())
-    drawn = drawn_masses(LinkedChainTruth(seed=5, mass_log_sd=0.1))
-    again = drawn_masses(LinkedChainTruth(seed=5, mass_log_sd=0.1))
+    drawn = drawn_masses(LinkedArm6Truth(seed=5, mass_log_sd=0.1))
+    again = drawn_masses(LinkedArm6Truth(seed=5, mass_log_sd=0.1))
     assert all(np.array_equal(drawn[a], again[a]) for a in drawn)
     ratios = np.log(np.concatenate([drawn[a] / described for a in ("left", "right")]))
     assert not np.allclose(drawn["left"], drawn["right"])

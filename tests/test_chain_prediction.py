@@ -21,8 +21,8 @@ from bayesrob.predict.draws import assembly_draws, fit_modules
 from bayesrob.predict.grid import hdr_area
 from bayesrob.predict.regions import hdr_levels, hdr_sizes
 from bayesrob.predict.stiffness import StiffnessPrior
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def arm6_rig(tmp_path_factory):
     # Joint repeatability 0.5 mrad (five times the default) so that the joints, not the
     # instrument, dominate the error the population has to find.
     d = tmp_path_factory.mktemp("arm6")
-    return simulate_chain_rig(d, ChainTruth(seed=11, joint_noise_rad=5e-4))
+    return simulate_arm6_rig(d, Arm6Truth(seed=11, joint_noise_rad=5e-4))
 
 
 @pytest.fixture(scope="module")
@@ -303,11 +303,11 @@ def linked_calibration(tmp_path_factory):
     (how well fitted arms predict linked points is a study: ``bayesrob validate
     linked_chain_checks``)."""
     from bayesrob.calibrate.least_squares import Calibration, with_gravity
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth, load_true_params
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth, load_linked_truth, load_true_params
 
-    d = simulate_linked_chain_rig(tmp_path_factory.mktemp("linked") / "rig",
-                                  LinkedChainTruth(seed=1))
+    d = simulate_linked_arm6_rig(tmp_path_factory.mktemp("linked") / "rig",
+                                  LinkedArm6Truth(seed=1))
     rig = load_rig(d)
     robot = with_gravity(rig)
     true = load_true_params(d)

@@ -12,14 +12,14 @@ from pathlib import Path
 import pytest
 
 from bayesrob.cli import main
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth
 
 
 @pytest.fixture(scope="module")
 def chain_rig_dir(tmp_path_factory) -> Path:
-    return simulate_chain_rig(tmp_path_factory.mktemp("chain"),
-                              ChainTruth(seed=2, n_train=30, n_validation=10, n_holdout=10))
+    return simulate_arm6_rig(tmp_path_factory.mktemp("chain"),
+                              Arm6Truth(seed=2, n_train=30, n_validation=10, n_holdout=10))
 
 
 @pytest.fixture

@@ -21,8 +21,8 @@ from bayesrob.diagnose.groups import (
 from bayesrob.diagnose.rule import Z
 from bayesrob.report.tables import format_group_diagnosis
 from bayesrob.sim.physics import play_offsets
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth
 
 COMPLIANT = {"compliance": True}
 
@@ -32,8 +32,8 @@ def compliant_rig(tmp_path_factory):
     """The compliant arm (seed 11), simulated once for the module: the naming test's first
     case, the residual figure and the torque-step ladder all diagnose it. Read it, never write
     to it (diagnose writes its JSON and report elsewhere)."""
-    return simulate_chain_rig(tmp_path_factory.mktemp("compliant"),
-                              ChainTruth(seed=11, **COMPLIANT))
+    return simulate_arm6_rig(tmp_path_factory.mktemp("compliant"),
+                              Arm6Truth(seed=11, **COMPLIANT))
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,7 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
     bar's total is an upper bound until the selection stops). The compliant arm is the
     module's (``compliant_rig``), whose fits the other tests of it share (``shared_fits``)."""
     rig = (request.getfixturevalue("compliant_rig") if physics == COMPLIANT
-           else simulate_chain_rig(tmp_path / "r", ChainTruth(seed=11, **physics)))
+           else simulate_arm6_rig(tmp_path / "r", Arm6Truth(seed=11, **physics)))
     out = tmp_path / "d.json"
     assert main(["diagnose", str(rig), "--json", str(out), "--report", str(tmp_path / "rep"),
                  *(["--no-progress"] if named else []),

@@ -37,7 +37,7 @@ def test_convert_splits_the_poses_into_two_marker_rows_each(tmp_path):
     # each hand's rows carry the other arm's columns too: its weight bends the torso
     _, obs = rig.rows("left", "validation")
     assert obs.shape == (2, 3)
-    assert rig.chain_side_rows("left", "validation")
+    assert rig.side_rows("left", "validation")
 
 
 def test_convert_names_the_line_of_a_malformed_array(tmp_path):

@@ -12,8 +12,8 @@ import scipy.stats
 from bayesrob.cli import main
 from bayesrob.errors.kde import ConditionalKDE
 from bayesrob.errors.marker_density import MarkerDensity, MarkerModel, loo_marker_scores
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth
 
 
 def _two_components() -> MarkerDensity:
@@ -62,7 +62,7 @@ def small_arm6(tmp_path_factory):
     # joints five times the default repeatability, so the joints, not the instrument, carry
     # the error the models must find
     d = tmp_path_factory.mktemp("arm6")
-    return simulate_chain_rig(d, ChainTruth(seed=11, joint_noise_rad=5e-4, n_holdout=20))
+    return simulate_arm6_rig(d, Arm6Truth(seed=11, joint_noise_rad=5e-4, n_holdout=20))
 
 
 def test_compare_scores_every_model_on_a_6_joint_arm(small_arm6, tmp_path):

@@ -16,8 +16,8 @@ from bayesrob.data.rig import RigError, load_rig
 from bayesrob.plan import load_plan_rig, plan_poses
 from bayesrob.plan.criteria import Accuracy, Identify
 from bayesrob.plan.greedy import greedy
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import POSE_HI, POSE_LO, ChainTruth
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import POSE_HI, POSE_LO, Arm6Truth
 
 POOL = 400
 
@@ -36,7 +36,7 @@ def arm6(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated arm6 with holdout rows only (nothing measured for the calibration yet) and
     a pool of random poses over its working range beside it."""
     d = tmp_path_factory.mktemp("plan")
-    simulate_chain_rig(d / "rig", ChainTruth(seed=5, n_train=0, n_validation=0,
+    simulate_arm6_rig(d / "rig", Arm6Truth(seed=5, n_train=0, n_validation=0,
                                              n_holdout=100))
     q = np.random.default_rng(5).uniform(POSE_LO, POSE_HI, size=(POOL, 6))
     _write_pool(d / "pool.csv", q, label=True)

@@ -27,8 +27,8 @@ from bayesrob import release_compiled_programs
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig, load_rig
 from bayesrob.sim.physics import gravity_deflection
-from bayesrob.sim.rigs import simulate_chain_rig
-from bayesrob.sim.truth import ChainTruth, arm6_urdf_path, load_true_params
+from bayesrob.sim.rigs import simulate_arm6_rig
+from bayesrob.sim.truth import Arm6Truth, arm6_urdf_path, load_true_params
 
 CHI2_3_99 = 11.34  # chi-square with 3 degrees of freedom at 0.99
 
@@ -44,7 +44,7 @@ def bayes_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     from bayesrob.calibrate.bayes import calibrate_bayes
     from bayesrob.calibrate.least_squares import calibrate
 
-    d = simulate_chain_rig(rig_dir, ChainTruth(seed=seed, n_train=30, n_validation=20,
+    d = simulate_arm6_rig(rig_dir, Arm6Truth(seed=seed, n_train=30, n_validation=20,
                                                n_holdout=0, origin_sd_mm=0.0,
                                                origin_sd_rad=0.0))
     rig = load_rig(d)
@@ -87,7 +87,7 @@ def run_bayes(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> d
     }
 
 
-def noise_floor(rig: Rig, x_true: np.ndarray, truth: ChainTruth, u: np.ndarray,
+def noise_floor(rig: Rig, x_true: np.ndarray, truth: Arm6Truth, u: np.ndarray,
                 obs: np.ndarray) -> float:
     """Mean distance of the observed points from the true sagging arm's."""
     base = kin.Robot({"arm": kin.urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")})
@@ -103,8 +103,8 @@ def noise_floor(rig: Rig, x_true: np.ndarray, truth: ChainTruth, u: np.ndarray,
 def compliance_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     from bayesrob.calibrate.least_squares import calibrate
 
-    truth = ChainTruth(seed=seed, compliance=True)
-    d = simulate_chain_rig(rig_dir, truth)
+    truth = Arm6Truth(seed=seed, compliance=True)
+    d = simulate_arm6_rig(rig_dir, truth)
     rig = load_rig(d)
     geometric = calibrate(rig, ("frames", "geometric"))
     compliant = calibrate(rig, ("frames", "geometric", "compliance"))

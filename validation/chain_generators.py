@@ -44,8 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob.robot import Robot, urdf_chain
-from bayesrob.sim.rigs import random_poses, simulate_chain_rig, true_parameters, write_arm6_rig
-from bayesrob.sim.truth import ChainTruth, arm6_urdf_path
+from bayesrob.sim.rigs import random_poses, simulate_arm6_rig, true_parameters, write_arm6_rig
+from bayesrob.sim.truth import Arm6Truth, arm6_urdf_path
 
 ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
 MOTOR_KG = np.array([2.5, 1.2, 0.6, 0.5, 0.1])  # at joints 2-6, carried by links 1-5
@@ -172,11 +172,11 @@ def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
                    "joint_play_rad": 2e-3 * case.scale * ("backlash" in case.effects)}
         if "lateral_compliance" in case.effects:
             raise ValueError("the simulator has no lateral compliance")
-        path = simulate_chain_rig(out, ChainTruth(seed=case.seed, **physics))
+        path = simulate_arm6_rig(out, Arm6Truth(seed=case.seed, **physics))
         (path / "truth.toml").unlink()  # the diagnosis must not need it
         return path
     out.mkdir(parents=True, exist_ok=True)
-    errors = ChainTruth(seed=case.seed)
+    errors = Arm6Truth(seed=case.seed)
     rng = np.random.default_rng([case.seed, 61])
     nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
                          marker=errors.marker_nominal_mm, instrument=errors.instrument_nominal)

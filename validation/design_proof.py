@@ -222,17 +222,17 @@ def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0,
     from bayesrob.design.file import load_design
     from bayesrob.design.modules import PopulationModule, load_modules
     from bayesrob.design.search import Job, reach_table
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth, load_linked_truth
 
     inside = {k: {q: [] for q in CHAIN_LEVELS} for k in CHAIN_KINDS}
     means = {k: ([], []) for k in CHAIN_KINDS}
     rows = []
     with tempfile.TemporaryDirectory(prefix="bayesrob-chain-proof-") as tmp:
         for seed in seeds:
-            rig_dir = simulate_linked_chain_rig(
+            rig_dir = simulate_linked_arm6_rig(
                 Path(tmp) / f"rig-{seed}",
-                LinkedChainTruth(seed=seed, calibration_groups=tuple(CHAIN_PARAMS.split(",")),
+                LinkedArm6Truth(seed=seed, calibration_groups=tuple(CHAIN_PARAMS.split(",")),
                                  mass_log_sd=mass_log_sd))
             path = Path(tmp) / f"design-{seed}.toml"
             # mounts and task only complete the file; the placements are set below

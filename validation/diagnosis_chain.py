@@ -85,14 +85,14 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
     from bayesrob import release_compiled_programs
     from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.sim.rigs import simulate_chain_rig
-    from bayesrob.sim.truth import ChainTruth
+    from bayesrob.sim.rigs import simulate_arm6_rig
+    from bayesrob.sim.truth import Arm6Truth
 
     candidates = list(QUICK_PLAY_CANDIDATES) if quick else None
     rows = []
     for i, seed in enumerate(seeds, 1):
         with tempfile.TemporaryDirectory(prefix="bayesrob-play-") as tmp:
-            rig = simulate_chain_rig(Path(tmp) / "rig", ChainTruth(
+            rig = simulate_arm6_rig(Path(tmp) / "rig", Arm6Truth(
                 seed=seed, compliance=True, joint_play_rad=2e-3))
             doc = diagnose_groups(load_rig(rig), candidates).to_json()
         ladder = [s["heldout_error_mm"] for s in doc["steps"]]

@@ -234,7 +234,7 @@ def coverage(rig_dir: Path, groups: tuple[str, ...], model: str = "ind", seed: i
     for k, hand in enumerate(hands):
         u, obs = rig.rows(hand, "validation")
         draws = assembly_draws(mods, [hand], [u], seed=seed + k,
-                            side=rig.chain_side_rows(hand, "validation"))
+                            side=rig.side_rows(hand, "validation"))
         level = hdr_levels(draws, obs)
         mean = draws.mean(axis=0)
         predicted = float(np.linalg.norm(draws - mean[None], axis=-1).mean())

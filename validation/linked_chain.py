@@ -52,7 +52,7 @@ MANY_RECHOSEN_REPORT_SEEDS = tuple(range(291, 303))
 # arm by arm), so they cannot report it.
 MANY_SAG_REPORT_SEEDS = tuple(range(311, 323))
 MANY_LINKED = 8
-# Three arms joined at one point (``sim.three_linked_chain_truth``: left, right and
+# Three arms joined at one point (``sim.three_arm6_truth``: left, right and
 # front), predicted with the prior ``predict`` uses, chosen on the two-arm tuning rigs; nothing
 # is chosen on these. THREE_TUNING_SEEDS only checked that the study runs (its figures are
 # printed, not published); THREE_REPORT_SEEDS were fixed before any of them ran.
@@ -76,21 +76,21 @@ def _fitted(seed: int, where: Path, masses: str = "fitted", mass_log_sd: float =
     simulator's default); ``three``: three arms joined (left, right and front)."""
     import bayesrob.predict.draws as cp
     from bayesrob.data.rig import load_rig
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth, three_linked_chain_truth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth, three_arm6_truth
 
     if n_linked is None:
-        n_linked = LinkedChainTruth.n_linked
+        n_linked = LinkedArm6Truth.n_linked
     # rigs of the default size keep the names their caches were written under
-    linked = "" if n_linked == LinkedChainTruth.n_linked else f"-linked{n_linked}"
+    linked = "" if n_linked == LinkedArm6Truth.n_linked else f"-linked{n_linked}"
     tag = f"{'three-' if three else ''}{seed}-{masses}-{mass_log_sd:g}{linked}"
     rig_dir = where / f"rig-{tag}"
     kept = where / f"modules-{tag}{'' if sag_steps == 1 else f'-steps{sag_steps}'}.pkl"
     if kept.is_file():
         return load_rig(rig_dir), pickle.loads(kept.read_bytes())
-    truth = (three_linked_chain_truth if three else LinkedChainTruth)(
+    truth = (three_arm6_truth if three else LinkedArm6Truth)(
         seed=seed, mass_log_sd=mass_log_sd, n_linked=n_linked)
-    rig = load_rig(simulate_linked_chain_rig(rig_dir, truth))
+    rig = load_rig(simulate_linked_arm6_rig(rig_dir, truth))
     mods = cp.fit_modules(rig, list(truth.arms), "ind", groups=GROUPS, seed=seed,
                                 masses=masses, sag_steps=sag_steps)
     kept.write_bytes(pickle.dumps(mods))

@@ -1,5 +1,5 @@
 """Checks of the linked chain prediction's pieces on a rig of two 6-joint arms linked at their
-tool points (``LinkedChainTruth``, calibrated with joint compliance on the single-arm rows
+tool points (``LinkedArm6Truth``, calibrated with joint compliance on the single-arm rows
 only), each too long for the tests (the fits and the product's NUTS take minutes):
 
 - **known stiffness**: given each arm's true joint stiffnesses, the predicted linked point
@@ -98,13 +98,13 @@ def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[st
     """The three checks on each rig of ``seeds`` (one rig each, the worst over them)."""
     from bayesrob.data.rig import load_rig
     from bayesrob.predict.draws import fit_modules
-    from bayesrob.sim.rigs import simulate_linked_chain_rig
-    from bayesrob.sim.truth import LinkedChainTruth, load_linked_truth
+    from bayesrob.sim.rigs import simulate_linked_arm6_rig
+    from bayesrob.sim.truth import LinkedArm6Truth, load_linked_truth
 
     per_rig: list[dict[str, Any]] = []
     with TemporaryDirectory(prefix="bayesrob-linked-checks-") as tmp:
         for i, seed in enumerate(seeds, 1):
-            d = simulate_linked_chain_rig(Path(tmp) / f"rig{seed}", LinkedChainTruth(seed=seed))
+            d = simulate_linked_arm6_rig(Path(tmp) / f"rig{seed}", LinkedArm6Truth(seed=seed))
             rig = load_rig(d)
             stiffness = load_linked_truth(d)["stiffness_nmm_per_rad"]
             mods = fit_modules(rig, list(ARMS), "ind", groups=GROUPS)

@@ -29,8 +29,8 @@ from bayesrob import release_compiled_programs
 from bayesrob.calibrate.least_squares import calibrate
 from bayesrob.data.rig import Measurements, Rig, load_rig
 from bayesrob.plan import load_plan_rig, plan_poses
-from bayesrob.sim.rigs import measure_arm6_poses, simulate_chain_rig
-from bayesrob.sim.truth import POSE_HI, POSE_LO, ChainTruth
+from bayesrob.sim.rigs import measure_arm6_poses, simulate_arm6_rig
+from bayesrob.sim.truth import POSE_HI, POSE_LO, Arm6Truth
 
 NS = (20, 40, 60, 80, 100, 120)
 POOL = 2000
@@ -83,7 +83,7 @@ def sim_curves(seed: int, work: Path, ns: Sequence[int] = NS, n_random: int = N_
                groups: Sequence[str] = SIM_GROUPS) -> dict[str, Any]:
     """One simulated arm's held-out errors (mm) at each N: planned, and each random draw."""
     base = work / "rig"
-    simulate_chain_rig(base, ChainTruth(seed=seed, n_train=0, n_validation=0, n_holdout=200))
+    simulate_arm6_rig(base, Arm6Truth(seed=seed, n_train=0, n_validation=0, n_holdout=200))
     rng = np.random.default_rng([seed, 46])
     q = rng.uniform(POSE_LO, POSE_HI, size=(POOL, 6))
     _write_pool(work / "pool.csv", q)

@@ -91,7 +91,7 @@ def side_rows(rig: Rig, robot: kin.Robot, arm: str, set: str) -> dict[str, jax.A
     way under gravity) and the rows carry it; else None."""
     if robot.gravity is None:
         return None
-    side = rig.chain_side_rows(arm, set)
+    side = rig.side_rows(arm, set)
     return None if side is None else {b: jnp.asarray(v) for b, v in side.items()}
 
 

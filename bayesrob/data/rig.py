@@ -24,6 +24,7 @@ import numpy as np
 
 from bayesrob.robot import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
 from bayesrob.robot import transforms as tf
+from bayesrob.robot.planar import ArmGeometry
 
 RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
@@ -57,16 +58,9 @@ def _unit_gravity(g: tuple[float, ...], message: str) -> tuple[float, ...]:
 
 
 @dataclass(frozen=True)
-class ArmSpec:
+class ArmSpec(ArmGeometry):
     """Nominal values of one arm as a person measured them (calibration's starting point)."""
 
-    name: str
-    base: tuple[float, float]
-    links: tuple[float, float]
-    gain: tuple[float, float]
-    offset: tuple[float, float]
-    elbow: int = 1
-    pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
     # Joint stiffnesses (N mm / rad) when known: linked arms settle where these balance
     # (bayesrob.predict.fusion); None: a prior over them is used instead.
     stiffness: tuple[float, float] | None = None
@@ -144,6 +138,28 @@ class Measurements:
         if tgt.shape != obs.shape:
             raise RigError(f"target: expected {obs.shape}, got {tgt.shape}")
         return cls(config, sets, tgt, cmds, obs, np.arange(n))
+
+    @classmethod
+    def blank(cls, n: int, dim: int, widths: dict[str, int],
+              extra_cols: Sequence[str]) -> Measurements:
+        """``n`` rows for a loader to fill: NaN numbers, and no extra cells until it keeps a
+        row."""
+        return cls(config=np.empty(n, dtype=object), set=np.empty(n, dtype=object),
+                   target=np.full((n, dim), np.nan),
+                   commands={a: np.full((n, w), np.nan) for a, w in widths.items()},
+                   observed=np.full((n, dim), np.nan), line=np.zeros(n, int),
+                   extra={h: [] for h in extra_cols})
+
+    def kept(self, keep: np.ndarray, path: Path) -> Measurements:
+        """The rows in ``keep`` of a filled :meth:`blank`; a file with none is refused."""
+        meas = Measurements(config=self.config[keep].astype(str),
+                            set=self.set[keep].astype(str), target=self.target[keep],
+                            commands={a: c[keep] for a, c in self.commands.items()},
+                            observed=self.observed[keep], line=self.line[keep],
+                            extra=self.extra)
+        if len(meas) == 0:
+            raise RigError(f"{path}: no measurement rows")
+        return meas
 
     def mask(self, config: str | None = None, set: str | None = None) -> np.ndarray:
         m = np.ones(len(self), bool)
@@ -228,7 +244,7 @@ class Rig:
         cols = [meas.commands[c.name][m] for c in self.robot.path(arm)]
         return np.concatenate(cols, axis=1), meas.observed[m]
 
-    def chain_side_rows(self, arm: str, set: str) -> dict[str, np.ndarray] | None:
+    def side_rows(self, arm: str, set: str) -> dict[str, np.ndarray] | None:
         """The other measured arms' path columns in ``arm``'s rows of a set (the rest of each
         pose, whose weight bends shared chains), or None unless every such row carries them."""
         meas = self.measurements
@@ -352,7 +368,7 @@ def _numbers(value: object, n: int, where: str) -> np.ndarray:
     return np.asarray(value, float)
 
 
-def _parse_chain_arm(name: str, table: dict, where: str, directory: Path) -> ChainSpec:
+def _parse_urdf_dh_arm(name: str, table: dict, where: str, directory: Path) -> ChainSpec:
     """An arm given by ``urdf`` (+ ``root``, ``tip``) or ``dh`` (+ ``convention``)."""
     _check_keys(table, CHAIN_KEYS, where, f"[arms.{name}]")
     key = f"{where}: arms.{name}"
@@ -485,7 +501,7 @@ def load_rig_toml(path: Path) -> dict:
                                "',', or start or end with a space")
             if not isinstance(arms_raw[name], dict):
                 raise RigError(f"{path}: [arms.{name}] must be a table")
-        arms: dict = {name: _parse_chain_arm(name, tbl, str(path), path.parent)
+        arms: dict = {name: _parse_urdf_dh_arm(name, tbl, str(path), path.parent)
                       for name, tbl in arms_raw.items()}
         chains = _ordered_chains(arms, str(path))
         arms = {n: arms[n] for n in chains}
@@ -608,15 +624,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
     known = set(required)
     extra_cols = [h for h in header if h not in known]
 
-    n = len(rows)
-    config = np.empty(n, dtype=object)
-    sets = np.empty(n, dtype=object)
-    target = np.full((n, 2), np.nan)
-    observed = np.full((n, 2), np.nan)
-    commands = {a: np.full((n, 2), np.nan) for a in arms}
-    lines = np.zeros(n, int)
-    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.zeros(n, bool)
+    m = Measurements.blank(len(rows), 2, dict.fromkeys(arms, 2), extra_cols)
+    keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in _records(path, header, rows, starts):
         keep[r] = True
         members = _config_members(row, idx, arms, where)
@@ -637,7 +646,7 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm {a!r}'s "
                         f"pulse_limits [{lo:g}, {hi:g}]"
                     )
-            commands[a][r] = u
+            m.commands[a][r] = u
         for a in arms:
             if a not in members:
                 for j in (1, 2):
@@ -658,30 +667,19 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s reach "
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
-        target[r] = tx, ty
+        m.target[r] = tx, ty
         if is_planned(row, idx):
             keep[r] = False
             continue
-        observed[r] = (parse_number(row[idx["x"]], where, "x"),
-                       parse_number(row[idx["y"]], where, "y"))
-        config[r], sets[r], lines[r] = cfg, st, lineno
+        m.observed[r] = (parse_number(row[idx["x"]], where, "x"),
+                         parse_number(row[idx["y"]], where, "y"))
+        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
         for h in extra_cols:
-            extra[h].append(row[idx[h]])
-    meas = Measurements(
-        config=config[keep].astype(str),
-        set=sets[keep].astype(str),
-        target=target[keep],
-        commands={a: c[keep] for a, c in commands.items()},
-        observed=observed[keep],
-        line=lines[keep],
-        extra=extra,
-    )
-    if len(meas) == 0:
-        raise RigError(f"{path}: no measurement rows")
-    return meas
+            m.extra[h].append(row[idx[h]])
+    return m.kept(keep, path)
 
 
-def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
+def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
     """``measurements.csv`` of a chain rig: ``x,y`` or ``x,y,z`` (mm) and each chain's
     ``<arm>_u1..<arm>_uN``; a row's ``config`` names the arm whose marker was measured, and the
     row carries that arm's columns and its mounts' (targets are optional).
@@ -710,15 +708,8 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     has_target = all(t in idx for t in targets)
     extra_cols = [h for h in header if h not in set(required) | set(targets)]
     measured = robot.measured_arms()
-    n = len(rows)
-    config = np.empty(n, dtype=object)
-    sets = np.empty(n, dtype=object)
-    target = np.full((n, dim), np.nan)
-    observed = np.full((n, dim), np.nan)
-    commands = {c: np.full((n, chains[c].n_columns), np.nan) for c in chains}
-    lines = np.zeros(n, int)
-    extra: dict[str, list[str]] = {h: [] for h in extra_cols}
-    keep = np.zeros(n, bool)
+    m = Measurements.blank(len(rows), dim, {c: chains[c].n_columns for c in chains}, extra_cols)
+    keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in _records(path, header, rows, starts):
         keep[r] = True
         members = _config_members(row, idx, chains, where)
@@ -744,23 +735,19 @@ def load_chain_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                                    f"{owner[c.name]!r}'s {col!r}")
                 # a chain off the row's path may carry the rest of the pose: the other arms'
                 # weight on the chains they share with this one
-                commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
-                                                      allow_empty=not uses)
+                m.commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
+                                                        allow_empty=not uses)
         if is_planned(row, idx):
             keep[r] = False  # planned by ``bayesrob design``, not measured yet
             continue
-        observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
+        m.observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
         if has_target:
-            target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True) for t in targets]
-        config[r], sets[r], lines[r] = cfg, st, lineno
+            m.target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True)
+                           for t in targets]
+        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
         for h in extra_cols:
-            extra[h].append(row[idx[h]])
-    meas = Measurements(config=config[keep].astype(str), set=sets[keep].astype(str),
-                        target=target[keep], commands={c: v[keep] for c, v in commands.items()},
-                        observed=observed[keep], line=lines[keep], extra=extra)
-    if len(meas) == 0:
-        raise RigError(f"{path}: no measurement rows")
-    return meas, robot
+            m.extra[h].append(row[idx[h]])
+    return m.kept(keep, path), robot
 
 
 def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
@@ -776,7 +763,7 @@ def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
     meta = load_rig_toml(directory / RIG_FILE)
     chains = meta.pop("chains")
     if any(isinstance(a, ChainSpec) for a in meta["arms"].values()):
-        meas, robot = load_chain_measurements(directory / MEASUREMENTS_FILE, chains)
+        meas, robot = load_robot_measurements(directory / MEASUREMENTS_FILE, chains)
         rig = Rig(measurements=meas, path=directory, robot=robot, **meta)
         for a in robot.measured_arms():
             if min_train_rows and not meas.mask(a, "train").any():

@@ -44,7 +44,7 @@ def format_calibration(doc: dict) -> str:
     return "\n".join(parts)
 
 
-def format_chain_calibration(doc: dict) -> str:
+def format_group_calibration(doc: dict) -> str:
     """Groups fitted, what the rank analysis fixed, and the error per set and arm."""
     parts = [f"calibration: {doc['method']} of {doc['rig']}, groups {', '.join(doc['params'])}: "
              f"{doc['n_free']} of {doc['n_parameters']} parameters fitted "

@@ -14,7 +14,7 @@ general chain.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,17 +23,18 @@ import numpy as np
 from bayesrob.robot.chain import Chain
 
 
-class ArmSpec(Protocol):
-    """What a planar arm is built from (the rig's ``ArmSpec``; the rig loader builds kinematic
-    models, so kinematics never imports it)."""
+@dataclass(frozen=True)
+class ArmGeometry:
+    """What a planar arm is built from: the fields the rig's nominal ``ArmSpec`` and the
+    simulator's ``ArmTruth`` share (defined here, below both, so kinematics imports neither)."""
 
     name: str
     base: tuple[float, float]
     links: tuple[float, float]
     gain: tuple[float, float]
     offset: tuple[float, float]
-    elbow: int
-    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
+    elbow: int = 1
+    pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
 
 PARAM_NAMES = ("bx", "by", "l1", "l2", "a1", "a2", "b1", "b2")
 
@@ -58,7 +59,7 @@ class ArmParams(NamedTuple):
         )
 
     @classmethod
-    def from_spec(cls, spec: ArmSpec) -> ArmParams:
+    def from_spec(cls, spec: ArmGeometry) -> ArmParams:
         return cls(*(jnp.asarray(x, dtype=jnp.float64)
                      for x in (spec.base, spec.links, spec.gain, spec.offset)))
 
@@ -167,7 +168,7 @@ class Arm:
     pulse_limits: tuple[tuple[float, float], tuple[float, float]] = ((500.0, 2500.0),) * 2
 
     @classmethod
-    def nominal(cls, spec: ArmSpec) -> Arm:
+    def nominal(cls, spec: ArmGeometry) -> Arm:
         return cls(spec.name, ArmParams.from_spec(spec), spec.elbow, spec.pulse_limits)
 
     @property

@@ -3,7 +3,7 @@
 
 The paper's rigs (:func:`simulate_rig`) are aimed on a grid through each arm's nominal model,
 then linked through the models calibrated on their train rows; arm6 rigs
-(:func:`simulate_chain_rig`, :func:`simulate_linked_chain_rig`) are measured at random poses,
+(:func:`simulate_arm6_rig`, :func:`simulate_linked_arm6_rig`) are measured at random poses,
 and their linked rows aimed through the calibrated models at random targets. Training,
 validation and holdout rows are at different poses; holdout rows draw their noise from a
 stream of their own.
@@ -46,8 +46,8 @@ from bayesrob.sim.truth import (
     POSE_HI,
     POSE_LO,
     TRUTH_FILE,
-    ChainTruth,
-    LinkedChainTruth,
+    Arm6Truth,
+    LinkedArm6Truth,
     Truth,
     _ArmErrors,
     arm6_urdf_path,
@@ -287,7 +287,7 @@ def true_parameters(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -
 class _Arm6Plant:
     """A simulated arm6 as it really is: the robots and true parameters its rows come from."""
 
-    truth: ChainTruth
+    truth: Arm6Truth
     robot: Robot
     x_true: np.ndarray
     base_robot: Robot
@@ -295,7 +295,7 @@ class _Arm6Plant:
     phase: np.ndarray
 
     @classmethod
-    def build(cls, truth: ChainTruth, rng: np.random.Generator) -> _Arm6Plant:
+    def build(cls, truth: Arm6Truth, rng: np.random.Generator) -> _Arm6Plant:
         """The plant of ``truth``: its true parameters as ``truth.true_params`` has them, or,
         before they are drawn, drawn from ``rng``."""
         nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
@@ -336,7 +336,7 @@ class _Arm6Plant:
         return p + rng.normal(0, truth.measurement_noise_mm, p.shape)
 
 
-def simulate_chain_rig(out_dir: str | Path, truth: ChainTruth) -> Path:
+def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
     """Write rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml into out_dir."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -382,8 +382,8 @@ def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarr
 
     out = Path(rig_dir)
     table = dict(tomllib.loads((out / "truth.toml").read_text())["chain_truth"])
-    names = [f.name for f in ChainTruth.__dataclass_fields__.values()]
-    truth = ChainTruth(**{k: (tuple(v) if isinstance(v, list) else v)
+    names = [f.name for f in Arm6Truth.__dataclass_fields__.values()]
+    truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
                           for k, v in table.items() if k in names})
     rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
     plant = _Arm6Plant.build(truth, rng)
@@ -452,7 +452,7 @@ def _fmt_row(config: str, set_name: str, target: Sequence[float] | None,
     return ",".join(cells + [f"{v:.4f}" for v in point])
 
 
-def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedChainTruth,
+def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedArm6Truth,
                     rng: np.random.Generator) -> tuple:
     """The linked rows of the rig in ``out`` (single-arm rows written): targets (L, 3),
     commands and spring set points per arm (L, 6), and the true equilibrium."""
@@ -486,12 +486,12 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedCh
     return targets, commands, u0, eq
 
 
-def simulate_linked_chain_rig(out_dir: str | Path, truth: LinkedChainTruth) -> Path:
+def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Path:
     """Write a rig of two arm6 arms, ``left`` and ``right`` (or ``truth.arms``), into out_dir:
     rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml.
 
     Each arm has single-arm train, validation and holdout rows at random poses (as
-    :func:`simulate_chain_rig`, with its own true geometry, noise and compliance). Then each
+    :func:`simulate_arm6_rig`, with its own true geometry, noise and compliance). Then each
     arm is calibrated on its train rows (``truth.calibration_groups``) and the ``left+right``
     (``+``-joined ``truth.arms``) test rows aim every arm at random targets in
     ``truth.target_box_mm`` through their calibrated models (position-only inverse

@@ -12,7 +12,7 @@
   a joint changes sign the end point jumps (the paper's bottom-arm discontinuity);
   ``servo_nonlinearity`` a ripple on the pulse-to-angle map. Always on: joint repeatability
   noise on the commanded angle and measurement noise on the end point;
-- arm6 (:class:`ChainTruth`, :class:`LinkedChainTruth`): a 6-joint URDF arm whose true
+- arm6 (:class:`Arm6Truth`, :class:`LinkedArm6Truth`): a 6-joint URDF arm whose true
   geometry differs from its nominal URDF, measured at random poses; its joints give way under
   gravity, read through eccentric encoders, rest in their play; linked arms are joined at one
   marker point.
@@ -35,6 +35,7 @@ import numpy as np
 from bayesrob import robot as kin
 from bayesrob.data.rig import dump_toml
 from bayesrob.data.vocabulary import EFFECTS
+from bayesrob.robot.planar import ArmGeometry
 from bayesrob.sim.physics import draw_stiffnesses
 
 TRUTH_FILE = "truth.toml"
@@ -47,16 +48,9 @@ MASS_STREAM = 19  # the arms' drawn masses' own random stream
 
 
 @dataclass(frozen=True)
-class ArmTruth:
+class ArmTruth(ArmGeometry):
     """True physical parameters of one arm (what ``truth.toml`` records)."""
 
-    name: str
-    base: tuple[float, float]
-    links: tuple[float, float]
-    gain: tuple[float, float]
-    offset: tuple[float, float]
-    elbow: int
-    pulse_limits: tuple[tuple[float, float], tuple[float, float]]
     link_mass_kg: tuple[float, float] = (0.05, 0.04)
     elbow_mass_kg: float = 0.065  # the elbow servo
     end_mass_kg: float = 0.02
@@ -258,7 +252,7 @@ class _ArmErrors:
 
 
 @dataclass
-class ChainTruth(_ArmErrors):
+class Arm6Truth(_ArmErrors):
     """What a simulated chain rig really is (written to truth.toml)."""
 
     instrument_nominal: tuple[float, ...] = (1200.0, -300.0, 150.0, 0.0, 0.0, 0.4)
@@ -268,13 +262,13 @@ class ChainTruth(_ArmErrors):
     # at a phase drawn per joint: the angle read is off by atan2(e sin, 1 + e cos), a
     # sinusoid once per revolution and its harmonics
     encoder_eccentricity: float = 0.0
-    encoder_phase_rad: tuple[float, ...] = ()  # filled by simulate_chain_rig
+    encoder_phase_rad: tuple[float, ...] = ()  # filled by simulate_arm6_rig
     # each joint's play (rad, whole width; 0: none): the joint rests against the side its
     # gravity torque pushes it to; where that torque is weaker than the friction that holds
     # it (play_stick_nmm), on the side it was approached from, drawn per row
     joint_play_rad: float = 0.0
     play_stick_nmm: float = 2000.0
-    true_params: dict = field(default_factory=dict)  # filled by simulate_chain_rig
+    true_params: dict = field(default_factory=dict)  # filled by simulate_arm6_rig
 
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:
@@ -299,18 +293,18 @@ THIRD_ARM_STIFFNESS_SCALE = 0.8
 
 
 def _left_stiffness() -> tuple[float, ...]:
-    return ChainTruth().stiffness_nmm_per_rad
+    return Arm6Truth().stiffness_nmm_per_rad
 
 
 @dataclass
-class LinkedChainTruth(_ArmErrors):
+class LinkedArm6Truth(_ArmErrors):
     """What a simulated rig of linked arm6 arms (two, or ``arms``) really is (truth.toml).
 
     Per-arm settings are tables keyed by arm name (``left``, ``right``; ``arms`` names the
-    arms, in order: :func:`three_linked_chain_truth` adds ``front``); everything else is
+    arms, in order: :func:`three_arm6_truth` adds ``front``); everything else is
     shared. ``true_params`` holds every arm's parameters under their full names
     (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
-    :func:`simulate_linked_chain_rig`).
+    :func:`simulate_linked_arm6_rig`).
     """
 
     n_linked: int = 24
@@ -348,26 +342,26 @@ class LinkedChainTruth(_ArmErrors):
         for table in ("instrument_nominal", "stiffness_nmm_per_rad"):
             missing = [a for a in self.arms if a not in getattr(self, table)]
             if missing:
-                raise ValueError(f"LinkedChainTruth.{table} has no entry for "
+                raise ValueError(f"LinkedArm6Truth.{table} has no entry for "
                                  f"{', '.join(missing)}")
 
 
-def three_linked_chain_truth(**kwargs: Any) -> LinkedChainTruth:
+def three_arm6_truth(**kwargs: Any) -> LinkedArm6Truth:
     """Three arm6 arms joined at one point: ``left`` and ``right`` as in
-    :class:`LinkedChainTruth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
+    :class:`LinkedArm6Truth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
     side; ``kwargs`` as the class takes them. Its stiffness profile is the left arm's times
     :data:`THIRD_ARM_STIFFNESS_SCALE`, drawn about per seed as the others are."""
-    base = LinkedChainTruth()
+    base = LinkedArm6Truth()
     instrument = {**base.instrument_nominal, THIRD_ARM: THIRD_ARM_INSTRUMENT}
     stiffness = {**base.stiffness_nmm_per_rad,
                  THIRD_ARM: tuple(THIRD_ARM_STIFFNESS_SCALE * k
                                   for k in base.stiffness_nmm_per_rad["left"])}
-    return LinkedChainTruth(**{"arms": (*LINKED_ARMS, THIRD_ARM),
+    return LinkedArm6Truth(**{"arms": (*LINKED_ARMS, THIRD_ARM),
                                "instrument_nominal": instrument,
                                "stiffness_nmm_per_rad": stiffness, **kwargs})
 
 
-def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
+def drawn_stiffness(truth: LinkedArm6Truth) -> dict[str, tuple[float, ...]]:
     """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
     scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
     drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
@@ -375,7 +369,7 @@ def drawn_stiffness(truth: LinkedChainTruth) -> dict[str, tuple[float, ...]]:
     return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
 
 
-def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
+def drawn_masses(truth: LinkedArm6Truth) -> dict[str, np.ndarray]:
     """Each arm's true link masses (kg) for the rig of ``truth.seed``: the described masses
     scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
     rng = np.random.default_rng([truth.seed, MASS_STREAM])
@@ -385,5 +379,5 @@ def drawn_masses(truth: LinkedChainTruth) -> dict[str, np.ndarray]:
 
 def load_linked_truth(rig_dir: str | Path) -> dict:
     """The ``linked_chain_truth`` table of a rig written by
-    :func:`~bayesrob.sim.rigs.simulate_linked_chain_rig`."""
+    :func:`~bayesrob.sim.rigs.simulate_linked_arm6_rig`."""
     return tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())["linked_chain_truth"]
