@@ -216,7 +216,7 @@ def test_no_text_of_the_papers_figures_is_cut_off(built, name):
 @pytest.mark.parametrize("config", ["top", "top+bottom"])
 def test_the_predict_figure_fits_its_content(config):
     """Every text inside the figure, every target and arm base inside the map's axes, and a
-    title that names a fusion only for linked arms."""
+    title that names a fusion only for linked arms (planar arms drawn as every robot is)."""
     from bayesrob.data.rig import default_rig_dir, load_rig
     from bayesrob.predict.assembly import assembly_figure, grid_targets, predict_assembly
 
@@ -234,7 +234,8 @@ def test_the_predict_figure_fits_its_content(config):
         inside = ((px[:, 0] - half >= box.x0) & (px[:, 0] + half <= box.x1)
                   & (px[:, 1] - half >= box.y0) & (px[:, 1] + half <= box.y1))
         assert inside.all(), shown[~inside]
-        assert ("equilibrium" in ax.get_title()) == ("+" in config), ax.get_title()
+        title = fig.get_suptitle()
+        assert ("equilibrium" in title) == ("+" in config), title
     finally:
         plt.close(fig)
 
