@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -337,15 +338,18 @@ def _simulate_poses(args: argparse.Namespace, out_dir: Path, poses: Path) -> int
     if not truth.is_file():
         raise UsageError(f"{truth}: file not found (--poses FILE measures on a rig made by "
                          "'bayesrob simulate'; use 'bayesrob collect --plan' on hardware)")
-    if "chain_truth" in truth.read_text():
+    # the truth file's table says which simulator made the rig ("chain_truth" is also a
+    # substring of "linked_chain_truth": match the tables, not the text)
+    tables = tomllib.loads(truth.read_text())
+    if "linked_chain_truth" in tables:
+        raise UsageError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
+                         "rigs are not measured at planned poses")
+    if "chain_truth" in tables:
         from bayesrob.hardware.collect import read_plan
         from bayesrob.sim.rigs import measure_arm6_poses
 
         _, sets, cmds = read_plan(poses, {"arm": 6})
         n = measure_arm6_poses(out_dir, sets, cmds["arm"], seed=args.seed)
-    elif "linked_chain_truth" in truth.read_text():
-        raise UsageError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
-                         "rigs are not measured at planned poses")
     else:
         from bayesrob.sim.rigs import measure_planned
 

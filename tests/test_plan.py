@@ -240,3 +240,17 @@ def test_rig_toml_limits_bound_the_samples_and_are_checked(arm6, tmp_path):
     (rig / "rig.toml").write_text(text.replace("[arms.arm]\n", "[arms.arm]\nlimits = [1, 2]\n"))
     with pytest.raises(RigError, match=r"arms.arm.limits: expected 6 pairs"):
         command_limits(load_plan_rig(rig))
+
+
+def test_simulate_poses_refuses_a_linked_arm6_rig_in_one_line(tmp_path, capsys):
+    """A linked arm6 rig's truth.toml holds a ``linked_chain_truth`` table, whose name
+    contains ``chain_truth``: it is refused in one line, not read as a single arm."""
+    rig = tmp_path / "linked"
+    rig.mkdir()
+    (rig / "truth.toml").write_text("[linked_chain_truth]\nseed = 4\n")
+    poses = tmp_path / "poses.csv"
+    poses.write_text("config,set,arm_u1,arm_u2,arm_u3,arm_u4,arm_u5,arm_u6,gain\n"
+                     "arm,train,0,-1,0.5,0,0.2,0,1.0\n")
+    assert main(["simulate", str(rig), "--poses", str(poses)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "linked arm6" in err, err
