@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,7 +40,12 @@ from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.inference.sampling import error_arrays, error_kind, is_sampleable
 from bayesrob.predict.aiming import aim
 from bayesrob.predict.draws import CalibratedModules, free_draws, parameter_draws
-from bayesrob.predict.fusion import equilibrium, equilibrium_program, fused_posterior
+from bayesrob.predict.fusion import (
+    equilibrium,
+    equilibrium_program_draws,
+    fused_posterior,
+    static_stiffness,
+)
 from bayesrob.predict.stiffness import StiffnessPrior, sag_scaled_priors, stiffness_draws
 
 if TYPE_CHECKING:
@@ -212,9 +216,8 @@ class DensityModule:
                 and (job.fusion == "equilibrium" or len(mods) == 1)):
             return _grid_builds(job, mods, placed, commands, index), {}
         stiff = [m.spec.stiffness for m in mods]
-        stiffness = (tuple(tuple(s) if s is not None else None for s in stiff)
-                     if any(s is not None for s in stiff) else None)
-        d = _program_draws(
+        stiffness = static_stiffness(stiff)
+        d = equilibrium_program_draws(
             jax.random.PRNGKey(job.seed + index), tuple(jnp.asarray(u) for u in commands),
             tuple(error_arrays(m.fitted) for m in mods), tuple(a.params for a in placed),
             tuple(jnp.asarray(m.param_cov) for m in mods),
@@ -265,24 +268,6 @@ class DensityModule:
             truth = replace(mods[0].truth_rig, name=doc["name"], arms={
                 a: mounted_truth(modules[a], b) for a, _, b in placed}, workspace=workspace)
             (out / TRUTH_FILE).write_text(truth.to_toml())
-
-
-@partial(jax.jit, static_argnames=("kinds", "stiffness", "num_samples", "tracker_noise_mm",
-                                   "densities_hold_tracker"))
-def _program_draws(key: jax.Array, commands: tuple, arrays: tuple, params: tuple,
-                   param_cov: tuple, *, kinds: tuple[str, ...], stiffness: tuple | None,
-                   num_samples: int, tracker_noise_mm: float, densities_hold_tracker: bool
-                   ) -> jax.Array:
-    # One compiled program per kind of assembly (model kinds, stiffness knowledge, shapes):
-    # which modules and where they stand are traced arguments.
-    from numpyro.infer import Predictive
-
-    names = tuple(f"arm{i}" for i in range(len(kinds)))
-    out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
-        key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
-        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm,
-        densities_hold_tracker=densities_hold_tracker)
-    return out["d"]
 
 
 def _grid_builds(job: Any, mods: Sequence[DensityModule], arms: Sequence[kin.Arm],

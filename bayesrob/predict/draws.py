@@ -285,6 +285,25 @@ def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
         numpyro.sample(f"link_{i}", dist.Normal(f, s).to_event(2), obs=p)
 
 
+@partial(jax.jit, static_argnames=("structure", "arms", "warmup", "per_chain", "chains"))
+def _product_nuts(key: jax.Array, structure: kin.RobotStructure, values: dict, x: jax.Array,
+                  arms: tuple[str, ...], commands: list, covs: list, noises: jax.Array,
+                  start: jax.Array, warmup: int, per_chain: int, chains: int) -> jax.Array:
+    # One compiled program per robot structure and shapes: an MCMC built per call with the
+    # robot's numbers baked into its model compiled anew for every rig (three programs and
+    # about 650 memory maps per planar rig, never released).
+    from numpyro.infer import init_to_value
+
+    init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))
+                           for i, c in enumerate(covs)}}
+    kernel = NUTS(_product_model, init_strategy=init_to_value(values=init), dense_mass=False,
+                  target_accept_prob=0.85)
+    mcmc = MCMC(kernel, num_warmup=warmup, num_samples=per_chain, num_chains=chains,
+                chain_method="sequential", progress_bar=False)
+    mcmc.run(key, commands, structure.robot(values), x, arms, covs, list(noises), start)
+    return mcmc.get_samples()["p"]
+
+
 def product_draws_nuts(mods: CalibratedModules, arms: Sequence[str], commands: Sequence[np.ndarray],
                        seed: int = 0, num_samples: int = DRAWS, warmup: int = 500,
                        chains: int = 2) -> np.ndarray:
@@ -293,21 +312,13 @@ def product_draws_nuts(mods: CalibratedModules, arms: Sequence[str], commands: S
     The population parameters are held at their posterior means (a mixture over them would
     make the target multimodal in Sigma for nothing the draws could resolve).
     """
-    from numpyro.infer import init_to_value
-
     commands = [jnp.asarray(np.atleast_2d(np.asarray(u, float))) for u in commands]
     covs = [jnp.asarray(mods.errors[a].covariance.mean(0)) for a in arms]
-    noises = [float(mods.errors[a].noise_sd.mean()) for a in arms]
+    noises = jnp.asarray([float(mods.errors[a].noise_sd.mean()) for a in arms])
     x = jnp.asarray(mods.x)
     start = jnp.mean(jnp.stack([mods.robot.compiled_points(a)(x, u)
                                 for a, u in zip(arms, commands, strict=True)]), axis=0)
-    init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))
-                           for i, c in enumerate(covs)}}
-    kernel = NUTS(_product_model, init_strategy=init_to_value(values=init), dense_mass=False,
-                  target_accept_prob=0.85)
-    per_chain = -(-num_samples // chains)
-    mcmc = MCMC(kernel, num_warmup=warmup, num_samples=per_chain, num_chains=chains,
-                chain_method="sequential", progress_bar=False)
-    mcmc.run(jax.random.PRNGKey(seed), commands, mods.robot, x, list(arms), covs, noises,
-             start)
-    return np.asarray(mcmc.get_samples()["p"])[:num_samples]
+    p = _product_nuts(jax.random.PRNGKey(seed), mods.robot.structure, mods.robot.nominal_values,
+                      x, tuple(arms), commands, covs, noises, start, warmup,
+                      -(-num_samples // chains), chains)
+    return np.asarray(p)[:num_samples]

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from functools import partial
 from typing import Any
 
 import jax
@@ -225,6 +226,36 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     numpyro.deterministic("d", d)
 
 
+def static_stiffness(stiffness: Sequence[Any] | None) -> tuple | None:
+    """Known stiffnesses as the static argument of :func:`equilibrium_program_draws`: a tuple
+    per arm (None where unknown), or None where none is known."""
+    if stiffness is None or all(s is None for s in stiffness):
+        return None
+    return tuple(tuple(float(v) for v in s) if s is not None else None for s in stiffness)
+
+
+@partial(jax.jit, static_argnames=("kinds", "names", "stiffness", "num_samples",
+                                   "tracker_noise_mm", "densities_hold_tracker"))
+def equilibrium_program_draws(key: jax.Array, commands: Sequence[jax.Array],
+                              arrays: Sequence[dict], params: Sequence[kin.ArmParams],
+                              param_cov: Sequence[jax.Array] | None = None, *,
+                              kinds: tuple[str, ...], names: tuple[str, ...] | None = None,
+                              stiffness: tuple | None = None, num_samples: int = DRAWS,
+                              tracker_noise_mm: float = 0.0,
+                              densities_hold_tracker: bool = True) -> jax.Array:
+    """Draws (S, T, 2) of :func:`equilibrium_program`'s linked point ``d``.
+
+    One compiled program per kind of assembly (model kinds, known stiffnesses, shapes): which
+    modules and where they stand are traced arguments. Called eagerly, ``Predictive`` compiled
+    its loop anew on every call (about 200 memory maps each, never released)."""
+    names = names or tuple(f"arm{i}" for i in range(len(kinds)))
+    out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
+        key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
+        stiffness=stiffness, param_cov=param_cov, tracker_noise_mm=tracker_noise_mm,
+        densities_hold_tracker=densities_hold_tracker)
+    return out["d"]
+
+
 def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                       commands: Sequence[np.ndarray], targets: np.ndarray,
                       stiffness: Sequence[Any] | None = None, num_samples: int = DRAWS,
@@ -238,12 +269,11 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     key = jax.random.PRNGKey(seed)
     if all(is_sampleable(m) for m in models):
-        pred = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])
-        out = pred(key, [jnp.asarray(u) for u in commands],
-                   kinds=tuple(error_kind(m) for m in models),
-                   arrays=[error_arrays(m) for m in models], params=[a.params for a in arms],
-                   names=tuple(a.name for a in arms), stiffness=stiffness)
-        return np.asarray(out["d"])
+        return np.asarray(equilibrium_program_draws(
+            key, [jnp.asarray(u) for u in commands], [error_arrays(m) for m in models],
+            [a.params for a in arms], kinds=tuple(error_kind(m) for m in models),
+            names=tuple(a.name for a in arms), stiffness=static_stiffness(stiffness),
+            num_samples=num_samples))
     targets = np.atleast_2d(np.asarray(targets, float))
     frees, thetas = [], []
     for i, (m, a, u) in enumerate(zip(models, arms, commands, strict=True)):
