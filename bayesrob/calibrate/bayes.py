@@ -266,12 +266,13 @@ def _model_args(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarray,
 
 def sample_posterior(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarray,
                      x_fit: np.ndarray, priors: Priors = Priors(),
-                     settings: SamplerSettings = SamplerSettings(), seed: int = 0
-                     ) -> Posterior:
+                     settings: SamplerSettings = SamplerSettings(), seed: int = 0,
+                     diagnostics: bool = True) -> Posterior:
     """NUTS posterior of the parameters ``idx`` of ``robot`` given its ``rows``: ``x`` the
     parameter vector at the prior's mean where sampled, held elsewhere; ``x_fit`` the
     least-squares fit the sampler is whitened at. The chains run one after another; the
-    first call per structure, settings and data shapes compiles the sampler."""
+    first call per structure, settings and data shapes compiles the sampler. ``diagnostics``
+    off: the divergences alone (arviz's R-hat needs two chains)."""
     from numpyro.distributions import biject_to, constraints
 
     t0, c0 = time.perf_counter(), sum(_COMPILE_SECONDS.values())
@@ -295,7 +296,8 @@ def sample_posterior(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarra
     diverging, steps = (np.stack([np.asarray(o[i]) for o in outs]) for i in (1, 2))
     draws = centre + noise[..., None] / s * (z @ chol.T)
     compile_seconds = sum(_COMPILE_SECONDS.values()) - c0
-    return Posterior(draws, noise, _diagnostics(draws, noise, diverging, steps),
+    return Posterior(draws, noise, _diagnostics(draws, noise, diverging, steps) if diagnostics
+                     else {"divergences": int(diverging.sum())},
                      time.perf_counter() - t0 - compile_seconds, compile_seconds)
 
 
@@ -345,8 +347,8 @@ def _arm_problem(spec: ArmSpec, u: np.ndarray, d: np.ndarray | None
 
 def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
                          priors: Priors = ARM_PRIORS,
-                         settings: SamplerSettings = SamplerSettings(), seed: int = 0
-                         ) -> ArmPosterior:
+                         settings: SamplerSettings = SamplerSettings(), seed: int = 0,
+                         diagnostics: bool = True) -> ArmPosterior:
     """NUTS posterior of one arm's eight parameters given its rows (u, d: (N, 2) each): the
     posterior of its chain's eight columns (:func:`sample_posterior`)."""
     robot, idx, rows, shift = _arm_problem(spec, u, d)
@@ -355,7 +357,8 @@ def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
         x_fit = arm_fit(robot, idx, *rows[ARM][:2]).x
     except (ValueError, np.linalg.LinAlgError):  # too few rows: whitened by the prior
         x_fit = nominal
-    post = sample_posterior(robot, rows, nominal, idx, x_fit, priors, settings, seed)
+    post = sample_posterior(robot, rows, nominal, idx, x_fit, priors, settings, seed,
+                            diagnostics)
     return ArmPosterior(**{**vars(post), "x": post.x + shift}, name=spec.name,
                         scale=priors.sd(robot.layout)[idx], elbow=spec.elbow,
                         pulse_limits=spec.pulse_limits)
@@ -609,7 +612,8 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
     draws, divs = [], []
     t0 = time.perf_counter()
     for d in data:
-        post = sample_arm_posterior(spec, u, d, priors, settings, int(rng.integers(2**31)))
+        post = sample_arm_posterior(spec, u, d, priors, settings, int(rng.integers(2**31)),
+                                    diagnostics=False)
         draws.append(np.column_stack([post.draws, post.noise_draws])[keep])
         divs.append(post.diagnostics["divergences"])
     return SBCResult(np.column_stack([params, noise_sd]), np.array(draws), np.array(divs),
