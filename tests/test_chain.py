@@ -512,11 +512,11 @@ def test_bayesian_chain_priors_are_proper_and_sag_groups_are_refused(arm6_rig):
     """Every group NUTS samples has a proper prior (the encoder's sinusoids had sd 0 from a
     nominal of 0, and the fit failed on numpyro's scale check); the groups gravity's torques
     drive are refused with one line before any fitting, as NUTS did not mix over them."""
-    from bayesrob.calibrate.bayes import GroupPriors, calibrate_bayes
+    from bayesrob.calibrate.bayes import Priors, calibrate_bayes
 
     rig = load_rig(arm6_rig)
     layout = rig.robot.layout
-    sd = GroupPriors().sd(layout)
+    sd = Priors().sd(layout)
     sampled = ~layout.group_mask(kin.SAG_GROUPS)
     assert np.all(np.isfinite(sd[sampled]) & (sd[sampled] > 0))
     encoder = layout.group_mask(("encoder",))

@@ -41,7 +41,7 @@ def true_vector(rig_dir: Path, rig: Rig) -> np.ndarray:
 
 def bayes_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
     """One rig's figures of the NUTS posterior against least squares and the truth."""
-    from bayesrob.calibrate.bayes import calibrate_bayes
+    from bayesrob.calibrate.bayes import SamplerSettings, calibrate_bayes
     from bayesrob.calibrate.least_squares import calibrate
 
     d = simulate_arm6_rig(rig_dir, Arm6Truth(seed=seed, n_train=30, n_validation=20,
@@ -49,7 +49,8 @@ def bayes_rig(rig_dir: Path, seed: int) -> dict[str, Any]:
                                                origin_sd_rad=0.0))
     rig = load_rig(d)
     groups = ("frames", "offsets")
-    post = calibrate_bayes(rig, groups, num_warmup=300, num_samples=400, seed=seed)
+    post = calibrate_bayes(rig, groups, settings=SamplerSettings(num_warmup=300, num_samples=400),
+                           seed=seed)
     ls = calibrate(rig, groups)
     p = post.extra["posterior"]
     free = post.ident.free

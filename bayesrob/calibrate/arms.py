@@ -7,7 +7,8 @@ and offsets. So ``least-squares`` is the group fit of :mod:`bayesrob.calibrate.l
 restricted to those eight columns of the offsets, servo and geometric groups, in the arm's own
 base frame (a rig's ``calibrate --params`` frees the frames instead, to the same predictions),
 with its one covariance. ``hill-climb`` is the paper's procedure
-(:mod:`bayesrob.calibrate.hill_climb`); ``bayes`` is :mod:`bayesrob.calibrate.bayes`.
+(:mod:`bayesrob.calibrate.hill_climb`); ``bayes`` (:mod:`bayesrob.calibrate.bayes`) samples the same
+eight columns.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import scipy.stats
 
 from bayesrob import robot as kin
 from bayesrob.calibrate.hill_climb import hill_climb
-from bayesrob.calibrate.least_squares import covariance, fit, residual_function
+from bayesrob.calibrate.least_squares import Calibration, covariance, fit, residual_function
 from bayesrob.data.rig import N_ARM_PARAMS, SETS, ArmSpec, Rig
 
 Method = Literal["least-squares", "hill-climb"]
@@ -98,6 +99,15 @@ def arm_covariance(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
     return covariance(res, jac, robot.layout.nominal, free)[np.ix_(idx, idx)]
 
 
+def arm_fit(robot: kin.Robot, idx: np.ndarray, u: np.ndarray, d: np.ndarray) -> Calibration:
+    """The least squares of an arm's eight, the columns ``idx`` of its chain (:func:`arm_robot`),
+    on its rows (u: pulses (N, 2), d: end points (N, 2))."""
+    eight = np.zeros(robot.layout.nominal.size, bool)
+    eight[idx] = True
+    return fit(robot, {ARM: (u, d, None)}, ARM_GROUPS, candidates=eight, tol=ARM_TOL,
+               max_nfev=2000)
+
+
 def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = "least-squares",
                   u_val: np.ndarray | None = None, d_val: np.ndarray | None = None
                   ) -> ArmCalibration:
@@ -113,10 +123,7 @@ def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = 
     v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
     if method == "least-squares":
         robot, idx = arm_robot(v0)
-        eight = np.zeros(robot.layout.nominal.size, bool)
-        eight[idx] = True
-        cal = fit(robot, {ARM: (u, d, None)}, ARM_GROUPS, candidates=eight, tol=ARM_TOL,
-                  max_nfev=2000)
+        cal = arm_fit(robot, idx, u, d)
         # the chain's origins and offsets are corrections to the nominal ones, its gains whole
         v = v0 + cal.x[idx] - robot.layout.nominal[idx]
         iters, se = cal.nfev, cal.se[idx]

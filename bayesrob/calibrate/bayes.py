@@ -1,47 +1,24 @@
-"""Bayesian calibration (numpyro NUTS): a posterior over the parameters the least squares fits.
+"""Bayesian calibration (numpyro NUTS): the posterior of the parameters the least squares fits.
 
-Any robot (:func:`calibrate_bayes`, ``calibrate --params ... --method bayes``): the parameter
-groups' identifiable columns, sampled in the coordinates the least-squares fit and its
-covariance whiten. The paper's planar arms (``calibrate --method bayes``): each arm's eight
-parameters under the priors of :class:`Priors`, below.
+One model (:func:`calibration_model`) for every robot: the parameters sampled (indices ``idx``
+of its vector, the rest held) with Normal priors around nominal (:class:`Priors`, by group),
+a measurement-noise sd ~ HalfNormal, every measured coordinate ~ Normal(marker point, noise
+sd). A rig's groups (:func:`calibrate_bayes`, ``calibrate --params ... --method bayes``) sample
+the columns the rank analysis keeps; the paper's planar arms (:func:`calibrate_arms_bayes`,
+``calibrate --method bayes``) the eight columns of each arm's 2-joint chain
+(:func:`~bayesrob.calibrate.arms.arm_robot`) under :data:`ARM_PRIORS`, as their least squares
+fits them (docs/bayesian-calibration.md gives the priors' reasons).
 
-The model of one arm (rows i = 1..N of its ``train`` set, pulses u_i, observed end points d_i):
-
-    z ~ Normal(0, 1)^8                          standardised parameters, in PARAM_NAMES order
-    params = nominal + scale * z                 nominal: the arm's values in rig.toml
-    noise_sd ~ HalfNormal(noise_scale_mm)        measurement noise, sd per axis (mm)
-    d_i ~ Normal(f(g(u_i; params); params), noise_sd)   independently in x and y
-
-so each parameter has the prior Normal(nominal, scale) with (class :class:`Priors`)
-
-    base bx, by    5 mm              a person's tape-measure error (the simulator uses 2 mm)
-    links l1, l2   5 mm              (simulator: 1.5 mm)
-    gains a1, a2   5 % of nominal    (simulator: 2 %)
-    offsets b1, b2 0.05 rad          (simulator: 0.02 rad)
-    noise_sd       HalfNormal(5 mm)  95 % of its mass below 10 mm: room for unmodelled
-                                     effects (sag, backlash) as well as the instrument
-
-The scales are about 2.5 times the measuring errors the simulator assumes: the prior should
-contain the truth comfortably without pretending to know the person's tools.
-
-NUTS (numpyro) samples z and noise_sd. In z the prior is isotropic, but the data tie each gain
-to its offset (they trade off at the mid-range pulse) and the base to the links, so the
-sampler adapts a dense mass matrix; the chains start near the least-squares fit, overdispersed
-by about one standard error. One sampler is compiled per (settings, number of rows) and reused
-across arms, chains and data sets, which keeps an arm's fit to about a second once compiled
-and makes simulation-based calibration (:func:`sbc`) affordable.
-
-From the posterior:
-- :func:`calibrate_arm_bayes` gives an :class:`~bayesrob.calibrate.arms.ArmCalibration` like the
-  point-estimate methods (params = posterior mean, params_se = posterior sd, the errors of the
-  posterior-mean prediction) plus a ``posterior`` block: R-hat, bulk ESS, the noise level and the
-  posterior predictive coverage of the validation end points.
-- :func:`predict_end_points` returns draws of the end point for given commands, mixing over the
-  posterior of every arm involved (parameter uncertainty) and the noise; for arms linked at
-  their end points, the product of the arms' Gaussian likelihoods (the same rule
-  :mod:`bayesrob.predict.grid` uses for the joint-error models).
-- :func:`predicted_accuracy` summarises those draws as the expected mean error of a setup with
-  a 95 % interval, next to the error the noise alone would give.
+NUTS samples in coordinates whitened at the least-squares fit by its Laplace approximation
+(x[idx] = x_ls + (noise_sd / s) L z, L L^T the Gauss-Newton covariance with the prior's
+information added, s the residuals' rms): there the posterior is close to a standard normal
+however correlated the parameters (a planar arm's gain and offset, its base and links) and
+whatever the noise, so the trajectories are short. It is one compiled program per robot
+structure, settings and data shapes (:func:`_nuts_chain`), reused across robots of a design,
+chains and simulated data sets (:func:`sbc`). From a planar arm's posterior,
+:func:`predict_end_points` draws end points of single or linked arms (the product of the arms'
+Gaussian likelihoods, the rule of :mod:`bayesrob.predict.grid`) and :func:`predicted_accuracy`
+summarises them as a setup's expected mean error with a 95 % interval.
 """
 
 from __future__ import annotations
@@ -57,8 +34,10 @@ import scipy.stats
 
 from bayesrob import robot as kin
 from bayesrob.calibrate.arms import (
+    ARM,
     ArmCalibration,
-    calibrate_arm,
+    arm_fit,
+    arm_robot,
     calibrate_arms,
     mean_ci95,
     observed_errors,
@@ -66,15 +45,15 @@ from bayesrob.calibrate.arms import (
 )
 from bayesrob.calibrate.least_squares import (
     Calibration,
+    Rows,
     calibrate,
+    covariance,
     marker_errors,
-    parameter_covariance,
     residual_function,
     set_rows,
 )
 from bayesrob.data.rig import ArmSpec, Rig
 
-N_PARAMS = len(kin.PARAM_NAMES)
 COVERAGE_LEVELS = (0.5, 0.9, 0.95)
 
 
@@ -83,68 +62,106 @@ COVERAGE_LEVELS = (0.5, 0.9, 0.95)
 
 @dataclass(frozen=True)
 class Priors:
-    """Prior scales around the nominal values (sd of the Normal priors, HalfNormal for noise)."""
+    """Prior sd of each calibration group around the robot's nominal values (mm, rad), and
+    the scale of the HalfNormal prior on the measurement-noise sd."""
 
-    base_mm: float = 5.0
-    links_mm: float = 5.0
-    gain_rel: float = 0.05  # fraction of the nominal gain
+    instrument_mm: float = 200.0  # a rough placement of the robot in the measuring frame
+    instrument_rad: float = 0.2
+    marker_mm: float = 50.0
     offset_rad: float = 0.05
-    noise_mm: float = 5.0  # scale of the HalfNormal prior on the measurement-noise sd
+    origin_mm: float = 5.0  # a drawing's tolerance on a joint origin
+    origin_rad: float = 0.02
+    base_mm: float | None = None  # a chain's first origin, where it stands: origin_mm if None
+    gain_rel: float = 0.05  # fraction of the nominal gain
+    noise_mm: float = 20.0  # room for unmodelled compliance as well
+    # the encoder sinusoids, in their typical sizes (1e-3 rad): as weak as the planar effects'
+    # penalty, it only decides what the rows cannot see (the sag groups are not sampled)
+    effect_sizes: float = 10.0
 
-    def scales(self, nominal: np.ndarray) -> np.ndarray:
-        """Prior sd of the eight parameters (PARAM_NAMES order) for the given nominal vector."""
-        nominal = np.asarray(nominal, float)
-        return np.array([self.base_mm, self.base_mm, self.links_mm, self.links_mm,
-                         self.gain_rel * abs(nominal[4]), self.gain_rel * abs(nominal[5]),
-                         self.offset_rad, self.offset_rad])
+    def sd(self, layout: kin.ParamLayout) -> np.ndarray:
+        """Prior sd (P,) of every parameter of the layout."""
+        base = {sl.start + k for (_, part), sl in layout.slices.items() if part == "origins"
+                for k in range(3)}  # the first origin's position
+        out = np.empty(len(layout.params))
+        for i, p in enumerate(layout.params):
+            rot = p.name.rsplit(".", 1)[-1] in ("rx", "ry", "rz")
+            if ".instrument." in p.name:
+                out[i] = self.instrument_rad if rot else self.instrument_mm
+            elif ".marker." in p.name:
+                out[i] = self.marker_mm
+            elif p.group == "offsets":
+                out[i] = self.offset_rad
+            elif p.group == "geometric":
+                out[i] = self.origin_rad if rot else (
+                    self.base_mm if i in base and self.base_mm is not None else self.origin_mm)
+            elif p.group in kin.OPTIONAL_GROUPS:
+                out[i] = self.effect_sizes * layout.scales[i]
+            else:
+                out[i] = self.gain_rel * abs(p.nominal)
+        return out
 
-    def as_dict(self) -> dict[str, float]:
-        return {"base_mm": self.base_mm, "links_mm": self.links_mm, "gain_rel": self.gain_rel,
+    def arm_dict(self) -> dict[str, float]:
+        """The priors of a planar arm's eight, as its ``calibrate --json`` entry names them."""
+        return {"base_mm": self.origin_mm if self.base_mm is None else self.base_mm,
+                "links_mm": self.origin_mm, "gain_rel": self.gain_rel,
                 "offset_rad": self.offset_rad, "noise_halfnormal_mm": self.noise_mm}
+
+
+ARM_PRIORS = Priors(noise_mm=5.0)  # a planar arm's: the rest of its priors are the defaults
 
 
 @dataclass(frozen=True)
 class SamplerSettings:
-    """NUTS settings; the defaults fit one 16-row arm in about a second once compiled."""
+    """NUTS settings (the calibration's defaults)."""
 
     num_warmup: int = 500
     num_samples: int = 500
     num_chains: int = 2
-    dense_mass: bool = True
+    dense_mass: bool = False
     target_accept_prob: float = 0.85
     max_tree_depth: int = 10
 
 
-def arm_model(u, d, nominal, scale, noise_scale):
-    """The numpyro model of one arm; ``d=None`` samples end points from the prior predictive."""
+def calibration_model(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
+                      data: tuple, x: jax.Array, idx: jax.Array, prior_sd: jax.Array,
+                      noise_mm: jax.Array) -> None:
+    """The numpyro model of a robot's rows ``data`` ((u, d, side) per arm of ``arms``; d None
+    samples the prior predictive): ``x`` the parameter vector at the prior's mean where
+    sampled (``idx``), held elsewhere; ``values`` the robot's nominal values."""
     import numpyro
     import numpyro.distributions as dist
 
-    z = numpyro.sample("z", dist.Normal(jnp.zeros(N_PARAMS), 1.0).to_event(1))
-    v = nominal + scale * z
-    noise_sd = numpyro.sample("noise_sd", dist.HalfNormal(noise_scale))
-    mu = kin.forward_u(kin.ArmParams.from_vector(v), u)
-    numpyro.sample("d", dist.Normal(mu, noise_sd).to_event(2), obs=d)
+    free = numpyro.sample("x", dist.Normal(x[idx], prior_sd).to_event(1))
+    noise_sd = numpyro.sample("noise_sd", dist.HalfNormal(noise_mm))
+    robot, x = structure.robot(values), x.at[idx].set(free)
+    for a, (u, d, side) in zip(arms, data, strict=True):
+        numpyro.sample(f"d.{a}", dist.Normal(robot.marker_points(x, a, u, side=side),
+                                             noise_sd).to_event(2), obs=d)
 
 
-def _potential_fn_gen(*model_args):
+def _potential_fn_gen(structure, arms, centre, chol, s, *model_args):
     from numpyro.infer.util import potential_energy
 
-    return functools.partial(potential_energy, arm_model, model_args, {})
+    def potential(p):
+        # the parameters' spread scales with the noise sd (its value s at the fit): so scaled,
+        # z stays near a standard normal whatever the noise, at the cost of the Jacobian term
+        scale = jnp.exp(p["noise_sd"]) / s
+        return potential_energy(calibration_model, (structure, arms, *model_args), {}, {
+            "x": centre + scale * (chol @ p["z"]), "noise_sd": p["noise_sd"]}
+        ) - p["z"].size * jnp.log(scale)
+    return potential
 
 
-@functools.partial(jax.jit, static_argnames=("settings",))
-def _nuts_chain(rng_key, init_params, model_args, settings: SamplerSettings):
-    """One NUTS chain, warm-up and sampling, as a single compiled function.
-
-    numpyro's ``MCMC.run`` re-traces and recompiles its sampling loop on every call (about
-    10 s on this model); this uses the same NUTS kernel through numpyro's functional
-    ``hmc`` interface with the data as arguments, so it compiles once per settings and
-    number of rows and is reused across arms, chains and simulated data sets.
-    """
+@functools.partial(jax.jit, static_argnames=("structure", "arms", "settings"))
+def _nuts_chain(rng_key, init_params, model_args, *, structure: kin.RobotStructure,
+                arms: tuple[str, ...], settings: SamplerSettings):
+    """One NUTS chain, warm-up and sampling: numpyro's NUTS kernel through its functional
+    ``hmc`` interface, as ``MCMC.run`` recompiles its loop on every call; the robot's numbers
+    and the data are arguments, so a robot structure, settings and data shapes compile once."""
     from numpyro.infer.hmc import hmc
 
-    init_kernel, sample_kernel = hmc(potential_fn_gen=_potential_fn_gen, algo="NUTS")
+    init_kernel, sample_kernel = hmc(
+        potential_fn_gen=functools.partial(_potential_fn_gen, structure, arms), algo="NUTS")
     state = init_kernel(init_params, settings.num_warmup, dense_mass=settings.dense_mass,
                         target_accept_prob=settings.target_accept_prob,
                         max_tree_depth=settings.max_tree_depth, model_args=model_args,
@@ -158,28 +175,40 @@ def _nuts_chain(rng_key, init_params, model_args, settings: SamplerSettings):
     return jax.tree.map(lambda x: x[settings.num_warmup:], out)
 
 
+_COMPILED: dict = {}
+_COMPILE_SECONDS: dict = {}
+
+
+def _compiled_chain(key, init, args, **static):
+    """The compiled chain for this structure, settings and data shapes (compiled ahead of
+    time, timed)."""
+    sig = (*static.values(), jax.tree.structure(args),
+           tuple(np.shape(a) for a in jax.tree.leaves(args)))
+    if sig not in _COMPILED:
+        t0 = time.perf_counter()
+        _COMPILED[sig] = _nuts_chain.lower(key, init, args, **static).compile()
+        _COMPILE_SECONDS[sig] = time.perf_counter() - t0
+    return _COMPILED[sig]
+
+
 # ----------------------------------------------------------------------------- posterior
 
 
 @dataclass
-class ArmPosterior:
-    """Posterior draws of one arm's parameters and noise level, with the sampler's diagnostics."""
+class Posterior:
+    """Posterior draws of the sampled parameters and the noise sd, with the sampler's
+    diagnostics."""
 
-    name: str
-    nominal: np.ndarray  # (8,)
-    scale: np.ndarray  # (8,) prior sd
-    z: np.ndarray  # (chains, draws, 8) standardised draws
+    x: np.ndarray  # (chains, draws, k) the sampled parameters
     noise_sd: np.ndarray  # (chains, draws) mm
-    elbow: int = 1
-    pulse_limits: tuple = ((500.0, 2500.0),) * 2
     diagnostics: dict = field(default_factory=dict)
     seconds: float = 0.0  # sampling time of all chains
-    compile_seconds: float = 0.0  # compiling the sampler, if this arm was the first to need it
+    compile_seconds: float = 0.0  # compiling the sampler, if these rows were the first to
 
     @property
     def draws(self) -> np.ndarray:
-        """Parameter draws (chains * draws, 8) in PARAM_NAMES order."""
-        return (self.nominal + self.scale * self.z).reshape(-1, N_PARAMS)
+        """Parameter draws (chains * draws, k)."""
+        return self.x.reshape(-1, self.x.shape[-1])
 
     @property
     def noise_draws(self) -> np.ndarray:
@@ -192,6 +221,97 @@ class ArmPosterior:
     @property
     def sd(self) -> np.ndarray:
         return self.draws.std(axis=0, ddof=1)
+
+
+def _whitening(res, jac, x_fit: np.ndarray, idx: np.ndarray, prior_mean: np.ndarray,
+               prior_sd: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre and square root L (k, k) of the Laplace approximation at the least-squares fit
+    ``x_fit``, and the residuals' rms s (the noise sd at the fit). Where the rows leave no
+    degree of freedom or the fit is wild (20 prior sd out), the prior's instead."""
+    r = np.asarray(res(jnp.asarray(x_fit)))
+    s = max(float(np.sqrt(r @ r / max(r.size - idx.size, 1))), 1e-3)
+    free = np.zeros(x_fit.size, bool)
+    free[idx] = True
+    penalty = np.zeros(x_fit.size)
+    penalty[idx] = s / prior_sd  # the prior's information, in the residuals' units
+    cov = covariance(res, jac, x_fit, free, penalty)[np.ix_(idx, idx)]
+    if np.all(np.isfinite(cov)) and np.all(np.abs(x_fit[idx] - prior_mean) < 20 * prior_sd):
+        return x_fit[idx], np.linalg.cholesky(cov), s  # positive definite: the prior's rows
+    return prior_mean, np.diag(prior_sd), s
+
+
+def _diagnostics(x: np.ndarray, noise: np.ndarray, diverging: np.ndarray,
+                 steps: np.ndarray) -> dict:
+    """R-hat and effective sample sizes from arviz, over the parameters and the noise sd."""
+    import arviz as az
+
+    idata = az.from_dict(posterior={"x": x, "noise_sd": noise},
+                         sample_stats={"diverging": diverging})
+    summ = az.summary(idata, var_names=["x", "noise_sd"], kind="diagnostics")
+    return {"r_hat_max": float(summ["r_hat"].max()),
+            "ess_bulk_min": float(summ["ess_bulk"].min()),
+            "ess_tail_min": float(summ["ess_tail"].min()),
+            "divergences": int(diverging.sum()),
+            "mean_leapfrog_steps": float(steps.mean())}
+
+
+def _model_args(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarray,
+                priors: Priors) -> tuple:
+    """The arguments of :func:`calibration_model` after its static ones."""
+    data = tuple((jnp.asarray(u, float), None if d is None else jnp.asarray(d, float), side)
+                 for u, d, side in rows.values())
+    return (robot.nominal_values, data, jnp.asarray(x), jnp.asarray(idx),
+            jnp.asarray(priors.sd(robot.layout)[idx]), jnp.asarray(priors.noise_mm))
+
+
+def sample_posterior(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarray,
+                     x_fit: np.ndarray, priors: Priors = Priors(),
+                     settings: SamplerSettings = SamplerSettings(), seed: int = 0,
+                     diagnostics: bool = True) -> Posterior:
+    """NUTS posterior of the parameters ``idx`` of ``robot`` given its ``rows``: ``x`` the
+    parameter vector at the prior's mean where sampled, held elsewhere; ``x_fit`` the
+    least-squares fit the sampler is whitened at. The chains run one after another; the
+    first call per structure, settings and data shapes compiles the sampler. ``diagnostics``
+    off: the divergences alone (arviz's R-hat needs two chains)."""
+    from numpyro.distributions import biject_to, constraints
+
+    t0, c0 = time.perf_counter(), sum(_COMPILE_SECONDS.values())
+    idx = np.asarray(idx)
+    res, jac, *_ = residual_function(robot, rows)
+    centre, chol, s = _whitening(res, jac, np.asarray(x_fit, float), idx, x[idx],
+                                 priors.sd(robot.layout)[idx])
+    args = (jnp.asarray(centre), jnp.asarray(chol), jnp.asarray(s),
+            *_model_args(robot, rows, x, idx, priors))
+    rng = np.random.default_rng(seed)
+    keys = jax.random.split(jax.random.PRNGKey(seed), settings.num_chains)
+    inits = [{"z": jnp.asarray(rng.standard_normal(idx.size)),
+              "noise_sd": jnp.asarray(np.log(s) + 0.15 * rng.standard_normal())}
+             for _ in keys]
+    chain = _compiled_chain(keys[0], inits[0], args, structure=robot.structure,
+                            arms=tuple(rows), settings=settings)
+    outs = [chain(k, init, args) for k, init in zip(keys, inits, strict=True)]
+    z = np.stack([np.asarray(o[0]["z"]) for o in outs])
+    noise = np.stack([np.asarray(biject_to(constraints.positive)(o[0]["noise_sd"]))
+                      for o in outs])
+    diverging, steps = (np.stack([np.asarray(o[i]) for o in outs]) for i in (1, 2))
+    draws = centre + noise[..., None] / s * (z @ chol.T)
+    compile_seconds = sum(_COMPILE_SECONDS.values()) - c0
+    return Posterior(draws, noise, _diagnostics(draws, noise, diverging, steps) if diagnostics
+                     else {"divergences": int(diverging.sum())},
+                     time.perf_counter() - t0 - compile_seconds, compile_seconds)
+
+
+# ----------------------------------------------------------------------------- planar arms
+
+
+@dataclass
+class ArmPosterior(Posterior):
+    """The posterior of a planar arm: ``x`` its eight parameters in PARAM_NAMES order."""
+
+    name: str = ARM
+    scale: np.ndarray | None = None  # (8,) prior sd
+    elbow: int = 1
+    pulse_limits: tuple = ((500.0, 2500.0),) * 2
 
     @property
     def arm(self) -> kin.Arm:
@@ -215,97 +335,33 @@ def _forward_draws(draws: jax.Array, u: jax.Array) -> jax.Array:
     return jax.vmap(lambda v: kin.forward_u(kin.ArmParams.from_vector(v), u))(draws)
 
 
-def _initial_values(spec: ArmSpec, u: np.ndarray, d: np.ndarray, scale: np.ndarray,
-                    nominal: np.ndarray, chains: int, rng: np.random.Generator) -> dict:
-    """Unconstrained start points near the least-squares fit, one standard error apart."""
-    try:
-        ls = calibrate_arm(spec, u, d, "least-squares")
-        v = np.asarray(ls.arm.params.to_vector())
-        se = np.nan_to_num(np.asarray(ls.params_se), nan=0.0)
-        resid = np.asarray(ls.arm.forward_u(jnp.asarray(u))) - d
-        sigma = float(np.sqrt(np.mean(resid**2) * d.size / max(d.size - N_PARAMS, 1)))
-    except (ValueError, np.linalg.LinAlgError):
-        v, se, sigma = nominal, scale * 0.1, 1.0
-    z0 = (v - nominal) / scale
-    if not np.all(np.isfinite(z0)) or np.max(np.abs(z0)) > 20:
-        z0, se = np.zeros(N_PARAMS), scale * 0.1  # a wild fit: start at the prior instead
-    se_z = np.minimum(se / scale, 1.0)
-    z = z0[None] + se_z[None] * rng.standard_normal((chains, N_PARAMS))
-    log_sigma = np.log(max(sigma, 1e-3)) + 0.15 * rng.standard_normal(chains)
-    return {"z": jnp.asarray(z), "noise_sd": jnp.asarray(log_sigma)}
+def _arm_problem(spec: ArmSpec, u: np.ndarray, d: np.ndarray | None
+                 ) -> tuple[kin.Robot, np.ndarray, Rows, np.ndarray]:
+    """A planar arm as its chain: the robot, the eight's indices (PARAM_NAMES order), its
+    rows and the shift from the chain's values of the eight to the arm's."""
+    v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
+    robot, idx = arm_robot(v0)
+    rows = {ARM: (np.asarray(u, float), None if d is None else np.asarray(d, float), None)}
+    return robot, idx, rows, v0 - robot.layout.nominal[idx]
 
 
-_COMPILED: dict = {}
-_COMPILE_SECONDS: dict = {}
-
-
-def _compiled_chain(key, init, args, settings: SamplerSettings):
-    """The compiled chain for these settings and data shapes (compiled ahead of time, timed)."""
-    sig = (settings, tuple(a.shape for a in args))
-    if sig not in _COMPILED:
-        t0 = time.perf_counter()
-        _COMPILED[sig] = _nuts_chain.lower(key, init, args, settings=settings).compile()
-        _COMPILE_SECONDS[sig] = time.perf_counter() - t0
-    return _COMPILED[sig]
-
-
-def _run_chains(spec: ArmSpec, u: np.ndarray, d: np.ndarray, priors: Priors,
-                settings: SamplerSettings, seed: int) -> tuple[np.ndarray, ...]:
-    """Run the chains one after another: standardised draws (C, S, 8), noise (C, S), etc."""
-    from numpyro.distributions import biject_to, constraints
-
-    nominal = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
-    scale = priors.scales(nominal)
-    rng = np.random.default_rng(seed)
-    init = _initial_values(spec, u, d, scale, nominal, settings.num_chains, rng)
-    args = (jnp.asarray(u, float), jnp.asarray(d, float), jnp.asarray(nominal),
-            jnp.asarray(scale), jnp.asarray(float(priors.noise_mm)))
-    keys = jax.random.split(jax.random.PRNGKey(seed), settings.num_chains)
-    inits = [{k: v[c] for k, v in init.items()} for c in range(settings.num_chains)]
-    chain = _compiled_chain(keys[0], inits[0], args, settings)
-    outs = [chain(keys[c], inits[c], args) for c in range(settings.num_chains)]
-    z = np.stack([np.asarray(o[0]["z"]) for o in outs])
-    noise = np.stack([np.asarray(biject_to(constraints.positive)(o[0]["noise_sd"]))
-                      for o in outs])
-    diverging = np.stack([np.asarray(o[1]) for o in outs])
-    steps = np.stack([np.asarray(o[2]) for o in outs])
-    return nominal, scale, z, noise, diverging, steps
-
-
-def _diagnostics(z: np.ndarray, noise: np.ndarray, diverging: np.ndarray,
-                 steps: np.ndarray) -> dict:
-    """R-hat and effective sample sizes from arviz, over z and the noise sd."""
-    import arviz as az
-
-    idata = az.from_dict(posterior={"z": z, "noise_sd": noise},
-                         sample_stats={"diverging": diverging})
-    summ = az.summary(idata, var_names=["z", "noise_sd"], kind="diagnostics")
-    return {"r_hat_max": float(summ["r_hat"].max()),
-            "ess_bulk_min": float(summ["ess_bulk"].min()),
-            "ess_tail_min": float(summ["ess_tail"].min()),
-            "divergences": int(diverging.sum()),
-            "mean_leapfrog_steps": float(steps.mean())}
-
-
-def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray, priors: Priors = Priors(),
+def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
+                         priors: Priors = ARM_PRIORS,
                          settings: SamplerSettings = SamplerSettings(), seed: int = 0,
                          diagnostics: bool = True) -> ArmPosterior:
-    """NUTS posterior of one arm's parameters given its rows (u, d: (N, 2) each).
-
-    The first call per settings and number of rows compiles the sampler (several seconds);
-    later calls reuse it.
-    """
-    u = np.asarray(u, float)
-    d = np.asarray(d, float)
-    t0, c0 = time.perf_counter(), sum(_COMPILE_SECONDS.values())
-    nominal, scale, z, noise, diverging, steps = _run_chains(spec, u, d, priors, settings, seed)
-    compile_seconds = sum(_COMPILE_SECONDS.values()) - c0
-    seconds = time.perf_counter() - t0 - compile_seconds
-    diag = _diagnostics(z, noise, diverging, steps) if diagnostics else {
-        "divergences": int(diverging.sum())}
-    return ArmPosterior(name=spec.name, nominal=nominal, scale=scale, z=z, noise_sd=noise,
-                        elbow=spec.elbow, pulse_limits=spec.pulse_limits, diagnostics=diag,
-                        seconds=seconds, compile_seconds=compile_seconds)
+    """NUTS posterior of one arm's eight parameters given its rows (u, d: (N, 2) each): the
+    posterior of its chain's eight columns (:func:`sample_posterior`)."""
+    robot, idx, rows, shift = _arm_problem(spec, u, d)
+    nominal = robot.layout.nominal
+    try:
+        x_fit = arm_fit(robot, idx, *rows[ARM][:2]).x
+    except (ValueError, np.linalg.LinAlgError):  # too few rows: whitened by the prior
+        x_fit = nominal
+    post = sample_posterior(robot, rows, nominal, idx, x_fit, priors, settings, seed,
+                            diagnostics)
+    return ArmPosterior(**{**vars(post), "x": post.x + shift}, name=spec.name,
+                        scale=priors.sd(robot.layout)[idx], elbow=spec.elbow,
+                        pulse_limits=spec.pulse_limits)
 
 
 # ----------------------------------------------------------------------------- calibration
@@ -340,7 +396,8 @@ def predictive_coverage(posterior: ArmPosterior, u: np.ndarray, d: np.ndarray,
 
 def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
                         u_val: np.ndarray | None = None, d_val: np.ndarray | None = None,
-                        priors: Priors = Priors(), settings: SamplerSettings = SamplerSettings(),
+                        priors: Priors = ARM_PRIORS,
+                        settings: SamplerSettings = SamplerSettings(),
                         seed: int = 0) -> BayesArmCalibration:
     """Bayesian calibration of one arm: posterior mean and sd, errors, diagnostics, coverage."""
     u = np.asarray(u, float)
@@ -359,10 +416,10 @@ def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
         "noise_sd_mm": {"mean": float(post.noise_draws.mean()),
                         "sd": float(post.noise_draws.std(ddof=1))},
         "draws": int(post.draws.shape[0]),
-        "chains": int(post.z.shape[0]),
+        "chains": int(post.x.shape[0]),
         "seconds": round(post.seconds, 3),
         "compile_seconds": round(post.compile_seconds, 3),
-        "priors": priors.as_dict(),
+        "priors": priors.arm_dict(),
         "validation_coverage": (predictive_coverage(post, u_val, d_val, seed=seed)
                                 if has_val else None),
     }
@@ -380,7 +437,7 @@ def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
     )
 
 
-def calibrate_arms_bayes(rig: Rig, priors: Priors = Priors(),
+def calibrate_arms_bayes(rig: Rig, priors: Priors = ARM_PRIORS,
                          settings: SamplerSettings = SamplerSettings(), seed: int = 0
                          ) -> dict[str, BayesArmCalibration]:
     """Bayesian calibration of every arm of a rig on its ``train`` rows."""
@@ -449,8 +506,7 @@ def predicted_accuracy(posteriors: dict[str, ArmPosterior], commands: dict[str, 
 
 def _at_posterior_mean(post: ArmPosterior) -> ArmPosterior:
     """The same posterior with every parameter draw replaced by the posterior mean."""
-    z_mean = (post.mean - post.nominal) / post.scale
-    return replace(post, z=np.broadcast_to(z_mean, post.z.shape).copy())
+    return replace(post, x=np.broadcast_to(post.mean, post.x.shape).copy())
 
 
 def predicted_accuracy_document(rig: Rig, cal: dict[str, BayesArmCalibration],
@@ -481,20 +537,20 @@ def report_extras(rig: Rig, cal: dict[str, BayesArmCalibration]) -> dict:
 # ----------------------------------------------------------------------------- SBC
 
 
-def draw_from_prior(spec: ArmSpec, u: np.ndarray, n: int, priors: Priors = Priors(),
+def draw_from_prior(spec: ArmSpec, u: np.ndarray, n: int, priors: Priors = ARM_PRIORS,
                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` data sets from the model itself (numpyro's prior predictive of :func:`arm_model`):
-    parameters and noise sd from the prior, end points from the Gaussian likelihood at the
-    commands u. Returns params (n, 8), noise sd (n,) and end points (n, N, 2)."""
+    """``n`` data sets from the model itself (numpyro's prior predictive of
+    :func:`calibration_model` for the arm's chain): parameters and noise sd from the prior,
+    end points from the Gaussian likelihood at the commands u. Returns params (n, 8), noise sd
+    (n,) and end points (n, N, 2)."""
     from numpyro.infer import Predictive
 
-    nominal = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
-    scale = priors.scales(nominal)
-    sim = Predictive(arm_model, num_samples=n)(
-        jax.random.PRNGKey(seed), jnp.asarray(u, float), None, jnp.asarray(nominal),
-        jnp.asarray(scale), jnp.asarray(float(priors.noise_mm)))
-    return (nominal + scale * np.asarray(sim["z"]), np.asarray(sim["noise_sd"]),
-            np.asarray(sim["d"]))
+    robot, idx, rows, shift = _arm_problem(spec, u, None)
+    sim = Predictive(calibration_model, num_samples=n)(
+        jax.random.PRNGKey(seed), robot.structure, (ARM,),
+        *_model_args(robot, rows, robot.layout.nominal, idx, priors))
+    return (np.asarray(sim["x"]) + shift, np.asarray(sim["noise_sd"]),
+            np.asarray(sim[f"d.{ARM}"]))
 
 
 @dataclass
@@ -536,7 +592,7 @@ class SBCResult:
 
 
 def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
-        priors: Priors = Priors(), settings: SamplerSettings = SamplerSettings(num_chains=1),
+        priors: Priors = ARM_PRIORS, settings: SamplerSettings = SamplerSettings(num_chains=1),
         seed: int = 0) -> SBCResult:
     """Simulation-based calibration (Talts et al. 2018) of the model at an arm's commands u.
 
@@ -556,12 +612,10 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
     draws, divs = [], []
     t0 = time.perf_counter()
     for d in data:
-        nominal, scale, z, noise, diverging, _ = _run_chains(
-            spec, u, d, priors, settings, seed=int(rng.integers(2**31)))
-        flat = np.concatenate([(nominal + scale * z).reshape(-1, N_PARAMS),
-                               noise.reshape(-1, 1)], axis=1)
-        draws.append(flat[keep])
-        divs.append(int(diverging.sum()))
+        post = sample_arm_posterior(spec, u, d, priors, settings, int(rng.integers(2**31)),
+                                    diagnostics=False)
+        draws.append(np.column_stack([post.draws, post.noise_draws])[keep])
+        divs.append(post.diagnostics["divergences"])
     return SBCResult(np.column_stack([params, noise_sd]), np.array(draws), np.array(divs),
                      time.perf_counter() - t0)
 
@@ -569,60 +623,13 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
 # ----------------------------------------------------------------------------- any robot
 
 
-@dataclass(frozen=True)
-class GroupPriors:
-    """Prior sd of each calibration group around the rig's nominal values (mm, rad)."""
-
-    instrument_mm: float = 200.0  # a rough placement of the robot in the measuring frame
-    instrument_rad: float = 0.2
-    marker_mm: float = 50.0
-    offset_rad: float = 0.05
-    origin_mm: float = 5.0  # a drawing's tolerance on a joint origin
-    origin_rad: float = 0.02
-    gain_rel: float = 0.05
-    noise_scale_mm: float = 20.0  # HalfNormal: room for unmodelled compliance as well
-    # the encoder sinusoids, in their typical sizes (1e-3 rad): as weak as the planar effects'
-    # penalty, it only decides what the rows cannot see (the sag groups are not sampled)
-    effect_sizes: float = 10.0
-
-    def sd(self, layout: kin.ParamLayout) -> np.ndarray:
-        out = np.empty(len(layout.params))
-        for i, p in enumerate(layout.params):
-            rot = p.name.rsplit(".", 1)[-1] in ("rx", "ry", "rz")
-            if ".instrument." in p.name:
-                out[i] = self.instrument_rad if rot else self.instrument_mm
-            elif ".marker." in p.name:
-                out[i] = self.marker_mm
-            elif p.group == "offsets":
-                out[i] = self.offset_rad
-            elif p.group == "geometric":
-                out[i] = self.origin_rad if rot else self.origin_mm
-            elif p.group in kin.OPTIONAL_GROUPS:
-                out[i] = self.effect_sizes * layout.scales[i]
-            else:
-                out[i] = self.gain_rel * abs(p.nominal)
-        return out
-
-
-def calibrate_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
-                    priors: GroupPriors = GroupPriors(), num_warmup: int = 400,
-                    num_samples: int = 500, num_chains: int = 2, seed: int = 0,
+def calibrate_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, priors: Priors = Priors(),
+                    settings: SamplerSettings = SamplerSettings(), seed: int = 0,
                     progress=None) -> Calibration:
-    """NUTS posterior of a chain rig's identifiable parameters (and the noise sd).
-
-    The model: x_free ~ Normal(nominal, GroupPriors), noise_sd ~ HalfNormal, every measured
-    coordinate ~ Normal(marker point, noise_sd); parameters the rank analysis fixes stay at
-    nominal. NUTS runs in coordinates whitened by the least-squares fit (x = x_ls + L z, L the
-    Cholesky factor of its covariance): there the posterior is close to a standard normal, so
-    the trajectories are short however correlated the ~100 parameters are. Returns a
-    :class:`~bayesrob.calibrate.least_squares.Calibration` whose x is the posterior mean and se the
-    posterior sd, with R-hat, bulk ESS and the noise level from arviz.
-    """
-    import arviz as az
-    import numpyro
-    import numpyro.distributions as dist
-    from numpyro.infer import MCMC, NUTS, init_to_value
-
+    """NUTS posterior of a rig's identifiable parameters (and the noise sd): the parameters the
+    rank analysis fixes stay at the least-squares fit. Returns a
+    :class:`~bayesrob.calibrate.least_squares.Calibration` whose x is the posterior mean and se
+    the posterior sd, with R-hat, bulk ESS and the noise level from arviz."""
     sags = [g for g in groups if g in kin.SAG_GROUPS]
     if sags:
         # masses times compliances: in the least-squares fit's whitened coordinates the
@@ -633,49 +640,19 @@ def calibrate_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS,
     t0 = time.perf_counter()
     ls = calibrate(rig, groups, progress=progress)
     robot, free = ls.robot, ls.ident.free
-    full_res, *_ = residual_function(robot, set_rows(rig, robot, "train"))
-    r = np.asarray(full_res(jnp.asarray(ls.x)))
-    s2 = float(r @ r) / max(r.size - int(free.sum()), 1)
-    chol = np.linalg.cholesky(parameter_covariance(rig, ls)[np.ix_(free, free)])
-    idx = jnp.asarray(np.flatnonzero(free))
-    x_ls = jnp.asarray(ls.x)
-    nominal = jnp.asarray(robot.layout.nominal[free])
-    prior_sd = jnp.asarray(priors.sd(robot.layout)[free])
-    chol_j = jnp.asarray(chol)
-    k = int(free.sum())
-
-    def model():
-        z = numpyro.sample("z", dist.ImproperUniform(dist.constraints.real_vector, (), (k,)))
-        x_free = x_ls[idx] + chol_j @ z
-        numpyro.factor("prior", dist.Normal(nominal, prior_sd).log_prob(x_free).sum())
-        noise = numpyro.sample("noise_sd", dist.HalfNormal(priors.noise_scale_mm))
-        res = full_res(x_ls.at[idx].set(x_free))
-        numpyro.factor("likelihood", dist.Normal(0.0, noise).log_prob(res).sum())
-
     if progress:
-        progress(f"NUTS over {k} parameters")
-    kernel = NUTS(model, init_strategy=init_to_value(
-        values={"z": jnp.zeros(k), "noise_sd": jnp.sqrt(s2)}), max_tree_depth=6)
-    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
-                num_chains=num_chains, chain_method="sequential", progress_bar=False)
-    mcmc.run(jax.random.PRNGKey(seed))
-    z = np.asarray(mcmc.get_samples()["z"])
-    draws = np.asarray(ls.x[free])[None] + z @ chol.T
-    x = ls.x.copy()
-    x[free] = draws.mean(axis=0)
-    se = np.full(len(x), np.nan)
-    se[free] = draws.std(axis=0, ddof=1)
-    summary = az.summary(az.from_numpyro(mcmc), var_names=["z", "noise_sd"])
+        progress(f"NUTS over {free.sum()} parameters")
+    post = sample_posterior(robot, set_rows(rig, robot, "train"), np.where(
+        free, robot.layout.nominal, ls.x), np.flatnonzero(free), ls.x, priors, settings, seed)
+    draws = np.repeat(ls.x[None], len(post.draws), axis=0)
+    draws[:, free] = post.draws
+    x = np.where(free, draws.mean(axis=0), ls.x)
+    se = np.where(free, draws.std(axis=0, ddof=1), np.nan)
     extra = {"posterior": {
-        "r_hat_max": float(summary["r_hat"].max()),
-        "ess_bulk_min": float(summary["ess_bulk"].min()),
-        "noise_sd_mm": float(np.asarray(mcmc.get_samples()["noise_sd"]).mean()),
-        "draws": int(draws.shape[0]), "chains": num_chains,
-        "divergences": int(np.asarray(mcmc.get_extra_fields()["diverging"]).sum()),
+        **post.diagnostics, "noise_sd_mm": float(post.noise_draws.mean()),
+        "draws": len(draws), "chains": settings.num_chains,
         "least_squares_validation_mean_mm": ls.errors.get("validation", {}).get(
             "all", {}).get("mean_mm")}}
-    full = np.repeat(ls.x[None], draws.shape[0], axis=0)
-    full[:, free] = draws
     return Calibration(robot, x, ls.groups, ls.ident, se, marker_errors(rig, robot, x),
                        ls.nfev, time.perf_counter() - t0, method="bayes", extra=extra,
-                       draws=full)
+                       draws=draws)
