@@ -101,6 +101,18 @@ def test_parser_and_help_match_the_snapshot(monkeypatch):
         assert got["help"][name] == want["help"][name], f"bayesrob {name} --help"
 
 
+def test_every_user_error_type_the_cli_catches_exists():
+    """The CLI names the library's user-error types by module path (so a command that never
+    imports a module never loads it); a moved module must not turn its errors into tracebacks."""
+    import importlib
+
+    from bayesrob.cli import USER_ERRORS
+
+    for dotted in USER_ERRORS:
+        module, name = dotted.rsplit(".", 1)
+        assert issubclass(getattr(importlib.import_module(module), name), Exception), dotted
+
+
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:
     GOLDEN.write_text(json.dumps(contract(), indent=1, sort_keys=False) + "\n")
     print(f"wrote {GOLDEN}")
