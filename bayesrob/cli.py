@@ -15,7 +15,6 @@ import os
 import signal
 import sys
 import threading
-import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -126,10 +125,10 @@ def _progress(args: argparse.Namespace) -> bool:
     return not getattr(args, "no_progress", False)
 
 
-def _clock(args: argparse.Namespace, postfix: str, **kwargs):
+def _clock(args: argparse.Namespace, postfix: str):
     """A step with nothing to count inside: the clock, on the promised five-second beat."""
     return progress(None, args.command, enabled=_progress(args), postfix=postfix,
-                    first_after=FIRST_LINE_S, **kwargs)
+                    first_after=FIRST_LINE_S)
 
 
 def _load_rig_arg(path: str | None, chains: bool = True):
@@ -390,34 +389,6 @@ def _simulate_arm6(args: argparse.Namespace, out_dir: Path) -> str:
     return f"{what}, seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml"
 
 
-def _simulate_poses(args: argparse.Namespace, out_dir: Path, poses: Path) -> int:
-    """Measure a poses.csv's rows, in order, on the simulated rig in ``out_dir``."""
-    from bayesrob.hardware.collect import append_planned
-    from bayesrob.sim.rigs import measure_arm6_poses, measure_planned
-    from bayesrob.sim.truth import TRUTH_FILE
-
-    truth = out_dir / TRUTH_FILE
-    if not truth.is_file():
-        raise UsageError(f"{truth}: file not found (--poses FILE measures on a rig made by "
-                         "'bayesrob simulate'; use 'bayesrob collect --plan' on hardware)")
-    # the truth file's table says which simulator made the rig ("chain_truth" is also a
-    # substring of "linked_chain_truth": match the tables, not the text)
-    tables = tomllib.loads(truth.read_text())
-    if "linked_chain_truth" in tables:
-        raise UsageError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
-                         "rigs are not measured at planned poses")
-    if "chain_truth" in tables:
-        from bayesrob.hardware.collect import read_plan
-
-        _, sets, cmds = read_plan(poses, {"arm": 6})
-        n = measure_arm6_poses(out_dir, sets, cmds["arm"], seed=args.seed)
-    else:
-        append_planned(out_dir, poses)
-        n, _ = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
-    print(f"measured {n} poses of {poses} into {out_dir / 'measurements.csv'}")
-    return 0
-
-
 @command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
                      "arm) with chosen physical effects", _simulate_args)
 def _simulate(args: argparse.Namespace) -> int:
@@ -429,7 +400,12 @@ def _simulate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
     if args.poses is not None and len(args.poses) == 1:
-        return _simulate_poses(args, out_dir, Path(args.poses[0]))
+        from bayesrob.hardware.collect import measure_plan_in_simulation
+
+        poses = Path(args.poses[0])
+        n = measure_plan_in_simulation(out_dir, poses, args.seed, _progress(args))
+        print(f"measured {n} poses of {poses} into {out_dir / 'measurements.csv'}")
+        return 0
     if args.poses is not None:
         if len(args.poses) != 3:
             raise UsageError("--poses takes TRAIN VALIDATION HOLDOUT counts or one poses.csv")
