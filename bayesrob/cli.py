@@ -164,11 +164,10 @@ def _number(kind: type = float, low: float | None = None, high: float | None = N
             raise argparse.ArgumentTypeError(f"must be finite, got {text}")
         if (low is not None and not (v > low or (v == low and not above))
                 or high is not None and v > high or finite and not math.isfinite(v)):
-            bound = (f"more than {low:g}" if above else f"at least {low}" if kind is int
-                     else f"{low:g} or more")
+            bound = (f"more than {low:g}" if above else f"{low:g} or more and finite" if finite
+                     else f"at least {low:g}")
             bound += f" and at most {high:g}" if high is not None else ""
-            raise argparse.ArgumentTypeError(
-                f"must be {bound}{' and finite' if finite else ''}, got {text}")
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
         return v
     return parse
 
