@@ -368,7 +368,7 @@ def _truth_options(truth, args: argparse.Namespace):
 
 
 def _simulate_arm6(args: argparse.Namespace, out_dir: Path) -> str:
-    """Write an arm6 rig; returns what was written, for the closing line."""
+    """Write an arm6 rig; returns its description for the closing line."""
     from bayesrob.sim.rigs import simulate_arm6_rig, simulate_linked_arm6_rig
 
     truth = _truth_options(_arm6_truth(args), args)
@@ -385,7 +385,7 @@ def _simulate_arm6(args: argparse.Namespace, out_dir: Path) -> str:
         # written whole or not at all: Ctrl-C part-way leaves out_dir as it was
         with staged_directory(out_dir) as scratch:
             (simulate_linked_arm6_rig if args.linked else simulate_arm6_rig)(scratch, truth)
-    return f"{what}, seed {args.seed}): measurements.csv, rig.toml, arm6.urdf, truth.toml"
+    return f"{what}, seed {args.seed}"
 
 
 @command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
@@ -431,6 +431,7 @@ def _simulate(args: argparse.Namespace) -> int:
                          "--force to overwrite, or choose another directory)")
     if args.robot == "arm6":
         what = _simulate_arm6(args, out_dir)
+        files = "measurements.csv, rig.toml, arm6.urdf, truth.toml"
     else:
         _refuse([(args.compliance is not None or args.poses or args.linked or args.third_arm
                   or args.play_mrad is not None,
@@ -445,10 +446,11 @@ def _simulate(args: argparse.Namespace) -> int:
         spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
                   if args.stiffness_spread else "")
         what = (f"grid {args.grid}x{args.grid}, effects: {','.join(truth.effects) or 'none'}, "
-                f"seed {args.seed}{spread}): {', '.join(names)}")
+                f"seed {args.seed}{spread}")
+        files = ", ".join(names)
     if existing:
         print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
-    print(f"wrote {out_dir}/ ({what}")
+    print(f"wrote {out_dir}/ ({what}): {files}")
     return 0
 
 
