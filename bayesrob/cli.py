@@ -1,4 +1,5 @@
-"""The ``bayesrob`` command: argument parsing only; every command calls one library function.
+"""The ``bayesrob`` command: argument parsing and printing only; every command calls the
+library for its work and ``bayesrob.report`` for what it writes.
 
 User mistakes (bad rig files, bad arguments) are reported as one line on stderr with exit
 code 2, never a traceback.
@@ -7,16 +8,17 @@ code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import signal
 import sys
 import threading
-import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
-from typing import TypeVar
+from typing import NamedTuple
 
 from bayesrob.data.vocabulary import (
     ALL_GROUPS,
@@ -26,7 +28,7 @@ from bayesrob.data.vocabulary import (
     FUSIONS,
     MASS_SOURCES,
 )
-from bayesrob.progress import FIRST_LINE_S
+from bayesrob.progress import FIRST_LINE_S, progress
 from bayesrob.report.output_paths import (
     DIRECTORY,
     FILE,
@@ -37,23 +39,51 @@ from bayesrob.report.output_paths import (
     write_text,
 )
 
-# name -> (one-line help, add_arguments(parser), run(args) -> exit code)
-Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
+
+class Command(NamedTuple):
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    progress: bool  # takes --no-progress: reports progress on stderr
+
+
 COMMANDS: dict[str, Command] = {}
-T = TypeVar("T")
+
+# The library's errors for a user's mistake, by module path: looked up only among the modules
+# a command imported, so that argument errors never import them (test_cli_contract checks
+# every path still names a class). Each is one line on stderr and exit 2.
+USER_ERRORS = (
+    "bayesrob.data.rig.RigError",
+    "bayesrob.errors.noise_models.ModelFileError",
+    "bayesrob.design.file.DesignError",
+    "bayesrob.diagnose.groups.DiagnosisError",
+    "bayesrob.hardware.controller.ArgumentError",
+    "bayesrob.hardware.controller.HardwareError",  # a port that cannot be opened, a mute device
+    "bayesrob.sim.equilibrium.LinkedSimulationError",  # e.g. too few poses to seed an aim
+    "bayesrob.validation.study.StudyError",
+)
 
 
 class UsageError(ValueError):
     """A command-line argument is wrong; reported like a rig error."""
 
 
-def command(name: str, help: str):
-    def register(add_arguments):
-        def with_run(run):
-            COMMANDS[name] = (help, add_arguments, run)
-            return run
-        return with_run
+def command(name: str, help: str, arguments: Callable[[argparse.ArgumentParser], None],
+            progress: bool = True):
+    def register(run: Callable[[argparse.Namespace], int]):
+        COMMANDS[name] = Command(help, arguments, run, progress)
+        return run
     return register
+
+
+@contextlib.contextmanager
+def _as_usage_error() -> Iterator[None]:
+    """A library's ValueError for what the user asked (an unknown model, a config the rig
+    lacks) reported as a usage error; outside such a block a ValueError is a bug's traceback."""
+    try:
+        yield
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _write_json(doc: dict, out: str | None) -> None:
@@ -72,92 +102,33 @@ def _wrote(path: str | Path, json_out: str | None) -> None:
     print(f"wrote {path}", file=sys.stderr if json_out == "-" else sys.stdout)
 
 
-# Commands that report progress on stderr (a bar on a terminal, lines otherwise).
-PROGRESS_COMMANDS = ("simulate", "calibrate", "reproduce", "collect", "diagnose", "sample",
-                     "compare", "design", "predict")
+def _report(doc: dict, table: Callable[[dict], str], json_out: str | None,
+            write: Callable[[], list] | None = None) -> None:
+    """A command's result: its table (unless stdout carries the JSON), then the files
+    ``write`` writes, then the JSON."""
+    if json_out != "-":
+        print(table(doc))
+    for path in write() if write else ():
+        _wrote(path, json_out)
+    _write_json(doc, json_out)
+
+
+def _staged(directory: str | Path, write: Callable[[Path], list[Path]]) -> list[Path]:
+    """The files ``write`` puts in a scratch directory, moved into ``directory`` all at once
+    (none if it fails or is interrupted); returns where they are."""
+    with staged_directory(directory) as scratch:
+        names = [p.name for p in write(scratch)]
+    return [Path(directory) / n for n in names]
 
 
 def _progress(args: argparse.Namespace) -> bool:
     return not getattr(args, "no_progress", False)
 
 
-def _effects_list(text: str) -> tuple[str, ...]:
-    items = tuple(e.strip() for e in text.split(",") if e.strip())
-    for e in items:
-        if e not in EFFECTS:
-            raise argparse.ArgumentTypeError(
-                f"unknown effect {e!r} (choose from {', '.join(EFFECTS)})")
-    return items
-
-
-def _int_at_least(low: int):
-    """An argparse type: a whole number no smaller than ``low``."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if v < low:
-            raise argparse.ArgumentTypeError(f"must be at least {low}, got {v}")
-        return v
-    return parse
-
-
-_positive_int = _int_at_least(2)  # grids, counts of workers and rows: 2 or more
-_at_least_one = _int_at_least(1)
-
-
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    v = _number(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be more than 0, got {text}")
-    return v
-
-
-def _seed(text: str) -> int:
-    """A random seed: NumPy's generators take whole numbers from 0 up."""
-    return _int_at_least(0)(text)
-
-
-class _Once(argparse.BooleanOptionalAction):
-    """--flag / --no-flag, refused when both are given (which one was meant is unknown)."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        given = f"_{self.dest}_given"
-        if getattr(namespace, given, None) not in (None, option_string):
-            parser.error(f"{getattr(namespace, given)} and {option_string} contradict each "
-                         "other: give one")
-        setattr(namespace, given, option_string)
-        super().__call__(parser, namespace, values, option_string)
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (v >= 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be 0 or more and finite, got {text}")
-    return v
-
-
-def _params_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="the parameter groups the arms are calibrated with, as 'bayesrob "
-                        "calibrate --params' (URDF/DH default frames,offsets,geometric,servo). "
-                        "Given for a planar rig, its arms are taken as the 2-joint chains they "
-                        "are (the models as marker densities) instead of the eight-parameter "
-                        "fit")
+def _clock(args: argparse.Namespace, postfix: str):
+    """A step with nothing to count inside: the clock, on the promised five-second beat."""
+    return progress(None, args.command, enabled=_progress(args), postfix=postfix,
+                    first_after=FIRST_LINE_S)
 
 
 def _load_rig_arg(path: str | None, chains: bool = True):
@@ -176,16 +147,134 @@ def _load_rig_arg(path: str | None, chains: bool = True):
     return rig
 
 
+# ------------------------------------------------------------------------------ argument types
+
+
+def _number(kind: type = float, low: float | None = None, high: float | None = None, *,
+            above: bool = False, finite: bool = False) -> Callable[[str], float]:
+    """An argparse type: a number of ``kind``, at least ``low`` (more than, if ``above``), at
+    most ``high``, and finite if asked."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            what = "a whole number" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if finite and not math.isfinite(v) and (low is None or above):
+            raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+        if (low is not None and not (v > low or (v == low and not above))
+                or high is not None and v > high or finite and not math.isfinite(v)):
+            bound = (f"more than {low:g}" if above else f"{low:g} or more and finite" if finite
+                     else f"at least {low:g}")
+            bound += f" and at most {high:g}" if high is not None else ""
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return v
+    return parse
+
+
+_positive_int = _number(int, 2)  # grids, counts of workers and rows: 2 or more
+_at_least_one = _number(int, 1)
+_seed_type = _number(int, 0)  # NumPy's generators take whole numbers from 0 up
+_non_negative_float = _number(float, 0.0, finite=True)
+
+
+def _names(known: tuple[str, ...], what: str, empty: bool = True) -> Callable[[str], tuple]:
+    """An argparse type: comma-separated names out of ``known`` (none at all if ``empty``)."""
+    def parse(text: str) -> tuple[str, ...]:
+        items = tuple(e.strip() for e in text.split(",") if e.strip())
+        if not items and not empty:
+            raise argparse.ArgumentTypeError(f"name at least one {what}")
+        for e in items:
+            if e not in known:
+                raise argparse.ArgumentTypeError(
+                    f"unknown {what} {e!r} (choose from {', '.join(known)})")
+        return items
+    return parse
+
+
+_effects_list = _names(EFFECTS, "effect")
+_param_groups = _names(ALL_GROUPS, "parameter group", empty=False)
+_candidate_effects = _names(tuple(dict.fromkeys([*EFFECTS, *CHAIN_EFFECTS])), "effect",
+                            empty=False)
+
+
+class _Once(argparse.BooleanOptionalAction):
+    """--flag / --no-flag, refused when both are given (which one was meant is unknown)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = f"_{self.dest}_given"
+        if getattr(namespace, given, None) not in (None, option_string):
+            parser.error(f"{getattr(namespace, given)} and {option_string} contradict each "
+                         "other: give one")
+        setattr(namespace, given, option_string)
+        super().__call__(parser, namespace, values, option_string)
+
+
+# ------------------------------------------------------------------------------ shared options
+
+
+def _output(action: argparse.Action, kind: str) -> argparse.Action:
+    """Mark an option as an output path (FILE or DIRECTORY), checked before any work so that
+    a path the command cannot write never costs a run's results."""
+    action.output_kind = kind  # type: ignore[attr-defined]
+    return action
+
+
+def _rig_arg(p: argparse.ArgumentParser,
+             help: str = "rig directory (default: the embedded default rig)") -> None:
+    p.add_argument("rig", nargs="?", help=help)
+
+
+def _json_arg(p: argparse.ArgumentParser,
+              help: str = "write the result as JSON ('-' for stdout)") -> None:
+    _output(p.add_argument("--json", metavar="OUT", help=help), FILE)
+
+
+def _seed_arg(p: argparse.ArgumentParser, help: str = "random seed (0)", default=0) -> None:
+    p.add_argument("--seed", type=_seed_type, default=default, help=help)
+
+
+def _models_args(p: argparse.ArgumentParser, verb: str | None = None) -> None:
+    """--models NAME... (if the command takes several, ``verb``-ed) and --models-dir."""
+    if verb:
+        p.add_argument("--models", nargs="+", metavar="NAME",
+                       help=f"model names to {verb} (default: every file in models/)")
+    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+
+
+def _params_arg(p: argparse.ArgumentParser, help: str = (
+        "the parameter groups the arms are calibrated with, as 'bayesrob calibrate --params' "
+        "(URDF/DH default frames,offsets,geometric,servo). Given for a planar rig, its arms "
+        "are taken as the 2-joint chains they are (the models as marker densities) instead of "
+        "the eight-parameter fit")) -> None:
+    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS", help=help)
+
+
+def _grid_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
+
+
+def _device_number_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device-number", type=_number(int, 0, 127), default=12,
+                   help="Maestro device number for the Pololu protocol (12)")
+
+
+def _pick(args: argparse.Namespace, *names: str) -> dict:
+    """The options of these names, as keyword arguments of the same names."""
+    return {n: getattr(args, n) for n in names}
+
+
 # ------------------------------------------------------------------------------ simulate
 
 
 def _simulate_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("out_dir", help="directory to write rig.toml, measurements.csv, truth.toml")
+    _output(p.add_argument("out_dir", help="directory to write rig.toml, measurements.csv, "
+                                           "truth.toml"), DIRECTORY)
     p.add_argument("--effects", type=_effects_list, default=(),
                    help="comma-separated physical effects: gravity_sag,backlash,"
                         "servo_nonlinearity (default: none)")
-    p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
+    _grid_arg(p)
+    _seed_arg(p)
     p.add_argument("--joint-noise-rad", type=_non_negative_float, default=None,
                    help="joint repeatability noise, sd in rad (0.0008)")
     p.add_argument("--measurement-noise-mm", type=_non_negative_float, default=None,
@@ -229,150 +318,93 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                         "URDF states them)")
 
 
-def _truth_options(truth: T, args: argparse.Namespace) -> T:
-    """The simulate options every robot shares, applied to its truth: noise levels, and the
-    pose counts of the chain arms (refused for the planar rigs before this)."""
-    from dataclasses import replace
+def _refuse(rules: list[tuple[object, str]]) -> None:
+    """The first rule whose condition holds is the usage error."""
+    for condition, message in rules:
+        if condition:
+            raise UsageError(message)
 
-    if args.poses:
-        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
-                        n_holdout=args.poses[2])
-    if args.joint_noise_rad is not None:
-        truth = replace(truth, joint_noise_rad=args.joint_noise_rad)
-    if args.measurement_noise_mm is not None:
-        truth = replace(truth, measurement_noise_mm=args.measurement_noise_mm)
+
+def _arm6_truth(args: argparse.Namespace):
+    """The truth of a simulated arm6 rig, single or linked, from the options."""
+    from bayesrob.sim.truth import Arm6Truth, LinkedArm6Truth, three_arm6_truth
+
+    linked = args.linked
+    _refuse([
+        (args.effects or args.grid != 4, "--effects and --grid describe the planar paper rig; "
+                                         "arm6 takes --compliance and --poses"),
+        (args.third_arm and not linked, "--third-arm joins a third arm to arm6 --linked; add "
+                                        "--linked"),
+        (linked and args.play_mrad is not None, "--play-mrad is for a single arm6 (the linked "
+                                                "arms have none)"),
+        (not linked and args.mass_spread is not None, "--mass-spread is for arm6 --linked"),
+        (not linked and args.stiffness_spread is not None,
+         "--stiffness-spread is for planar rigs and arm6 --linked (a single arm6 has one "
+         "stiffness profile)"),
+        (args.mass_spread is not None and args.compliance is False,
+         "--mass-spread draws the masses gravity bends the arms with; --no-compliance has "
+         "none")])
+    if not linked:
+        return Arm6Truth(seed=args.seed, compliance=bool(args.compliance),
+                         joint_play_rad=1e-3 * (args.play_mrad or 0.0))
+    truth = (three_arm6_truth if args.third_arm else LinkedArm6Truth)(seed=args.seed)
+    for option, field in (("stiffness_spread", "stiffness_log_sd"),
+                          ("mass_spread", "mass_log_sd"), ("compliance", "compliance")):
+        if getattr(args, option) is not None:
+            truth = replace(truth, **{field: getattr(args, option)})
     return truth
 
 
-def _say_replaced(existing: list[Path]) -> None:
-    if existing:
-        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+def _truth_options(truth, args: argparse.Namespace):
+    """The simulate options every robot shares, applied to its truth: noise levels, and the
+    pose counts of the chain arms (refused for the planar rigs before this)."""
+    if args.poses:
+        truth = replace(truth, n_train=args.poses[0], n_validation=args.poses[1],
+                        n_holdout=args.poses[2])
+    for option in ("joint_noise_rad", "measurement_noise_mm"):
+        if getattr(args, option) is not None:
+            truth = replace(truth, **{option: getattr(args, option)})
+    return truth
 
 
-def _simulate_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
+def _simulate_arm6(args: argparse.Namespace, out_dir: Path) -> str:
+    """Write an arm6 rig; returns its description for the closing line."""
+    from bayesrob.sim.rigs import simulate_arm6_rig, simulate_linked_arm6_rig
 
-    from bayesrob.sim.rigs import simulate_arm6_rig
-    from bayesrob.sim.truth import Arm6Truth
-
-    if args.effects or args.grid != 4:
-        raise UsageError("--effects and --grid describe the planar paper rig; arm6 takes "
-                         "--compliance and --poses")
-    if args.third_arm and not args.linked:
-        raise UsageError("--third-arm joins a third arm to arm6 --linked; add --linked")
+    truth = _truth_options(_arm6_truth(args), args)
+    counts = f"{truth.n_train}/{truth.n_validation}/{truth.n_holdout} train/validation/holdout"
+    compliance = f"compliance {'on' if truth.compliance else 'off'}"
     if args.linked:
-        if args.play_mrad is not None:
-            raise UsageError("--play-mrad is for a single arm6 (the linked arms have none)")
-        return _simulate_linked_chain(args, out_dir, existing)
-    if args.mass_spread is not None:
-        raise UsageError("--mass-spread is for arm6 --linked")
-    if args.stiffness_spread is not None:
-        raise UsageError("--stiffness-spread is for planar rigs and arm6 --linked (a single "
-                         "arm6 has one stiffness profile)")
-    truth = _truth_options(Arm6Truth(seed=args.seed, compliance=bool(args.compliance),
-                                      joint_play_rad=1e-3 * (args.play_mrad or 0.0)), args)
-    from bayesrob.progress import progress
-
-    # no steps to count inside: the clock, on the promised five-second beat
-    with progress(None, "simulate", enabled=_progress(args), postfix="arm6",
-                  first_after=FIRST_LINE_S):
+        name = f"arm6 {'+'.join(truth.arms)}"
+        what = (f"{name}, {counts} poses per arm, {truth.n_linked} linked test rows, "
+                f"{compliance}")
+    else:
+        name = "arm6"
+        what = f"arm6, {counts} poses, {compliance}, play {args.play_mrad or 0:g} mrad"
+    with _clock(args, name):
         # written whole or not at all: Ctrl-C part-way leaves out_dir as it was
         with staged_directory(out_dir) as scratch:
-            simulate_arm6_rig(scratch, truth)
-    _say_replaced(existing)
-    print(f"wrote {out_dir}/ (arm6, {truth.n_train}/{truth.n_validation}/{truth.n_holdout} "
-          f"train/validation/holdout poses, compliance {'on' if truth.compliance else 'off'}, "
-          f"play {args.play_mrad or 0:g} mrad, seed {args.seed}): measurements.csv, rig.toml, "
-          "arm6.urdf, truth.toml")
-    return 0
-
-
-def _simulate_linked_chain(args: argparse.Namespace, out_dir: Path, existing: list[Path]) -> int:
-    from dataclasses import replace
-
-    from bayesrob.sim.equilibrium import LinkedSimulationError
-    from bayesrob.sim.rigs import simulate_linked_arm6_rig
-    from bayesrob.sim.truth import LinkedArm6Truth, three_arm6_truth
-
-    truth = (three_arm6_truth if args.third_arm else LinkedArm6Truth)(seed=args.seed)
-    if args.stiffness_spread is not None:
-        truth = replace(truth, stiffness_log_sd=args.stiffness_spread)
-    if args.mass_spread is not None:
-        if args.compliance is False:
-            raise UsageError("--mass-spread draws the masses gravity bends the arms with; "
-                             "--no-compliance has none")
-        truth = replace(truth, mass_log_sd=args.mass_spread)
-    if args.compliance is not None:
-        truth = replace(truth, compliance=args.compliance)
-    truth = _truth_options(truth, args)
-    from bayesrob.progress import progress
-
-    try:
-        with progress(None, "simulate", enabled=_progress(args),
-                      postfix=f"arm6 {'+'.join(truth.arms)}", first_after=FIRST_LINE_S):
-            with staged_directory(out_dir) as scratch:
-                simulate_linked_arm6_rig(scratch, truth)
-    except LinkedSimulationError as exc:  # e.g. --poses too few to seed the aim at a target
-        raise UsageError(str(exc)) from None
-    _say_replaced(existing)
-    print(f"wrote {out_dir}/ (arm6 {'+'.join(truth.arms)}, {truth.n_train}/{truth.n_validation}/"
-          f"{truth.n_holdout} train/validation/holdout poses per arm, {truth.n_linked} linked "
-          f"test rows, compliance {'on' if truth.compliance else 'off'}, seed {args.seed}): "
-          "measurements.csv, rig.toml, arm6.urdf, truth.toml")
-    return 0
-
-
-def _simulate_planned(args: argparse.Namespace, out_dir: Path) -> int:
-    from bayesrob.sim.rigs import measure_planned
-
-    n, total = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
-    print(f"measured {n} planned rows of {out_dir / 'measurements.csv'} ({total} rows in all)")
-    return 0
-
-
-def _simulate_poses(args: argparse.Namespace, out_dir: Path, poses: Path) -> int:
-    """Measure a poses.csv's rows, in order, on the simulated rig in ``out_dir``."""
-    from bayesrob.hardware.collect import append_planned
-    from bayesrob.sim.truth import TRUTH_FILE
-
-    truth = out_dir / TRUTH_FILE
-    if not truth.is_file():
-        raise UsageError(f"{truth}: file not found (--poses FILE measures on a rig made by "
-                         "'bayesrob simulate'; use 'bayesrob collect --plan' on hardware)")
-    # the truth file's table says which simulator made the rig ("chain_truth" is also a
-    # substring of "linked_chain_truth": match the tables, not the text)
-    tables = tomllib.loads(truth.read_text())
-    if "linked_chain_truth" in tables:
-        raise UsageError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
-                         "rigs are not measured at planned poses")
-    if "chain_truth" in tables:
-        from bayesrob.hardware.collect import read_plan
-        from bayesrob.sim.rigs import measure_arm6_poses
-
-        _, sets, cmds = read_plan(poses, {"arm": 6})
-        n = measure_arm6_poses(out_dir, sets, cmds["arm"], seed=args.seed)
-    else:
-        from bayesrob.sim.rigs import measure_planned
-
-        append_planned(out_dir, poses)
-        n, _ = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
-    print(f"measured {n} poses of {poses} into {out_dir / 'measurements.csv'}")
-    return 0
+            (simulate_linked_arm6_rig if args.linked else simulate_arm6_rig)(scratch, truth)
+    return f"{what}, seed {args.seed}"
 
 
 @command("simulate", "write a simulated rig (the paper's two planar arms, or a 6-joint 3-D "
-                     "arm) with chosen physical effects")(
-    _simulate_args)
+                     "arm) with chosen physical effects", _simulate_args)
 def _simulate(args: argparse.Namespace) -> int:
-
     from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE
-    from bayesrob.sim.rigs import simulate_rig
+    from bayesrob.sim.rigs import measure_planned, simulate_rig
     from bayesrob.sim.truth import TRUTH_FILE, paper_truth, three_arm_truth
 
     out_dir = Path(args.out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"{out_dir} is a file, not a directory")
     if args.poses is not None and len(args.poses) == 1:
-        return _simulate_poses(args, out_dir, Path(args.poses[0]))
+        from bayesrob.hardware.collect import measure_plan_in_simulation
+
+        poses = Path(args.poses[0])
+        n = measure_plan_in_simulation(out_dir, poses, args.seed, _progress(args))
+        print(f"measured {n} poses of {poses} into {out_dir / 'measurements.csv'}")
+        return 0
     if args.poses is not None:
         if len(args.poses) != 3:
             raise UsageError("--poses takes TRAIN VALIDATION HOLDOUT counts or one poses.csv")
@@ -381,14 +413,16 @@ def _simulate(args: argparse.Namespace) -> int:
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"--poses: {exc}") from None
     if args.planned:
-        if args.linked or args.third_arm:
-            raise UsageError("--planned measures the rows the rig in OUT_DIR plans, with the "
-                             "arms of its truth.toml; --linked and --third-arm make a new rig")
-        if args.stiffness_spread is not None or args.mass_spread is not None:
-            raise UsageError("--planned measures with the stiffnesses and masses of the rig's "
-                             "truth.toml; --stiffness-spread and --mass-spread cannot change "
-                             "them")
-        return _simulate_planned(args, out_dir)
+        _refuse([(args.linked or args.third_arm,
+                  "--planned measures the rows the rig in OUT_DIR plans, with the arms of its "
+                  "truth.toml; --linked and --third-arm make a new rig"),
+                 (args.stiffness_spread is not None or args.mass_spread is not None,
+                  "--planned measures with the stiffnesses and masses of the rig's truth.toml; "
+                  "--stiffness-spread and --mass-spread cannot change them")])
+        n, total = measure_planned(out_dir, seed=args.seed, progress=_progress(args))
+        print(f"measured {n} planned rows of {out_dir / 'measurements.csv'} ({total} rows in "
+              "all)")
+        return 0
     names = (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE)
     existing = [out_dir / n for n in names if (out_dir / n).exists()]
     if existing and not args.force:
@@ -396,24 +430,27 @@ def _simulate(args: argparse.Namespace) -> int:
         raise UsageError(f"{existing[0]} already exists; simulate would replace it (pass "
                          "--force to overwrite, or choose another directory)")
     if args.robot == "arm6":
-        return _simulate_chain(args, out_dir, existing)
-    if (args.compliance is not None or args.poses or args.linked or args.third_arm
-            or args.play_mrad is not None):
-        raise UsageError("--compliance, --play-mrad, --poses and --linked are for --robot arm6 "
-                         "(--third-arm for arm6 --linked)")
-    if args.mass_spread is not None:
-        raise UsageError("--mass-spread is for arm6 --linked")
-    make = three_arm_truth if args.robot == "three-arm" else paper_truth
-    truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid,
-                                stiffness_log_sd=args.stiffness_spread or 0.0), args)
-    with staged_directory(out_dir) as scratch:
-        simulate_rig(scratch, truth, progress=_progress(args))
-    effects = ",".join(truth.effects) or "none"
-    _say_replaced(existing)
-    spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
-              if args.stiffness_spread else "")
-    print(f"wrote {out_dir}/ (grid {args.grid}x{args.grid}, effects: {effects}, seed {args.seed}"
-          f"{spread}): {', '.join(names)}")
+        what = _simulate_arm6(args, out_dir)
+        files = "measurements.csv, rig.toml, arm6.urdf, truth.toml"
+    else:
+        _refuse([(args.compliance is not None or args.poses or args.linked or args.third_arm
+                  or args.play_mrad is not None,
+                  "--compliance, --play-mrad, --poses and --linked are for --robot arm6 "
+                  "(--third-arm for arm6 --linked)"),
+                 (args.mass_spread is not None, "--mass-spread is for arm6 --linked")])
+        make = three_arm_truth if args.robot == "three-arm" else paper_truth
+        truth = _truth_options(make(args.effects, seed=args.seed, grid=args.grid,
+                                    stiffness_log_sd=args.stiffness_spread or 0.0), args)
+        with staged_directory(out_dir) as scratch:
+            simulate_rig(scratch, truth, progress=_progress(args))
+        spread = (f", stiffnesses drawn (log sd {args.stiffness_spread:g})"
+                  if args.stiffness_spread else "")
+        what = (f"grid {args.grid}x{args.grid}, effects: {','.join(truth.effects) or 'none'}, "
+                f"seed {args.seed}{spread}")
+        files = ", ".join(names)
+    if existing:
+        print(f"replaced (--force): {', '.join(str(p) for p in existing)}")
+    print(f"wrote {out_dir}/ ({what}): {files}")
     return 0
 
 
@@ -421,26 +458,25 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    _rig_arg(p)
     p.add_argument("--method", choices=["least-squares", "hill-climb", "bayes"],
                    default="least-squares",
                    help="least-squares (default, scipy), hill-climb (the paper's baseline) or "
                         "bayes (NUTS posterior; params = posterior mean, std err = posterior sd)")
-    p.add_argument("--json", metavar="OUT", help="write the report as JSON ('-' for stdout)")
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="parameter groups to fit, comma-separated: frames (instrument pose and "
-                        "markers; always fitted), offsets (joint zero offsets), geometric (every "
-                        "joint origin), servo (command gains), compliance (joints giving way "
-                        "under gravity; link masses fitted too), lateral (joints and links "
-                        "bending across their axes under the same torques; link masses "
-                        "fitted too), encoder (revolute joints read through an eccentric "
-                        "encoder), backlash (play in the joints, taken up on the side gravity "
-                        "pushes them to). Default for "
-                        "URDF/DH rigs: the first four; a planar rig without --params fits its "
-                        "eight parameters per arm")
-    p.add_argument("--urdf-out", metavar="FILE",
-                   help="write the calibrated robot as URDF to FILE, and FILE with suffix "
-                        ".rig.toml: a rig.toml (instrument poses, markers) that loads it back")
+    _json_arg(p, "write the report as JSON ('-' for stdout)")
+    _params_arg(p, "parameter groups to fit, comma-separated: frames (instrument pose and "
+                   "markers; always fitted), offsets (joint zero offsets), geometric (every "
+                   "joint origin), servo (command gains), compliance (joints giving way under "
+                   "gravity; link masses fitted too), lateral (joints and links bending across "
+                   "their axes under the same torques; link masses fitted too), encoder "
+                   "(revolute joints read through an eccentric encoder), backlash (play in the "
+                   "joints, taken up on the side gravity pushes them to). Default for URDF/DH "
+                   "rigs: the first four; a planar rig without --params fits its eight "
+                   "parameters per arm")
+    _output(p.add_argument("--urdf-out", metavar="FILE",
+                           help="write the calibrated robot as URDF to FILE, and FILE with "
+                                "suffix .rig.toml: a rig.toml (instrument poses, markers) that "
+                                "loads it back"), FILE)
     p.add_argument("--sag-steps", type=_at_least_one, default=1, metavar="N",
                    help="with compliance or lateral: take the gravity torques N times, first "
                         "at the commanded pose, then each time at the pose the last step "
@@ -453,72 +489,43 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "joint's own")
 
 
-def _param_groups(text: str) -> tuple[str, ...]:
-    items = tuple(g.strip() for g in text.split(",") if g.strip())
-    if not items:
-        raise argparse.ArgumentTypeError("name at least one group")
-    for g in items:
-        if g not in ALL_GROUPS:
-            raise argparse.ArgumentTypeError(
-                f"unknown parameter group {g!r} (choose from {', '.join(ALL_GROUPS)})")
-    return items
-
-
 def _calibrate_groups(args: argparse.Namespace, rig) -> int:
-    from bayesrob.calibrate.least_squares import calibrate, calibrated_rig_document
-    from bayesrob.data.rig import dump_toml
-    from bayesrob.progress import progress
+    from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.report.outputs import write_calibrated_robot
     from bayesrob.report.tables import format_group_calibration
-    from bayesrob.robot import GROUPS, OPTIONAL_GROUPS, write_urdf
+    from bayesrob.robot import GROUPS
 
-    if args.method == "hill-climb":
-        raise UsageError("--method hill-climb is the paper's eight-parameter planar fit; "
-                         "URDF/DH rigs (and --params) use least-squares or bayes")
+    bayes = args.method == "bayes"
+    _refuse([(args.method == "hill-climb",
+              "--method hill-climb is the paper's eight-parameter planar fit; URDF/DH rigs (and "
+              "--params) use least-squares or bayes"),
+             (args.sag_steps > 1 and bayes, "--sag-steps is for the least-squares fit; --method "
+                                            "bayes takes the torques once"),
+             (args.masses != "fitted" and bayes, "--masses description is for the "
+                                                 "least-squares fit; --method bayes fits the "
+                                                 "masses")])
     groups = args.params or GROUPS
-    if args.sag_steps > 1 and args.method == "bayes":
-        raise UsageError("--sag-steps is for the least-squares fit; --method bayes takes the "
-                         "torques once")
-    if args.masses != "fitted" and args.method == "bayes":
-        raise UsageError("--masses description is for the least-squares fit; --method bayes "
-                         "fits the masses")
-    with progress(None, "calibrate", enabled=_progress(args),
-                  postfix=f"{', '.join(groups)}: compiling and fitting") as bar:
-        try:
-            if args.method == "bayes":
-                from bayesrob.calibrate.bayes import calibrate_bayes
+    with (progress(None, "calibrate", enabled=_progress(args),
+                   postfix=f"{', '.join(groups)}: compiling and fitting") as bar,
+          _as_usage_error()):
+        if bayes:
+            from bayesrob.calibrate.bayes import calibrate_bayes
 
-                cal = calibrate_bayes(rig, groups, progress=bar.set_postfix)
-            else:
-                cal = calibrate(rig, groups, progress=bar.set_postfix,
-                                      sag_steps=args.sag_steps, masses=args.masses)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
+            cal = calibrate_bayes(rig, groups, progress=bar.set_postfix)
+        else:
+            cal = calibrate(rig, groups, progress=bar.set_postfix, sag_steps=args.sag_steps,
+                            masses=args.masses)
     doc = {"rig": rig.name, **cal.to_json()}
     if args.urdf_out:
-        out = Path(args.urdf_out)
-        write_urdf(rig.robot, cal.x, out, name=rig.name)
-        toml_path = out.with_suffix(".rig.toml")
-        write_text(toml_path, dump_toml(calibrated_rig_document(rig, cal, out.name)))
-        doc["urdf_out"] = str(out)
-        doc["rig_toml_out"] = str(toml_path)
-        beyond = [g for g in cal.groups if g in OPTIONAL_GROUPS]
-        if beyond:
-            doc.setdefault("notes", []).append(
-                f"the URDF and rig.toml hold the calibrated geometry; the fitted "
-                f"{', '.join(beyond)} values are in this document's parameters, not in them")
-    if args.json != "-":
-        print(format_group_calibration(doc))
-    for key in ("urdf_out", "rig_toml_out"):
-        if key in doc:
-            print(f"wrote {doc[key]}", file=sys.stderr if args.json == "-" else sys.stdout)
-    _write_json(doc, args.json)
+        write_calibrated_robot(doc, rig, cal, args.urdf_out)
+    _report(doc, format_group_calibration, args.json,
+            lambda: [doc[k] for k in ("urdf_out", "rig_toml_out") if k in doc])
     return 0
 
 
-@command("calibrate", "fit each arm's parameters (planar, URDF or DH arms) and report accuracy")(
-    _calibrate_args)
+@command("calibrate", "fit each arm's parameters (planar, URDF or DH arms) and report accuracy",
+         _calibrate_args)
 def _calibrate(args: argparse.Namespace) -> int:
-    from bayesrob.progress import progress
     from bayesrob.report.outputs import calibration_report
     from bayesrob.report.tables import format_calibration
 
@@ -533,9 +540,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     with progress(None, "calibrate", enabled=_progress(args) and args.method == "bayes",
                   postfix=f"NUTS posterior of {len(rig.arms)} arms"):
         doc = calibration_report(rig, args.method)
-    if args.json != "-":
-        print(format_calibration(doc))
-    _write_json(doc, args.json)
+    _report(doc, format_calibration, args.json)
     return 0
 
 
@@ -543,24 +548,23 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _reproduce_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
-    p.add_argument("--out", default="reproduction",
-                   help="directory for accuracy.json and the figures (default: ./reproduction)")
-    p.add_argument("--models", nargs="+", metavar="NAME",
-                   help="model names to fit (default: every file in models/)")
-    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    _rig_arg(p)
+    _output(p.add_argument("--out", default="reproduction",
+                           help="directory for accuracy.json and the figures (default: "
+                                "./reproduction)"), DIRECTORY)
+    _models_args(p, "fit")
     p.add_argument("--calibration", choices=["least-squares", "hill-climb"],
                    default="least-squares", help="calibration method (default least-squares)")
-    p.add_argument("--grid-half-width", type=_positive_float, default=30.0,
+    p.add_argument("--grid-half-width", type=_number(float, 0.0, above=True, finite=True),
+                   default=30.0,
                    help="half width of the prediction grid around each target, mm (30)")
     p.add_argument("--grid-n", type=_positive_int, default=100,
                    help="grid cells per side (100)")
 
 
 @command("reproduce", "run the paper end to end: calibrate, fit IND/CORR/COND, predict, "
-                      "write Figures 3-8 and accuracy.json")(_reproduce_args)
+                      "write Figures 3-8 and accuracy.json", _reproduce_args)
 def _reproduce(args: argparse.Namespace) -> int:
-    from bayesrob.errors.noise_models import ModelFileError
     from bayesrob.paper.reproduction import (
         bound_notes,
         format_accuracy,
@@ -572,14 +576,10 @@ def _reproduce(args: argparse.Namespace) -> int:
     from bayesrob.report.tables import grouped_notes
 
     rig = _load_rig_arg(args.rig, chains=False)
-    try:
-        rep = run_reproduction(rig, args.models, args.models_dir,
-                               Grid(args.grid_half_width, args.grid_n), args.calibration,
-                               progress=_progress(args))
-    except ModelFileError as exc:
-        raise UsageError(str(exc)) from None
-    with staged_directory(args.out) as scratch:
-        written = [Path(args.out) / p.name for p in write_reproduction(rep, scratch)]
+    rep = run_reproduction(rig, args.models, args.models_dir,
+                           Grid(args.grid_half_width, args.grid_n), args.calibration,
+                           progress=_progress(args))
+    written = _staged(args.out, lambda scratch: write_reproduction(rep, scratch))
     print(f"rig {rig.name}: {len(rep.specs)} models, {len(rep.rows)} setups, "
           f"{rep.seconds:.1f} s")
     print(format_accuracy(rep.accuracy))
@@ -590,23 +590,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------ hardware
-# collect and sim-device; the work is in bayesrob.hardware. HardwareError (a port that cannot
-# be opened, a device that stops answering) is reported here like a rig error: one line, exit 2.
-
-
-def _hw_number(kind: type, low: float, high: float | None = None, low_open: bool = False):
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if v != v or (low_open and v <= low) or (not low_open and v < low) or (
-                high is not None and v > high):
-            hi = f" and at most {high:g}" if high is not None else ""
-            raise argparse.ArgumentTypeError(
-                f"must be {'above' if low_open else 'at least'} {low:g}{hi}, got {text}")
-        return v
-    return parse
+# collect and sim-device; the work is in bayesrob.hardware.
 
 
 def _collect_args(p: argparse.ArgumentParser) -> None:
@@ -625,12 +609,12 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
                         help="serial port of a position tracker streaming $PXYT lines")
     source.add_argument("--manual", action="store_true",
                         help="type each end point ('x y' in mm) at the prompt instead")
-    p.add_argument("--grid", type=_positive_int, default=4, help="N for the N x N grid (4)")
+    _grid_arg(p)
     p.add_argument("--plan", default="train,validation,test",
                    help="sets to collect, run in this order (train,validation,test); add "
                         "holdout for rows at new poses (the grid's cell centres); or a "
                         "poses.csv of 'bayesrob plan', whose rows are measured in its order")
-    p.add_argument("--settle", type=_hw_number(float, 0.0), default=1.0, metavar="SECONDS",
+    p.add_argument("--settle", type=_number(float, 0.0), default=1.0, metavar="SECONDS",
                    help="wait after the controller reports a move done, before measuring (1.0)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run: keep the rows in measurements.csv and "
@@ -638,15 +622,14 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--yes", action="store_true",
                    help="do not ask before each arm and before linking (the arms must already "
                         "be set up; for scripts and tests)")
-    p.add_argument("--speed", type=_hw_number(float, 0.0, low_open=True), default=500.0,
+    p.add_argument("--speed", type=_number(float, 0.0, above=True), default=500.0,
                    metavar="US_PER_S", help="servo speed limit, us of pulse width per second "
                                             "(500)")
-    p.add_argument("--baud", type=_hw_number(int, 1), default=9600,
+    p.add_argument("--baud", type=_number(int, 1), default=9600,
                    help="servo port baud rate (9600)")
     p.add_argument("--maestro-protocol", choices=["compact", "pololu"], default="compact",
                    help="Maestro command protocol (compact)")
-    p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
-                   help="Maestro device number for the Pololu protocol (12)")
+    _device_number_arg(p)
     p.add_argument("--maestro-model", choices=["micro", "mini12", "mini18", "mini24", "mini"],
                    default=None,
                    help="Maestro model, so channel numbers are checked before anything is "
@@ -656,25 +639,23 @@ def _collect_args(p: argparse.ArgumentParser) -> None:
                    help="send the Maestro's baud rate indication byte 0xAA first, for the "
                         "serial mode 'UART, detect baud rate' with the compact protocol (the "
                         "Pololu protocol's first command already starts with it)")
-    p.add_argument("--timeout", type=_hw_number(float, 0.0, low_open=True), default=0.5,
+    p.add_argument("--timeout", type=_number(float, 0.0, above=True), default=0.5,
                    metavar="SECONDS", help="reply timeout on every read (0.5)")
-    p.add_argument("--retries", type=_hw_number(int, 1), default=5,
+    p.add_argument("--retries", type=_number(int, 1), default=5,
                    help="tries per query or move before giving up (5)")
     p.add_argument("--tracker-format", choices=["pxyt", "plain"], default="pxyt",
                    help="tracker lines: $PXYT,x,y*HH with checksum (default) or plain x,y")
-    p.add_argument("--tracker-baud", type=_hw_number(int, 1), default=115200,
+    p.add_argument("--tracker-baud", type=_number(int, 1), default=115200,
                    help="tracker port baud rate (115200)")
-    p.add_argument("--samples", type=_hw_number(int, 1), default=5,
+    p.add_argument("--samples", type=_number(int, 1), default=5,
                    help="tracker readings per point; those far from their median are rejected "
                         "and the mean of the rest is recorded (5)")
 
 
 @command("collect", "run the paper's data collection on a servo rig, appending to "
-                    "measurements.csv")(_collect_args)
+                    "measurements.csv", _collect_args)
 def _collect(args: argparse.Namespace) -> int:
-    from bayesrob.hardware import HardwareError
     from bayesrob.hardware.collect import (
-        ArgumentError,
         collect_on_ports,
         parse_channels,
         parse_plan,
@@ -682,24 +663,15 @@ def _collect(args: argparse.Namespace) -> int:
     )
 
     poses = args.plan if args.plan.endswith(".csv") or Path(args.plan).is_file() else None
-    try:
-        result = collect_on_ports(
-            args.rig, servo_port=args.servo_port, protocol=args.protocol,
-            channels=parse_channels(args.channels), tracker_port=args.tracker_port,
-            manual=args.manual, grid=args.grid, poses=poses,
-            plan=parse_plan("train" if poses else args.plan),
-            settle_s=args.settle, resume=args.resume, tracker_format=args.tracker_format,
-            tracker_baud=args.tracker_baud, samples=args.samples, baud=args.baud,
-            maestro_protocol=args.maestro_protocol, device_number=args.device_number,
-            speed_us_per_s=args.speed, timeout_s=args.timeout, retries=args.retries,
-            maestro_model=args.maestro_model, auto_baud=args.auto_baud,
-            confirm=None if args.yes else terminal_confirm,
-            progress=_progress(args) and not args.manual)
-    except ArgumentError as exc:
-        raise UsageError(str(exc)) from None
-    except HardwareError as exc:
-        print(f"bayesrob collect: error: {exc}", file=sys.stderr)
-        return 2
+    result = collect_on_ports(
+        args.rig, channels=parse_channels(args.channels), poses=poses,
+        plan=parse_plan("train" if poses else args.plan), settle_s=args.settle,
+        speed_us_per_s=args.speed, timeout_s=args.timeout,
+        confirm=None if args.yes else terminal_confirm,
+        progress=_progress(args) and not args.manual,
+        **_pick(args, "servo_port", "protocol", "tracker_port", "manual", "grid", "resume",
+                "tracker_format", "tracker_baud", "samples", "baud", "maestro_protocol",
+                "device_number", "retries", "maestro_model", "auto_baud"))
     for note in result.notes:
         print(note, file=sys.stderr)
     print(f"{result.path}: {result.recorded} rows recorded, {result.skipped} already there, "
@@ -717,31 +689,30 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
                    help="answer as a Pololu Maestro (compact and Pololu protocol) or an SSC-32")
     p.add_argument("--effects", type=_effects_list, default=None,
                    help="physical effects, overriding the truth's (comma-separated; '' = none)")
-    p.add_argument("--seed", type=_seed, default=None, help="noise seed (the truth's seed)")
+    _seed_arg(p, "noise seed (the truth's seed)", default=None)
     p.add_argument("--channels", nargs="+", metavar="ARM=CH1,CH2",
                    help="channels of each arm (default: arms in order on 0,1 then 2,3 ...)")
-    p.add_argument("--device-number", type=_hw_number(int, 0, 127), default=12,
-                   help="Maestro device number for the Pololu protocol (12)")
+    _device_number_arg(p)
     p.add_argument("--linked", choices=["auto", "always", "never"], default="auto",
                    help="auto: arms are linked while a move commands more than one arm (what "
                         "collect does after the link confirmation); always; never")
     p.add_argument("--tracker-format", choices=["pxyt", "plain"], default="pxyt")
-    p.add_argument("--tracker-rate", type=_hw_number(float, 0.0, low_open=True), default=100.0,
+    p.add_argument("--tracker-rate", type=_number(float, 0.0, above=True), default=100.0,
                    metavar="HZ", help="tracker lines per second (100)")
-    p.add_argument("--tracker-noise-mm", type=_hw_number(float, 0.0), default=0.02,
+    p.add_argument("--tracker-noise-mm", type=_number(float, 0.0), default=0.02,
                    help="jitter of each tracker reading, sd in mm (0.02)")
     for name, what in (("drop-rate", "bytes sent that are lost"),
                        ("garble-rate", "bytes sent that arrive changed"),
                        ("rx-garble-rate", "servo bytes received that are corrupted"),
                        ("bad-checksum-rate", "tracker lines sent with a wrong checksum"),
                        ("outlier-rate", "tracker lines with a wild reading 5-50 mm off")):
-        p.add_argument(f"--{name}", type=_hw_number(float, 0.0, 1.0), default=0.0,
+        p.add_argument(f"--{name}", type=_number(float, 0.0, 1.0), default=0.0,
                        metavar="P", help=f"fault: fraction of {what} (0)")
-    p.add_argument("--reply-delay", type=_hw_number(float, 0.0), default=0.0, metavar="SECONDS",
+    p.add_argument("--reply-delay", type=_number(float, 0.0), default=0.0, metavar="SECONDS",
                    help="fault: delay every servo reply (0)")
-    p.add_argument("--disconnect-after", type=_hw_number(int, 1), default=None, metavar="K",
+    p.add_argument("--disconnect-after", type=_number(int, 1), default=None, metavar="K",
                    help="fault: close the servo port after K commands")
-    p.add_argument("--error-after", type=_hw_number(int, 1), default=None, metavar="K",
+    p.add_argument("--error-after", type=_number(int, 1), default=None, metavar="K",
                    help="fault: flag a serial error after K commands (once); see --on-error")
     p.add_argument("--on-error", choices=["ignore", "off", "home"], default="ignore",
                    help="Maestro: what outputs do on an error: keep their targets (default), "
@@ -760,56 +731,41 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
 
 
 @command("sim-device", "serve a simulated rig on pseudo-terminals as a servo controller and "
-                       "tracker (prints the ports; runs until killed)")(_sim_device_args)
+                       "tracker (prints the ports; runs until killed)", _sim_device_args,
+         progress=False)
 def _sim_device(args: argparse.Namespace) -> int:
-    from bayesrob.hardware.collect import ArgumentError, parse_channels
+    from bayesrob.hardware.collect import parse_channels
     from bayesrob.hardware.simdevice import Faults, parse_channel_range, run_sim_device
 
     faults = Faults(args.drop_rate, args.garble_rate, args.rx_garble_rate,
                     args.bad_checksum_rate, args.reply_delay, args.disconnect_after,
                     args.error_after, args.outlier_rate)
-    try:
-        channels = parse_channels(args.channels) if args.channels else None
-        channel_range = (parse_channel_range(args.channel_range)
-                         if args.channel_range is not None else None)
-        run_sim_device(args.rig, args.protocol, effects=args.effects, seed=args.seed,
-                       channels=channels, device_number=args.device_number, linked=args.linked,
-                       tracker_format=args.tracker_format, tracker_rate_hz=args.tracker_rate,
-                       tracker_noise_mm=args.tracker_noise_mm, faults=faults,
-                       byte_log=args.byte_log, moving_state_bug=args.moving_state_bug,
-                       channel_range=channel_range, on_error=args.on_error,
-                       serial_mode=args.serial_mode)
-    except ArgumentError as exc:
-        raise UsageError(str(exc)) from None
+    run_sim_device(args.rig, args.protocol, effects=args.effects, seed=args.seed,
+                   channels=parse_channels(args.channels) if args.channels else None,
+                   channel_range=(parse_channel_range(args.channel_range)
+                                  if args.channel_range is not None else None),
+                   tracker_rate_hz=args.tracker_rate, faults=faults,
+                   **_pick(args, "device_number", "linked", "tracker_format",
+                           "tracker_noise_mm", "byte_log", "moving_state_bug", "on_error",
+                           "serial_mode"))
     return 0
 
 
 # ------------------------------------------------------------------------------ diagnose
 
 
-def _candidate_effects(text: str) -> tuple[str, ...]:
-    known = list(dict.fromkeys([*EFFECTS, *CHAIN_EFFECTS]))
-    items = tuple(e.strip() for e in text.split(",") if e.strip())
-    if not items:
-        raise argparse.ArgumentTypeError("name at least one effect")
-    for e in items:
-        if e not in known:
-            raise argparse.ArgumentTypeError(
-                f"unknown effect {e!r} (choose from {', '.join(known)})")
-    return items
-
-
 def _diagnose_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
-    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
-    p.add_argument("--report", metavar="DIR", help="write the figures (PNG) into DIR")
+    _rig_arg(p)
+    _json_arg(p)
+    _output(p.add_argument("--report", metavar="DIR", help="write the figures (PNG) into DIR"),
+            DIRECTORY)
     p.add_argument("--effects", type=_candidate_effects, default=None, metavar="LIST",
                    help="comma-separated candidate effects to try (default: all registered: "
                         "gravity_sag (or joint_compliance),backlash,servo_nonlinearity for "
                         "planar rigs; "
                         "joint_compliance,lateral_compliance,encoder_error,backlash for URDF/DH "
                         "chains, backlash tried once joint_compliance is named)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of folds and permutations (0)")
+    _seed_arg(p, "seed of folds and permutations (0)")
     p.add_argument("--published", default=None, metavar="STEP=MM,...",
                    help="URDF/DH rigs: a published ladder to draw beside ours in --report's "
                         "ladder.png, e.g. geometric=10.5,joint_compliance=5.64")
@@ -818,21 +774,21 @@ def _diagnose_args(p: argparse.ArgumentParser) -> None:
                         "gravity with their torques taken N times, towards equilibrium; a step "
                         "that has not reached it is reported with one step, noted (default 1; "
                         "the effects are chosen with one step either way)")
-    p.add_argument("--plan", type=_int_at_least(1), default=None, metavar="N",
+    p.add_argument("--plan", type=_at_least_one, default=None, metavar="N",
                    help="URDF/DH rigs: after the diagnosis, plan N poses that tell apart the "
                         "effects it could not (a named effect's rivals within noise, and the "
                         "candidates not named), written to --plan-out")
-    p.add_argument("--plan-out", default=None, metavar="FILE",
-                   help="where --plan writes its poses.csv (default poses.csv)")
+    _output(p.add_argument("--plan-out", default=None, metavar="FILE",
+                           help="where --plan writes its poses.csv (default poses.csv)"), FILE)
     p.add_argument("--pool", default=None, metavar="FILE",
                    help="--plan's candidate poses (as 'bayesrob plan --pool'; default 2000 "
                         "drawn inside the joint limits)")
 
 
 @command("diagnose", "find the physical effects the forward model is missing, add them and "
-                     "show the gap shrink")(_diagnose_args)
+                     "show the gap shrink", _diagnose_args)
 def _diagnose(args: argparse.Namespace) -> int:
-    from bayesrob.diagnose.groups import DiagnosisError, diagnose_groups, parse_published
+    from bayesrob.diagnose.groups import diagnose_groups, parse_published
     from bayesrob.diagnose.refits import diagnose
     from bayesrob.report.outputs import write_diagnosis_report
     from bayesrob.report.tables import format_diagnosis, format_group_diagnosis
@@ -841,37 +797,29 @@ def _diagnose(args: argparse.Namespace) -> int:
     rig = _load_rig_arg(args.rig)
     published = None
     if rig.is_chain:
-        try:
-            published = parse_published(args.published) if args.published else None
-            diag = diagnose_groups(rig, args.effects, seed=args.seed, progress=_progress(args),
-                                   sag_steps=args.sag_steps)
-        except DiagnosisError as e:
-            raise UsageError(str(e)) from None
+        published = parse_published(args.published) if args.published else None
+        diag = diagnose_groups(rig, args.effects, seed=args.seed, progress=_progress(args),
+                               sag_steps=args.sag_steps)
     else:
-        if args.plan is not None or args.pool is not None or args.plan_out is not None:
-            raise UsageError("--plan, --plan-out and --pool plan discriminating poses for "
-                             f"URDF/DH rigs; {rig.name!r} is planar")
-        if args.published:
-            raise UsageError("--published draws a published ladder for URDF/DH rigs; "
-                             f"{rig.name!r} is planar")
-        if args.sag_steps != 1:
-            raise UsageError(f"--sag-steps is for URDF/DH rigs; {rig.name!r} is planar (its "
-                             "gravity_sag takes the torques at the pose it sags into already)")
-        try:
+        _refuse([(args.plan is not None or args.pool is not None or args.plan_out is not None,
+                  "--plan, --plan-out and --pool plan discriminating poses for URDF/DH rigs; "
+                  f"{rig.name!r} is planar"),
+                 (args.published, "--published draws a published ladder for URDF/DH rigs; "
+                                  f"{rig.name!r} is planar"),
+                 (args.sag_steps != 1, f"--sag-steps is for URDF/DH rigs; {rig.name!r} is "
+                                       "planar (its gravity_sag takes the torques at the pose "
+                                       "it sags into already)")])
+        with _as_usage_error():
             effects = None if args.effects is None else resolve_effects(args.effects)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
         diag = diagnose(rig, effects, seed=args.seed, progress=_progress(args))
     doc = diag.to_json()
-    if args.json != "-":
-        print((format_group_diagnosis if rig.is_chain else format_diagnosis)(doc))
-    if args.report:
-        with staged_directory(args.report) as scratch:
-            written = [Path(args.report) / p.name
-                       for p in write_diagnosis_report(diag, scratch, published)]
-        for path in written:
-            _wrote(path, args.json)
-    _write_json(doc, args.json)
+
+    def figures() -> list[Path]:
+        return _staged(args.report, lambda scratch: write_diagnosis_report(diag, scratch,
+                                                                           published))
+
+    _report(doc, format_group_diagnosis if rig.is_chain else format_diagnosis, args.json,
+            figures if args.report else None)
     if rig.is_chain and args.plan is not None:
         _diagnose_plan(rig, doc, args)
     return 0
@@ -881,7 +829,6 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
     """``diagnose --plan N``: poses that tell apart what the diagnosis could not. The named
     effects without a rival within noise join the base model; every other chain effect (the
     named ones with rivals, their rivals, the candidates not named) is to be told apart."""
-    from bayesrob.data.vocabulary import CHAIN_EFFECTS
     from bayesrob.plan import plan_poses, write_poses
     from bayesrob.plan.planner import BASE_GROUPS
 
@@ -900,28 +847,21 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------------------ sample
 
 
-def _target(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number (mm), got {text!r}") from None
-
-
 def _sample_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
+    _rig_arg(p)
     p.add_argument("--config", default=None,
                    help="one arm or arms joined by '+' (default: the rig's first linked config)")
-    p.add_argument("--target", nargs="+", type=_target, required=True, metavar="X",
+    p.add_argument("--target", nargs="+", type=_number(), required=True, metavar="X",
                    help="where every arm of the config is aimed: X Y (X Y Z on a 3-D rig), mm")
     p.add_argument("--model", default="cond", help="joint-error model name (default cond)")
     p.add_argument("--sampler", choices=["nuts", "emcee", "grid", "all"], default="all",
                    help="nuts, emcee, grid or all (default); the grid always runs: it is the "
                         "reference of the check (the chains start around the target, never "
                         "from the grid)")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed (0)")
-    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    _seed_arg(p)
+    _models_args(p)
     _params_arg(p)
-    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
+    _json_arg(p)
     p.epilog = ("Exit status: 0 when every sampler that ran agrees with the grid (mean within "
                 "0.1 mm, covariance within 10% Frobenius, r_hat <= 1.01, bulk ESS >= 400), "
                 "1 when the check fails (the failures are printed and in the JSON), 2 on a "
@@ -929,14 +869,10 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
 
 
 @command("sample", "sample the end point of one arm or linked arms with NUTS and emcee, and "
-                   "check both against the grid")(_sample_args)
+                   "check both against the grid", _sample_args)
 def _sample(args: argparse.Namespace) -> int:
-    from bayesrob.progress import progress
-
     # the samplers' libraries take a second or two to import: a clock until sample_linked's own
-    with progress(None, "sample", enabled=_progress(args), postfix="loading",
-                  first_after=FIRST_LINE_S) as loading:
-        from bayesrob.errors.noise_models import ModelFileError
+    with _clock(args, "loading") as loading:
         from bayesrob.inference.sampling import format_sample, sample_linked
 
         rig = _load_rig_arg(args.rig)
@@ -950,15 +886,11 @@ def _sample(args: argparse.Namespace) -> int:
         if not rig.linked_configs:
             raise UsageError("the rig has no linked config; name one with --config")
         config = rig.linked_configs[0]
-    try:
+    with _as_usage_error():
         report = sample_linked(rig, config, args.target, args.model, args.sampler,
                                seed=args.seed, progress=_progress(args),
                                models_dir=args.models_dir, groups=args.params)
-    except (ModelFileError, ValueError) as exc:
-        raise UsageError(str(exc)) from None
-    if args.json != "-":
-        print(format_sample(report))
-    _write_json(report.document, args.json)
+    _report(report.document, lambda _: format_sample(report), args.json)
     return 0 if report.passed else 1
 
 
@@ -981,30 +913,27 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=None,
                    help="joint-error model name (default cond; ind or corr for URDF/DH arms "
                         "and with --params, whose joint errors are latent: default ind)")
-    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="parameter groups the modules are calibrated with, as 'bayesrob "
-                        "calibrate --params' (URDF/DH default frames,offsets,geometric,servo; "
-                        "add compliance for arms that sag under gravity, backlash for play). "
-                        "Given for a planar rig, its arms are aimed and predicted as 2-joint "
-                        "chains with those groups (joint-error model ind or corr) instead of "
-                        "the eight-parameter fit")
+    _models_args(p)
+    _params_arg(p, "parameter groups the modules are calibrated with, as 'bayesrob calibrate "
+                   "--params' (URDF/DH default frames,offsets,geometric,servo; add compliance "
+                   "for arms that sag under gravity, backlash for play). Given for a planar "
+                   "rig, its arms are aimed and predicted as 2-joint chains with those groups "
+                   "(joint-error model ind or corr) instead of the eight-parameter fit")
     p.add_argument("--masses", choices=MASS_SOURCES, default=MASS_SOURCES[0],
                    help="URDF rigs calibrated with compliance: the links' masses fitted "
                         "(default; only their products with the compliances are seen, and the "
                         "arms' stiffnesses come from a prior), or held at the URDF's <inertial> "
                         "ones, so the fitted compliances give each arm's stiffnesses")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed of the draws (0)")
-    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
-    p.add_argument("--plot", metavar="PATH",
-                   help="write the expected-error map and the least accurate target's regions "
-                        "(PNG)")
+    _seed_arg(p, "random seed of the draws (0)")
+    _json_arg(p)
+    _output(p.add_argument("--plot", metavar="PATH",
+                           help="write the expected-error map and the least accurate target's "
+                                "regions (PNG)"), FILE)
 
 
 @command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
-                    "before it is built, from its modules' single-arm rows")(_predict_args)
+                    "before it is built, from its modules' single-arm rows", _predict_args)
 def _predict(args: argparse.Namespace) -> int:
-    from bayesrob.errors.noise_models import ModelFileError
     from bayesrob.predict.assembly import (
         assembly_figure,
         grid_targets,
@@ -1013,22 +942,14 @@ def _predict(args: argparse.Namespace) -> int:
     )
 
     rig = _load_rig_arg(args.rig)
-    dim = rig.robot.dim
-    targets = read_targets(args.targets, dim) if args.targets else grid_targets(rig, args.grid)
-    from bayesrob.progress import progress
-
-    try:
-        # calibration, fits and draws in one call: the clock, every 5 s off a terminal
-        with progress(None, "predict", enabled=_progress(args),
-                      postfix=f"{args.config}, {len(targets)} targets", first_after=FIRST_LINE_S):
-            pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
-                                    args.models_dir, args.seed, groups=args.params,
-                                    masses=args.masses)
-    except (ModelFileError, ValueError) as exc:
-        raise UsageError(str(exc)) from None
-    if args.json != "-":
-        print(pred.format())
-    _write_json(pred.document, args.json)
+    targets = (read_targets(args.targets, rig.robot.dim) if args.targets
+               else grid_targets(rig, args.grid))
+    # calibration, fits and draws in one call
+    with _clock(args, f"{args.config}, {len(targets)} targets"), _as_usage_error():
+        pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
+                                args.models_dir, args.seed, groups=args.params,
+                                masses=args.masses)
+    _report(pred.document, lambda _: pred.format(), args.json)
     if args.plot:
         save_figure(assembly_figure(pred, rig), args.plot, dpi=120)
         if args.json != "-":
@@ -1040,30 +961,23 @@ def _predict(args: argparse.Namespace) -> int:
 
 
 def _compare_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("rig", nargs="?", help="rig directory (default: the embedded default rig)")
-    p.add_argument("--models", nargs="+", metavar="NAME",
-                   help="model names to compare (default: every file in models/)")
-    p.add_argument("--models-dir", help="directory of model files (default: the shipped ones)")
+    _rig_arg(p)
+    _models_args(p, "compare")
     _params_arg(p)
-    p.add_argument("--json", metavar="OUT", help="write the result as JSON ('-' for stdout)")
-    p.add_argument("--plot", metavar="PATH",
-                   help="write the comparison plot (PNG) here (default: next to --json OUT, "
-                        "as OUT with .png)")
+    _json_arg(p)
+    _output(p.add_argument("--plot", metavar="PATH",
+                           help="write the comparison plot (PNG) here (default: next to --json "
+                                "OUT, as OUT with .png)"), FILE)
 
 
 @command("compare", "score every joint-error model on held-out end points and by "
-                    "leave-one-out, with arviz's comparison table")(_compare_args)
+                    "leave-one-out, with arviz's comparison table", _compare_args)
 def _compare(args: argparse.Namespace) -> int:
     from bayesrob.compare.comparison import compare_models, comparison_figure, format_comparison
-    from bayesrob.data.rig import RigError
-    from bayesrob.errors.noise_models import ModelFileError
 
     rig = _load_rig_arg(args.rig)
-    try:
-        comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args),
-                              groups=args.params)
-    except (ModelFileError, RigError) as exc:
-        raise UsageError(str(exc)) from None
+    comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args),
+                          groups=args.params)
     doc = comp.document()
     plot = args.plot
     if plot is None and args.json not in (None, "-"):
@@ -1071,11 +985,7 @@ def _compare(args: argparse.Namespace) -> int:
     if plot is not None:
         save_figure(comparison_figure(comp), plot, dpi=120)
         doc["plot"] = plot
-    if args.json != "-":
-        print(format_comparison(doc))
-    if plot is not None:
-        _wrote(plot, args.json)
-    _write_json(doc, args.json)
+    _report(doc, format_comparison, args.json, plot and (lambda: [plot]))
     return 0
 
 
@@ -1085,9 +995,9 @@ def _compare(args: argparse.Namespace) -> int:
 def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("design", help="design file (TOML): modules, mount points, task region, "
                                   "requirement, limits (see examples/design/design.toml)")
-    p.add_argument("--out", metavar="DIR", default="design-out",
-                   help="where design.json, design.png and the best candidate's rig directory "
-                        "(best/) go (default design-out)")
+    _output(p.add_argument("--out", metavar="DIR", default="design-out",
+                           help="where design.json, design.png and the best candidate's rig "
+                                "directory (best/) go (default design-out)"), DIRECTORY)
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="a running Dask scheduler (tcp://host:8786); default: a LocalCluster on "
                         "this machine")
@@ -1098,44 +1008,23 @@ def _design_args(p: argparse.ArgumentParser) -> None:
 
 
 @command("design", "find the fewest calibrated modules, mounted and linked, that meet an "
-                   "accuracy over a task region (Dask)")(
-    _design_args)
+                   "accuracy over a task region (Dask)", _design_args)
 def _design(args: argparse.Namespace) -> int:
-    from bayesrob.design.file import DesignError, load_design
-    from bayesrob.progress import progress
+    from bayesrob.design.file import load_design
 
-    try:  # the whole file is checked before the numerical stack is imported
-        design = load_design(args.design)
-    except DesignError as exc:
-        raise UsageError(str(exc)) from None
+    design = load_design(args.design)  # the whole file, before the numerical stack loads
     # the first line before the numerical stack loads and the modules are calibrated (tens of
     # seconds); the search's own count follows
-    with progress(None, "design", enabled=_progress(args), postfix="calibrating the modules",
-                  first_after=FIRST_LINE_S):
+    with _clock(args, "calibrating the modules"):
         from bayesrob.design.modules import load_modules
-        from bayesrob.design.search import run_design, write_candidate_rig
-        from bayesrob.report.plots.design import design_figure
+        from bayesrob.design.search import run_design
+        from bayesrob.report.outputs import write_design
 
-        try:
-            modules = load_modules(design)
-        except DesignError as exc:
-            raise UsageError(str(exc)) from None
-    try:
-        result = run_design(design, modules, scheduler=args.scheduler, workers=args.workers,
-                            progress=_progress(args))
-    except DesignError as exc:
-        raise UsageError(str(exc)) from None
-    out = Path(args.out)
+        modules = load_modules(design)
+    result = run_design(design, modules, scheduler=args.scheduler, workers=args.workers,
+                        progress=_progress(args))
     print(result.format(args.top))
-    names = ["design.json", "design.png"]
-    with staged_directory(out) as scratch:
-        (scratch / "design.json").write_text(json.dumps(result.document, indent=1))
-        design_figure(result, modules, min(args.top, 4)).savefig(scratch / "design.png",
-                                                                 dpi=120)
-        if result.best is not None:
-            names.append(write_candidate_rig(result.best, result, modules,
-                                             scratch / "best").name)
-    written = [out / n for n in names]
+    written = _staged(args.out, lambda scratch: write_design(result, modules, args.top, scratch))
     print(f"wrote {', '.join(str(w) for w in written)}")
     # exit 1: the search ran and nothing met the requirement (the closest is shown above)
     return 0 if result.met else 1
@@ -1146,50 +1035,47 @@ def _design(args: argparse.Namespace) -> int:
 
 def _plan_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("rig", help="rig directory (its measurements.csv may be missing or empty)")
-    p.add_argument("--n", type=_int_at_least(1), required=True, help="poses to plan")
-    p.add_argument("--out", required=True, metavar="FILE",
-                   help="poses.csv to write: config, set, the command columns as the pool "
-                        "wrote them, the pool's other columns, gain")
+    p.add_argument("--n", type=_at_least_one, required=True, help="poses to plan")
+    _output(p.add_argument("--out", required=True, metavar="FILE",
+                           help="poses.csv to write: config, set, the command columns as the "
+                                "pool wrote them, the pool's other columns, gain"), FILE)
     p.add_argument("--for", dest="criterion", choices=["accuracy", "identify", "discriminate"],
                    default="accuracy",
                    help="accuracy: the smallest predicted end-point error over the task region "
                         "(default); identify: D-optimal in the parameters; discriminate: "
                         "poses that tell the candidate effects apart")
-    p.add_argument("--params", type=_param_groups, default=None, metavar="GROUPS",
-                   help="the groups the calibration will fit, as 'bayesrob calibrate "
-                        "--params' (default frames,offsets,geometric,servo); for "
-                        "discriminate, the base model whose rivals are told apart (default "
-                        "frames,geometric)")
+    _params_arg(p, "the groups the calibration will fit, as 'bayesrob calibrate --params' "
+                   "(default frames,offsets,geometric,servo); for discriminate, the base model "
+                   "whose rivals are told apart (default frames,geometric)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--pool", metavar="FILE",
                      help="candidate poses: a CSV with the rig's command columns (and config)")
-    src.add_argument("--samples", type=_int_at_least(1), metavar="M",
+    src.add_argument("--samples", type=_at_least_one, metavar="M",
                      help="candidates drawn inside the joint limits (default 2000)")
     p.add_argument("--task", metavar="FILE",
                    help="the task region (accuracy): poses (command columns) or targets (x, y"
                         "[, z]); default the pool")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed of the samples (0)")
+    _seed_arg(p, "random seed of the samples (0)")
     p.add_argument("--noise-mm", type=_non_negative_float, default=0.1,
                    help="measurement noise sd (mm) the predicted error is taken with (0.1)")
-    p.add_argument("--json", metavar="OUT", help="write the plan's summary as JSON")
+    _json_arg(p, "write the plan's summary as JSON")
 
 
 @command("plan", "choose the poses to measure: most accuracy over a task region, most "
-                 "information, or most separation of the candidate effects")(_plan_args)
+                 "information, or most separation of the candidate effects", _plan_args,
+         progress=False)
 def _plan(args: argparse.Namespace) -> int:
     from bayesrob.plan import load_plan_rig, plan_poses, write_poses
 
     if args.noise_mm <= 0:
         raise UsageError(f"--noise-mm must be positive, not {args.noise_mm:g}")
-    rig = load_plan_rig(args.rig)
-    plan = plan_poses(rig, args.n, criterion=args.criterion, groups=args.params,
-                      pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
-                      noise_mm=args.noise_mm)
+    plan = plan_poses(load_plan_rig(args.rig), args.n, criterion=args.criterion,
+                      groups=args.params, pool=args.pool, samples=args.samples, task=args.task,
+                      seed=args.seed, noise_mm=args.noise_mm)
     print(plan.summary())
     write_poses(plan, args.out)
     print(f"wrote {args.out}")
-    if args.json is not None:
-        _write_json(plan.to_dict(), args.json)
+    _write_json(plan.to_dict(), args.json)
     return 0
 
 
@@ -1199,8 +1085,9 @@ def _plan(args: argparse.Namespace) -> int:
 def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("names", nargs="*", metavar="NAME",
                    help="studies to run (default: every study; --list names them)")
-    p.add_argument("--out", metavar="DIR", default="validation-run",
-                   help="where validation.json and validation.md go (default validation-run)")
+    _output(p.add_argument("--out", metavar="DIR", default="validation-run",
+                           help="where validation.json and validation.md go (default "
+                                "validation-run)"), DIRECTORY)
     p.add_argument("--quick", action="store_true",
                    help="each study on its one or two quick seeds: checks that every study "
                         "runs and gives finite figures (targets need the report seeds)")
@@ -1208,23 +1095,19 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
 
 
 @command("validate", "run the validation studies (report seeds, targets fixed before they "
-                     "ran) and write validation.json and validation.md")(_validate_args)
+                     "ran) and write validation.json and validation.md", _validate_args,
+         progress=False)
 def _validate(args: argparse.Namespace) -> int:
-    from bayesrob.validation.study import StudyError, discover_studies
+    from bayesrob.validation.study import discover_studies
     from bayesrob.validation.suite import run_suite, write_report
 
-    try:
-        studies = discover_studies(args.names or None)
-    except StudyError as exc:
-        raise UsageError(str(exc)) from None
+    studies = discover_studies(args.names or None)
     if args.list:
         for s in studies:
             print(f"{s.name:28s} report seeds {list(s.report_seeds)}, quick "
                   f"{list(s.quick_seeds)}: {s.title}")
         return 0
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out}: exists and is not a directory")
     report = run_suite(studies, quick=args.quick,
                        after_each=lambda so_far: write_report(so_far, out))
     json_path, md_path = write_report(report, out)
@@ -1273,38 +1156,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser.add_argument("--version", action="version", version=f"bayesrob {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, (help_text, add_arguments, _) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        add_arguments(p)
-        if name in PROGRESS_COMMANDS:
+    for name, c in COMMANDS.items():
+        p = sub.add_parser(name, help=c.help, description=c.help)
+        c.add_arguments(p)
+        if c.progress:
             p.add_argument("--no-progress", action="store_true",
                            help="print no progress on stderr (default: a bar on a terminal, "
                                 "a line every 5 s otherwise)")
     return parser
 
 
-# command -> its outputs: (argument, FILE or DIRECTORY, the name the user typed), checked
-# before any work so that a path the command cannot write never costs a run's results.
-OUTPUTS: dict[str, list[tuple[str, str, str]]] = {
-    "simulate": [("out_dir", DIRECTORY, "OUT_DIR")],
-    "calibrate": [("json", FILE, "--json"), ("urdf_out", FILE, "--urdf-out")],
-    "reproduce": [("out", DIRECTORY, "--out")],
-    "diagnose": [("json", FILE, "--json"), ("report", DIRECTORY, "--report"),
-                 ("plan_out", FILE, "--plan-out")],
-    "sample": [("json", FILE, "--json")],
-    "predict": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
-    "compare": [("json", FILE, "--json"), ("plot", FILE, "--plot")],
-    "design": [("out", DIRECTORY, "--out")],
-    "plan": [("out", FILE, "--out"), ("json", FILE, "--json")],
-    "validate": [("out", DIRECTORY, "--out")],
-}
+def _check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Every output path of the command, checked before any work (see :func:`_output`)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for action in sub.choices[args.command]._actions:
+        value = getattr(args, action.dest, None)
+        if hasattr(action, "output_kind") and value not in (None, "-"):
+            check_output(value, action.output_kind,
+                         action.option_strings[0] if action.option_strings
+                         else action.dest.upper())
 
 
-def _check_outputs(args: argparse.Namespace) -> None:
-    for attr, kind, option in OUTPUTS.get(args.command, ()):
-        value = getattr(args, attr, None)
-        if value not in (None, "-"):
-            check_output(value, kind, option)
+def _user_errors() -> tuple[type[Exception], ...]:
+    """UsageError, OutputPathError and those of :data:`USER_ERRORS` already imported."""
+    found = []
+    for dotted in USER_ERRORS:
+        module, name = dotted.rsplit(".", 1)
+        if module in sys.modules:
+            found.append(getattr(sys.modules[module], name))
+    return (UsageError, OutputPathError, *found)
 
 
 def _deliver_ctrl_c_surely() -> threading.Event:
@@ -1342,18 +1222,18 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MPLBACKEND", "Agg")
     parser = build_parser()
     args = parser.parse_args(argv)
-    _, _, run = COMMANDS[args.command]
     caught = (_deliver_ctrl_c_surely() if argv is None and signal.getsignal(signal.SIGINT)
               is signal.default_int_handler else threading.Event())
     try:
-        _check_outputs(args)
-        return run(args)
+        _check_outputs(parser, args)
+        return COMMANDS[args.command].run(args)
+    except BrokenPipeError:
+        # The reader (e.g. `| head`) went away; point stdout at devnull so the interpreter's
+        # final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except Exception as exc:
-        # A RigError can only come from the rig module, imported by the commands that read
-        # one: looked up here so that argument errors never import it.
-        rig = sys.modules.get("bayesrob.data.rig")
-        if not isinstance(exc, UsageError | OutputPathError) and not (
-                rig and isinstance(exc, rig.RigError)):
+        if not isinstance(exc, _user_errors()):
             raise
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -1368,11 +1248,6 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr.flush()
             os._exit(130)
         return 130
-    except BrokenPipeError:
-        # The reader (e.g. `| head`) went away; point stdout at devnull so the interpreter's
-        # final flush does not raise again.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 141
 
 
 if __name__ == "__main__":

@@ -265,6 +265,32 @@ def append_planned(rig_dir: str | Path, path: str | Path) -> int:
     return len(lines)
 
 
+def measure_plan_in_simulation(rig_dir: str | Path, path: str | Path, seed: int = 0,
+                               progress: bool = False) -> int:
+    """``simulate --poses FILE``: measure a ``poses.csv``'s rows, in its order, on the
+    simulated rig in ``rig_dir`` (its truth.toml), appending them. Returns how many."""
+    import tomllib
+
+    from bayesrob.sim.rigs import measure_arm6_poses, measure_planned
+    from bayesrob.sim.truth import TRUTH_FILE
+
+    truth = Path(rig_dir) / TRUTH_FILE
+    if not truth.is_file():
+        raise RigError(f"{truth}: file not found (--poses FILE measures on a rig made by "
+                       "'bayesrob simulate'; use 'bayesrob collect --plan' on hardware)")
+    # the truth file's table says which simulator made the rig ("chain_truth" is also a
+    # substring of "linked_chain_truth": match the tables, not the text)
+    tables = tomllib.loads(truth.read_text())
+    if "linked_chain_truth" in tables:
+        raise RigError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
+                       "rigs are not measured at planned poses")
+    if "chain_truth" in tables:
+        _, sets, cmds = read_plan(path, {"arm": 6})
+        return measure_arm6_poses(rig_dir, sets, cmds["arm"], seed=seed)
+    append_planned(rig_dir, path)
+    return measure_planned(rig_dir, seed=seed, progress=progress)[0]
+
+
 def linked_steps(specs: dict[str, ArmSpec], arms: dict[str, Arm], workspace: Workspace,
                  grid: int,
                  quantize: Callable[[Iterable[float]], tuple[float, ...]],

@@ -1,5 +1,5 @@
-"""What the commands write: the calibration document, the reproduction's accuracy.json and
-figures, the diagnosis figures.
+"""What the commands write: the calibration document and calibrated URDF, the reproduction's
+accuracy.json and figures, the diagnosis figures, the design's outputs.
 
 This module sits above the ones that compute results and the ones that draw them, so neither
 needs the other: plots take results as arguments, results never import plots, and the
@@ -14,10 +14,12 @@ from pathlib import Path
 from bayesrob import robot as kin
 from bayesrob.calibrate.arms import METHODS, ArmCalibration, calibrate_arms, observed_accuracy
 from bayesrob.calibrate.bayes import calibrate_arms_bayes, report_extras
-from bayesrob.data.rig import Rig
+from bayesrob.calibrate.least_squares import Calibration, calibrated_rig_document
+from bayesrob.data.rig import Rig, dump_toml
 from bayesrob.diagnose.groups import GroupDiagnosis
 from bayesrob.diagnose.refits import Diagnosis
 from bayesrob.paper.reproduction import Reproduction
+from bayesrob.report.output_paths import write_text
 
 CALIBRATION_METHODS: tuple[str, ...] = (*METHODS, "bayes")
 
@@ -44,6 +46,23 @@ def calibration_report(rig: Rig, method: str = "least-squares") -> dict:
     if method == "bayes":  # adds predicted accuracy with parameter uncertainty
         doc.update(report_extras(rig, cal))
     return doc
+
+
+def write_calibrated_robot(doc: dict, rig: Rig, cal: Calibration, path: str | Path) -> None:
+    """``calibrate --urdf-out``: the calibrated robot as URDF at ``path`` and a rig.toml that
+    loads it back (``path`` with suffix .rig.toml); ``doc`` (the calibration's JSON) is told
+    where, and which fitted groups neither file can hold."""
+    out = Path(path)
+    kin.write_urdf(rig.robot, cal.x, out, name=rig.name)
+    toml_path = out.with_suffix(".rig.toml")
+    write_text(toml_path, dump_toml(calibrated_rig_document(rig, cal, out.name)))
+    doc["urdf_out"] = str(out)
+    doc["rig_toml_out"] = str(toml_path)
+    beyond = [g for g in cal.groups if g in kin.OPTIONAL_GROUPS]
+    if beyond:
+        doc.setdefault("notes", []).append(
+            f"the URDF and rig.toml hold the calibrated geometry; the fitted "
+            f"{', '.join(beyond)} values are in this document's parameters, not in them")
 
 
 def write_reproduction(rep: Reproduction, out: str | Path) -> list[Path]:
@@ -96,3 +115,19 @@ def write_diagnosis_report(diag: Diagnosis | GroupDiagnosis, directory: str | Pa
         fig.savefig(out / name, dpi=dpi)
     plt.close("all")
     return [out / name for name, _ in figures]
+
+
+def write_design(result, modules: dict, top: int, out: str | Path) -> list[Path]:
+    """``bayesrob design``'s outputs in ``out``: design.json, design.png (the best ``top``
+    candidates, up to 4) and the best candidate's rig directory (best/), if there is one;
+    returns the paths written."""
+    from bayesrob.design.search import write_candidate_rig
+    from bayesrob.report.plots.design import design_figure
+
+    out = Path(out)
+    written = [out / "design.json", out / "design.png"]
+    written[0].write_text(json.dumps(result.document, indent=1))
+    design_figure(result, modules, min(top, 4)).savefig(written[1], dpi=120)
+    if result.best is not None:
+        written.append(write_candidate_rig(result.best, result, modules, out / "best"))
+    return written
