@@ -138,9 +138,11 @@ class LatentJointErrors:
         scale = self.joint_sd[:, :, None] * self.corr_chol
         return np.einsum("sik,sjk->sij", scale, scale)
 
-    def draw(self, key: jax.Array, shape: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    def draw(self, key: jax.Array, shape: tuple[int, ...], u: object = None
+             ) -> tuple[jax.Array, jax.Array]:
         """Joint errors (*shape, n) and noise sds (shape[0],), one population draw per leading
-        index: the predictive mixes over the fitted parameters' uncertainty."""
+        index: the predictive mixes over the fitted parameters' uncertainty (the commands
+        ``u`` do not move it)."""
         k1, k2 = jax.random.split(key)
         s = jax.random.randint(k1, (shape[0],), 0, self.joint_sd.shape[0])
         chol = jnp.linalg.cholesky(jnp.asarray(self.covariance)[s]
