@@ -150,7 +150,6 @@ class PaperModule:
              by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, PaperModule]:
         from bayesrob.calibrate.arms import arm_covariance, calibrate_arms
         from bayesrob.errors.noise_models import (
-            ModelFileError,
             discover_models,
             joint_errors,
             without_tracker_noise,
@@ -180,12 +179,10 @@ class PaperModule:
                      else None)
             for m in mods:
                 if m.model not in specs:
-                    try:
+                    try:  # a name no file has is a ModelFileError, a ValueError
                         specs[m.model] = discover_models(models_dir, [m.model])
-                    except (ModelFileError, KeyError, ValueError) as e:
+                    except ValueError as e:
                         raise _fail(design, m, str(e)) from None
-                if not specs[m.model]:
-                    raise _fail(design, m, f"unknown model {m.model!r}")
                 arm = cal[m.arm].arm
                 u, d = rig.rows(m.arm, "train")
                 errors = joint_errors(arm, u, d)

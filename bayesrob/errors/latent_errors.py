@@ -152,14 +152,6 @@ class LatentJointErrors:
         e = jnp.einsum("s...ij,s...j->s...i", chol.reshape(shape[0], *extra, *chol.shape[1:]), z)
         return e, jnp.asarray(self.noise_sd)[s]
 
-    def summary(self) -> dict:
-        """Posterior means of the joint sds (mrad) and noise sd (mm), and diagnostics."""
-        return {"model": self.model, "rows": self.n_rows,
-                "joint_sd_mrad": {j: float(1e3 * v)
-                                  for j, v in zip(self.joints, self.joint_sd.mean(0), strict=True)},
-                "noise_sd_mm": float(self.noise_sd.mean()), "dof_scale": self.dof_scale,
-                **self.diagnostics}
-
 
 def scaled_train_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, n_free: int
                            ) -> tuple[np.ndarray, np.ndarray, float, dict | None]:

@@ -1,17 +1,14 @@
 """Joint-error models IND, CORR and COND: densities of the angular error at each arm's joints.
 
 The error an arm leaves after calibration is modelled as noise on its joint angles:
-d = f(g(u) + theta_err). Where the rows observe those errors (:func:`joint_errors_observed`:
-as many joints as measured coordinates, so a residual r_i gives theta_err_i = J_i^-1 r_i; on
-the paper's planar arms exactly f^-1(d_obs_i) - g(u_i), NOTES item 1), a Parzen density of
-theta_err is fitted under one of three assumptions:
+d = f(g(u) + theta_err). Where the rows observe those errors (:func:`joint_errors_observed`;
+else the latent population of :mod:`bayesrob.errors.latent_errors` is the density), row i's
+are J_i^-1 r_i (on the paper's planar arms exactly f^-1(d_obs_i) - g(u_i), NOTES item 1), and
+a Parzen density of theta_err is fitted under one of three assumptions:
 
 - IND: the joints' errors are independent (a product of 1-D densities);
 - CORR: they may be correlated (one joint density);
 - COND: their density depends on the commands sent, p(theta_err | u).
-
-Where joints outnumber coordinates no row's errors are observed, and the latent population of
-:mod:`bayesrob.errors.latent_errors` is the density.
 
 Each variant is one declarative TOML file in ``models/`` (family, bandwidth selector,
 conditioning, bins, whether the Jacobian is applied); :func:`discover_models` finds them, so a
@@ -194,20 +191,17 @@ class FittedNoiseModel:
 
 
 def joint_errors_observed(robot: kin.Robot, arms: Sequence[str]) -> bool:
-    """Whether the rows observe ``arms``' joint errors: every arm's path has as many joints as
-    the tracker measures coordinates, so J is square and a residual r gives the joint errors
-    J^-1 r (the paper's planar arms: two joints, two coordinates). Then a Parzen density of
-    those errors is each arm's joint-error model; where joints outnumber coordinates a residual
-    fixes only their projection, and the latent population is the density."""
+    """Whether the rows observe ``arms``' joint errors: each path has as many joints as the
+    tracker measures coordinates, so J is square and a residual r gives them, J^-1 r (the
+    paper's planar arms); else a residual fixes only their projection."""
     return all(robot.n_path_joints(a) == robot.dim for a in arms)
 
 
 def observed_joint_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str
                           ) -> tuple[np.ndarray, np.ndarray]:
-    """``arm``'s train commands (N, c) and joint errors J_i^-1 r_i (N, n) of its residuals
-    r_i under parameters x, J_i the robot's own joint Jacobian at row i: any robot whose
-    joint errors the rows observe (:func:`joint_errors_observed`). On a planar arm, the
-    linearisation of its closed-form :func:`joint_errors`."""
+    """``arm``'s train commands (N, c) and joint errors J_i^-1 r_i (N, n), r_i its residuals
+    under parameters x and J_i the robot's joint Jacobian (:func:`joint_errors_observed`); on
+    a planar arm the linearisation of :func:`joint_errors`."""
     u, d = rig.rows(arm, "train")
     side = side_rows(rig, robot, arm, "train")
     res = d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u), side))

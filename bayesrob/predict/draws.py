@@ -76,10 +76,6 @@ class KernelJointErrors:
     fitted: FittedNoiseModel
 
     @property
-    def model(self) -> str:
-        return self.fitted.spec.name
-
-    @property
     def noise_sd(self) -> np.ndarray:
         # each row's J^-1 r carried the tracker's noise into the density: none is left over
         return np.zeros(1)
@@ -92,11 +88,6 @@ class KernelJointErrors:
         if d.batch_shape != (shape[1],):
             d = d.expand((shape[1],))
         return d.sample(key, (shape[0],)), jnp.zeros(shape[0])
-
-    def summary(self) -> dict:
-        """The model and its bandwidths."""
-        return {"model": self.model, "rows": len(self.fitted.theta_err),
-                "bandwidth": [float(b) for b in np.ravel(self.fitted.bandwidth)]}
 
 
 @dataclass
@@ -191,9 +182,10 @@ def check_module_arms(rig: Rig, arms: Sequence[str], model: str, models_dir: Any
 def fit_joint_errors(rig: Rig, cal: Calibration, arm: str, model: str, seed: int = 0,
                      models_dir: Any = None, latent: bool = False
                      ) -> LatentJointErrors | KernelJointErrors:
-    """``arm``'s joint-error model ``model`` fitted to its train residuals under ``cal``: a
-    Parzen density of the joint errors where its rows observe them, else (or ``latent``) the
-    latent population (:func:`bayesrob.errors.noise_models.joint_errors_observed`)."""
+    """``arm``'s joint-error model fitted to its train residuals under ``cal``: a Parzen
+    density of its joint errors where the rows observe them
+    (:func:`~bayesrob.errors.noise_models.joint_errors_observed`), else (or ``latent``) the
+    latent population."""
     if latent or not joint_errors_observed(cal.robot, [arm]):
         return fit_latent_errors(rig, cal.robot, cal.x, arm, model, int(cal.ident.free.sum()),
                                  seed=seed)
@@ -209,8 +201,7 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                 sag_steps: int = 1, targets: np.ndarray | None = None,
                 models_dir: Any = None, latent: bool = False) -> CalibratedModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors
-    (:func:`fit_joint_errors`; ``latent``: the latent population even where the rows observe
-    the joint errors).
+    (:func:`fit_joint_errors`, ``latent`` as its).
 
     ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
@@ -309,9 +300,8 @@ def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Seque
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     if fusion == "product" and len(arms) > 1:
         if any(isinstance(mods.errors[a], KernelJointErrors) for a in arms):
-            raise ValueError("the product rule samples linked chain arms under their latent "
-                             "Gaussian populations; arms with a kernel joint-error density "
-                             "take the equilibrium rule")
+            raise ValueError("the product rule samples linked chain arms under latent joint-"
+                             "error populations; kernel densities take the equilibrium rule")
         return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
     xs = parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
     linked = len(arms) > 1

@@ -244,11 +244,9 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
         theta, _ = kin.inverse(a.params, jnp.asarray(free), a.elbow)
         frees.append(free)
         thetas.append(theta)
-    log_k = Predictive(lambda: _log_stiffness(len(arms), stiffness), num_samples=num_samples,
-                       return_sites=["log_stiffness"])(key).get("log_stiffness")
-    if log_k is None:
-        log_k = jnp.broadcast_to(jnp.log(jnp.asarray(stiffness, dtype=jnp.float64)),
-                                 (num_samples, len(arms), 2))
+    log_k = Predictive(lambda: numpyro.deterministic("log_k", _log_stiffness(len(arms),
+                                                                         stiffness)),
+                       num_samples=num_samples)(key)["log_k"]
     k = jnp.stack([springs(kin.jacobian(a.params, th), log_k[:, i, None, :])
                    for i, (a, th) in enumerate(zip(arms, thetas, strict=True))])
     return np.asarray(balance(jnp.asarray(np.stack(frees)), k))

@@ -1,14 +1,12 @@
 """The joint stiffnesses linked arms balance with (equilibrium fusion, :mod:`.fusion`).
 
-One prior, :class:`StiffnessPrior`: an arm's log joint stiffnesses along its path, Normal per
-joint plus, where marked, a term the arm's joints share. It is the rig's ``stiffness`` when
-it gives them (sd 0); else, on URDF / DH chains, read from compliances fitted under the
-description's link masses, or centred on the joints' URDF torque limits with a term per arm
-and one per joint, and, where every linked arm takes the prior, each arm's term centred on
-its fitted sag against the others' (:func:`sag_scaled_priors`); on the paper's planar servo
-arms, whose files say nothing of their drives, centred on equal joints with no arm term
-(:func:`given_or_servo_prior`). The widths differ because each was chosen on its own kind of
-tuning rig. Only the ratios of the arms' stiffnesses move the balance.
+One prior, :class:`StiffnessPrior`, of an arm's log joint stiffnesses along its path: the
+rig's ``stiffness`` when it gives them; else read from compliances fitted under the
+description's link masses; else log-normal: on chains centred on the joints' URDF torque
+limits, a term per arm and one per joint, each arm's term centred on its fitted sag against
+the other linked arms' (:func:`sag_scaled_priors`); on the paper's planar servo arms equal
+joints, no arm term (:func:`given_or_servo_prior`; widths chosen on each kind's own tuning
+rigs). Only the ratios of the arms' stiffnesses move the balance.
 """
 
 from __future__ import annotations
