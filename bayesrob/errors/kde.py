@@ -412,19 +412,13 @@ def _online_moments(state, logk: jnp.ndarray, ext: jnp.ndarray):
 def _loo_value_and_grad_padded(
     log_bw: jnp.ndarray, y: jnp.ndarray, n: jnp.ndarray, dx: int, conditional: bool
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Negative LOO (conditional) log-likelihood of the first ``n`` rows of ``y`` (for any
-    traced ``n``) and its gradient w.r.t. log-bandwidths.
-
-    Hand-derived rather than autodiff because the bandwidth search calls it tens of times on
-    an N x N problem: one exponential per kernel pair, about half the cost of
-    ``jax.value_and_grad`` of :func:`_neg_loo_loglik_diag`, which the tests check it against.
-    With s = y / bw, W the row-softmax of the (x, z) log-kernels without the diagonal and V
-    that of the z log-kernels alone,
-
-        d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2
-        d(-L)/d log bw_z,k =   - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2.
-
-    ``conditional=False`` gives the unconditional objective (all columns are "x").
+    """Negative LOO (conditional, or with all columns "x") log-likelihood of the first ``n``
+    rows of ``y`` (any traced ``n``) and its gradient w.r.t. log-bandwidths, hand-derived: one
+    exponential per kernel pair, half the cost of autodiff (which the tests check it against)
+    on a search that calls it tens of times. With s = y / bw, W the row-softmax of the (x, z)
+    log-kernels without the diagonal and V that of the z log-kernels alone,
+    d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2 and
+    d(-L)/d log bw_z,k = - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2.
 
     ``y`` is a buffer of at least ``n`` rows (see :func:`_padded`); rows from ``n`` on have
     zero weight: the loops over row and column tiles stop at ``n``, and the entries of the
