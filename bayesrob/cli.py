@@ -911,8 +911,9 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                    help="how linked arms share the end point: equilibrium (their stiffnesses "
                         "balance; default) or product (the paper's product of likelihoods)")
     p.add_argument("--model", default=None,
-                   help="joint-error model name (default cond; ind or corr for URDF/DH arms "
-                        "and with --params, whose joint errors are latent: default ind)")
+                   help="joint-error model name (default cond; ind or corr where the joint "
+                        "errors are latent, on arms with more joints than measured "
+                        "coordinates and with --params: default ind)")
     _models_args(p)
     _params_arg(p, "parameter groups the modules are calibrated with, as 'bayesrob calibrate "
                    "--params' (URDF/DH default frames,offsets,geometric,servo; add compliance "

@@ -237,7 +237,7 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
     from types import SimpleNamespace
 
     import bayesrob.predict.stiffness as st
-    from bayesrob.design.modules import PopulationModule, _log_stiffness, linked_priors
+    from bayesrob.design.modules import CalibratedModule, _log_stiffness, linked_priors
 
     sags = {"a": 1.0, "b": 2.0, "c": 4.0}
     monkeypatch.setattr(st, "arm_sags", lambda rig, cal, arms: {x: sags[x] for x in arms})
@@ -247,8 +247,8 @@ def test_linked_modules_keep_their_normals_whatever_they_are_linked_with(monkeyp
         return st.StiffnessPrior(np.zeros(3), np.full(3, 0.5), np.ones(3, bool),
                                  st.STIFFNESS_SOURCES[2])
 
-    def module(name: str, arm: str, rig_index: int = 0) -> PopulationModule:
-        return PopulationModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
+    def module(name: str, arm: str, rig_index: int = 0) -> CalibratedModule:
+        return CalibratedModule(name, arm, rig, SimpleNamespace(stiffness={arm: prior()},
                                                            calibration=None),
                            np.zeros(3), rig_index, "ind")
 

@@ -384,7 +384,7 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     import jax
 
     from bayesrob.design.modules import (
-        PopulationModule,
+        CalibratedModule,
         _log_stiffness,
         linked_priors,
         stiffness_record,
@@ -393,10 +393,10 @@ def test_the_designer_links_modules_of_one_rig_as_predict_links_its_arms(linked_
     rig, cal = linked_calibration
     own = {a: st.stiffness_prior(rig, a, cal) for a in ("left", "right")}
 
-    def module(arm: str, rig_index: int = 0) -> PopulationModule:
+    def module(arm: str, rig_index: int = 0) -> CalibratedModule:
         # no joint errors: the priors and stiffness draws never read them
         m = cp.CalibratedModules(cal, {arm: None}, {arm: own[arm]}, None)
-        return PopulationModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
+        return CalibratedModule(arm, arm, rig, m, np.zeros(3), rig_index, "ind")
 
     left, right = module("left"), module("right")
 

@@ -102,7 +102,7 @@ def test_grid_builds_agree_with_the_program_and_meet_by_the_same_rule(tmp_path):
     calibration error adds agree with the equilibrium program's (an independent route:
     numpyro draws of the joint errors and parameters pushed through the arm). A linked
     product candidate is scored by the one rule: ``meets`` is its builds' confidence."""
-    from bayesrob.design.modules import DensityModule, _grid_builds
+    from bayesrob.design.modules import PaperModule, _grid_builds
     from bayesrob.design.search import Job, evaluate, score
 
     design = load_design(_small_design(tmp_path, **{
@@ -114,7 +114,7 @@ def test_grid_builds_agree_with_the_program_and_meet_by_the_same_rule(tmp_path):
     job = Job(modules, targets, reach, design.fusion, design.quantile, design.error_mm,
               design.confidence, design.draws, design.seed, 0.0, design.mounts)
     cand = next(c for c in enumerate_candidates(design, reach) if c.arms == ("side",))
-    program, _ = DensityModule.draws(job, cand.arms, cand.mounts, 0)
+    program, _ = PaperModule.draws(job, cand.arms, cand.mounts, 0)
     m = modules["side"]
     grid = _grid_builds(job, [m], [m.at(cand.bases[0])], [reach["side", cand.mounts[0]]], 0)
     a, b = score(job, cand, program), score(job, cand, grid)

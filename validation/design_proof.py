@@ -220,7 +220,7 @@ def chain_proof(masses: str = "fitted", mass_log_sd: float = 0.0,
     0.85-1.15 (the criterion written down before the first report rigs ran)."""
     from bayesrob.data.rig import load_rig
     from bayesrob.design.file import load_design
-    from bayesrob.design.modules import PopulationModule, load_modules
+    from bayesrob.design.modules import CalibratedModule, load_modules
     from bayesrob.design.search import Job, reach_table
     from bayesrob.sim.rigs import simulate_linked_arm6_rig
     from bayesrob.sim.truth import LinkedArm6Truth, load_linked_truth
@@ -278,7 +278,7 @@ quantile = 0.95
             row = {"seed": seed, "rows": len(targets), "aim_vs_built_rad": float(gap)}
             for kind in CHAIN_KINDS:
                 arms = tuple(kind.split("+"))
-                d, _ = PopulationModule.draws(job, arms, tuple(0 if a == "left" else 1
+                d, _ = CalibratedModule.draws(job, arms, tuple(0 if a == "left" else 1
                                                                for a in arms), 0)
                 err = np.linalg.norm(d - targets[None], axis=-1)  # (S, T)
                 obs = np.linalg.norm(seen[kind] - targets, axis=1)

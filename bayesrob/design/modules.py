@@ -14,11 +14,12 @@ calibrated). What the search asks of a module is the same for every robot:
 - ``sketch(mount, target)``: the module's outline for the figure; ``write_rig``: a candidate
   as a rig directory.
 
-The calibration and joint-error model below the designer are still two (the paper's planar
-arms: :func:`bayesrob.calibrate.arms.calibrate_arms` and a density of the joint errors read off the
-rows, :class:`DensityModule`; URDF/DH arms: calibration groups and the latent population,
-:class:`PopulationModule`); :func:`load_modules` is the one place that picks, by what the rig
-is, and a design places one kind.
+A module's joint-error model is picked as ``bayesrob predict`` picks it
+(:func:`bayesrob.predict.draws.fit_joint_errors`): a Parzen density of the joint errors where
+the rows observe them (as many joints as measured coordinates), else the latent population.
+The paper's planar arms take that kernel route's closed-form specialisation
+(:class:`PaperModule`: eight parameters, closed-form inverse, the exact grid where no program
+draws); every other robot is a :class:`CalibratedModule`. A design places one kind.
 """
 
 from __future__ import annotations
@@ -39,7 +40,13 @@ from bayesrob.errors.latent_errors import joint_jacobian
 from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.inference.sampling import error_arrays, error_kind, is_sampleable
 from bayesrob.predict.aiming import aim
-from bayesrob.predict.draws import CalibratedModules, free_draws, parameter_draws
+from bayesrob.predict.draws import (
+    CalibratedModules,
+    check_module_arms,
+    fit_joint_errors,
+    free_draws,
+    parameter_draws,
+)
 from bayesrob.predict.fusion import (
     equilibrium,
     equilibrium_program_draws,
@@ -51,7 +58,7 @@ from bayesrob.predict.stiffness import StiffnessPrior, sag_scaled_priors, stiffn
 if TYPE_CHECKING:
     from bayesrob.sim.truth import ArmTruth, Truth
 
-__all__ = ["Module", "DensityModule", "PopulationModule", "load_modules", "linked_priors",
+__all__ = ["Module", "PaperModule", "CalibratedModule", "load_modules", "linked_priors",
            "stiffness_record", "mounted_truth", "COV_JITTER"]
 
 # Keeps a parameter covariance with an unidentified direction sampleable, in each parameter's
@@ -74,12 +81,13 @@ def load_modules(design: DesignSpec, models_dir: Any = None) -> dict[str, Module
             rigs[rig_dir] = load_rig(rig_dir)
         except RigError as e:
             raise DesignError(f"{design.path}: [modules.{mods[0].name}]: {e}") from None
-    # the calibration and joint-error model a rig's arms take (the one place that asks)
-    kinds = {n: PopulationModule if rigs[m.rig].is_chain else DensityModule
+    # the paper's planar arms take their closed-form specialisation; the joint-error model is
+    # the rule's in both (fit_joint_errors, and the paper's kernel models)
+    kinds = {n: CalibratedModule if rigs[m.rig].is_chain else PaperModule
              for n, m in design.modules.items()}
     if len(set(kinds.values())) > 1:
-        chain = next(n for n, k in kinds.items() if k is PopulationModule)
-        flat = next(n for n, k in kinds.items() if k is DensityModule)
+        chain = next(n for n, k in kinds.items() if k is CalibratedModule)
+        flat = next(n for n, k in kinds.items() if k is PaperModule)
         raise DesignError(f"{design.path}: module {chain!r} is a URDF/DH arm and {flat!r} a "
                           "planar arm; a design places one kind")
     return next(iter(kinds.values())).load(design, rigs, by_rig, models_dir)
@@ -89,13 +97,15 @@ def _fail(design: DesignSpec, m: ModuleSpec, message: str) -> DesignError:
     return DesignError(f"{design.path}: [modules.{m.name}]: {message}")
 
 
-# ------------------------------------------------------------------ density of observed errors
+# ------------------------------------------------------------------ the paper's planar arms
 
 
 @dataclass
-class DensityModule:
-    """A module whose joint errors the rows observe (two joints, two measured coordinates:
-    J^-1 r), so its model is a density of them (``models/``): the paper's planar arms."""
+class PaperModule:
+    """A planar arm of the paper: its joint errors the rows observe (two joints, two measured
+    coordinates: J^-1 r, read off its closed-form inverse), so its model is a density of them
+    (``models/``); calibrated by its eight parameters, its builds drawn by the equilibrium
+    program or the exact grid."""
 
     name: str
     arm: kin.Arm  # calibrated, at the base it was calibrated at
@@ -141,10 +151,9 @@ class DensityModule:
 
     @classmethod
     def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
-             by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, DensityModule]:
+             by_rig: dict[Path, list[ModuleSpec]], models_dir: Any) -> dict[str, PaperModule]:
         from bayesrob.calibrate.arms import arm_covariance, calibrate_arms
         from bayesrob.errors.noise_models import (
-            ModelFileError,
             discover_models,
             joint_errors,
             without_tracker_noise,
@@ -161,7 +170,7 @@ class DensityModule:
             if m.masses != "fitted":
                 raise _fail(design, m, "masses is for URDF arms calibrated with compliance; a "
                             "planar arm has no link masses")
-        out: dict[str, DensityModule] = {}
+        out: dict[str, PaperModule] = {}
         specs: dict[str, list] = {}  # model name -> its discovered file, read once
         for rig_dir, mods in by_rig.items():
             rig = rigs[rig_dir]
@@ -174,12 +183,10 @@ class DensityModule:
                      else None)
             for m in mods:
                 if m.model not in specs:
-                    try:
+                    try:  # a name no file has is a ModelFileError, a ValueError
                         specs[m.model] = discover_models(models_dir, [m.model])
-                    except (ModelFileError, KeyError, ValueError) as e:
+                    except ValueError as e:
                         raise _fail(design, m, str(e)) from None
-                if not specs[m.model]:
-                    raise _fail(design, m, f"unknown model {m.model!r}")
                 arm = cal[m.arm].arm
                 u, d = rig.rows(m.arm, "train")
                 errors = joint_errors(arm, u, d)
@@ -209,7 +216,7 @@ class DensityModule:
         """Builds (S, T, 2) of a candidate: the equilibrium program's draws
         (:func:`bayesrob.predict.fusion.equilibrium_program`, one compiled program per kind of
         assembly), or :func:`_grid_builds` where no program draws the whole assembly."""
-        mods: list[DensityModule] = [job.modules[a] for a in arms]
+        mods: list[PaperModule] = [job.modules[a] for a in arms]
         placed = [m.at(job.mounts[j]) for m, j in zip(mods, mounts, strict=True)]
         commands = [job.reach[a, j] for a, j in zip(arms, mounts, strict=True)]
         if not (all(is_sampleable(m.fitted) for m in mods)
@@ -227,7 +234,7 @@ class DensityModule:
         return np.asarray(d), {}
 
     @staticmethod
-    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, DensityModule],
+    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, PaperModule],
                   reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
                   ) -> None:
         """rig.toml (the modules' calibrated values at their new bases), measurements.csv
@@ -270,7 +277,7 @@ class DensityModule:
             (out / TRUTH_FILE).write_text(truth.to_toml())
 
 
-def _grid_builds(job: Any, mods: Sequence[DensityModule], arms: Sequence[kin.Arm],
+def _grid_builds(job: Any, mods: Sequence[PaperModule], arms: Sequence[kin.Arm],
                  commands: Sequence[np.ndarray], index: int) -> np.ndarray:
     """Builds (S, T, 2) where no program draws the whole assembly (the product of
     likelihoods, or the paper's histogram COND, which cannot draw joint errors).
@@ -318,7 +325,7 @@ def _calibration_shift(params: kin.ArmParams, u: jax.Array, delta: jax.Array) ->
     return jax.vmap(reached)(delta) - reached(jnp.zeros_like(v))[None]
 
 
-def mounted_truth(module: DensityModule, base: Sequence[float]) -> ArmTruth:
+def mounted_truth(module: PaperModule, base: Sequence[float]) -> ArmTruth:
     """A simulated module's true arm, moved with its calibrated base to ``base``: the
     mounting moves the whole module, so its calibration's base error moves with it."""
     shift = np.asarray(base, float) - np.asarray(module.arm.params.base, float)
@@ -326,19 +333,20 @@ def mounted_truth(module: DensityModule, base: Sequence[float]) -> ArmTruth:
     return replace(module.truth, name=module.name, base=(float(b[0]), float(b[1])))
 
 
-# ------------------------------------------------------------------ latent error population
+# ------------------------------------------------------------------ any calibrated robot
 
 
 @dataclass
-class PopulationModule:
-    """A module whose joint errors the rows do not observe (more joints than measured
-    coordinates), so its model is a latent population of them: URDF / DH arms.
+class CalibratedModule:
+    """An arm of a URDF / DH robot: a Parzen density of its joint errors where its rows
+    observe them, else (more joints than measured coordinates) their latent population.
 
     It is a root arm of its rig (no torso under it), calibrated with the groups its design
-    entry names; its joint-error population is fitted as ``bayesrob predict`` fits it
-    (:mod:`bayesrob.predict.draws`). A world target t is the point t - mount + base of its
-    own frame: it is aimed there (position-only inverse kinematics from its nearest train
-    pose, as ``bayesrob predict`` aims) and drawn there, and the draws are moved back.
+    entry names; its joint-error model is fitted as ``bayesrob predict`` fits it
+    (:func:`bayesrob.predict.draws.fit_joint_errors`). A world target t is the point
+    t - mount + base of its own frame: it is aimed there (position-only inverse kinematics
+    from its nearest train pose, as ``bayesrob predict`` aims) and drawn there, and the draws
+    are moved back.
 
     A placement's free-point draws do not depend on the other arms of the candidate, so each
     worker draws them once per (module, mount) and every candidate that uses the placement
@@ -351,7 +359,7 @@ class PopulationModule:
     name: str
     arm: str  # the arm of its rig
     rig: Rig  # its rig: the train poses aiming starts from
-    mods: CalibratedModules  # its rig's calibration and this module's joint-error population
+    mods: CalibratedModules  # its rig's calibration and this module's joint-error model
     base: np.ndarray  # (dim,) its robot base in its rig's instrument frame (calibrated)
     rig_index: int  # modules of one rig share its calibration errors in every draw
     model: str
@@ -380,18 +388,17 @@ class PopulationModule:
     @classmethod
     def load(cls, design: DesignSpec, rigs: dict[Path, Rig],
              by_rig: dict[Path, list[ModuleSpec]], models_dir: Any = None
-             ) -> dict[str, PopulationModule]:
+             ) -> dict[str, CalibratedModule]:
         """Calibrate each rig once (the groups its modules name) and fit each module's
-        joint-error population on its own train rows."""
+        joint-error model on its own train rows."""
         from bayesrob.calibrate.least_squares import calibrate, parameter_covariance
-        from bayesrob.errors.latent_errors import check_latent_model, fit_latent_errors
         from bayesrob.predict.stiffness import stiffness_prior
 
         if design.fusion != "equilibrium" and design.max_arms > 1 and design.linked:
             raise DesignError(f"{design.path}: fusion = {design.fusion!r} samples every "
                               "linked chain assembly with NUTS, minutes each; chain modules "
                               "are designed with fusion = \"equilibrium\"")
-        out: dict[str, PopulationModule] = {}
+        out: dict[str, CalibratedModule] = {}
         for index, (rig_dir, specs) in enumerate(by_rig.items()):
             rig = rigs[rig_dir]
             groups = {m.params for m in specs}
@@ -410,7 +417,7 @@ class PopulationModule:
                     raise _fail(design, m, f"arm {m.arm!r} hangs on {path[-2].name!r}; the "
                                 "designer mounts whole root arms (no arm under them) so far")
                 try:
-                    check_latent_model(m.model)
+                    check_module_arms(rig, [m.arm], m.model, models_dir)
                 except (RigError, ValueError) as e:
                     raise _fail(design, m, str(e)) from None
                 if rig.robot.dim != design.dim:
@@ -420,11 +427,9 @@ class PopulationModule:
                 cal = calibrate(rig, groups.pop() or kin.GROUPS, masses=masses.pop())
             except ValueError as e:
                 raise DesignError(f"{design.path}: {rig_dir}: {e}") from None
-            n_free = int(cal.ident.free.sum())
             cov = parameter_covariance(rig, cal)
             for i, m in enumerate(specs):
-                errors = fit_latent_errors(rig, cal.robot, cal.x, m.arm, m.model, n_free,
-                                           seed=design.seed + i)
+                errors = fit_joint_errors(rig, cal, m.arm, m.model, design.seed + i, models_dir)
                 mods = CalibratedModules(cal, {m.arm: errors},
                                     {m.arm: stiffness_prior(rig, m.arm, cal)}, cov)
                 base = np.asarray(cal.robot.instrument_pose(jnp.asarray(cal.x), m.arm))[:3, 3]
@@ -447,7 +452,7 @@ class PopulationModule:
         return np.asarray(d), {"stiffness": stiffness_record(job, arms)}
 
     @staticmethod
-    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, PopulationModule],
+    def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, CalibratedModule],
                   reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
                   ) -> None:
         """Each module's calibrated URDF (``<module>.urdf``), rig.toml with its instrument
@@ -503,7 +508,7 @@ def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
     (T, dim, n), drawn once per worker (``job.cache``) from seeds of its own."""
     key = ("placement", name, mount)
     if key not in job.cache:
-        m: PopulationModule = job.modules[name]
+        m: CalibratedModule = job.modules[name]
         u = job.reach[name, mount]
         xs = _rig_parameters(job, m)
         k = jax.random.fold_in(jax.random.PRNGKey(job.seed), 1000 * _order(job, name) + mount)
@@ -514,7 +519,7 @@ def _placement(job: Any, name: str, mount: int) -> tuple[np.ndarray, jax.Array]:
     return job.cache[key]
 
 
-def _rig_parameters(job: Any, m: PopulationModule) -> jax.Array:
+def _rig_parameters(job: Any, m: CalibratedModule) -> jax.Array:
     """Parameter draws (S, P) of a module's rig, once per worker: every placement of every
     module of that rig builds on the same calibration errors."""
     key = ("parameters", m.rig_index)
@@ -524,7 +529,7 @@ def _rig_parameters(job: Any, m: PopulationModule) -> jax.Array:
     return job.cache[key]
 
 
-def linked_priors(modules: Sequence[PopulationModule]) -> list[StiffnessPrior]:
+def linked_priors(modules: Sequence[CalibratedModule]) -> list[StiffnessPrior]:
     """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
     one rig: where the modules are distinct arms of one rig and each took the prior, their arm
     terms are centred on their fitted sags
@@ -576,4 +581,4 @@ def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
 
 
 # what the search holds: one kind per design
-Module = DensityModule | PopulationModule
+Module = PaperModule | CalibratedModule

@@ -370,107 +370,6 @@ def _neg_loo_loglik_diag(log_bw: jnp.ndarray, y: jnp.ndarray) -> jnp.ndarray:
     return -(jnp.sum(lse) - n * jnp.sum(log_bw) - n * jnp.log(n - 1.0) - 0.5 * n * d * _LOG_2PI)
 
 
-@partial(jax.jit, static_argnames=("dx",))
-def _neg_cond_loo_loglik(log_bw: jnp.ndarray, y: jnp.ndarray, dx: int) -> jnp.ndarray:
-    """Negative leave-one-out conditional log-likelihood ``-sum_i log f_-i(x_i | z_i)``.
-
-    ``y`` holds [x, z] columns. As in statsmodels ``KDEMultivariateConditional.loo_likelihood``,
-    both the joint f(x, z) and the marginal f(z) leave out point i, and the marginal uses only
-    the z bandwidths, so the ratio is exactly the kernel conditional with point i removed.
-    This plain form is the reference the hand-written gradient is tested against.
-    """
-    n = y.shape[0]
-    inv = jnp.exp(-log_bw)
-    gx = (y[:, :dx], inv[:dx])
-    gz = (y[:, dx:], inv[dx:])
-    lse_xz = _loo_lse([gx, gz])
-    lse_z = _loo_lse([gz])
-    ll = jnp.sum(lse_xz - lse_z) - n * jnp.sum(log_bw[:dx]) - 0.5 * n * dx * _LOG_2PI
-    return -ll
-
-
-def _softmax_lse(logk: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Row-wise softmax and logsumexp from one pass of exponentials."""
-    m = jnp.max(logk, axis=1, keepdims=True)
-    e = jnp.exp(logk - m)
-    se = jnp.sum(e, axis=1, keepdims=True)
-    return e / se, jnp.log(se[:, 0]) + m[:, 0]
-
-
-def _pair_sq_moment(w: jnp.ndarray, s_rows: jnp.ndarray, s_all: jnp.ndarray) -> jnp.ndarray:
-    """Per dimension k: ``sum_ij w_ij (s_rows_ik - s_all_jk)^2``, via row/column sums and w @ s.
-
-    Expanding the square turns an (B, N, d) tensor into two reductions and one matrix
-    product, which is what makes the hand-written gradient cheaper than autodiff's.
-    """
-    r = jnp.sum(w, axis=1)
-    c = jnp.sum(w, axis=0)
-    return r @ (s_rows * s_rows) + c @ (s_all * s_all) - 2.0 * jnp.sum(s_rows * (w @ s_all), 0)
-
-
-def _sum_blocks(fn, n: int, *row_arrays: jnp.ndarray):
-    """Sum ``fn(rows, valid, *blocks)`` over row blocks (a pytree of sums), memory bounded."""
-    rows = _block_rows(n, n)
-    idx = jnp.arange(n)
-    if rows >= n:
-        return fn(idx, jnp.ones(n), *row_arrays)
-    n_blocks = -(-n // rows)
-    pad = n_blocks * rows - n
-    valid = jnp.pad(jnp.ones(n), (0, pad)).reshape(n_blocks, rows)
-    blocked = [
-        jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)).reshape((n_blocks, rows) + a.shape[1:])
-        for a in (idx, *row_arrays)
-    ]
-    blocked.insert(1, valid)
-    parts = jax.lax.map(lambda args: fn(*args), tuple(blocked))
-    return jax.tree_util.tree_map(lambda v: jnp.sum(v, axis=0), parts)
-
-
-@partial(jax.jit, static_argnames=("dx", "conditional"))
-def _loo_value_and_grad(
-    log_bw: jnp.ndarray, y: jnp.ndarray, dx: int, conditional: bool
-) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Negative LOO (conditional) log-likelihood and its gradient w.r.t. log-bandwidths.
-
-    Hand-derived rather than autodiff because the bandwidth search calls it tens of times on
-    an N x N problem: one exponential per kernel pair and a few matrix-vector products, about
-    half the cost of ``jax.value_and_grad`` of :func:`_neg_loo_loglik_diag`, which the tests
-    check it against. With s = y / bw, W the row-softmax of the (x, z) log-kernels without the
-    diagonal and V that of the z log-kernels alone,
-
-        d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2
-        d(-L)/d log bw_z,k =   - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2.
-
-    ``conditional=False`` gives the unconditional objective (all columns are "x").
-    """
-    n = y.shape[0]
-    s = y * jnp.exp(-log_bw)
-    sx, sz = s[:, :dx], s[:, dx:]
-
-    def block(rows, valid, sx_r, sz_r):
-        diag = rows[:, None] == jnp.arange(n)[None, :]
-        logk = -0.5 * _sq_dist(sx_r, sx)
-        if conditional:
-            lz = jnp.where(diag, -jnp.inf, -0.5 * _sq_dist(sz_r, sz))
-            logk = logk + lz
-        w, lse = _softmax_lse(jnp.where(diag, -jnp.inf, logk))
-        w = w * valid[:, None]
-        val = jnp.sum(lse * valid)
-        gx = _pair_sq_moment(w, sx_r, sx)
-        if not conditional:
-            return val, gx, jnp.zeros(0)
-        v, lse_z = _softmax_lse(lz)
-        v = v * valid[:, None]
-        return val - jnp.sum(lse_z * valid), gx, _pair_sq_moment(w - v, sz_r, sz)
-
-    val, gx, gz = _sum_blocks(block, n, sx, sz)
-    if conditional:
-        ll = val - n * jnp.sum(log_bw[:dx]) - 0.5 * n * dx * _LOG_2PI
-        return -ll, jnp.concatenate([n - gx, -gz])
-    ll = val - n * jnp.sum(log_bw) - n * jnp.log(n - 1.0) - 0.5 * n * dx * _LOG_2PI
-    return -ll, n - gx
-
-
 # Rows per tile of the size-independent objective below (128: the last, partly empty tile
 # wastes less than with 256 and the loop overhead is still small; both timed at N = 700-1300),
 # and the smallest data buffer it is compiled for. One compiled program serves every N up to
@@ -513,7 +412,13 @@ def _online_moments(state, logk: jnp.ndarray, ext: jnp.ndarray):
 def _loo_value_and_grad_padded(
     log_bw: jnp.ndarray, y: jnp.ndarray, n: jnp.ndarray, dx: int, conditional: bool
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """:func:`_loo_value_and_grad` of the first ``n`` rows of ``y``, for any traced ``n``.
+    """Negative LOO (conditional, or with all columns "x") log-likelihood of the first ``n``
+    rows of ``y`` (any traced ``n``) and its gradient w.r.t. log-bandwidths, hand-derived: one
+    exponential per kernel pair, half the cost of autodiff (which the tests check it against)
+    on a search that calls it tens of times. With s = y / bw, W the row-softmax of the (x, z)
+    log-kernels without the diagonal and V that of the z log-kernels alone,
+    d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2 and
+    d(-L)/d log bw_z,k = - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2.
 
     ``y`` is a buffer of at least ``n`` rows (see :func:`_padded`); rows from ``n`` on have
     zero weight: the loops over row and column tiles stop at ``n``, and the entries of the

@@ -138,9 +138,11 @@ class LatentJointErrors:
         scale = self.joint_sd[:, :, None] * self.corr_chol
         return np.einsum("sik,sjk->sij", scale, scale)
 
-    def draw(self, key: jax.Array, shape: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    def draw(self, key: jax.Array, shape: tuple[int, ...], u: object = None
+             ) -> tuple[jax.Array, jax.Array]:
         """Joint errors (*shape, n) and noise sds (shape[0],), one population draw per leading
-        index: the predictive mixes over the fitted parameters' uncertainty."""
+        index: the predictive mixes over the fitted parameters' uncertainty (the commands
+        ``u`` do not move it)."""
         k1, k2 = jax.random.split(key)
         s = jax.random.randint(k1, (shape[0],), 0, self.joint_sd.shape[0])
         chol = jnp.linalg.cholesky(jnp.asarray(self.covariance)[s]
@@ -149,14 +151,6 @@ class LatentJointErrors:
         extra = (1,) * (len(shape) - 1)
         e = jnp.einsum("s...ij,s...j->s...i", chol.reshape(shape[0], *extra, *chol.shape[1:]), z)
         return e, jnp.asarray(self.noise_sd)[s]
-
-    def summary(self) -> dict:
-        """Posterior means of the joint sds (mrad) and noise sd (mm), and diagnostics."""
-        return {"model": self.model, "rows": self.n_rows,
-                "joint_sd_mrad": {j: float(1e3 * v)
-                                  for j, v in zip(self.joints, self.joint_sd.mean(0), strict=True)},
-                "noise_sd_mm": float(self.noise_sd.mean()), "dof_scale": self.dof_scale,
-                **self.diagnostics}
 
 
 def scaled_train_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, n_free: int

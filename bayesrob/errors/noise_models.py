@@ -1,11 +1,13 @@
 """Joint-error models IND, CORR and COND: densities of the angular error at each arm's joints.
 
 The error an arm leaves after calibration is modelled as noise on its joint angles:
-d = f(g(u) + theta_err). From each arm's training rows, theta_err_i = f^-1(d_obs_i) - g(u_i)
-(NOTES item 1), and a Parzen density of theta_err is fitted under one of three assumptions:
+d = f(g(u) + theta_err). Where the rows observe those errors (:func:`joint_errors_observed`;
+else the latent population of :mod:`bayesrob.errors.latent_errors` is the density), row i's
+are J_i^-1 r_i (on the paper's planar arms exactly f^-1(d_obs_i) - g(u_i), NOTES item 1), and
+a Parzen density of theta_err is fitted under one of three assumptions:
 
-- IND: the two joints' errors are independent (a product of two 1-D densities);
-- CORR: they may be correlated (one 2-D density);
+- IND: the joints' errors are independent (a product of 1-D densities);
+- CORR: they may be correlated (one joint density);
 - COND: their density depends on the commands sent, p(theta_err | u).
 
 Each variant is one declarative TOML file in ``models/`` (family, bandwidth selector,
@@ -25,8 +27,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
+from bayesrob.calibrate.least_squares import side_rows
 from bayesrob.data.rig import Rig
 from bayesrob.errors.kde import KDE, ConditionalKDE
+from bayesrob.errors.latent_errors import joint_jacobian
 
 FAMILIES = ("IND", "CORR", "COND")
 
@@ -107,14 +111,15 @@ class ModelSpec:
         )
 
     def fit(self, theta_err: np.ndarray, u: np.ndarray) -> FittedNoiseModel:
-        """Fit the density to one arm's joint errors (N, 2) and commands (N, 2)."""
+        """Fit the density to one arm's joint errors (N, n) and commands (N, c)."""
         theta_err = np.asarray(theta_err, float)
         u = np.asarray(u, float)
         kw: dict[str, Any] = {"warn_on_bound": False}
         if self.bandwidth in ("paper", "loo-ml"):
             kw["h_range"] = self.h_range
         if self.family == "IND":
-            parts = [KDE.fit(theta_err[:, j:j + 1], self.bandwidth, **kw) for j in range(2)]
+            parts = [KDE.fit(theta_err[:, j:j + 1], self.bandwidth, **kw)
+                     for j in range(theta_err.shape[1])]
             return FittedNoiseModel(self, theta_err, u, parts=parts)
         if self.family == "CORR":
             return FittedNoiseModel(self, theta_err, u, parts=[KDE.fit(theta_err, self.bandwidth,
@@ -176,13 +181,32 @@ class FittedNoiseModel:
         return np.concatenate([p.bandwidth for p in self.parts])
 
     def logpdf(self, theta_err: jnp.ndarray, u: jnp.ndarray) -> jnp.ndarray:
-        """log p(theta_err | u) for (M, 2) errors; u is (M, 2) or one (2,) command."""
+        """log p(theta_err | u) for (M, n) errors; u is (M, c) or one (c,) command."""
         theta_err = jnp.atleast_2d(theta_err)
         if self.spec.family == "IND":
-            return self.parts[0].logpdf(theta_err[:, :1]) + self.parts[1].logpdf(theta_err[:, 1:])
+            return sum(p.logpdf(theta_err[:, j:j + 1]) for j, p in enumerate(self.parts))
         if self.spec.family == "CORR":
             return self.parts[0].logpdf(theta_err)
         return self.conditional.logpdf(theta_err, jnp.atleast_2d(u))
+
+
+def joint_errors_observed(robot: kin.Robot, arms: Sequence[str]) -> bool:
+    """Whether the rows observe ``arms``' joint errors: each path has as many joints as the
+    tracker measures coordinates, so J is square and a residual r gives them, J^-1 r (the
+    paper's planar arms); else a residual fixes only their projection."""
+    return all(robot.n_path_joints(a) == robot.dim for a in arms)
+
+
+def observed_joint_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """``arm``'s train commands (N, c) and joint errors J_i^-1 r_i (N, n), r_i its residuals
+    under parameters x and J_i the robot's joint Jacobian (:func:`joint_errors_observed`); on
+    a planar arm the linearisation of :func:`joint_errors`."""
+    u, d = rig.rows(arm, "train")
+    side = side_rows(rig, robot, arm, "train")
+    res = d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u), side))
+    jac = joint_jacobian(robot, jnp.asarray(x), arm, jnp.asarray(u), side)
+    return u, np.linalg.solve(np.asarray(jac), res[..., None])[..., 0]
 
 
 def joint_errors(arm: kin.Arm, u: np.ndarray, d_obs: np.ndarray) -> np.ndarray:

@@ -159,11 +159,10 @@ def error_arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
     """The model's learned state as arrays: traced, not baked in, by the compiled samplers."""
     kind = error_kind(model)
     if kind == "IND":
-        a, b = model.parts
-        if a.n != b.n:
+        if len({p.n for p in model.parts}) > 1:
             raise ValueError("IND parts were fitted to different numbers of points")
-        x = np.column_stack([a.data[:, 0], b.data[:, 0]])
-        out = {"x": x, "bw_x": np.array([a.bandwidth[0], b.bandwidth[0]])}
+        out = {"x": np.column_stack([p.data[:, 0] for p in model.parts]),
+               "bw_x": np.array([p.bandwidth[0] for p in model.parts])}
     elif kind == "CORR":
         out = {"x": model.parts[0].data, "bw_x": model.parts[0].bandwidth}
     elif kind == "COND":
@@ -179,12 +178,11 @@ def error_distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | N
                   ) -> dist.Distribution:
     x, bw = arrays["x"], arrays["bw_x"]
     if kind == "IND":
-        # Two 1-D mixtures side by side (a batch of 2) made into one 2-vector event: the
-        # product density p1(e1) p2(e2) that IND is, and exactly sampleable.
-        n = x.shape[0]
-        loc = x.T  # (2, N)
+        # 1-D mixtures side by side (a batch of n joints) made into one n-vector event: the
+        # product density p1(e1) p2(e2) ... that IND is, and exactly sampleable.
+        loc = x.T  # (n, N)
         scale = jnp.broadcast_to(bw[:, None], loc.shape)
-        mix = dist.Categorical(probs=jnp.full((2, n), 1.0 / n))
+        mix = dist.Categorical(probs=jnp.full(loc.shape, 1.0 / loc.shape[1]))
         return dist.MixtureSameFamily(mix, dist.Normal(loc, scale)).to_event(1)
     if kind == "CORR":
         return kde_distribution(x, bw)

@@ -27,6 +27,7 @@ import numpy as np
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig, RigError
 from bayesrob.errors.latent_errors import LATENT_MODELS
+from bayesrob.errors.noise_models import joint_errors_observed
 from bayesrob.predict.draws import fit_modules, fit_paper_modules
 from bayesrob.predict.fusion import DEFAULT_FUSION, DRAWS, FUSIONS
 from bayesrob.predict.regions import hdr_levels, hdr_sizes
@@ -231,8 +232,8 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
                      ) -> AssemblyPrediction:
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
-    ``model``: a joint-error model (default ``cond`` on planar arms, ``ind`` on chains and
-    with ``groups``).
+    ``model``: a joint-error model (default ``cond`` where the rows observe the joint errors,
+    ``ind`` where they are latent and with ``groups``).
     ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``). Given for a
     planar rig, its arms are predicted as the 2-joint chains they are (the chain path: latent
     joint errors, aimed through the calibrated model with its gravity groups), so arms that
@@ -259,19 +260,22 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
     if targets.shape[1] != dim:
         raise RigError(f"{rig.path}: the rig measures {dim}-D points but the targets have "
                        f"{targets.shape[1]} coordinates")
-    # The one choice left between robots: the paper's planar arms without ``groups`` keep
-    # their eight-parameter calibration and kernel joint-error models; every other arm is
-    # calibrated over its groups with a latent joint-error population. Aiming, draws and
-    # regions are one path from there.
-    paper = groups is None and not rig.is_chain
+    # The one choice between joint-error models: a Parzen density of the joint errors where
+    # the rows observe them (as many joints as measured coordinates), else the latent
+    # population; calibration ``groups`` asked for take the population on every robot (the
+    # physics-fitted prediction of planar arms is measured so). The paper's planar arms take
+    # their closed-form specialisation (eight parameters, closed-form inverse, exact grid).
+    kernel = groups is None and joint_errors_observed(rig.robot, members)
+    paper = kernel and not rig.is_chain
     if masses != "fitted" and not rig.is_chain:
         raise RigError(f"{rig.path}: planar arms have no link masses to hold (masses "
                        f"{masses!r} is for URDF rigs)")
-    model = model or ("cond" if paper else LATENT_MODELS[0])
+    model = model or ("cond" if kernel else LATENT_MODELS[0])
     try:
         mods = (fit_paper_modules(rig, members, model, models_dir, targets) if paper
                 else fit_modules(rig, members, model, groups or kin.GROUPS, seed=seed,
-                                 masses=masses, targets=targets))
+                                 masses=masses, targets=targets, models_dir=models_dir,
+                                 latent=not kernel))
     except RigError:
         raise
     except ValueError as e:

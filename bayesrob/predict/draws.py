@@ -1,11 +1,12 @@
 """Draws of where an assembly's end point lands: one arm, or any number linked, 2-D or 3-D.
 
-Each arm is calibrated on its own ``train`` rows and its joint-error population fitted to their
-residuals (:mod:`bayesrob.errors.latent_errors`). At a target, each arm is aimed through its
-calibrated model (:mod:`.aiming`), and its *free* end point is the push-forward of the
-population: draws of (Sigma, s), then of the joint errors e ~ N(0, Sigma), through the
-calibrated robot, plus
-N(0, s^2) for what no joint explains.
+Each arm is calibrated on its own ``train`` rows and its joint-error model fitted to their
+residuals: a Parzen density of the joint errors J^-1 r where the rows observe them (as many
+joints as measured coordinates, :func:`bayesrob.errors.noise_models.joint_errors_observed`),
+else the latent population (:mod:`bayesrob.errors.latent_errors`). At a target, each arm is
+aimed through its calibrated model (:mod:`.aiming`), and its *free* end point is the
+push-forward of its joint errors through the calibrated robot (the population's: draws of
+(Sigma, s), then of e ~ N(0, Sigma), plus N(0, s^2) for what no joint explains).
 
 Linked arms share one point (:mod:`.fusion`):
 
@@ -43,13 +44,20 @@ from bayesrob.errors.latent_errors import (
     fit_latent_errors,
     joint_jacobian,
 )
-from bayesrob.errors.noise_models import FittedNoiseModel, discover_models, fit_noise_models
+from bayesrob.errors.noise_models import (
+    FittedNoiseModel,
+    discover_models,
+    fit_noise_models,
+    joint_errors_observed,
+    observed_joint_errors,
+)
+from bayesrob.inference.sampling import joint_error_distribution
 from bayesrob.predict.aiming import aim, check_reach
 from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium, fused_draws
 from bayesrob.predict.stiffness import StiffnessPrior, stiffness_draws, stiffness_priors
 
-__all__ = ["CalibratedModules", "PaperModules", "fit_modules", "fit_paper_modules",
-           "check_module_arms", "assembly_draws",
+__all__ = ["CalibratedModules", "PaperModules", "KernelJointErrors", "fit_modules",
+           "fit_paper_modules", "fit_joint_errors", "check_module_arms", "assembly_draws",
            "free_draws", "parameter_draws", "product_draws_nuts"]
 
 # Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
@@ -60,11 +68,34 @@ POINTS_PER_CALL = 100_000
 
 
 @dataclass
+class KernelJointErrors:
+    """An arm's Parzen joint-error density (IND / CORR / COND of ``models/``), fitted to the
+    joint errors its rows observe, drawn as :class:`LatentJointErrors` draws."""
+
+    arm: str
+    fitted: FittedNoiseModel
+
+    @property
+    def noise_sd(self) -> np.ndarray:
+        # each row's J^-1 r carried the tracker's noise into the density: none is left over
+        return np.zeros(1)
+
+    def draw(self, key: jax.Array, shape: tuple[int, int], u: np.ndarray
+             ) -> tuple[jax.Array, jax.Array]:
+        """Joint errors (S, T, n) at commands u (T, c) (COND conditions on them) and the
+        noise sds (S,), all zero."""
+        d = joint_error_distribution(self.fitted, jnp.atleast_2d(jnp.asarray(u)))
+        if d.batch_shape != (shape[1],):
+            d = d.expand((shape[1],))
+        return d.sample(key, (shape[0],)), jnp.zeros(shape[0])
+
+
+@dataclass
 class CalibratedModules:
-    """Calibrated arms, their fitted joint-error populations and their stiffness priors."""
+    """Calibrated arms, their fitted joint-error models and their stiffness priors."""
 
     calibration: Calibration
-    errors: dict[str, LatentJointErrors]
+    errors: dict[str, LatentJointErrors | KernelJointErrors]
     # per arm: the log joint stiffnesses' prior
     stiffness: dict[str, StiffnessPrior]
     # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
@@ -130,10 +161,14 @@ def _aim_arm(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
     return u
 
 
-def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
+def check_module_arms(rig: Rig, arms: Sequence[str], model: str, models_dir: Any = None,
+                      latent: bool = False) -> None:
     """Refuse, in one line, a joint-error model or an arm :func:`fit_modules` cannot fit
     (not measured, or without train rows of its own)."""
-    check_latent_model(model)
+    if not latent and joint_errors_observed(rig.robot, arms):
+        discover_models(models_dir, [model])
+    else:
+        check_latent_model(model)
     measured = rig.robot.measured_arms()
     for a in arms:
         if a not in measured:
@@ -144,12 +179,29 @@ def check_module_arms(rig: Rig, arms: Sequence[str], model: str) -> None:
                            "and fit its joint-error model on")
 
 
+def fit_joint_errors(rig: Rig, cal: Calibration, arm: str, model: str, seed: int = 0,
+                     models_dir: Any = None, latent: bool = False
+                     ) -> LatentJointErrors | KernelJointErrors:
+    """``arm``'s joint-error model fitted to its train residuals under ``cal``: a Parzen
+    density of its joint errors where the rows observe them
+    (:func:`~bayesrob.errors.noise_models.joint_errors_observed`), else (or ``latent``) the
+    latent population."""
+    if latent or not joint_errors_observed(cal.robot, [arm]):
+        return fit_latent_errors(rig, cal.robot, cal.x, arm, model, int(cal.ident.free.sum()),
+                                 seed=seed)
+    spec = discover_models(models_dir, [model])[0]
+    u, errors = observed_joint_errors(rig, cal.robot, cal.x, arm)
+    return KernelJointErrors(arm, spec.fit(errors, u))
+
+
 def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                 groups: tuple[str, ...] = kin.GROUPS, seed: int = 0,
                 calibration: Calibration | None = None,
                 parameter_uncertainty: bool = False, masses: str = "fitted",
-                sag_steps: int = 1, targets: np.ndarray | None = None) -> CalibratedModules:
-    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
+                sag_steps: int = 1, targets: np.ndarray | None = None,
+                models_dir: Any = None, latent: bool = False) -> CalibratedModules:
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors
+    (:func:`fit_joint_errors`, ``latent`` as its).
 
     ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
     covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
@@ -163,13 +215,12 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
     (:func:`aim`, kept in ``commands``) before the joint-error fits, which take most of the
     time, so a target out of reach is refused after the calibration alone.
     """
-    check_module_arms(rig, arms, model)  # before the calibration, which takes the time
+    check_module_arms(rig, arms, model, models_dir, latent)
     cal = (calibration if calibration is not None
            else calibrate(rig, groups, masses=masses, sag_steps=sag_steps))
     commands = ({} if targets is None
                 else {a: aim(rig, cal.robot, cal.x, a, targets) for a in arms})
-    n_free = int(cal.ident.free.sum())
-    errors = {a: fit_latent_errors(rig, cal.robot, cal.x, a, model, n_free, seed=seed + i)
+    errors = {a: fit_joint_errors(rig, cal, a, model, seed + i, models_dir, latent)
               for i, a in enumerate(arms)}
     stiffness = stiffness_priors(rig, arms, cal)
     cov = parameter_covariance(rig, cal) if parameter_uncertainty else None
@@ -198,7 +249,7 @@ def free_draws(mods: CalibratedModules, arm: str, u: np.ndarray, xs: jax.Array, 
     vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs), as the
     tracker measures it (``measured``: with its noise) or as it is."""
     n = xs.shape[0]
-    e, noise = mods.errors[arm].draw(key, (n, len(u)))
+    e, noise = mods.errors[arm].draw(key, (n, len(u)), u)
     # the rest of the pose weighs only where the model has gravity in it
     rest = (None if side is None or mods.robot.gravity is None
             else {b: jnp.asarray(v) for b, v in side.items()})
@@ -248,6 +299,9 @@ def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Seque
     key = jax.random.PRNGKey(seed)
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     if fusion == "product" and len(arms) > 1:
+        if any(isinstance(mods.errors[a], KernelJointErrors) for a in arms):
+            raise ValueError("the product rule samples linked chain arms under latent joint-"
+                             "error populations; kernel densities take the equilibrium rule")
         return product_draws_nuts(mods, arms, commands, seed=seed, num_samples=num_samples)
     xs = parameter_draws(mods, jax.random.fold_in(key, 99), num_samples)
     linked = len(arms) > 1

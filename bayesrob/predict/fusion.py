@@ -20,9 +20,9 @@
   reach.
 
 Stiffness: the rig's ``stiffness`` per arm when given; otherwise only ratios matter, and each
-joint's log stiffness gets an independent ``Normal(0, STIFFNESS_LOG_SD)`` prior (one value per
-arm and joint, shared by every target of a draw: an arm is as stiff at one target as at the
-next).
+joint's log stiffness is drawn from the planar servo arm's prior
+(:func:`bayesrob.predict.stiffness.given_or_servo_prior`: one value per arm and joint, shared by
+every target of a draw: an arm is as stiff at one target as at the next).
 
 :func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
 model (the KDE distributions of :mod:`bayesrob.inference.sampling`), pushed through the arm,
@@ -63,11 +63,11 @@ from bayesrob.inference.sampling import (
     is_sampleable,
 )
 from bayesrob.predict.regions import kernels
+from bayesrob.predict.stiffness import given_or_servo_prior
 
 __all__ = [
     "FUSIONS",
     "DEFAULT_FUSION",
-    "STIFFNESS_LOG_SD",
     "springs",
     "balance",
     "tracker_remainder",
@@ -79,12 +79,6 @@ __all__ = [
     "fused_posterior",
 ]
 
-# Prior sd of each joint's log stiffness when the rig does not give it: a factor e^0.4 = 1.5
-# at one sd, about the spread of the simulator's per-seed draws (0.3 per arm and 0.3 per
-# joint: sqrt(2) 0.3 = 0.42 per joint). Chosen on tuning rigs (seeds 101-106, stiffnesses
-# drawn), never on the reported ones: the widest of 0.75 / 0.5 / 0.4 / 0.3 / 0.25 that met
-# every linked target there (docs/fusion.md).
-STIFFNESS_LOG_SD = 0.4
 # Draws per target: the KDE's bandwidth is n^(-1/6) of the spread (0.25 at 4000), and the
 # HDR level of a point moves by about sqrt(p (1 - p) / n) < 0.008.
 DRAWS = 4000
@@ -160,17 +154,16 @@ def equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
 
 
 def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
-    """log k (A, 2): given, or drawn from the prior (only ratios matter)."""
-    if stiffness is not None and all(s is not None for s in stiffness):
-        return jnp.log(jnp.asarray(stiffness, dtype=jnp.float64))
-    loc = jnp.zeros((n_arms, 2))
-    if stiffness is not None:  # some arms known: keep their values, draw the others around 1
-        loc = jnp.asarray([np.log(s) if s is not None else np.zeros(2) for s in stiffness])
-    drawn = numpyro.sample("log_stiffness",
-                           dist.Normal(loc, STIFFNESS_LOG_SD).to_event(2))
-    if stiffness is None:
-        return drawn
-    known = jnp.asarray([[s is not None] * 2 for s in stiffness])
+    """log k (A, 2): given, or drawn from the prior (only ratios matter): one site for every
+    arm's joints, a known arm's kept at its values."""
+    priors = [given_or_servo_prior(s) for s in (stiffness or [None] * n_arms)]
+    loc = jnp.asarray(np.stack([p.centre for p in priors]))
+    known = np.stack([p.sd == 0 for p in priors])
+    if known.all():
+        return loc
+    # the servo prior gives every joint it draws one width
+    (sd,) = {float(v) for p in priors for v in p.sd[p.sd > 0]}
+    drawn = numpyro.sample("log_stiffness", dist.Normal(loc, sd).to_event(2))
     return jnp.where(known, loc, drawn)
 
 
@@ -281,11 +274,9 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
         theta, _ = kin.inverse(a.params, jnp.asarray(free), a.elbow)
         frees.append(free)
         thetas.append(theta)
-    log_k = Predictive(lambda: _log_stiffness(len(arms), stiffness), num_samples=num_samples,
-                       return_sites=["log_stiffness"])(key).get("log_stiffness")
-    if log_k is None:
-        log_k = jnp.broadcast_to(jnp.log(jnp.asarray(stiffness, dtype=jnp.float64)),
-                                 (num_samples, len(arms), 2))
+    log_k = Predictive(lambda: numpyro.deterministic("log_k", _log_stiffness(len(arms),
+                                                                         stiffness)),
+                       num_samples=num_samples)(key)["log_k"]
     k = jnp.stack([springs(kin.jacobian(a.params, th), log_k[:, i, None, :])
                    for i, (a, th) in enumerate(zip(arms, thetas, strict=True))])
     return np.asarray(balance(jnp.asarray(np.stack(frees)), k))
