@@ -765,7 +765,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     from bayesrob.progress import progress as make_progress
 
     rule = rule or DecisionRule()
-    candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())
+    candidates = fx.resolve_effects(candidates)
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
     # Rounds are not known in advance; the total is the usual case (one step per effect).

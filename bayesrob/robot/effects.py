@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
+from bayesrob.data.vocabulary import CHAIN_EFFECTS
 
 
 @dataclass(frozen=True)
@@ -203,17 +204,25 @@ def effect_names() -> tuple[str, ...]:
     return tuple(REGISTRY)
 
 
-def resolve_effects(names: Sequence[str]) -> list[str]:
-    """Planar candidate effect names, aliases resolved and repeats dropped; a chain-only name
-    or an unknown one is a ``ValueError`` of one line saying what to ask for instead."""
+def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list[str]:
+    """Candidate effect names for a planar rig (the registered effects) or, with ``chain``, a
+    URDF/DH chain (the calibration groups' effects): None asks for all; each name is said once
+    in that robot's words (``joint_compliance`` is a planar rig's ``gravity_sag``). A name the
+    robot has no model for is a one-line ``ValueError`` saying what to ask for instead."""
+    known = CHAIN_EFFECTS if chain else REGISTRY
+    aliases = {p: c for c, p in ALIASES.items()} if chain else ALIASES
+    if names is None:
+        return list(known)
     out: list[str] = []
     for n in names:
-        if n in CHAIN_ONLY:
-            raise ValueError(f"effect {n!r} is for URDF/DH chains: {CHAIN_ONLY[n]} (planar "
-                             f"rigs: {', '.join(REGISTRY)}; joint_compliance is gravity_sag)")
-        n = ALIASES.get(n, n)
-        if n not in REGISTRY:
-            raise ValueError(f"unknown effect {n!r}; known: {', '.join(REGISTRY)}")
+        n = aliases.get(n, n)
+        if n not in known:
+            raise ValueError(
+                f"effect {n!r} is not modelled for URDF/DH chains (choose from "
+                f"{', '.join([*CHAIN_EFFECTS, *aliases])})" if chain else
+                f"effect {n!r} is for URDF/DH chains: {CHAIN_ONLY[n]} (planar rigs: "
+                f"{', '.join(REGISTRY)}; joint_compliance is gravity_sag)" if n in CHAIN_ONLY else
+                f"unknown effect {n!r}; known: {', '.join(REGISTRY)}")
         if n not in out:
             out.append(n)
     return out
