@@ -41,7 +41,6 @@ import jax.numpy as jnp
 import numpy as np
 import numpyro
 import numpyro.distributions as dist
-import xarray as xr
 from numpyro.distributions import constraints
 from numpyro.infer import Predictive
 from numpyro.infer.hmc import hmc
@@ -843,44 +842,48 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     contraction from their over-dispersed start.
     """
     init = np.asarray(init, float)
-    w, t_count, _ = init.shape
+    t_count = init.shape[1]
     cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     lp = linked_log_density(models, arms)
-    if moves is None:
-        moves = _emcee_moves()
     rng = np.random.default_rng(seed)
     bar = _progress(t_count * n_steps, progress, "emcee", "steps", "compiling")
-    t0 = time.perf_counter()
-    # Compile outside the timed run, for both shapes emcee uses: the whole ensemble (first
-    # step) and each half of it (the red-blue moves).
     first = tuple(jnp.asarray(u[:1]) for u in cmds)
-    for k in {w, w // 2, w - w // 2}:
-        jax.block_until_ready(lp(init[:k, 0, :], first))
-    compile_seconds = time.perf_counter() - t0
+    compile_seconds = _compile_halves(lambda x: lp(x, first), init[:, 0, :])
     bar.set_postfix("sampling")
-    posteriors = []
+    draws = []
     t0 = time.perf_counter()
-    # KDEMove solves 2x2 triangular systems through scipy every step: multi-threaded BLAS
-    # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
-    with threadpool_limits(limits=1, user_api="blas"):
-        for t in range(t_count):
-            c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
-
-            def log_prob_fn(x, c=c):
-                return np.asarray(lp(x, c))
-
-            sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
-            sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
-            for _ in sampler.sample(init[:, t, :], iterations=n_steps):
-                bar.update()
-            one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
-                                dims={"d": ["xy"]}, coords=_COORDS)
-            posteriors.append(one.posterior.isel(draw=slice(burn, None)))
+    for t in range(t_count):
+        c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
+        draws.append(_ensemble(lambda x, c=c: np.asarray(lp(x, c)), init[:, t, :],
+                               int(rng.integers(2**31)), n_steps, burn, bar, moves))
     seconds = time.perf_counter() - t0
     bar.close()
-    post = xr.concat(posteriors, dim="target").transpose("chain", "draw", "target", "xy")
-    idata = az.InferenceData(posterior=post)
+    idata = az.from_dict(posterior={"d": np.stack(draws, axis=2)}, dims=_DIMS, coords=_COORDS)
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
+
+
+def _compile_halves(log_prob: Callable, x: np.ndarray) -> float:
+    """Seconds to compile ``log_prob`` outside the timed run, for both shapes emcee calls it
+    with: the whole ensemble ``x`` (first step) and each half of it (the red-blue moves)."""
+    t0 = time.perf_counter()
+    for k in {len(x), len(x) // 2, len(x) - len(x) // 2}:
+        jax.block_until_ready(log_prob(x[:k]))
+    return time.perf_counter() - t0
+
+
+def _ensemble(log_prob: Callable, init: np.ndarray, state: int, n_steps: int, burn: int, bar,
+              moves: Any = None) -> np.ndarray:
+    """emcee's EnsembleSampler from ``init`` (W, dim), every walker in one call of
+    ``log_prob``, its random state seeded by ``state``: the draws (W, n_steps - burn, dim)."""
+    sampler = emcee.EnsembleSampler(*init.shape, log_prob, vectorize=True,
+                                    moves=_emcee_moves() if moves is None else moves)
+    sampler.random_state = np.random.RandomState(state).get_state()
+    # KDEMove solves small triangular systems through scipy every step: multi-threaded BLAS
+    # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
+    with threadpool_limits(limits=1, user_api="blas"):
+        for _ in sampler.sample(init, iterations=n_steps):
+            bar.update()
+    return np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]
 
 
 # --------------------------------------------------------------------------------------------
@@ -986,22 +989,13 @@ def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 250
     """emcee's EnsembleSampler on ``log_density`` of one point, walkers starting at ``init``
     (W, dim), with :func:`run_emcee`'s moves and burn-in."""
     init = np.asarray(init, float)
-    w, dim = init.shape
     batch = jax.jit(jax.vmap(log_density))
+    compile_seconds = _compile_halves(lambda x: batch(jnp.asarray(x)), init)
     t0 = time.perf_counter()
-    for k in {w, w // 2, w - w // 2}:
-        jax.block_until_ready(batch(jnp.asarray(init[:k])))
-    compile_seconds = time.perf_counter() - t0
-    sampler = emcee.EnsembleSampler(w, dim, lambda x: np.asarray(batch(jnp.asarray(x))),
-                                    vectorize=True, moves=_emcee_moves())
-    sampler.random_state = np.random.RandomState(seed).get_state()
-    t0 = time.perf_counter()
-    with threadpool_limits(limits=1, user_api="blas"), \
-            _progress(n_steps, progress, "emcee", "steps", "sampling") as bar:
-        for _ in sampler.sample(init, iterations=n_steps):
-            bar.update()
+    with _progress(n_steps, progress, "emcee", "steps", "sampling") as bar:
+        d = _ensemble(lambda x: np.asarray(batch(jnp.asarray(x))), init, seed, n_steps, burn,
+                      bar)
     seconds = time.perf_counter() - t0
-    d = np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]  # (walker, draw, dim)
     idata = _point_idata(d)
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
 
@@ -1117,6 +1111,13 @@ def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
 
 
+def _grid_entry(grid: GridPosterior | DensityGrid, **extra: float) -> dict:
+    """The grid reference's entry of ``doc["samplers"]`` (its one target)."""
+    return {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
+            "cell_mm": grid.cell_mm[0].tolist(), "n": grid.n, "box_lo": grid.lo[0].tolist(),
+            **extra, "edge_mass": float(grid.edge_mass[0])}
+
+
 def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "cond",
                   sampler: str = "all", *, seed: int = 0, progress: bool = False,
                   num_chains: int = 4, num_warmup: int = NUTS_WARMUP,
@@ -1191,11 +1192,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                 "through its Jacobian), not at the grid",
         "samplers": {},
     }
-    grid_doc = {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
-                "cell_mm": [float(x) for x in grid.cell_mm[0]], "n": grid.n,
-                "box_lo": [float(x) for x in grid.lo[0]],
-                "edge_mass": float(grid.edge_mass[0])}
-    doc["samplers"]["grid"] = grid_doc
+    doc["samplers"]["grid"] = _grid_entry(grid)
     results: dict[str, SamplerResult] = {}
     if sampler in ("nuts", "all") and not truncated:
         results["nuts"] = run_nuts(models, arm_list, commands,
@@ -1299,11 +1296,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                 f"{INIT_OVERDISPERSION:g} x the arms' own spread about their centres, not at "
                 "the grid",
         "params": list(cal.groups),
-        "samplers": {"grid": {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
-                              "cell_mm": [float(v) for v in grid.cell_mm[0]], "n": grid.n,
-                              "box_lo": [float(v) for v in grid.lo[0]],
-                              "box_half_width_mm": half,
-                              "edge_mass": float(grid.edge_mass[0])}},
+        "samplers": {"grid": _grid_entry(grid, box_half_width_mm=half)},
     }
     _judge(doc, grid, results, tol, burn, sampler,
            [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
