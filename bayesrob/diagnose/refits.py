@@ -627,11 +627,9 @@ def _pooled_errors(model: dict[str, ArmEval]) -> dict:
 
 def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
     def errs(e: ArmEval) -> dict:
-        return {"train_error_mm": float(np.mean(e.train_errors)),
-                "heldout_error_mm": float(np.mean(e.val_errors)) if len(e.val_errors) else None,
-                "cv_error_mm": float(np.mean(e.cv_errors)), "sigma_mm": e.sigma_mm,
-                "holdout_error_mm": (float(np.mean(e.hold_errors)) if len(e.hold_errors)
-                                     else None)}
+        p = _pooled_errors({e.arm: e})
+        return {"train_error_mm": p["train"], "heldout_error_mm": p["heldout"],
+                "cv_error_mm": p["cv"], "sigma_mm": e.sigma_mm, "holdout_error_mm": p["holdout"]}
 
     return {"effects": list(after.effects), "before": errs(before), "after": errs(after),
             "magnitudes": after.magnitudes(data),

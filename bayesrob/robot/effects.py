@@ -200,10 +200,6 @@ CHAIN_ONLY = {
 }
 
 
-def effect_names() -> tuple[str, ...]:
-    return tuple(REGISTRY)
-
-
 def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list[str]:
     """Candidate effect names for a planar rig (the registered effects) or, with ``chain``, a
     URDF/DH chain (the calibration groups' effects): None asks for all; each name is said once
@@ -390,11 +386,8 @@ class Backlash(Effect):
     def settings(self, params, u):
         # Settings that sort the arm's commands into the same sign pattern fit identically:
         # keep one rho per distinct pattern (its middle one, robust to small refits).
-        theta = np.asarray(params.gain) * np.asarray(u, float) + np.asarray(params.offset)
-        g = np.asarray(self.ctx.gravity, float)
-        t12 = theta[:, 0] + theta[:, 1]
-        s1 = np.cos(theta[:, 0]) * g[1] - np.sin(theta[:, 0]) * g[0]
-        s12 = np.cos(t12) * g[1] - np.sin(t12) * g[0]
+        theta = kin.servo(params, jnp.asarray(u, dtype=jnp.float64))
+        s1, s12 = (np.asarray(s) for s in lever_signatures(theta, self.ctx.gravity))
         rho = self.RHO_GRID[:, None]
         # Patterns compare the sides far from the line: floating points do not split them.
         signs = np.round(np.tanh(((1 - rho) * s1[None] + rho * s12[None]) / self.FLOAT_WIDTH),
