@@ -60,19 +60,9 @@ from bayesrob.report.tables import format_table
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = [
-    "PointScores",
-    "ModelComparison",
-    "score_points",
-    "score_setup",
-    "holdout_setups",
-    "refit_at_bandwidths",
-    "loo_training_scores",
-    "loo_calibrations",
-    "compare_models",
-    "comparison_figure",
-    "format_comparison",
-]
+__all__ = ["PointScores", "ModelComparison", "score_points", "score_setup", "holdout_setups",
+           "refit_at_bandwidths", "loo_training_scores", "loo_calibrations", "compare_models",
+           "comparison_figure", "format_comparison"]
 
 MASSES = (0.5, 0.9)
 EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.predict.fusion)

@@ -58,40 +58,13 @@ from bayesrob.predict.regions import density_levels
 from bayesrob.progress import FIRST_LINE_S
 from bayesrob.report.tables import grouped_notes
 
-__all__ = [
-    "SAMPLERS",
-    "COARSE_GRID",
-    "CheckTolerances",
-    "GridPosterior",
-    "NutsSampler",
-    "SamplerResult",
-    "SampleReport",
-    "kde_distribution",
-    "joint_error_distribution",
-    "joint_error_log_prob",
-    "is_sampleable",
-    "arm_model",
-    "prior_predictive",
-    "arm_log_density",
-    "linked_model",
-    "linked_log_density",
-    "grid_posterior",
-    "point_log_density",
-    "prior_spread",
-    "initial_points",
-    "check_pulse_limits",
-    "check_reach",
-    "run_nuts",
-    "run_emcee",
-    "cross_check",
-    "cov_rel_error",
-    "DensityGrid",
-    "density_grid",
-    "nuts_density",
-    "emcee_density",
-    "sample_linked",
-    "format_sample",
-]
+__all__ = ["SAMPLERS", "COARSE_GRID", "CheckTolerances", "GridPosterior", "NutsSampler",
+           "SamplerResult", "SampleReport", "kde_distribution", "joint_error_distribution",
+           "joint_error_log_prob", "is_sampleable", "arm_model", "prior_predictive",
+           "arm_log_density", "linked_model", "linked_log_density", "grid_posterior",
+           "point_log_density", "prior_spread", "initial_points", "check_pulse_limits",
+           "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error", "DensityGrid",
+           "density_grid", "nuts_density", "emcee_density", "sample_linked", "format_sample"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
