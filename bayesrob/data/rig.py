@@ -297,14 +297,10 @@ def _read_text(path: Path) -> str:
 def _pair(value: object, where: str, positive: bool = False) -> tuple[float, float]:
     if not isinstance(value, list | tuple) or len(value) != 2:
         raise RigError(f"{where}: expected a list of two numbers, got {value!r}")
-    out = []
-    for v in value:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise RigError(f"{where}: expected finite numbers, got {value!r}")
-        if positive and v <= 0:
-            raise RigError(f"{where}: values must be positive, got {value!r}")
-        out.append(float(v))
-    return out[0], out[1]
+    a, b = _numbers(value, 2, where)
+    if positive and min(a, b) <= 0:
+        raise RigError(f"{where}: values must be positive, got {value!r}")
+    return float(a), float(b)
 
 
 def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> None:
@@ -319,16 +315,11 @@ def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> Non
             raise RigError(f"{where}: {what} has unknown key {key!r}{hint}")
 
 
-def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
-    if not isinstance(table, dict):
-        raise RigError(f"{where}: [arms.{name}] must be a table")
+def _parse_arm(name: str, table: dict, where: str) -> ArmSpec:
     _check_keys(table, ARM_KEYS, where, f"[arms.{name}]")
     for key in ("base", "links", "gain", "offset"):
         if key not in table:
             raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
-    if "+" in name or not name.strip() or "," in name or name != name.strip():
-        raise RigError(f"{where}: arm name {name!r} may not be empty, contain '+' or ',', or "
-                       "start or end with a space")
     base = _pair(table["base"], f"{where}: arms.{name}.base")
     links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
     gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
@@ -494,13 +485,13 @@ def load_rig_toml(path: Path) -> dict:
         raise RigError(f"{path}: arms {', '.join(chain_arms)} are chains (urdf/dh) but "
                        f"{', '.join(planar)} planar (base/links): describe all arms one way "
                        "(a planar arm is a 2-row DH table)")
+    for name in arms_raw:
+        if "+" in name or "," in name or not name.strip() or name != name.strip():
+            raise RigError(f"{path}: arm name {name!r} may not be empty, contain '+' or ',', "
+                           "or start or end with a space")
+        if not isinstance(arms_raw[name], dict):
+            raise RigError(f"{path}: [arms.{name}] must be a table")
     if chain_arms:
-        for name in arms_raw:
-            if "+" in name or "," in name or not name.strip() or name != name.strip():
-                raise RigError(f"{path}: arm name {name!r} may not be empty, contain '+' or "
-                               "',', or start or end with a space")
-            if not isinstance(arms_raw[name], dict):
-                raise RigError(f"{path}: [arms.{name}] must be a table")
         arms: dict = {name: _parse_urdf_dh_arm(name, tbl, str(path), path.parent)
                       for name, tbl in arms_raw.items()}
         chains = _ordered_chains(arms, str(path))
