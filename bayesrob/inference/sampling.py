@@ -55,7 +55,7 @@ from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.aiming import check_pulse_limits, check_reach
 from bayesrob.predict.grid import Grid
 from bayesrob.predict.regions import density_levels
-from bayesrob.progress import FIRST_LINE_S
+from bayesrob.progress import FIRST_LINE_S, Progress
 from bayesrob.report.tables import grouped_notes
 
 __all__ = ["SAMPLERS", "COARSE_GRID", "CheckTolerances", "GridPosterior", "NutsSampler",
@@ -730,7 +730,8 @@ class NutsSampler:
         z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, 2))
         keys = jax.random.split(jax.random.PRNGKey(seed), t * c)
         # A structure's first run compiles for seconds: the report starts before that.
-        bar = _progress(self.chunks, self.progress_bar, "nuts", "chunks", "compiling")
+        bar = Progress(self.chunks, "nuts", "chunks", enabled=self.progress_bar,
+                       postfix="compiling")
         init_fn, advance_fn, compile_s = self._functions(statics, keys, z0, lane_cmds, params)
         bar.set_postfix("sampling")
         t0 = time.perf_counter()
@@ -786,14 +787,6 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     return sampler.run(models, arms, commands, init, seed)
 
 
-def _progress(total: int | None, enabled: bool, desc: str, unit: str = "step",
-              postfix: str = "", first_after: float = 0.0):
-    from bayesrob.progress import progress
-
-    return progress(total, desc, unit, enabled=enabled, postfix=postfix,
-                    first_after=first_after)
-
-
 def _emcee_moves() -> list:
     """:func:`run_emcee`'s default moves: 70% differential evolution, 30% ``KDEMove``."""
     return [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
@@ -819,7 +812,7 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     lp = linked_log_density(models, arms)
     rng = np.random.default_rng(seed)
-    bar = _progress(t_count * n_steps, progress, "emcee", "steps", "compiling")
+    bar = Progress(t_count * n_steps, "emcee", "steps", enabled=progress, postfix="compiling")
     first = tuple(jnp.asarray(u[:1]) for u in cmds)
     compile_seconds = _compile_halves(lambda x: lp(x, first), init[:, 0, :])
     bar.set_postfix("sampling")
@@ -945,7 +938,7 @@ def nuts_density(log_density: Callable, init: np.ndarray, *, seed: int = 0,
                   target_accept_prob=NUTS_TARGET_ACCEPT)
     mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
                 num_chains=len(init), chain_method="vectorized", progress_bar=False)
-    with _progress(None, progress, "nuts", postfix="compiling and sampling"):
+    with Progress(None, "nuts", enabled=progress, postfix="compiling and sampling"):
         t0 = time.perf_counter()
         mcmc.run(jax.random.PRNGKey(seed), init_params=jnp.asarray(init),
                  extra_fields=("diverging",))
@@ -965,7 +958,7 @@ def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 250
     batch = jax.jit(jax.vmap(log_density))
     compile_seconds = _compile_halves(lambda x: batch(jnp.asarray(x)), init)
     t0 = time.perf_counter()
-    with _progress(n_steps, progress, "emcee", "steps", "sampling") as bar:
+    with Progress(n_steps, "emcee", "steps", enabled=progress, postfix="sampling") as bar:
         d = _ensemble(lambda x: np.asarray(batch(jnp.asarray(x))), init, seed, n_steps, burn,
                       bar)
     seconds = time.perf_counter() - t0
@@ -1134,8 +1127,8 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     specs = discover_models(models_dir, [model])
     # The steps before the samplers, which report on their own bars. The first line waits a
     # second: a target out of reach, found after the calibration, is then the only line.
-    with _progress(3, progress, "sample", "steps", "calibrating",
-                   first_after=FIRST_LINE_S) as bar:
+    with Progress(3, "sample", "steps", enabled=progress, postfix="calibrating",
+                  first_after=FIRST_LINE_S) as bar:
         cal = calibrate_arms(rig)
         arms = {a: cal[a].arm for a in members}
         target = np.asarray(target, float).reshape(1, 2)
@@ -1224,7 +1217,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     kind = marker_model_kind(spec)
     dim = rig.robot.dim
     target = np.asarray(target, float).reshape(1, dim)
-    with _progress(3, progress, "sample", "steps", "calibrating") as bar:
+    with Progress(3, "sample", "steps", enabled=progress, postfix="calibrating") as bar:
         cal = calibrate(rig, groups if groups is not None else kin.GROUPS)
         commands = {a: aim(rig, cal.robot, cal.x, a, target) for a in members}
         bar.update()
