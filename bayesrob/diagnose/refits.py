@@ -473,6 +473,7 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
         field_[ti] = (resid[ti] + ev.resid_val[vi]) / 2
     points = data.d
     pairs = neighbour_pairs(points)
+    regions = workspace_regions(points)
     out: dict = {"arm": data.name, "n": len(resid), "sigma_mm": ev.sigma_mm}
 
     moran = morans_i(field_, pairs)
@@ -502,7 +503,6 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
         perm_max = np.array([np.max(np.linalg.norm(
             (q := field_[rng.permutation(len(field_))])[i] - q[j], axis=1))
             for _ in range(n_perm)])
-        regions = workspace_regions(points)
         out["largest_jump"] = {
             "mm": float(jumps[k]), "between": [int(i[k]), int(j[k])],
             "where": _pair_where(regions[i[k]], regions[j[k]]),
@@ -510,7 +510,6 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
 
     # Where: the workspace third whose residuals are largest against the rest.
     mag = np.linalg.norm(field_, axis=1)
-    regions = workspace_regions(points)
     names = sorted(set(regions))
     means = {r: float(np.mean(mag[[g == r for g in regions]])) for r in names}
     worst = max(means, key=means.get)
