@@ -350,8 +350,7 @@ def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
     write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
     truth.true_params = {name: float(v) for name, v in zip(plant.robot.layout.names,
                                                             plant.x_true, strict=True)}
-    doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
-    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": doc}))
+    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": asdict(truth)}))
     return out
 
 
