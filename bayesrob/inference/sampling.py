@@ -64,7 +64,7 @@ __all__ = ["SAMPLERS", "COARSE_GRID", "CheckTolerances", "GridPosterior", "NutsS
            "arm_log_density", "linked_model", "linked_log_density", "grid_posterior",
            "point_log_density", "prior_spread", "initial_points", "check_pulse_limits",
            "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error", "DensityGrid",
-           "density_grid", "nuts_density", "emcee_density", "sample_linked", "format_sample"]
+           "density_grid", "emcee_density", "sample_linked", "format_sample"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
@@ -651,7 +651,8 @@ _COORDS = {"xy": ["x", "y"]}
 
 
 class NutsSampler:
-    """numpyro's NUTS kernel on :func:`linked_model`, compiled once, vectorised over targets.
+    """numpyro's NUTS kernel on :func:`linked_model` (:meth:`run`) or any point's potential
+    (:meth:`sample`), compiled once per potential and shapes, vectorised over targets.
 
     The kernel is ``numpyro.infer.hmc.hmc(..., algo="NUTS")`` (the one ``numpyro.infer.NUTS``
     wraps), with its own step-size and dense mass-matrix adaptation, driven by a jit-compiled
@@ -680,39 +681,36 @@ class NutsSampler:
         self.chunks = max(c for c in range(1, max(1, chunks) + 1) if total % c == 0)
         self._compiled: dict[Any, tuple[Any, Any, float]] = {}
 
-    def _functions(self, statics: tuple[_ArmStatic, ...], keys, z0, commands, params):
-        leaves, treedef = jax.tree.flatten(params)
-        key = (statics, z0.shape, tuple(c.shape for c in commands), treedef,
-               tuple(jnp.shape(x) for x in leaves))
+    def _functions(self, potential: Callable, keys, z0, lane, shared):
+        leaves, treedef = jax.tree.flatten((lane, shared))
+        key = (potential, z0.shape, treedef, tuple(jnp.shape(x) for x in leaves))
         if key in self._compiled:
             return self._compiled[key]
-        program = functools.partial(_linked_program, statics=statics)
 
-        def potential_gen(commands, params):
-            return lambda z: -log_density(program, (commands, params), {}, {"d": z})[0]
+        def potential_gen(lane, shared):
+            return lambda z: potential(z, lane, shared)
 
         init_kernel, sample_kernel = hmc(potential_fn_gen=potential_gen, algo="NUTS")
         length = (self.num_warmup + self.num_samples) // self.chunks
 
-        def init_one(key, z0, commands, params):
+        def init_one(key, z0, lane, shared):
             return init_kernel(z0, self.num_warmup, dense_mass=self.dense_mass,
                                target_accept_prob=self.target_accept_prob,
                                max_tree_depth=self.max_tree_depth,
-                               model_args=(commands, params), rng_key=key)
+                               model_args=(lane, shared), rng_key=key)
 
-        def advance_one(state, commands, params):
+        def advance_one(state, lane, shared):
             def step(st, _):
-                st = sample_kernel(st, model_args=(commands, params))
+                st = sample_kernel(st, model_args=(lane, shared))
                 return st, (st.z, st.diverging, st.num_steps, st.potential_energy)
             return jax.lax.scan(step, state, None, length=length)
 
-        lanes = (0, 0, 0, None)  # keys, z0, commands per lane; model arrays shared
-        init_v = jax.jit(jax.vmap(init_one, in_axes=lanes))
+        init_v = jax.jit(jax.vmap(init_one, in_axes=(0, 0, 0, None)))
         advance_v = jax.jit(jax.vmap(advance_one, in_axes=(0, 0, None)))
         t0 = time.perf_counter()
-        init_c = init_v.lower(keys, z0, commands, params).compile()
-        state = jax.eval_shape(init_v, keys, z0, commands, params)
-        advance_c = advance_v.lower(state, commands, params).compile()
+        init_c = init_v.lower(keys, z0, lane, shared).compile()
+        state = jax.eval_shape(init_v, keys, z0, lane, shared)
+        advance_c = advance_v.lower(state, lane, shared).compile()
         self._compiled[key] = (init_c, advance_c, time.perf_counter() - t0)
         return self._compiled[key]
 
@@ -721,24 +719,32 @@ class NutsSampler:
         """Sample every target; ``init`` (num_chains, T, 2) are the chains' starting points."""
         statics, params = _structure(models, arms)
         cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
-        init = np.asarray(init, float)
         c, t = self.num_chains, cmds[0].shape[0]
-        if init.shape != (c, t, 2):
-            raise ValueError(f"init must have shape ({c}, {t}, 2), got {init.shape}")
-        # One lane per (target, chain), target-major; each lane is a 1-target program.
+        if np.shape(init) != (c, t, 2):
+            raise ValueError(f"init must have shape ({c}, {t}, 2), got {np.shape(init)}")
         lane_cmds = tuple(jnp.asarray(np.repeat(u, c, axis=0)[:, None, :]) for u in cmds)
-        z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, 2))
+        return self.sample(_linked_potential(statics), init, lane_cmds, params, seed)
+
+    def sample(self, potential: Callable, init: np.ndarray, lane: Any = (), shared: Any = (),
+               seed: int = 0) -> SamplerResult:
+        """NUTS on ``potential(z, lane, shared)``, the potential energy of one target's point z
+        (1, dim), from ``init`` (num_chains, T, dim): one lane per (target, chain), target-major,
+        each a 1-target program; ``lane`` holds arrays with a row per lane, ``shared`` the
+        arrays every lane reads. The programs are compiled once per potential and shapes."""
+        init = np.asarray(init, float)
+        c, t, dim = init.shape
+        z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, dim))
         keys = jax.random.split(jax.random.PRNGKey(seed), t * c)
         # A structure's first run compiles for seconds: the report starts before that.
         bar = Progress(self.chunks, "nuts", "chunks", enabled=self.progress_bar,
                        postfix="compiling")
-        init_fn, advance_fn, compile_s = self._functions(statics, keys, z0, lane_cmds, params)
+        init_fn, advance_fn, compile_s = self._functions(potential, keys, z0, lane, shared)
         bar.set_postfix("sampling")
         t0 = time.perf_counter()
-        state = init_fn(keys, z0, lane_cmds, params)
+        state = init_fn(keys, z0, lane, shared)
         pieces = []
         for _ in range(self.chunks):
-            state, out = advance_fn(state, lane_cmds, params)
+            state, out = advance_fn(state, lane, shared)
             pieces.append(out)
             bar.update()
         bar.close()
@@ -755,9 +761,17 @@ class NutsSampler:
             sample_stats={"diverging": by_chain(div), "n_steps": by_chain(steps),
                           "lp": -by_chain(pe)},
             dims={**_DIMS, "diverging": ["target"], "n_steps": ["target"], "lp": ["target"]},
-            coords=_COORDS,
+            coords={"xy": ["x", "y", "z"][:dim]},
         )
         return SamplerResult("nuts", idata, seconds, _summary(idata), compile_s)
+
+
+@functools.lru_cache(maxsize=64)
+def _linked_potential(statics: tuple[_ArmStatic, ...]) -> Callable:
+    """The potential energy of :func:`linked_model` at z given (commands, params), one
+    function per structure: what NutsSampler caches its compiled programs on."""
+    program = functools.partial(_linked_program, statics=statics)
+    return lambda z, commands, params: -log_density(program, (commands, params), {}, {"d": z})[0]
 
 
 @functools.lru_cache(maxsize=8)
@@ -917,37 +931,12 @@ def density_grid(log_density: Callable, centre: np.ndarray, half_width_mm: float
                        np.array([edge]), Box(half_width_mm), time.perf_counter() - t0)
 
 
-def _point_idata(d: np.ndarray, stats: dict | None = None) -> az.InferenceData:
-    """(chain, draw, dim) draws of one point as InferenceData with d: (chain, draw, 1, dim)."""
-    dim = d.shape[-1]
-    coords = {"xy": ["x", "y", "z"][:dim]}
-    return az.from_dict(posterior={"d": d[:, :, None, :]},
-                        sample_stats={k: v[:, :, None] for k, v in (stats or {}).items()},
-                        dims={**_DIMS, **{k: ["target"] for k in stats or {}}}, coords=coords)
+def _marker_potential(z: jax.Array, lane: Any, arrays: tuple) -> jax.Array:
+    """Minus the log density of a point z (1, dim) under the product of the arms' marker
+    densities (their :meth:`~bayesrob.errors.marker_density.MarkerDensity.arrays`)."""
+    from bayesrob.errors.marker_density import mixture_logpdf
 
-
-def nuts_density(log_density: Callable, init: np.ndarray, *, seed: int = 0,
-                 num_warmup: int = NUTS_WARMUP, num_samples: int = NUTS_SAMPLES,
-                 progress: bool = False) -> SamplerResult:
-    """numpyro's NUTS (dense mass matrix) on ``log_density`` of one point, one chain per row
-    of ``init`` (C, dim), the chains side by side."""
-    from numpyro.infer import MCMC, NUTS
-
-    init = np.asarray(init, float)
-    kernel = NUTS(potential_fn=lambda z: -log_density(z), dense_mass=True,
-                  target_accept_prob=NUTS_TARGET_ACCEPT)
-    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
-                num_chains=len(init), chain_method="vectorized", progress_bar=False)
-    with Progress(None, "nuts", enabled=progress, postfix="compiling and sampling"):
-        t0 = time.perf_counter()
-        mcmc.run(jax.random.PRNGKey(seed), init_params=jnp.asarray(init),
-                 extra_fields=("diverging",))
-        d = np.asarray(mcmc.get_samples(group_by_chain=True))
-    seconds = time.perf_counter() - t0
-    div = np.asarray(mcmc.get_extra_fields(group_by_chain=True)["diverging"])
-    idata = _point_idata(d, {"diverging": div})
-    # numpyro's run compiles and samples in one call: its seconds include the compilation
-    return SamplerResult("nuts", idata, seconds, _summary(idata), 0.0)
+    return -sum(mixture_logpdf(z, *a)[0] for a in arrays)
 
 
 def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 2500,
@@ -962,7 +951,8 @@ def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 250
         d = _ensemble(lambda x: np.asarray(batch(jnp.asarray(x))), init, seed, n_steps, burn,
                       bar)
     seconds = time.perf_counter() - t0
-    idata = _point_idata(d)
+    idata = az.from_dict(posterior={"d": d[:, :, None, :]}, dims=_DIMS,
+                         coords={"xy": ["x", "y", "z"][:init.shape[1]]})
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
 
 
@@ -1203,7 +1193,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     it and a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import RigError
-    from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
+    from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind
     from bayesrob.errors.noise_models import discover_models
     from bayesrob.predict.aiming import aim
 
@@ -1229,7 +1219,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         bar.set_postfix("grid")
 
         def log_density(p):
-            return sum(mixture_logpdf(p[None], *a)[0] for a in arrays)
+            return -_marker_potential(p[None], (), arrays)
 
         draws = [d.sample(seed + 7 + i, 2000)[:, 0] for i, d in enumerate(densities)]
         spread = max(float(np.sqrt(np.linalg.eigvalsh(np.cov(x.T)).max())) for x in draws)
@@ -1247,8 +1237,10 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
 
     results = {}
     if sampler in ("nuts", "all") and not truncated:
-        results["nuts"] = nuts_density(log_density, start(num_chains), seed=seed,
-                                       progress=progress)
+        nuts = _shared_nuts(num_chains, NUTS_WARMUP, NUTS_SAMPLES, True, NUTS_TARGET_ACCEPT)
+        nuts.progress_bar = progress
+        results["nuts"] = nuts.sample(_marker_potential, start(num_chains)[:, None], (),
+                                      tuple(arrays), seed)
     if sampler in ("emcee", "all") and not truncated:
         results["emcee"] = emcee_density(log_density, start(walkers), n_steps=steps,
                                          burn=burn, seed=seed, progress=progress)
