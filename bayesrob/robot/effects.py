@@ -330,10 +330,9 @@ class GravitySag(Effect):
                 "elbow_deflection_deg": jnp.rad2deg(d2)}
 
     def describe(self, values):
-        s, se = values["sag_full_reach_mm"]
-        w, wse = values["sag_workspace_max_mm"]
-        a, ase = values["shoulder_deflection_deg"]
-        b, bse = values["elbow_deflection_deg"]
+        (s, se), (w, wse), (a, ase), (b, bse) = (values[k] for k in (
+            "sag_full_reach_mm", "sag_workspace_max_mm", "shoulder_deflection_deg",
+            "elbow_deflection_deg"))
         return (f"sag at full reach {s:.2f} +- {se:.2f} mm (arm straight and level: shoulder "
                 f"{a:.2f} +- {ase:.2f} deg, elbow {b:.2f} +- {bse:.2f} deg); up to {w:.2f} +- "
                 f"{wse:.2f} mm over the commanded workspace")
@@ -406,10 +405,9 @@ class Backlash(Effect):
                 "elbow_jump_full_reach_mm": 2 * jnp.abs(extra[1]) * l2}
 
     def describe(self, values):
-        a, ase = values["shoulder_play_deg"]
-        b, bse = values["elbow_play_deg"]
-        ja, jase = values["shoulder_jump_full_reach_mm"]
-        jb, jbse = values["elbow_jump_full_reach_mm"]
+        (a, ase), (b, bse), (ja, jase), (jb, jbse) = (values[k] for k in (
+            "shoulder_play_deg", "elbow_play_deg", "shoulder_jump_full_reach_mm",
+            "elbow_jump_full_reach_mm"))
         rho = float(self._rho())
 
         def play(v: float, se: float, jump: float, jse: float) -> str:
