@@ -344,9 +344,9 @@ def test_the_names_the_command_line_checks_are_the_registered_ones():
     """The command line checks effect names against bayesrob.data.vocabulary without importing the
     diagnosis: the planar effects registered there must be exactly those names."""
     from bayesrob.data.vocabulary import EFFECTS
-    from bayesrob.robot.effects import effect_names
+    from bayesrob.robot.effects import REGISTRY
 
-    assert set(effect_names()) == set(EFFECTS)
+    assert set(REGISTRY) == set(EFFECTS)
 
 
 _RUN_MAIN = ("import sys\nfrom bayesrob.cli import main\ncode = main(sys.argv[1:])\n"

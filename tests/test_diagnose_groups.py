@@ -16,10 +16,10 @@ from bayesrob.diagnose.groups import (
     DiagnosisError,
     diagnose_groups,
     parse_published,
-    resolve_effects,
 )
 from bayesrob.diagnose.rule import Z
 from bayesrob.report.tables import format_group_diagnosis
+from bayesrob.robot.effects import resolve_effects
 from bayesrob.sim.physics import play_offsets
 from bayesrob.sim.rigs import simulate_arm6_rig
 from bayesrob.sim.truth import Arm6Truth
@@ -130,11 +130,13 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
     assert "ladder on the validation rows" in printed.out
 
 
-def test_planar_only_effects_are_refused_for_chains_in_one_line():
-    assert resolve_effects(["gravity_sag"]) == ["joint_compliance"]  # the planar alias
-    assert resolve_effects(["backlash"]) == ["backlash"]
+def test_planar_only_effects_are_refused_for_chains_in_one_line(compliant_rig):
+    rig = load_rig(compliant_rig)
+    assert resolve_effects(["gravity_sag"], chain=True) == ["joint_compliance"]  # planar alias
+    assert resolve_effects(["backlash"], chain=True) == ["backlash"]
+    assert resolve_effects(None, chain=True)[0] == "joint_compliance"
     with pytest.raises(DiagnosisError, match="'servo_nonlinearity' is not modelled"):
-        resolve_effects(["servo_nonlinearity"])
+        diagnose_groups(rig, ["servo_nonlinearity"])
 
 
 def test_play_rests_on_the_gravity_side_or_where_it_was_approached_from():

@@ -53,27 +53,16 @@ from bayesrob.errors.noise_models import (
 )
 from bayesrob.inference.sampling import GridPosterior, grid_posterior, point_log_density
 from bayesrob.predict.fusion import fused_posterior
-from bayesrob.predict.grid import setup_rows, setups
+from bayesrob.predict.grid import setup_set, setups
 from bayesrob.predict.regions import kde_log_density
 from bayesrob.report.tables import format_table
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = [
-    "PointScores",
-    "ModelComparison",
-    "score_points",
-    "score_setup",
-    "score_holdout",
-    "holdout_setups",
-    "refit_at_bandwidths",
-    "loo_training_scores",
-    "loo_calibrations",
-    "compare_models",
-    "comparison_figure",
-    "format_comparison",
-]
+__all__ = ["PointScores", "ModelComparison", "score_points", "score_setup", "holdout_setups",
+           "refit_at_bandwidths", "loo_training_scores", "loo_calibrations", "compare_models",
+           "comparison_figure", "format_comparison"]
 
 MASSES = (0.5, 0.9)
 EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.predict.fusion)
@@ -143,13 +132,16 @@ def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
 
 
 def score_setup(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
-                config: str, fusion: str = "product") -> PointScores:
-    """Scores of a setup's judged rows: validation for one arm, test for linked arms."""
-    rows = setup_rows(rig, arms, config)
+                config: str, fusion: str = "product", set: str | None = None) -> PointScores:
+    """Scores of a setup's rows of ``set``: by default its judged rows (validation for one arm,
+    test for linked arms); ``holdout``: new poses for one arm, new targets when linked."""
+    set = set or setup_set(config)
+    rows = rig.config_rows(config, set)
     members = config.split("+")
     scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
-                             [rows["commands"][a] for a in members], rows["targets"],
-                             rows["observed"], fusion, rig_stiffness(rig, members))
+                             [rows["commands"][a] for a in members],
+                             predicted_points(rig, arms, config, set), rows["observed"],
+                             fusion, rig_stiffness(rig, members))
     return scores
 
 
@@ -158,18 +150,6 @@ def holdout_setups(rig: Rig) -> list[str]:
     single = [a for a in rig.arms if rig.measurements.mask(a, HOLDOUT).any()]
     linked = [c for c in rig.linked_configs if rig.measurements.mask(c, HOLDOUT).any()]
     return single + linked
-
-
-def score_holdout(rig: Rig, arms: dict[str, kin.Arm], fitted: dict[str, FittedNoiseModel],
-                  config: str, fusion: str = "product") -> PointScores:
-    """Scores of a setup's ``holdout`` rows (new poses for one arm, new targets when linked)."""
-    rows = rig.config_rows(config, HOLDOUT)
-    members = config.split("+")
-    scores, _ = score_points([fitted[a] for a in members], [arms[a] for a in members],
-                             [rows["commands"][a] for a in members],
-                             predicted_points(rig, arms, config, HOLDOUT), rows["observed"],
-                             fusion, rig_stiffness(rig, members))
-    return scores
 
 
 def rig_stiffness(rig: Rig, members: Sequence[str]) -> list | None:
@@ -451,15 +431,14 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     for spec in specs:
         bar.set_postfix_str(spec.name)
         fitted = fit_noise_models(rig, arms, [spec])[spec.name]
-        heldout[spec.name] = {c: score_setup(rig, arms, fitted, c) for c in configs}
-        # the other fusion rule: single arms are the same prediction under both
-        fused[spec.name] = {c: (score_setup(rig, arms, fitted, c, EQUILIBRIUM) if "+" in c
-                                else heldout[spec.name][c]) for c in configs}
-        if hold_configs:
-            holdout[spec.name] = {c: score_holdout(rig, arms, fitted, c) for c in hold_configs}
-            fused_holdout[spec.name] = {
-                c: (score_holdout(rig, arms, fitted, c, EQUILIBRIUM) if "+" in c
-                    else holdout[spec.name][c]) for c in hold_configs}
+        for set_, cfgs, product, other in ((None, configs, heldout, fused),
+                                           (HOLDOUT, hold_configs, holdout, fused_holdout)):
+            if cfgs or set_ is None:
+                product[spec.name] = {c: score_setup(rig, arms, fitted, c, set=set_)
+                                      for c in cfgs}
+                # the other fusion rule: single arms are the same prediction under both
+                other[spec.name] = {c: (score_setup(rig, arms, fitted, c, EQUILIBRIUM, set_)
+                                        if "+" in c else product[spec.name][c]) for c in cfgs}
         loo[spec.name] = np.concatenate(
             [loo_training_scores(rig, arms[a], fitted[a], recalibrate, loo_arms.get(a))
              for a in arms])

@@ -297,14 +297,10 @@ def _read_text(path: Path) -> str:
 def _pair(value: object, where: str, positive: bool = False) -> tuple[float, float]:
     if not isinstance(value, list | tuple) or len(value) != 2:
         raise RigError(f"{where}: expected a list of two numbers, got {value!r}")
-    out = []
-    for v in value:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise RigError(f"{where}: expected finite numbers, got {value!r}")
-        if positive and v <= 0:
-            raise RigError(f"{where}: values must be positive, got {value!r}")
-        out.append(float(v))
-    return out[0], out[1]
+    a, b = _numbers(value, 2, where)
+    if positive and min(a, b) <= 0:
+        raise RigError(f"{where}: values must be positive, got {value!r}")
+    return float(a), float(b)
 
 
 def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> None:
@@ -319,16 +315,11 @@ def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> Non
             raise RigError(f"{where}: {what} has unknown key {key!r}{hint}")
 
 
-def _parse_arm(name: str, table: object, where: str) -> ArmSpec:
-    if not isinstance(table, dict):
-        raise RigError(f"{where}: [arms.{name}] must be a table")
+def _parse_arm(name: str, table: dict, where: str) -> ArmSpec:
     _check_keys(table, ARM_KEYS, where, f"[arms.{name}]")
     for key in ("base", "links", "gain", "offset"):
         if key not in table:
             raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
-    if "+" in name or not name.strip() or "," in name or name != name.strip():
-        raise RigError(f"{where}: arm name {name!r} may not be empty, contain '+' or ',', or "
-                       "start or end with a space")
     base = _pair(table["base"], f"{where}: arms.{name}.base")
     links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
     gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
@@ -494,13 +485,13 @@ def load_rig_toml(path: Path) -> dict:
         raise RigError(f"{path}: arms {', '.join(chain_arms)} are chains (urdf/dh) but "
                        f"{', '.join(planar)} planar (base/links): describe all arms one way "
                        "(a planar arm is a 2-row DH table)")
+    for name in arms_raw:
+        if "+" in name or "," in name or not name.strip() or name != name.strip():
+            raise RigError(f"{path}: arm name {name!r} may not be empty, contain '+' or ',', "
+                           "or start or end with a space")
+        if not isinstance(arms_raw[name], dict):
+            raise RigError(f"{path}: [arms.{name}] must be a table")
     if chain_arms:
-        for name in arms_raw:
-            if "+" in name or "," in name or not name.strip() or name != name.strip():
-                raise RigError(f"{path}: arm name {name!r} may not be empty, contain '+' or "
-                               "',', or start or end with a space")
-            if not isinstance(arms_raw[name], dict):
-                raise RigError(f"{path}: [arms.{name}] must be a table")
         arms: dict = {name: _parse_urdf_dh_arm(name, tbl, str(path), path.parent)
                       for name, tbl in arms_raw.items()}
         chains = _ordered_chains(arms, str(path))
@@ -569,7 +560,8 @@ def _read_csv(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
     return header, rows, starts
 
 
-def _records(path: Path, header: list[str], rows: list[list[str]], starts: list[int]):
+def csv_records(path: Path, header: list[str], rows: Sequence[list[str]],
+                starts: Sequence[int]):
     """The rows that carry a measurement: (index, line, place to name in messages, fields).
     Blank lines are skipped; a row whose field count differs from the header's is an error."""
     for r, row in enumerate(rows):
@@ -597,7 +589,7 @@ def _config_members(row: list[str], idx: dict, arms: Iterable[str], where: str) 
     return members
 
 
-def _set_of(row: list[str], idx: dict, where: str) -> str:
+def row_set(row: list[str], idx: dict, where: str) -> str:
     st = row[idx["set"]].strip()
     if st not in SETS:
         raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
@@ -611,26 +603,39 @@ def is_planned(row: list[str], idx: dict[str, int]) -> bool:
     return all(not row[idx[a]].strip() for a in "xyz" if a in idx)
 
 
-def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
-    """Parse and validate ``measurements.csv`` against the rig's arms."""
-    header, rows, starts = _read_csv(path)
-    required = ["config", "set", "target_x", "target_y", "x", "y"]
-    for a in arms:
-        required += [f"{a}_u1", f"{a}_u2"]
+def _load_rows(path: Path, table: tuple, required: list[str], optional: list[str], dim: int,
+               widths: dict[str, int], arms: Iterable[str], cells: Any) -> Measurements:
+    """The measured rows of ``measurements.csv`` (``table``: its :func:`_read_csv`), one
+    loader for every robot: ``cells(m, r, where, row, idx, members)`` reads and checks a row's
+    commands and target against its arms; a planned row (commands, no coordinates) is then
+    dropped."""
+    header, rows, starts = table
     for col in required:
         if col not in header:
             raise RigError(f"{path}: missing column '{col}'")
     idx = {h: i for i, h in enumerate(header)}
-    known = set(required)
-    extra_cols = [h for h in header if h not in known]
-
-    m = Measurements.blank(len(rows), 2, dict.fromkeys(arms, 2), extra_cols)
+    extra_cols = [h for h in header if h not in {*required, *optional}]
+    m = Measurements.blank(len(rows), dim, widths, extra_cols)
     keep = np.zeros(len(rows), bool)
-    for r, lineno, where, row in _records(path, header, rows, starts):
-        keep[r] = True
+    for r, lineno, where, row in csv_records(path, header, rows, starts):
         members = _config_members(row, idx, arms, where)
+        st = row_set(row, idx, where)
+        cells(m, r, where, row, idx, members)
+        if is_planned(row, idx):
+            continue  # planned by ``bayesrob design``, not measured yet
+        m.observed[r] = [parse_number(row[idx[a]], where, a) for a in "xyz"[:dim]]
+        m.config[r], m.set[r], m.line[r], keep[r] = "+".join(members), st, lineno, True
+        for h in extra_cols:
+            m.extra[h].append(row[idx[h]])
+    return m.kept(keep, path)
+
+
+def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
+    """Parse and validate a planar rig's ``measurements.csv`` against its arms."""
+
+    def cells(m: Measurements, r: int, where: str, row: list[str], idx: dict,
+              members: list[str]) -> None:
         cfg = "+".join(members)
-        st = _set_of(row, idx, where)
         for a in members:
             spec = arms[a]
             u = []
@@ -668,15 +673,11 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                         f"({lo:g} to {hi:g} mm from its base)"
                     )
         m.target[r] = tx, ty
-        if is_planned(row, idx):
-            keep[r] = False
-            continue
-        m.observed[r] = (parse_number(row[idx["x"]], where, "x"),
-                         parse_number(row[idx["y"]], where, "y"))
-        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
-        for h in extra_cols:
-            m.extra[h].append(row[idx[h]])
-    return m.kept(keep, path)
+
+    required = ["config", "set", "target_x", "target_y", "x", "y",
+                *(f"{a}_u{j}" for a in arms for j in (1, 2))]
+    return _load_rows(path, _read_csv(path), required, [], 2, dict.fromkeys(arms, 2), arms,
+                      cells)
 
 
 def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measurements, Robot]:
@@ -688,8 +689,8 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     markers are joined: every member must carry a marker (a measured arm), and the row carries
     the columns of every member's path. Calibration reads single-arm rows only
     (:meth:`Rig.chain_rows` matches ``config`` exactly), so linked rows never enter a fit."""
-    header, rows, starts = _read_csv(path)
-    dim = 3 if "z" in header else 2
+    table = _read_csv(path)
+    dim = 3 if "z" in table[0] else 2
     robot = Robot(chains, dim)
     if dim == 2:
         flat = [n for n, c in chains.items() if not c.is_planar()]
@@ -697,22 +698,11 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
             raise RigError(f"{path}: 2-D data (no 'z' column) for 3-D arm {flat[0]!r}: a chain "
                            "that leaves the plane needs x, y and z")
     axes = "xyz"[:dim]
-    required = ["config", "set", *axes]
-    for c in chains.values():
-        required += [f"{c.name}_u{k + 1}" for k in range(c.n_columns)]
-    for col in required:
-        if col not in header:
-            raise RigError(f"{path}: missing column '{col}'")
-    idx = {h: i for i, h in enumerate(header)}
     targets = [f"target_{a}" for a in axes]
-    has_target = all(t in idx for t in targets)
-    extra_cols = [h for h in header if h not in set(required) | set(targets)]
     measured = robot.measured_arms()
-    m = Measurements.blank(len(rows), dim, {c: chains[c].n_columns for c in chains}, extra_cols)
-    keep = np.zeros(len(rows), bool)
-    for r, lineno, where, row in _records(path, header, rows, starts):
-        keep[r] = True
-        members = _config_members(row, idx, chains, where)
+
+    def cells(m: Measurements, r: int, where: str, row: list[str], idx: dict,
+              members: list[str]) -> None:
         cfg = "+".join(members)
         for arm in members:
             if arm in measured:
@@ -723,7 +713,6 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
             raise RigError(f"{where}: linked config {cfg!r} names {arm!r}, an arm other arms "
                            "are mounted on; arms are linked at the markers on their tips "
                            f"({', '.join(measured)})")
-        st = _set_of(row, idx, where)
         # Members may share chains (two hands on one torso): each chain's columns once.
         owner = {c.name: a for a in members for c in robot.path(a)}
         for c in chains.values():
@@ -737,17 +726,14 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
                 # weight on the chains they share with this one
                 m.commands[c.name][r, k] = parse_number(row[idx[col]], where, col,
                                                         allow_empty=not uses)
-        if is_planned(row, idx):
-            keep[r] = False  # planned by ``bayesrob design``, not measured yet
-            continue
-        m.observed[r] = [parse_number(row[idx[a]], where, a) for a in axes]
-        if has_target:
+        if all(t in idx for t in targets):
             m.target[r] = [parse_number(row[idx[t]], where, t, allow_empty=True)
                            for t in targets]
-        m.config[r], m.set[r], m.line[r] = cfg, st, lineno
-        for h in extra_cols:
-            m.extra[h].append(row[idx[h]])
-    return m.kept(keep, path), robot
+
+    required = ["config", "set", *axes,
+                *(f"{c.name}_u{k + 1}" for c in chains.values() for k in range(c.n_columns))]
+    return _load_rows(path, table, required, targets, dim,
+                      {c: chains[c].n_columns for c in chains}, chains, cells), robot
 
 
 def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:

@@ -45,7 +45,7 @@ from bayesrob.data.rig import Rig
 from bayesrob.data.vocabulary import CHAIN_EFFECTS
 from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
 from bayesrob.robot import SAG_GROUPS
-from bayesrob.robot.effects import ALIASES as PLANAR_ALIASES
+from bayesrob.robot.effects import ALIASES, resolve_effects
 
 # effect name -> the calibration group that models it
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no
@@ -62,8 +62,6 @@ NEEDS = {"backlash": "joint_compliance"}
 # selection poses against 3.48 from the nominal robot.
 WARM_STARTED = ("encoder_error", "backlash")
 WARM_NFEV = 40
-# the planar names of chain effects: effects.ALIASES read the other way
-ALIASES = {planar: chain for chain, planar in PLANAR_ALIASES.items()}
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
 # Least-squares evaluations per stage of a selection fit (compared, not reported): on Justin
@@ -116,22 +114,6 @@ class GroupDiagnosis:
             "final_heldout_error_mm": last["heldout_error_mm"],
             "seconds": self.seconds, "notes": self.notes, "sag_steps": self.sag_steps,
         }
-
-
-def resolve_effects(names: Sequence[str] | None) -> list[str]:
-    """Candidate effect names for a chain rig (aliases resolved), or a one-line error."""
-    if names is None:
-        return list(CHAIN_EFFECTS)
-    out = []
-    for n in names:
-        n = ALIASES.get(n, n)
-        if n not in CHAIN_EFFECTS:
-            raise DiagnosisError(
-                f"effect {n!r} is not modelled for URDF/DH chains (choose from "
-                f"{', '.join([*CHAIN_EFFECTS, *ALIASES])})")
-        if n not in out:
-            out.append(n)
-    return out
 
 
 def _split(rig: Rig, seed: int) -> Rig:
@@ -211,7 +193,10 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     t0 = time.perf_counter()
     if sag_steps < 1:
         raise DiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
-    candidates = resolve_effects(effects)
+    try:
+        candidates = resolve_effects(effects, chain=True)
+    except ValueError as e:
+        raise DiagnosisError(str(e)) from None
     if not len(rig.rows(rig.robot.measured_arms()[0], "validation")[0]):
         raise DiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
                                   "ladder on")
@@ -341,7 +326,7 @@ def parse_published(text: str) -> dict[str, float]:
     for item in (t.strip() for t in text.split(",") if t.strip()):
         label, sep, value = item.partition("=")
         label = label.strip().lstrip("+").strip()
-        label = ALIASES.get(label, label)
+        label = {p: c for c, p in ALIASES.items()}.get(label, label)
         if not sep or label not in ("geometric", *CHAIN_EFFECTS):
             raise DiagnosisError(
                 f"--published: expected STEP=MM with STEP one of geometric, "

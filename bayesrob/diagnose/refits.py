@@ -473,6 +473,7 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
         field_[ti] = (resid[ti] + ev.resid_val[vi]) / 2
     points = data.d
     pairs = neighbour_pairs(points)
+    regions = workspace_regions(points)
     out: dict = {"arm": data.name, "n": len(resid), "sigma_mm": ev.sigma_mm}
 
     moran = morans_i(field_, pairs)
@@ -502,7 +503,6 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
         perm_max = np.array([np.max(np.linalg.norm(
             (q := field_[rng.permutation(len(field_))])[i] - q[j], axis=1))
             for _ in range(n_perm)])
-        regions = workspace_regions(points)
         out["largest_jump"] = {
             "mm": float(jumps[k]), "between": [int(i[k]), int(j[k])],
             "where": _pair_where(regions[i[k]], regions[j[k]]),
@@ -510,7 +510,6 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
 
     # Where: the workspace third whose residuals are largest against the rest.
     mag = np.linalg.norm(field_, axis=1)
-    regions = workspace_regions(points)
     names = sorted(set(regions))
     means = {r: float(np.mean(mag[[g == r for g in regions]])) for r in names}
     worst = max(means, key=means.get)
@@ -627,11 +626,9 @@ def _pooled_errors(model: dict[str, ArmEval]) -> dict:
 
 def _arm_json(before: ArmEval, after: ArmEval, data: ArmData) -> dict:
     def errs(e: ArmEval) -> dict:
-        return {"train_error_mm": float(np.mean(e.train_errors)),
-                "heldout_error_mm": float(np.mean(e.val_errors)) if len(e.val_errors) else None,
-                "cv_error_mm": float(np.mean(e.cv_errors)), "sigma_mm": e.sigma_mm,
-                "holdout_error_mm": (float(np.mean(e.hold_errors)) if len(e.hold_errors)
-                                     else None)}
+        p = _pooled_errors({e.arm: e})
+        return {"train_error_mm": p["train"], "heldout_error_mm": p["heldout"],
+                "cv_error_mm": p["cv"], "sigma_mm": e.sigma_mm, "holdout_error_mm": p["holdout"]}
 
     return {"effects": list(after.effects), "before": errs(before), "after": errs(after),
             "magnitudes": after.magnitudes(data),
@@ -765,7 +762,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     from bayesrob.progress import progress as make_progress
 
     rule = rule or DecisionRule()
-    candidates = fx.resolve_effects(candidates if candidates is not None else fx.effect_names())
+    candidates = fx.resolve_effects(candidates)
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
     # Rounds are not known in advance; the total is the usual case (one step per effect).

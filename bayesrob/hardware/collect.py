@@ -17,6 +17,7 @@ recorded, matching them by config, set, commands and target in plan order.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import os
 import sys
@@ -35,10 +36,12 @@ from bayesrob.data.rig import (
     SETS,
     ArmSpec,
     RigError,
+    csv_records,
     format_row,
     load_rig_toml,
     measurement_header,
     parse_number,
+    row_set,
 )
 from bayesrob.hardware.controller import (
     DEFAULT_RETRIES,
@@ -168,8 +171,8 @@ def grid_targets(workspace: Workspace, n: int, set: str = "train") -> np.ndarray
     return np.round(points(workspace, n), TARGET_DECIMALS)
 
 
-def _aim(arm: Arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tuple[float, ...]],
-         what: str) -> list[tuple[float, float]]:
+def _aim(arm: Arm, points: np.ndarray, quantize: Quantize, what: str
+         ) -> list[tuple[float, float]]:
     import jax.numpy as jnp
 
     reach = np.asarray(arm.reachable(jnp.asarray(points)))
@@ -182,8 +185,7 @@ def _aim(arm: Arm, points: np.ndarray, quantize: Callable[[Iterable[float]], tup
 
 
 def single_arm_steps(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
-                     quantize: Callable[[Iterable[float]], tuple[float, ...]],
-                     sets: Sequence[str] = SETS) -> list[Step]:
+                     quantize: Quantize, sets: Sequence[str] = SETS) -> list[Step]:
     """Train, validation then holdout rows of each arm, in rig order, aimed through the
     nominal model (holdout rows at the grid's cell centres)."""
     from bayesrob.robot import Arm
@@ -215,19 +217,12 @@ def read_plan(path: str | Path, arms: dict[str, int]
         raise RigError(f"{path}: missing column 'config'")
     configs, sets = [], []
     cmds: dict[str, list[list[float]]] = {a: [] for a in arms}
-    for line, row in enumerate(rows[1:], start=2):
-        if not any(c.strip() for c in row):
-            continue
-        where = f"{path}: line {line}"
-        if len(row) != len(header):
-            raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+    for _, _, where, row in csv_records(path, header, rows[1:], range(2, len(rows) + 1)):
         arm = row[idx["config"]].strip() if "config" in idx else next(iter(arms))
         if arm not in arms:
             raise RigError(f"{where}: config {arm!r} is not an arm of the rig "
                            f"({', '.join(arms)})")
-        st = row[idx["set"]].strip() if "set" in idx else "train"
-        if st not in SETS:
-            raise RigError(f"{where}: column 'set' must be one of {', '.join(SETS)}, got {st!r}")
+        st = row_set(row, idx, where) if "set" in idx else "train"
         for a, m in arms.items():
             cols = [f"{a}_u{k + 1}" for k in range(m)]
             missing = [c for c in cols if c not in idx]
@@ -242,8 +237,7 @@ def read_plan(path: str | Path, arms: dict[str, int]
     return configs, sets, {a: np.array(v, float) for a, v in cmds.items()}
 
 
-def plan_steps(path: str | Path, specs: dict[str, ArmSpec],
-               quantize: Callable[[Iterable[float]], tuple[float, ...]]) -> list[Step]:
+def plan_steps(path: str | Path, specs: dict[str, ArmSpec], quantize: Quantize) -> list[Step]:
     """The rows of a ``poses.csv`` as steps, in its order (each measures its config's arm)."""
     configs, sets, cmds = read_plan(path, {n: 2 for n in specs})
     return [Step(c, s, {c: quantize(cmds[c][i])})
@@ -292,9 +286,7 @@ def measure_plan_in_simulation(rig_dir: str | Path, path: str | Path, seed: int 
 
 
 def linked_steps(specs: dict[str, ArmSpec], arms: dict[str, Arm], workspace: Workspace,
-                 grid: int,
-                 quantize: Callable[[Iterable[float]], tuple[float, ...]],
-                 sets: Sequence[str] = ("test",)) -> list[Step]:
+                 grid: int, quantize: Quantize, sets: Sequence[str] = ("test",)) -> list[Step]:
     """Linked rows: every arm aims at each grid point (``test``), then at each of the grid's
     cell centres (``holdout``), through its own model (``arms``)."""
     config = "+".join(specs)
@@ -426,12 +418,9 @@ class MeasurementLog:
             raise RigError(f"{self.path}: header {','.join(header)!r} does not match this rig's "
                            f"{','.join(self.header)!r}; resume needs the same rig.toml")
         idx = {h: i for i, h in enumerate(header)}
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            where = f"{self.path}: line {lineno}"
-            if len(row) != len(header):
-                raise RigError(f"{where}: expected {len(header)} fields, found {len(row)}")
+        rows = list(reader)
+        for _, lineno, where, row in csv_records(self.path, header, rows,
+                                                 range(2, len(rows) + 2)):
             config, set_ = row[idx["config"]].strip(), row[idx["set"]].strip()
             commands = {}
             for a in config.split("+"):
@@ -528,9 +517,9 @@ def _unplanned(rows: Sequence[RecordedRow], path: Path) -> RigError:
 
 
 def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
-                   quantize: Callable[[Iterable[float]], tuple[float, ...]],
-                   singles: Sequence[Step], do_test: bool, rows: Sequence[RecordedRow],
-                   path: Path, log: Callable[[str], None] = lambda s: None,
+                   quantize: Quantize, singles: Sequence[Step], do_test: bool,
+                   rows: Sequence[RecordedRow], path: Path,
+                   log: Callable[[str], None] = lambda s: None,
                    linked_sets: Sequence[str] = ("test",)
                    ) -> tuple[list[bool], list[Step] | None, list[bool], dict[str, str]]:
     """Which planned steps ``rows`` already hold; raises RigError for a row the plan lacks.
@@ -553,6 +542,22 @@ def match_recorded(specs: dict[str, ArmSpec], workspace: Workspace, grid: int,
     return single_done, tests, test_done, kinds
 
 
+def _planned(rig_dir: Path, grid: int, plan: Sequence[str], poses: str | Path | None,
+             quantize: Quantize) -> tuple[dict[str, ArmSpec], Workspace, list[Step], list[str]]:
+    """The rig's arms and workspace, its single-arm steps (checked against the pulse limits)
+    and the linked sets the run will measure."""
+    meta = load_rig_toml(rig_dir / RIG_FILE)
+    specs, workspace = meta["arms"], meta["workspace"]
+    if workspace is None and poses is None:
+        raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
+                       "to lay out the grid")
+    singles = (plan_steps(poses, specs, quantize) if poses is not None else
+               single_arm_steps(specs, workspace, grid, quantize, plan))
+    check_plan(singles, specs)
+    linked = [s for s in LINKED_SETS if s in plan] if len(specs) > 1 and poses is None else []
+    return specs, workspace, singles, linked
+
+
 def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, *,
             grid: int = 4, plan: Sequence[str] = DEFAULT_PLAN, settle_s: float = 1.0,
             resume: bool = False, confirm: Callable[[str], bool] | None = None,
@@ -571,24 +576,15 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
 
     log = log or _stderr
     rig_dir = Path(rig_dir)
-    meta = load_rig_toml(rig_dir / RIG_FILE)
-    specs: dict[str, ArmSpec] = meta["arms"]
-    workspace = meta["workspace"]
-    if workspace is None and poses is None:
-        raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
-                       "to lay out the grid")
     if grid < 2:
         raise ValueError(f"grid must be at least 2, got {grid}")
+    specs, workspace, singles, linked_sets = _planned(rig_dir, grid, plan, poses,
+                                                      controller.quantize)
     names = list(specs)
     for name in names:
         if name not in controller.channels:
             raise HardwareError(f"arm {name!r} has no channels on the controller")
         controller.limits[name] = specs[name].pulse_limits
-    singles = (plan_steps(poses, specs, controller.quantize) if poses is not None else
-               single_arm_steps(specs, workspace, grid, controller.quantize, plan))
-    check_plan(singles, specs)
-    linked_sets = ([s for s in LINKED_SETS if s in plan] if len(names) > 1 and poses is None
-                   else [])
     do_test = bool(linked_sets)
     n_test = sum(len(grid_targets(workspace, grid, s)) for s in linked_sets)
     if "test" in plan and len(names) < 2:
@@ -786,29 +782,20 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
     if (tracker_port is None) == (not manual):
         raise ArgumentError("give either a tracker port or manual entry")
     rig_dir = Path(rig_dir)
-    meta = load_rig_toml(rig_dir / RIG_FILE)
-    check_channels(channels, meta["arms"], n_channels(protocol, maestro_model),
+    specs = load_rig_toml(rig_dir / RIG_FILE)["arms"]
+    check_channels(channels, specs, n_channels(protocol, maestro_model),
                    controller_name(protocol, maestro_model))
-    if meta["workspace"] is None and poses is None:
-        raise RigError(f"{rig_dir / RIG_FILE}: collect needs 'workspace = [[x0, x1], [y0, y1]]' "
-                       "to lay out the grid")
     cls = controller_class(protocol)
-    def quantize(u: Iterable[float]) -> tuple[float, ...]:
-        return quantize_us(u, cls.resolution_us)
-
-    singles = (plan_steps(poses, meta["arms"], quantize) if poses is not None else
-               single_arm_steps(meta["arms"], meta["workspace"], grid, quantize, plan))
-    check_plan(singles, meta["arms"])
+    quantize = functools.partial(quantize_us, resolution_us=cls.resolution_us)
+    specs, workspace, singles, linked = _planned(rig_dir, grid, plan, poses, quantize)
     # Refuse to touch an existing file without --resume, or to resume a different plan,
     # before any port is opened.
-    existing = MeasurementLog(rig_dir / MEASUREMENTS_FILE, list(meta["arms"]), resume,
+    existing = MeasurementLog(rig_dir / MEASUREMENTS_FILE, list(specs), resume,
                               check_only=True)
     if existing.rows:
-        linked = ([s for s in LINKED_SETS if s in plan] if len(meta["arms"]) > 1
-                  and poses is None else [])
-        match_recorded(meta["arms"], meta["workspace"], grid, quantize, singles, bool(linked),
-                       existing.rows, existing.path, linked_sets=linked)
-    limits = {n: s.pulse_limits for n, s in meta["arms"].items()}
+        match_recorded(specs, workspace, grid, quantize, singles, bool(linked), existing.rows,
+                       existing.path, linked_sets=linked)
+    limits = {n: s.pulse_limits for n, s in specs.items()}
     controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
                                  maestro_protocol=maestro_protocol, device_number=device_number,
                                  speed_us_per_s=speed_us_per_s, timeout_s=timeout_s,

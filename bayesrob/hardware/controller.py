@@ -281,9 +281,7 @@ class ServoController(ABC):
 
     def _matches(self, pos: Mapping[str, tuple[float, float]],
                  commands: Mapping[str, tuple[float, float]]) -> bool:
-        tol = self.readback_tolerance_us + 1e-9
-        return all(abs(p - c) <= tol for a in commands
-                   for p, c in zip(pos[a], commands[a], strict=True))
+        return not self._short(pos, commands)
 
     def settle_timeout_s(self, commands: Mapping[str, tuple[float, float]]) -> float:
         """Time for this move at the configured speed (twice the ramp), plus slack.

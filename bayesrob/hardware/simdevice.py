@@ -93,10 +93,9 @@ class Faults:
                 raise ValueError(f"{name} must be between 0 and 1, got {v}")
         if self.reply_delay_s < 0:
             raise ValueError(f"reply_delay_s must be >= 0, got {self.reply_delay_s}")
-        if self.disconnect_after is not None and self.disconnect_after < 1:
-            raise ValueError(f"disconnect_after must be >= 1, got {self.disconnect_after}")
-        if self.error_after is not None and self.error_after < 1:
-            raise ValueError(f"error_after must be >= 1, got {self.error_after}")
+        for name in ("disconnect_after", "error_after"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
 # ------------------------------------------------------------------------------ decoders

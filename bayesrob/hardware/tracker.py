@@ -23,7 +23,9 @@ Manual entry is for measuring as the paper did, with a ruler-like device: the op
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 import sys
 import time
 from collections import Counter
@@ -56,10 +58,7 @@ class Tracker(Protocol):
 def checksum(body: str | bytes) -> int:
     """XOR of the characters between '$' and '*'."""
     data = body.encode("ascii") if isinstance(body, str) else body
-    c = 0
-    for b in data:
-        c ^= b
-    return c
+    return functools.reduce(operator.xor, data, 0)
 
 
 def format_pxyt(x_mm: float, y_mm: float, decimals: int = 3) -> bytes:

@@ -41,7 +41,6 @@ import jax.numpy as jnp
 import numpy as np
 import numpyro
 import numpyro.distributions as dist
-import xarray as xr
 from numpyro.distributions import constraints
 from numpyro.infer import Predictive
 from numpyro.infer.hmc import hmc
@@ -56,43 +55,16 @@ from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.aiming import check_pulse_limits, check_reach
 from bayesrob.predict.grid import Grid
 from bayesrob.predict.regions import density_levels
-from bayesrob.progress import FIRST_LINE_S
+from bayesrob.progress import FIRST_LINE_S, Progress
 from bayesrob.report.tables import grouped_notes
 
-__all__ = [
-    "SAMPLERS",
-    "COARSE_GRID",
-    "CheckTolerances",
-    "GridPosterior",
-    "NutsSampler",
-    "SamplerResult",
-    "SampleReport",
-    "kde_distribution",
-    "joint_error_distribution",
-    "joint_error_log_prob",
-    "is_sampleable",
-    "arm_model",
-    "prior_predictive",
-    "arm_log_density",
-    "linked_model",
-    "linked_log_density",
-    "grid_posterior",
-    "point_log_density",
-    "prior_spread",
-    "initial_points",
-    "check_pulse_limits",
-    "check_reach",
-    "run_nuts",
-    "run_emcee",
-    "cross_check",
-    "cov_rel_error",
-    "DensityGrid",
-    "density_grid",
-    "nuts_density",
-    "emcee_density",
-    "sample_linked",
-    "format_sample",
-]
+__all__ = ["SAMPLERS", "COARSE_GRID", "CheckTolerances", "GridPosterior", "NutsSampler",
+           "SamplerResult", "SampleReport", "kde_distribution", "joint_error_distribution",
+           "joint_error_log_prob", "is_sampleable", "arm_model", "prior_predictive",
+           "arm_log_density", "linked_model", "linked_log_density", "grid_posterior",
+           "point_log_density", "prior_spread", "initial_points", "check_pulse_limits",
+           "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error", "DensityGrid",
+           "density_grid", "emcee_density", "sample_linked", "format_sample"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
@@ -677,7 +649,8 @@ _COORDS = {"xy": ["x", "y"]}
 
 
 class NutsSampler:
-    """numpyro's NUTS kernel on :func:`linked_model`, compiled once, vectorised over targets.
+    """numpyro's NUTS kernel on :func:`linked_model` (:meth:`run`) or any point's potential
+    (:meth:`sample`), compiled once per potential and shapes, vectorised over targets.
 
     The kernel is ``numpyro.infer.hmc.hmc(..., algo="NUTS")`` (the one ``numpyro.infer.NUTS``
     wraps), with its own step-size and dense mass-matrix adaptation, driven by a jit-compiled
@@ -706,39 +679,36 @@ class NutsSampler:
         self.chunks = max(c for c in range(1, max(1, chunks) + 1) if total % c == 0)
         self._compiled: dict[Any, tuple[Any, Any, float]] = {}
 
-    def _functions(self, statics: tuple[_ArmStatic, ...], keys, z0, commands, params):
-        leaves, treedef = jax.tree.flatten(params)
-        key = (statics, z0.shape, tuple(c.shape for c in commands), treedef,
-               tuple(jnp.shape(x) for x in leaves))
+    def _functions(self, potential: Callable, keys, z0, lane, shared):
+        leaves, treedef = jax.tree.flatten((lane, shared))
+        key = (potential, z0.shape, treedef, tuple(jnp.shape(x) for x in leaves))
         if key in self._compiled:
             return self._compiled[key]
-        program = functools.partial(_linked_program, statics=statics)
 
-        def potential_gen(commands, params):
-            return lambda z: -log_density(program, (commands, params), {}, {"d": z})[0]
+        def potential_gen(lane, shared):
+            return lambda z: potential(z, lane, shared)
 
         init_kernel, sample_kernel = hmc(potential_fn_gen=potential_gen, algo="NUTS")
         length = (self.num_warmup + self.num_samples) // self.chunks
 
-        def init_one(key, z0, commands, params):
+        def init_one(key, z0, lane, shared):
             return init_kernel(z0, self.num_warmup, dense_mass=self.dense_mass,
                                target_accept_prob=self.target_accept_prob,
                                max_tree_depth=self.max_tree_depth,
-                               model_args=(commands, params), rng_key=key)
+                               model_args=(lane, shared), rng_key=key)
 
-        def advance_one(state, commands, params):
+        def advance_one(state, lane, shared):
             def step(st, _):
-                st = sample_kernel(st, model_args=(commands, params))
+                st = sample_kernel(st, model_args=(lane, shared))
                 return st, (st.z, st.diverging, st.num_steps, st.potential_energy)
             return jax.lax.scan(step, state, None, length=length)
 
-        lanes = (0, 0, 0, None)  # keys, z0, commands per lane; model arrays shared
-        init_v = jax.jit(jax.vmap(init_one, in_axes=lanes))
+        init_v = jax.jit(jax.vmap(init_one, in_axes=(0, 0, 0, None)))
         advance_v = jax.jit(jax.vmap(advance_one, in_axes=(0, 0, None)))
         t0 = time.perf_counter()
-        init_c = init_v.lower(keys, z0, commands, params).compile()
-        state = jax.eval_shape(init_v, keys, z0, commands, params)
-        advance_c = advance_v.lower(state, commands, params).compile()
+        init_c = init_v.lower(keys, z0, lane, shared).compile()
+        state = jax.eval_shape(init_v, keys, z0, lane, shared)
+        advance_c = advance_v.lower(state, lane, shared).compile()
         self._compiled[key] = (init_c, advance_c, time.perf_counter() - t0)
         return self._compiled[key]
 
@@ -747,23 +717,32 @@ class NutsSampler:
         """Sample every target; ``init`` (num_chains, T, 2) are the chains' starting points."""
         statics, params = _structure(models, arms)
         cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
-        init = np.asarray(init, float)
         c, t = self.num_chains, cmds[0].shape[0]
-        if init.shape != (c, t, 2):
-            raise ValueError(f"init must have shape ({c}, {t}, 2), got {init.shape}")
-        # One lane per (target, chain), target-major; each lane is a 1-target program.
+        if np.shape(init) != (c, t, 2):
+            raise ValueError(f"init must have shape ({c}, {t}, 2), got {np.shape(init)}")
         lane_cmds = tuple(jnp.asarray(np.repeat(u, c, axis=0)[:, None, :]) for u in cmds)
-        z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, 2))
+        return self.sample(_linked_potential(statics), init, lane_cmds, params, seed)
+
+    def sample(self, potential: Callable, init: np.ndarray, lane: Any = (), shared: Any = (),
+               seed: int = 0) -> SamplerResult:
+        """NUTS on ``potential(z, lane, shared)``, the potential energy of one target's point z
+        (1, dim), from ``init`` (num_chains, T, dim): one lane per (target, chain), target-major,
+        each a 1-target program; ``lane`` holds arrays with a row per lane, ``shared`` the
+        arrays every lane reads. The programs are compiled once per potential and shapes."""
+        init = np.asarray(init, float)
+        c, t, dim = init.shape
+        z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, dim))
         keys = jax.random.split(jax.random.PRNGKey(seed), t * c)
         # A structure's first run compiles for seconds: the report starts before that.
-        bar = _progress(self.chunks, self.progress_bar, "nuts", "chunks", "compiling")
-        init_fn, advance_fn, compile_s = self._functions(statics, keys, z0, lane_cmds, params)
+        bar = Progress(self.chunks, "nuts", "chunks", enabled=self.progress_bar,
+                       postfix="compiling")
+        init_fn, advance_fn, compile_s = self._functions(potential, keys, z0, lane, shared)
         bar.set_postfix("sampling")
         t0 = time.perf_counter()
-        state = init_fn(keys, z0, lane_cmds, params)
+        state = init_fn(keys, z0, lane, shared)
         pieces = []
         for _ in range(self.chunks):
-            state, out = advance_fn(state, lane_cmds, params)
+            state, out = advance_fn(state, lane, shared)
             pieces.append(out)
             bar.update()
         bar.close()
@@ -780,9 +759,17 @@ class NutsSampler:
             sample_stats={"diverging": by_chain(div), "n_steps": by_chain(steps),
                           "lp": -by_chain(pe)},
             dims={**_DIMS, "diverging": ["target"], "n_steps": ["target"], "lp": ["target"]},
-            coords=_COORDS,
+            coords={"xy": ["x", "y", "z"][:dim]},
         )
         return SamplerResult("nuts", idata, seconds, _summary(idata), compile_s)
+
+
+@functools.lru_cache(maxsize=64)
+def _linked_potential(statics: tuple[_ArmStatic, ...]) -> Callable:
+    """The potential energy of :func:`linked_model` at z given (commands, params), one
+    function per structure: what NutsSampler caches its compiled programs on."""
+    program = functools.partial(_linked_program, statics=statics)
+    return lambda z, commands, params: -log_density(program, (commands, params), {}, {"d": z})[0]
 
 
 @functools.lru_cache(maxsize=8)
@@ -812,14 +799,6 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     return sampler.run(models, arms, commands, init, seed)
 
 
-def _progress(total: int | None, enabled: bool, desc: str, unit: str = "step",
-              postfix: str = "", first_after: float = 0.0):
-    from bayesrob.progress import progress
-
-    return progress(total, desc, unit, enabled=enabled, postfix=postfix,
-                    first_after=first_after)
-
-
 def _emcee_moves() -> list:
     """:func:`run_emcee`'s default moves: 70% differential evolution, 30% ``KDEMove``."""
     return [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
@@ -841,44 +820,48 @@ def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     contraction from their over-dispersed start.
     """
     init = np.asarray(init, float)
-    w, t_count, _ = init.shape
+    t_count = init.shape[1]
     cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     lp = linked_log_density(models, arms)
-    if moves is None:
-        moves = _emcee_moves()
     rng = np.random.default_rng(seed)
-    bar = _progress(t_count * n_steps, progress, "emcee", "steps", "compiling")
-    t0 = time.perf_counter()
-    # Compile outside the timed run, for both shapes emcee uses: the whole ensemble (first
-    # step) and each half of it (the red-blue moves).
+    bar = Progress(t_count * n_steps, "emcee", "steps", enabled=progress, postfix="compiling")
     first = tuple(jnp.asarray(u[:1]) for u in cmds)
-    for k in {w, w // 2, w - w // 2}:
-        jax.block_until_ready(lp(init[:k, 0, :], first))
-    compile_seconds = time.perf_counter() - t0
+    compile_seconds = _compile_halves(lambda x: lp(x, first), init[:, 0, :])
     bar.set_postfix("sampling")
-    posteriors = []
+    draws = []
     t0 = time.perf_counter()
-    # KDEMove solves 2x2 triangular systems through scipy every step: multi-threaded BLAS
-    # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
-    with threadpool_limits(limits=1, user_api="blas"):
-        for t in range(t_count):
-            c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
-
-            def log_prob_fn(x, c=c):
-                return np.asarray(lp(x, c))
-
-            sampler = emcee.EnsembleSampler(w, 2, log_prob_fn, vectorize=True, moves=moves)
-            sampler.random_state = np.random.RandomState(int(rng.integers(2**31))).get_state()
-            for _ in sampler.sample(init[:, t, :], iterations=n_steps):
-                bar.update()
-            one = az.from_emcee(sampler, var_names=["d"], slices=[slice(0, 2)],
-                                dims={"d": ["xy"]}, coords=_COORDS)
-            posteriors.append(one.posterior.isel(draw=slice(burn, None)))
+    for t in range(t_count):
+        c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
+        draws.append(_ensemble(lambda x, c=c: np.asarray(lp(x, c)), init[:, t, :],
+                               int(rng.integers(2**31)), n_steps, burn, bar, moves))
     seconds = time.perf_counter() - t0
     bar.close()
-    post = xr.concat(posteriors, dim="target").transpose("chain", "draw", "target", "xy")
-    idata = az.InferenceData(posterior=post)
+    idata = az.from_dict(posterior={"d": np.stack(draws, axis=2)}, dims=_DIMS, coords=_COORDS)
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
+
+
+def _compile_halves(log_prob: Callable, x: np.ndarray) -> float:
+    """Seconds to compile ``log_prob`` outside the timed run, for both shapes emcee calls it
+    with: the whole ensemble ``x`` (first step) and each half of it (the red-blue moves)."""
+    t0 = time.perf_counter()
+    for k in {len(x), len(x) // 2, len(x) - len(x) // 2}:
+        jax.block_until_ready(log_prob(x[:k]))
+    return time.perf_counter() - t0
+
+
+def _ensemble(log_prob: Callable, init: np.ndarray, state: int, n_steps: int, burn: int, bar,
+              moves: Any = None) -> np.ndarray:
+    """emcee's EnsembleSampler from ``init`` (W, dim), every walker in one call of
+    ``log_prob``, its random state seeded by ``state``: the draws (W, n_steps - burn, dim)."""
+    sampler = emcee.EnsembleSampler(*init.shape, log_prob, vectorize=True,
+                                    moves=_emcee_moves() if moves is None else moves)
+    sampler.random_state = np.random.RandomState(state).get_state()
+    # KDEMove solves small triangular systems through scipy every step: multi-threaded BLAS
+    # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
+    with threadpool_limits(limits=1, user_api="blas"):
+        for _ in sampler.sample(init, iterations=n_steps):
+            bar.update()
+    return np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]
 
 
 # --------------------------------------------------------------------------------------------
@@ -946,37 +929,12 @@ def density_grid(log_density: Callable, centre: np.ndarray, half_width_mm: float
                        np.array([edge]), Box(half_width_mm), time.perf_counter() - t0)
 
 
-def _point_idata(d: np.ndarray, stats: dict | None = None) -> az.InferenceData:
-    """(chain, draw, dim) draws of one point as InferenceData with d: (chain, draw, 1, dim)."""
-    dim = d.shape[-1]
-    coords = {"xy": ["x", "y", "z"][:dim]}
-    return az.from_dict(posterior={"d": d[:, :, None, :]},
-                        sample_stats={k: v[:, :, None] for k, v in (stats or {}).items()},
-                        dims={**_DIMS, **{k: ["target"] for k in stats or {}}}, coords=coords)
+def _marker_potential(z: jax.Array, lane: Any, arrays: tuple) -> jax.Array:
+    """Minus the log density of a point z (1, dim) under the product of the arms' marker
+    densities (their :meth:`~bayesrob.errors.marker_density.MarkerDensity.arrays`)."""
+    from bayesrob.errors.marker_density import mixture_logpdf
 
-
-def nuts_density(log_density: Callable, init: np.ndarray, *, seed: int = 0,
-                 num_warmup: int = NUTS_WARMUP, num_samples: int = NUTS_SAMPLES,
-                 progress: bool = False) -> SamplerResult:
-    """numpyro's NUTS (dense mass matrix) on ``log_density`` of one point, one chain per row
-    of ``init`` (C, dim), the chains side by side."""
-    from numpyro.infer import MCMC, NUTS
-
-    init = np.asarray(init, float)
-    kernel = NUTS(potential_fn=lambda z: -log_density(z), dense_mass=True,
-                  target_accept_prob=NUTS_TARGET_ACCEPT)
-    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples,
-                num_chains=len(init), chain_method="vectorized", progress_bar=False)
-    with _progress(None, progress, "nuts", postfix="compiling and sampling"):
-        t0 = time.perf_counter()
-        mcmc.run(jax.random.PRNGKey(seed), init_params=jnp.asarray(init),
-                 extra_fields=("diverging",))
-        d = np.asarray(mcmc.get_samples(group_by_chain=True))
-    seconds = time.perf_counter() - t0
-    div = np.asarray(mcmc.get_extra_fields(group_by_chain=True)["diverging"])
-    idata = _point_idata(d, {"diverging": div})
-    # numpyro's run compiles and samples in one call: its seconds include the compilation
-    return SamplerResult("nuts", idata, seconds, _summary(idata), 0.0)
+    return -sum(mixture_logpdf(z, *a)[0] for a in arrays)
 
 
 def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 2500,
@@ -984,23 +942,15 @@ def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 250
     """emcee's EnsembleSampler on ``log_density`` of one point, walkers starting at ``init``
     (W, dim), with :func:`run_emcee`'s moves and burn-in."""
     init = np.asarray(init, float)
-    w, dim = init.shape
     batch = jax.jit(jax.vmap(log_density))
+    compile_seconds = _compile_halves(lambda x: batch(jnp.asarray(x)), init)
     t0 = time.perf_counter()
-    for k in {w, w // 2, w - w // 2}:
-        jax.block_until_ready(batch(jnp.asarray(init[:k])))
-    compile_seconds = time.perf_counter() - t0
-    sampler = emcee.EnsembleSampler(w, dim, lambda x: np.asarray(batch(jnp.asarray(x))),
-                                    vectorize=True, moves=_emcee_moves())
-    sampler.random_state = np.random.RandomState(seed).get_state()
-    t0 = time.perf_counter()
-    with threadpool_limits(limits=1, user_api="blas"), \
-            _progress(n_steps, progress, "emcee", "steps", "sampling") as bar:
-        for _ in sampler.sample(init, iterations=n_steps):
-            bar.update()
+    with Progress(n_steps, "emcee", "steps", enabled=progress, postfix="sampling") as bar:
+        d = _ensemble(lambda x: np.asarray(batch(jnp.asarray(x))), init, seed, n_steps, burn,
+                      bar)
     seconds = time.perf_counter() - t0
-    d = np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]  # (walker, draw, dim)
-    idata = _point_idata(d)
+    idata = az.from_dict(posterior={"d": d[:, :, None, :]}, dims=_DIMS,
+                         coords={"xy": ["x", "y", "z"][:init.shape[1]]})
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
 
 
@@ -1115,6 +1065,13 @@ def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
 
 
+def _grid_entry(grid: GridPosterior | DensityGrid, **extra: float) -> dict:
+    """The grid reference's entry of ``doc["samplers"]`` (its one target)."""
+    return {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
+            "cell_mm": grid.cell_mm[0].tolist(), "n": grid.n, "box_lo": grid.lo[0].tolist(),
+            **extra, "edge_mass": float(grid.edge_mass[0])}
+
+
 def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "cond",
                   sampler: str = "all", *, seed: int = 0, progress: bool = False,
                   num_chains: int = 4, num_warmup: int = NUTS_WARMUP,
@@ -1158,8 +1115,8 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
     specs = discover_models(models_dir, [model])
     # The steps before the samplers, which report on their own bars. The first line waits a
     # second: a target out of reach, found after the calibration, is then the only line.
-    with _progress(3, progress, "sample", "steps", "calibrating",
-                   first_after=FIRST_LINE_S) as bar:
+    with Progress(3, "sample", "steps", enabled=progress, postfix="calibrating",
+                  first_after=FIRST_LINE_S) as bar:
         cal = calibrate_arms(rig)
         arms = {a: cal[a].arm for a in members}
         target = np.asarray(target, float).reshape(1, 2)
@@ -1189,11 +1146,7 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                 "through its Jacobian), not at the grid",
         "samplers": {},
     }
-    grid_doc = {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
-                "cell_mm": [float(x) for x in grid.cell_mm[0]], "n": grid.n,
-                "box_lo": [float(x) for x in grid.lo[0]],
-                "edge_mass": float(grid.edge_mass[0])}
-    doc["samplers"]["grid"] = grid_doc
+    doc["samplers"]["grid"] = _grid_entry(grid)
     results: dict[str, SamplerResult] = {}
     if sampler in ("nuts", "all") and not truncated:
         results["nuts"] = run_nuts(models, arm_list, commands,
@@ -1238,7 +1191,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     it and a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import RigError
-    from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind, mixture_logpdf
+    from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind
     from bayesrob.errors.noise_models import discover_models
     from bayesrob.predict.aiming import aim
 
@@ -1252,7 +1205,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
     kind = marker_model_kind(spec)
     dim = rig.robot.dim
     target = np.asarray(target, float).reshape(1, dim)
-    with _progress(3, progress, "sample", "steps", "calibrating") as bar:
+    with Progress(3, "sample", "steps", enabled=progress, postfix="calibrating") as bar:
         cal = calibrate(rig, groups if groups is not None else kin.GROUPS)
         commands = {a: aim(rig, cal.robot, cal.x, a, target) for a in members}
         bar.update()
@@ -1264,7 +1217,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         bar.set_postfix("grid")
 
         def log_density(p):
-            return sum(mixture_logpdf(p[None], *a)[0] for a in arrays)
+            return -_marker_potential(p[None], (), arrays)
 
         draws = [d.sample(seed + 7 + i, 2000)[:, 0] for i, d in enumerate(densities)]
         spread = max(float(np.sqrt(np.linalg.eigvalsh(np.cov(x.T)).max())) for x in draws)
@@ -1282,8 +1235,10 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
 
     results = {}
     if sampler in ("nuts", "all") and not truncated:
-        results["nuts"] = nuts_density(log_density, start(num_chains), seed=seed,
-                                       progress=progress)
+        nuts = _shared_nuts(num_chains, NUTS_WARMUP, NUTS_SAMPLES, True, NUTS_TARGET_ACCEPT)
+        nuts.progress_bar = progress
+        results["nuts"] = nuts.sample(_marker_potential, start(num_chains)[:, None], (),
+                                      tuple(arrays), seed)
     if sampler in ("emcee", "all") and not truncated:
         results["emcee"] = emcee_density(log_density, start(walkers), n_steps=steps,
                                          burn=burn, seed=seed, progress=progress)
@@ -1297,11 +1252,7 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                 f"{INIT_OVERDISPERSION:g} x the arms' own spread about their centres, not at "
                 "the grid",
         "params": list(cal.groups),
-        "samplers": {"grid": {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
-                              "cell_mm": [float(v) for v in grid.cell_mm[0]], "n": grid.n,
-                              "box_lo": [float(v) for v in grid.lo[0]],
-                              "box_half_width_mm": half,
-                              "edge_mass": float(grid.edge_mass[0])}},
+        "samplers": {"grid": _grid_entry(grid, box_half_width_mm=half)},
     }
     _judge(doc, grid, results, tol, burn, sampler,
            [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
+from bayesrob.data.vocabulary import CHAIN_EFFECTS
 
 
 @dataclass(frozen=True)
@@ -199,21 +200,25 @@ CHAIN_ONLY = {
 }
 
 
-def effect_names() -> tuple[str, ...]:
-    return tuple(REGISTRY)
-
-
-def resolve_effects(names: Sequence[str]) -> list[str]:
-    """Planar candidate effect names, aliases resolved and repeats dropped; a chain-only name
-    or an unknown one is a ``ValueError`` of one line saying what to ask for instead."""
+def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list[str]:
+    """Candidate effect names for a planar rig (the registered effects) or, with ``chain``, a
+    URDF/DH chain (the calibration groups' effects): None asks for all; each name is said once
+    in that robot's words (``joint_compliance`` is a planar rig's ``gravity_sag``). A name the
+    robot has no model for is a one-line ``ValueError`` saying what to ask for instead."""
+    known = CHAIN_EFFECTS if chain else REGISTRY
+    aliases = {p: c for c, p in ALIASES.items()} if chain else ALIASES
+    if names is None:
+        return list(known)
     out: list[str] = []
     for n in names:
-        if n in CHAIN_ONLY:
-            raise ValueError(f"effect {n!r} is for URDF/DH chains: {CHAIN_ONLY[n]} (planar "
-                             f"rigs: {', '.join(REGISTRY)}; joint_compliance is gravity_sag)")
-        n = ALIASES.get(n, n)
-        if n not in REGISTRY:
-            raise ValueError(f"unknown effect {n!r}; known: {', '.join(REGISTRY)}")
+        n = aliases.get(n, n)
+        if n not in known:
+            raise ValueError(
+                f"effect {n!r} is not modelled for URDF/DH chains (choose from "
+                f"{', '.join([*CHAIN_EFFECTS, *aliases])})" if chain else
+                f"effect {n!r} is for URDF/DH chains: {CHAIN_ONLY[n]} (planar rigs: "
+                f"{', '.join(REGISTRY)}; joint_compliance is gravity_sag)" if n in CHAIN_ONLY else
+                f"unknown effect {n!r}; known: {', '.join(REGISTRY)}")
         if n not in out:
             out.append(n)
     return out
@@ -325,10 +330,9 @@ class GravitySag(Effect):
                 "elbow_deflection_deg": jnp.rad2deg(d2)}
 
     def describe(self, values):
-        s, se = values["sag_full_reach_mm"]
-        w, wse = values["sag_workspace_max_mm"]
-        a, ase = values["shoulder_deflection_deg"]
-        b, bse = values["elbow_deflection_deg"]
+        (s, se), (w, wse), (a, ase), (b, bse) = (values[k] for k in (
+            "sag_full_reach_mm", "sag_workspace_max_mm", "shoulder_deflection_deg",
+            "elbow_deflection_deg"))
         return (f"sag at full reach {s:.2f} +- {se:.2f} mm (arm straight and level: shoulder "
                 f"{a:.2f} +- {ase:.2f} deg, elbow {b:.2f} +- {bse:.2f} deg); up to {w:.2f} +- "
                 f"{wse:.2f} mm over the commanded workspace")
@@ -381,11 +385,8 @@ class Backlash(Effect):
     def settings(self, params, u):
         # Settings that sort the arm's commands into the same sign pattern fit identically:
         # keep one rho per distinct pattern (its middle one, robust to small refits).
-        theta = np.asarray(params.gain) * np.asarray(u, float) + np.asarray(params.offset)
-        g = np.asarray(self.ctx.gravity, float)
-        t12 = theta[:, 0] + theta[:, 1]
-        s1 = np.cos(theta[:, 0]) * g[1] - np.sin(theta[:, 0]) * g[0]
-        s12 = np.cos(t12) * g[1] - np.sin(t12) * g[0]
+        theta = kin.servo(params, jnp.asarray(u, dtype=jnp.float64))
+        s1, s12 = (np.asarray(s) for s in lever_signatures(theta, self.ctx.gravity))
         rho = self.RHO_GRID[:, None]
         # Patterns compare the sides far from the line: floating points do not split them.
         signs = np.round(np.tanh(((1 - rho) * s1[None] + rho * s12[None]) / self.FLOAT_WIDTH),
@@ -404,10 +405,9 @@ class Backlash(Effect):
                 "elbow_jump_full_reach_mm": 2 * jnp.abs(extra[1]) * l2}
 
     def describe(self, values):
-        a, ase = values["shoulder_play_deg"]
-        b, bse = values["elbow_play_deg"]
-        ja, jase = values["shoulder_jump_full_reach_mm"]
-        jb, jbse = values["elbow_jump_full_reach_mm"]
+        (a, ase), (b, bse), (ja, jase), (jb, jbse) = (values[k] for k in (
+            "shoulder_play_deg", "elbow_play_deg", "shoulder_jump_full_reach_mm",
+            "elbow_jump_full_reach_mm"))
         rho = float(self._rho())
 
         def play(v: float, se: float, jump: float, jse: float) -> str:

@@ -13,6 +13,7 @@ offset into its origin, where a turn about the joint's own axis is exact).
 
 from __future__ import annotations
 
+import functools
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -248,17 +249,16 @@ def _patched(robot: Robot, calibrated: Robot) -> ET.ElementTree:
     by_name = {j.get("name"): j for j in tree.getroot().findall("joint")}
     for c in calibrated.chains.values():
         src = c.source
+        def product(names: list[str]) -> np.ndarray:
+            return functools.reduce(np.matmul, [_origin_matrix(by_name[f], f) for f in names],
+                                    np.eye(4))
+
         for i, jname in enumerate(src["joints"]):
-            prefix = np.eye(4)
-            for f in src["prefixes"][i]:
-                prefix = prefix @ _origin_matrix(by_name[f], f)
-            _set_origin(by_name[jname], np.linalg.inv(prefix) @ tf.np_pose_matrix(c.origins[i]))
+            _set_origin(by_name[jname], np.linalg.inv(product(src["prefixes"][i]))
+                        @ tf.np_pose_matrix(c.origins[i]))
         tool = tf.np_pose_matrix(c.origins[-1])
         if src["tail"]:
-            head = np.eye(4)
-            for f in src["tail"][:-1]:
-                head = head @ _origin_matrix(by_name[f], f)
-            _set_origin(by_name[src["tail"][-1]], np.linalg.inv(head) @ tool)
+            _set_origin(by_name[src["tail"][-1]], np.linalg.inv(product(src["tail"][:-1])) @ tool)
         elif not np.allclose(tool, np.eye(4), atol=1e-9):
             raise KinematicsError(
                 f"chain {c.name!r}: its tool transform changed but tip link "
@@ -274,23 +274,24 @@ def _generated(calibrated: Robot, name: str) -> ET.ElementTree:
     """
     robot_el = ET.Element("robot", name=name)
     ET.SubElement(robot_el, "link", name="base_link")
+
+    def joint(name: str, kind: str, parent: str, child: str, origin: np.ndarray) -> ET.Element:
+        ET.SubElement(robot_el, "link", name=child)
+        j = ET.SubElement(robot_el, "joint", name=name, type=kind)
+        ET.SubElement(j, "parent", link=parent)
+        ET.SubElement(j, "child", link=child)
+        _set_origin(j, tf.np_pose_matrix(origin))
+        return j
+
     for c in calibrated.chains.values():
         parent = f"{c.mount}_tip" if c.mount else "base_link"
         for i, jname in enumerate(c.joint_names):
-            link = f"{c.name}_link{i + 1}"
-            ET.SubElement(robot_el, "link", name=link)
-            j = ET.SubElement(robot_el, "joint", name=f"{c.name}_{jname}",
-                              type="prismatic" if c.kinds[i] == "prismatic" else "continuous")
-            ET.SubElement(j, "parent", link=parent)
-            ET.SubElement(j, "child", link=link)
-            _set_origin(j, tf.np_pose_matrix(c.origins[i]))
+            j = joint(f"{c.name}_{jname}",
+                      "prismatic" if c.kinds[i] == "prismatic" else "continuous", parent,
+                      f"{c.name}_link{i + 1}", c.origins[i])
             ET.SubElement(j, "axis", xyz=" ".join(f"{v:.12g}" for v in c.axes[i]))
-            parent = link
-        ET.SubElement(robot_el, "link", name=f"{c.name}_tip")
-        j = ET.SubElement(robot_el, "joint", name=f"{c.name}_tool", type="fixed")
-        ET.SubElement(j, "parent", link=parent)
-        ET.SubElement(j, "child", link=f"{c.name}_tip")
-        _set_origin(j, tf.np_pose_matrix(c.origins[-1]))
+            parent = f"{c.name}_link{i + 1}"
+        joint(f"{c.name}_tool", "fixed", parent, f"{c.name}_tip", c.origins[-1])
     ET.indent(robot_el)
     return ET.ElementTree(robot_el)
 

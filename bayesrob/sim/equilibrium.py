@@ -100,6 +100,18 @@ def _linked_energy_vg(d: jax.Array, theta_cmds: tuple, arms: tuple, gravity: jax
     return jax.value_and_grad(total)(d)
 
 
+def _least_energy(value_and_grad: Callable, x0: np.ndarray, scale: float) -> np.ndarray:
+    """Where an energy (given with its gradient) is least, by BFGS from ``x0``; ``scale``
+    divides it so the optimiser's tolerances mean the same for stiff and soft servos."""
+
+    def obj(x: np.ndarray) -> tuple[float, np.ndarray]:
+        v, gr = value_and_grad(jnp.asarray(x))
+        return float(v) / scale, np.asarray(gr) / scale
+
+    return scipy.optimize.minimize(obj, x0, jac=True, method="BFGS",
+                                   options={"gtol": 1e-12, "maxiter": 500}).x
+
+
 class PhysicalRig:
     """The simulated hardware: pulse widths in, settled end points out.
 
@@ -118,23 +130,14 @@ class PhysicalRig:
         return cls(Truth.from_toml(Path(directory) / TRUTH_FILE), seed)
 
     def _k_scale(self, name: str) -> float:
-        # Energies are divided by the softest spring so the optimiser's tolerances mean the
-        # same for stiff and soft servos.
+        # the softest spring: what an arm's energy is divided by (_least_energy)
         return float(jnp.min(self._arrays[name].stiffness))
 
     def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
         """Equilibrium joint angles of a free arm holding commanded angles theta_cmd."""
-        a = self._arrays[name]
-        scale = self._k_scale(name)
         tc = jnp.asarray(theta_cmd, dtype=jnp.float64)
-
-        def obj(t):
-            v, gr = _arm_energy_vg(jnp.asarray(t), tc, a, self._gravity)
-            return float(v) / scale, np.asarray(gr) / scale
-
-        res = scipy.optimize.minimize(obj, np.asarray(theta_cmd, float), jac=True,
-                                      method="BFGS", options={"gtol": 1e-12, "maxiter": 500})
-        return res.x
+        return _least_energy(lambda t: _arm_energy_vg(t, tc, self._arrays[name], self._gravity),
+                             np.asarray(theta_cmd, float), self._k_scale(name))
 
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
         """Common end point of arms linked at their end points (least total energy)."""
@@ -144,16 +147,9 @@ class PhysicalRig:
         tc = tuple(jnp.asarray(theta_cmds[n], dtype=jnp.float64) for n in names)
         free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
                 for n in names]
-        d0 = np.mean(np.asarray(free), axis=0)
-        scale = sum(self._k_scale(n) for n in names)
-
-        def obj(d):
-            v, gr = _linked_energy_vg(jnp.asarray(d), tc, arrays, self._gravity, elbows)
-            return float(v) / scale, np.asarray(gr) / scale
-
-        res = scipy.optimize.minimize(obj, d0, jac=True, method="BFGS",
-                                      options={"gtol": 1e-12, "maxiter": 500})
-        return res.x
+        return _least_energy(lambda d: _linked_energy_vg(d, tc, arrays, self._gravity, elbows),
+                             np.mean(np.asarray(free), axis=0),
+                             sum(self._k_scale(n) for n in names))
 
     def end_point(self, commands: dict[str, Sequence[float]], noise: bool = True) -> np.ndarray:
         """Observed end point (mm) for pulse widths per arm; several arms means linked."""

@@ -129,11 +129,15 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
     steps = (2 * len(names) + 1) * len(grid) + (len(names) + (len(names) > 1)) * len(hold)
     bar = progress_bar(steps, "simulate", "pt", enabled=progress)
     train: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def aim(arms: dict[str, kin.Arm], name: str, points: np.ndarray) -> np.ndarray:
+        u = round_pulse(np.asarray(arms[name].command(jnp.asarray(points))))
+        _check_limits(name, np.atleast_2d(u), truth.arms[name].pulse_limits)
+        return u
+
     nominals = {name: kin.Arm.nominal(specs[name]) for name in names}
     for name in names:
-        nominal = nominals[name]
-        u_all = round_pulse(np.asarray(nominal.command(jnp.asarray(grid))))
-        _check_limits(name, u_all, truth.arms[name].pulse_limits)
+        u_all = aim(nominals, name, grid)
         for set_name in ("train", "validation"):
             obs = []
             for u in u_all:
@@ -149,30 +153,20 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
         calibrated[name] = calibrate_arm(specs[name], u, d).arm
     linked = "+".join(names)
 
-    def aim(target: np.ndarray) -> dict[str, np.ndarray]:
-        cmds = {}
-        for name in names:
-            u = round_pulse(np.asarray(calibrated[name].command(jnp.asarray(target))))
-            _check_limits(name, u[None], truth.arms[name].pulse_limits)
-            cmds[name] = u
-        return cmds
-
     for target in grid:
-        cmds = aim(target)
+        cmds = {name: aim(calibrated, name, target) for name in names}
         d = plant.end_point(cmds)
         rows.append(format_row(names, linked, "test", target, cmds, d))
         bar.update()
     plant.rng = np.random.default_rng(holdout_seed(truth.seed))
     for name in names if len(hold) else ():
-        u_all = round_pulse(np.asarray(nominals[name].command(jnp.asarray(hold))))
-        _check_limits(name, u_all, truth.arms[name].pulse_limits)
-        for u in u_all:
+        for u in aim(nominals, name, hold):
             rows.append(format_row(names, name, "holdout", None, {name: u},
                                    plant.end_point({name: u})))
             bar.update()
     if len(names) > 1:  # a single arm's test rows are its only ones: nothing is linked
         for target in hold:
-            cmds = aim(target)
+            cmds = {name: aim(calibrated, name, target) for name in names}
             rows.append(format_row(names, linked, "holdout", target, cmds,
                                    plant.end_point(cmds)))
             bar.update()
@@ -356,8 +350,7 @@ def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
     write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
     truth.true_params = {name: float(v) for name, v in zip(plant.robot.layout.names,
                                                             plant.x_true, strict=True)}
-    doc = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(truth).items()}
-    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": doc}))
+    (out / TRUTH_FILE).write_text(dump_toml({"chain_truth": asdict(truth)}))
     return out
 
 

@@ -120,10 +120,8 @@ class Truth:
 
     # -- file round trip ---------------------------------------------------------------
     def to_toml(self) -> str:
-        doc = asdict(self)
-        doc["effects"] = list(self.effects)
         return "# True parameters of a simulated rig. Only tests read this file.\n" + \
-            dump_toml(_lists(doc))
+            dump_toml(asdict(self))
 
     @classmethod
     def from_toml(cls, path: str | Path) -> Truth:
@@ -131,14 +129,6 @@ class Truth:
         arms = {n: ArmTruth(**_tuples(a)) for n, a in doc.pop("arms").items()}
         doc = _tuples(doc)
         return cls(arms=arms, **doc)
-
-
-def _lists(x):
-    if isinstance(x, dict):
-        return {k: _lists(v) for k, v in x.items()}
-    if isinstance(x, tuple | list):
-        return [_lists(v) for v in x]
-    return x
 
 
 def _tuples(x):
