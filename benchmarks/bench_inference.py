@@ -6,7 +6,7 @@ One JSON line per (method, number of targets) on the embedded default rig: the f
 target alone, then all 16 targets. Every timing is warm: compilation is done first and
 reported separately (``compile_s``), and each method runs once untimed before the timed run.
 
-- ``grid``: :func:`bayesrob.inference.sampling.grid_posterior` (the checks' reference: a coarse
+- ``grid``: :func:`bayesrob.predict.grid.grid_posterior` (the checks' reference: a coarse
   +-30 mm grid, then a zoomed grid over the mass) and, for comparison, the paper's plain
   100 x 100 grid (:func:`bayesrob.predict.grid.predict`).
 - ``nuts``: numpyro's NUTS with the package defaults (4 chains x (300 warm-up + 4000 draws)

@@ -18,13 +18,20 @@ import pytest
 from numpyro.infer.util import log_density
 from scipy.ndimage import maximum_filter
 
+from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.cli import main
 from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.distributions import (
+    arm_log_density,
+    is_sampleable,
+    joint_error_distribution,
+    joint_error_log_prob,
+)
 from bayesrob.errors.kde import ConditionalKDE
 from bayesrob.errors.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
 from bayesrob.inference import sampling as inf
-from bayesrob.predict.grid import Grid, arm_log_likelihood, predict
+from bayesrob.predict.grid import Grid, GridPosterior, grid_posterior, predict
 
 # Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.
 FIXED = {
@@ -82,7 +89,7 @@ def test_joint_error_log_prob_is_the_kde_density(small_models, kind):
     rng = np.random.default_rng(0)
     err = model.theta_err[rng.integers(0, 16, 50)] + rng.normal(0, 0.004, (50, 2))
     u = model.u[rng.integers(0, 16, 50)] + rng.normal(0, 30, (50, 2))
-    got = np.asarray(inf.joint_error_log_prob(model, jnp.asarray(err), jnp.asarray(u)))
+    got = np.asarray(joint_error_log_prob(model, jnp.asarray(err), jnp.asarray(u)))
     want = np.asarray(model.logpdf(jnp.asarray(err), jnp.asarray(u)))
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
 
@@ -91,7 +98,7 @@ def test_joint_error_log_prob_is_the_kde_density(small_models, kind):
 def test_distribution_samples_have_the_kde_moments(small_models, kind):
     model = small_models[kind]["bottom"]
     u = model.u[3]
-    d = inf.joint_error_distribution(model, u)
+    d = joint_error_distribution(model, u)
     x = np.asarray(d.sample(jax.random.PRNGKey(1), (40000,)))
     if kind == "COND":
         w = np.asarray(model.conditional.weights(u))
@@ -113,11 +120,25 @@ def test_distribution_samples_have_the_kde_moments(small_models, kind):
 
 def test_histogram_cond_is_scored_only(small_models, arms):
     model = small_models["HIST"]["top"]
-    assert not inf.is_sampleable(model)
+    assert not is_sampleable(model)
     with pytest.raises(NotImplementedError, match="scored density only"):
-        inf.joint_error_distribution(model, model.u[0])
+        joint_error_distribution(model, model.u[0])
     with pytest.raises(NotImplementedError, match="cannot be forward-sampled"):
         inf.prior_predictive(model, arms["top"], model.u[:2], 10)
+
+
+def arm_log_likelihood(model, arm, u, points):
+    """The reference: the fitted model's own log density (not the numpyro distribution) of the
+    joint errors that inverse kinematics gives at end points (T, M, 2), plus the log-Jacobian
+    where the model applies it; -inf where the arm cannot reach."""
+    t, m = points.shape[:2]
+    theta, ok = kin.inverse(arm.params, jnp.asarray(points, float), arm.elbow)
+    err = kin.wrap_angle(theta - kin.servo(arm.params, jnp.asarray(u, float))[:, None, :])
+    u_rep = jnp.broadcast_to(jnp.asarray(u, float)[:, None, :], (t, m, 2)).reshape(-1, 2)
+    lp = model.logpdf(err.reshape(-1, 2), u_rep).reshape(t, m)
+    if model.spec.jacobian:
+        lp = lp + kin.log_abs_det_inverse_jacobian(arm.params, theta)
+    return jnp.where(ok, lp, -jnp.inf)
 
 
 @pytest.mark.parametrize("kind", ["IND", "CORR", "COND", "HIST"])
@@ -127,7 +148,7 @@ def test_arm_log_density_matches_the_grid_likelihood(small_models, arms, rig, ki
     model = small_models[kind]["bottom"]
     target = np.asarray(arm.forward_u(jnp.asarray(u[:4])))
     pts = target[:, None, :] + np.random.default_rng(2).normal(0, 2.0, (4, 30, 2))
-    got = inf.arm_log_density(model, arm, jnp.asarray(u[:4]), jnp.asarray(pts.transpose(1, 0, 2)))
+    got = arm_log_density(model, arm, jnp.asarray(u[:4]), jnp.asarray(pts.transpose(1, 0, 2)))
     want = arm_log_likelihood(model, arm, jnp.asarray(u[:4]), jnp.asarray(pts))
     np.testing.assert_allclose(np.asarray(got).T, np.asarray(want), rtol=1e-9, atol=1e-9)
 
@@ -149,7 +170,7 @@ def test_prior_predictive_draws_match_the_grid_density(small_models, arms, rig, 
     u = u[[0, 5, 10, 15]]
     draws = inf.prior_predictive(model, arm, u, 20000, seed=3)["d"]  # (S, 4, 2)
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
-    post = inf.grid_posterior([model], [arm], [u], target)
+    post = grid_posterior([model], [arm], [u], target)
     dev = draws - draws.mean(0)
     cov = np.einsum("sti,stj->tij", dev, dev) / (len(draws) - 1)
     assert np.max(np.linalg.norm(draws.mean(0) - post.mean, axis=1)) < 0.03
@@ -175,7 +196,7 @@ def test_the_grid_zoom_agrees_with_the_paper_grid(small_models, arms, rig):
     rows = rig.config_rows("top+bottom", "test")
     cmds = [rows["commands"][a][:3] for a in ("top", "bottom")]
     target = rows["target"][:3]
-    zoom = inf.grid_posterior(ms, am, cmds, target)
+    zoom = grid_posterior(ms, am, cmds, target)
     plain = predict("top+bottom", dict(zip(("top", "bottom"), ms, strict=True)),
                     {a.name: a for a in am}, dict(zip(("top", "bottom"), cmds, strict=True)),
                     target, Grid(15.0, 600))
@@ -203,7 +224,7 @@ def test_linked_program_density_is_the_product_of_likelihoods(handmade_rig_dir):
     want = sum(arm_log_likelihood(m, arms3[a], c, d[:, None, :])
                for m, a, c in zip(models, names, cmds, strict=True))
     np.testing.assert_allclose(float(lp), float(jnp.sum(want)), rtol=1e-10)
-    post = inf.grid_posterior(models, [arms3[a] for a in names], cmds, rows["target"])
+    post = grid_posterior(models, [arms3[a] for a in names], cmds, rows["target"])
     assert np.all(np.isfinite(post.mean))
 
 
@@ -249,7 +270,7 @@ def _bimodal_models(rig):
             "bottom": fit("bottom", rng.normal(0, 6e-3, (16, 2)), [4e-3, 4e-3])}
 
 
-def _two_modes(grid: inf.GridPosterior) -> tuple[float, float]:
+def _two_modes(grid: GridPosterior) -> tuple[float, float]:
     """(smaller peak / larger peak, lowest density between them / smaller peak)."""
     p = grid.prob[0].reshape(grid.n, grid.n)
     peaks = (p == maximum_filter(p, size=grid.n // 8)) & (p > 0.05 * p.max())
@@ -265,7 +286,7 @@ def test_samplers_agree_with_the_grid_on_a_bimodal_posterior(rig, arms):
     """Chains and walkers start around the target (the arms' prior spread, not the grid) and
     find both modes themselves: NUTS crosses the valley, emcee jumps with its KDE move."""
     ms, am, cmds, target = _setup(rig, arms, _bimodal_models(rig), 0)
-    grid = inf.grid_posterior(ms, am, cmds, target)
+    grid = grid_posterior(ms, am, cmds, target)
     ratio, valley = _two_modes(grid)
     assert 0.2 < ratio < 0.9 and valley < 0.6, (ratio, valley)
     nuts = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 4, 0), seed=0)
@@ -292,7 +313,7 @@ def test_starting_points_come_from_the_prior_spread_not_the_grid(rig, arms, cond
     # density cut may trim one side's far tail; and the starts are wider than the posterior.
     sd = np.sqrt(np.diag(spread)) * inf.INIT_OVERDISPERSION
     assert np.all(np.abs(init[:, 0].mean(0) - target[0]) < 4 * sd / np.sqrt(400) + 0.5)
-    grid = inf.grid_posterior(ms, am, cmds, target)
+    grid = grid_posterior(ms, am, cmds, target)
     assert np.all(np.diag(np.cov(init[:, 0].T)) > np.diag(grid.cov[0]))
     lp = np.asarray(inf.linked_log_density(ms, am)(init[:, 0], [jnp.asarray(c) for c in cmds]))
     assert np.all(lp >= lp.max() - inf.INIT_LOG_DENSITY_DROP)
@@ -321,7 +342,7 @@ def test_cross_check_fails_when_the_samplers_miss_a_mode(rig, arms):
     with the grid: the check fails on their mean and covariance. Started from grid draws, as
     they were, the chains were handed both modes and such a miss could not show."""
     ms, am, cmds, target = _setup(rig, arms, _far_bimodal_models(rig), 0)
-    grid = inf.grid_posterior(ms, am, cmds, target)
+    grid = grid_posterior(ms, am, cmds, target)
     ratio, valley = _two_modes(grid)
     assert ratio > 0.2 and valley < 1e-6, (ratio, valley)
     peak = grid.points()[0, np.argmax(grid.prob[0])]
@@ -353,7 +374,7 @@ def test_nuts_on_the_paper_histogram_cond_passes_the_check(rig, arms, small_mode
     gradient and weighs by the exact table, so it must agree with the grid (same tolerances:
     mean 0.1 mm, covariance 10%, r_hat 1.01, ESS 400)."""
     ms, am, cmds, target = _setup(rig, arms, small_models["HIST"], 3)
-    grid = inf.grid_posterior(ms, am, cmds, target)
+    grid = grid_posterior(ms, am, cmds, target)
     nuts = inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, target, 4, 0), seed=0)
     check = inf.cross_check(grid, [nuts])
     assert check["passed"], check["failures"]
@@ -363,7 +384,7 @@ def test_nuts_on_the_paper_histogram_cond_passes_the_check(rig, arms, small_mode
 
 def test_cross_check_reports_disagreement_with_figures(rig, arms, small_models):
     ms, am, cmds, target = _setup(rig, arms, small_models["CORR"], 2)
-    grid = inf.grid_posterior(ms, am, cmds, target)
+    grid = grid_posterior(ms, am, cmds, target)
     rng = np.random.default_rng(7)
     draws = rng.multivariate_normal(grid.mean[0] + [0.3, 0.0], 1.5 * grid.cov[0], (4, 50))
     idata = az.from_dict(posterior={"d": draws[:, :, None, :]}, dims={"d": ["target", "xy"]})

@@ -33,6 +33,7 @@ from bayesrob.compare.comparison import heldout_scores
 from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.errors.noise_models import ModelSpec, discover_models, joint_errors
 from bayesrob.inference import sampling as inf
+from bayesrob.predict.grid import grid_posterior, point_log_density
 from bayesrob.sim.rigs import simulate_rig
 from bayesrob.sim.truth import paper_truth
 
@@ -94,9 +95,9 @@ def test_hdr_levels_of_the_models_own_draws_are_uniform():
         joint_errors(arm, u, d), u)
     draws = inf.prior_predictive(model, arm, u, 25, seed=11)["d"]  # (25, 16, 2)
     target = np.asarray(arm.forward_u(jnp.asarray(u)))
-    post = inf.grid_posterior([model], [arm], [u], target)
+    post = grid_posterior([model], [arm], [u], target)
     levels = np.concatenate([
-        post.hdr_level(inf.point_log_density(post, [model], [arm], [u], draws[k]))
+        post.hdr_level(point_log_density(post, [model], [arm], [u], draws[k]))
         for k in range(draws.shape[0])])
     assert scipy.stats.kstest(levels, "uniform").pvalue > ALPHA
     for mass in MASSES:

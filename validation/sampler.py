@@ -29,6 +29,7 @@ from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.data.rig import Rig, default_rig_dir, load_rig
 from bayesrob.errors.noise_models import discover_models, joint_errors
 from bayesrob.inference import sampling as inf
+from bayesrob.predict.grid import grid_posterior
 from bayesrob.robot import Arm
 
 SAMPLERS = ("nuts", "emcee")
@@ -61,7 +62,7 @@ def check_model(rig: Rig, arms: dict[str, Arm], name: str, target_index: Sequenc
     am = [arms["top"], arms["bottom"]]
     ms = [fitted["top"], fitted["bottom"]]
     cmds = [np.asarray(a.command(jnp.asarray(targets))) for a in am]
-    grid = inf.grid_posterior(ms, am, cmds, targets)
+    grid = grid_posterior(ms, am, cmds, targets)
     results = {
         "nuts": inf.run_nuts(ms, am, cmds, inf.initial_points(ms, am, cmds, targets, 4, 2 * seed),
                              seed=seed),

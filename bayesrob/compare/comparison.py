@@ -2,7 +2,7 @@
 
 The score of a point is its log predictive density: the log of the model's predicted density
 (per mm^2) of the observed end point, normalised over the grid box like every grid
-prediction (:func:`bayesrob.inference.sampling.grid_posterior`). The points:
+prediction (:func:`bayesrob.predict.grid.grid_posterior`). The points:
 
 - held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
   linked ``test`` rows (predicted from both arms' models), the data no model has seen; when the
@@ -51,9 +51,14 @@ from bayesrob.errors.noise_models import (
     fit_noise_models,
     joint_errors,
 )
-from bayesrob.inference.sampling import GridPosterior, grid_posterior, point_log_density
 from bayesrob.predict.fusion import fused_posterior
-from bayesrob.predict.grid import setup_set, setups
+from bayesrob.predict.grid import (
+    GridPosterior,
+    grid_posterior,
+    point_log_density,
+    setup_set,
+    setups,
+)
 from bayesrob.predict.regions import kde_log_density
 from bayesrob.report.tables import format_table
 

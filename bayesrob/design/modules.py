@@ -36,9 +36,9 @@ import numpy as np
 from bayesrob import robot as kin
 from bayesrob.data.rig import ArmSpec, Rig, RigError
 from bayesrob.design.file import DesignError, DesignSpec, ModuleSpec
+from bayesrob.errors.distributions import error_arrays, error_kind, is_sampleable
 from bayesrob.errors.latent_errors import joint_jacobian
 from bayesrob.errors.noise_models import FittedNoiseModel
-from bayesrob.inference.sampling import error_arrays, error_kind, is_sampleable
 from bayesrob.predict.aiming import aim
 from bayesrob.predict.draws import (
     CalibratedModules,

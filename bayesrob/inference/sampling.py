@@ -3,13 +3,8 @@
 The grid (:mod:`bayesrob.predict.grid`) answers "where will the end point be" exactly, but only on
 a 2-D box. Here the same models are probabilistic programs, so standard Bayesian tools apply:
 
-- Every kernel joint-error model is a numpyro distribution whose density *is* the KDE: a
-  Gaussian KDE is ``MixtureSameFamily(Categorical(w), Independent(Normal(data, bw), 1))`` with
-  uniform ``w`` (IND: one such 1-D mixture per joint; CORR: one 2-D mixture; COND: the mixing
-  weights are the kernel-conditional weights at the command u). The paper's histogram COND has
-  no sampler, only a density, so it enters programs as a ``numpyro.factor``; its value is the
-  table's and its gradient a smooth guide's (:func:`bayesrob.errors.kde.guided_histogram_lookup`),
-  which lets NUTS sample a density that is piecewise constant.
+- Every kernel joint-error model is a numpyro distribution whose density *is* the KDE
+  (:mod:`bayesrob.errors.distributions`).
 - :func:`arm_model`, one arm: u -> theta = g(u) + theta_err, theta_err ~ model -> d = f(theta)
   (+ optional measurement noise). Its prior predictive is the push-forward of the joint-error
   density, which the grid reproduces exactly when the model applies the Jacobian.
@@ -21,14 +16,14 @@ a 2-D box. Here the same models are probabilistic programs, so standard Bayesian
   mass outside that box is negligible (``GridPosterior.edge_mass`` reports it).
 
 :func:`run_nuts` and :func:`run_emcee` sample the linked posterior and return arviz
-``InferenceData``; :func:`grid_posterior` computes the reference moments on a zoomed grid;
+``InferenceData``; :func:`bayesrob.predict.grid.grid_posterior` computes the reference moments
+on a zoomed grid;
 :func:`cross_check` compares them; :func:`sample_linked` is the ``bayesrob sample`` command.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -45,26 +40,30 @@ from numpyro.distributions import constraints
 from numpyro.infer import Predictive
 from numpyro.infer.hmc import hmc
 from numpyro.infer.util import log_density
-from scipy.special import logsumexp, softmax
 from threadpoolctl import threadpool_limits
 
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig
-from bayesrob.errors.kde import guided_histogram_lookup, kernel_conditional_weights
+from bayesrob.errors.distributions import (
+    ArmStatic,
+    arm_structures,
+    compiled_arm_log_density,
+    is_sampleable,
+    joint_error_distribution,
+    joint_error_log_prob,
+)
 from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.aiming import check_pulse_limits, check_reach
-from bayesrob.predict.grid import Grid
-from bayesrob.predict.regions import density_levels
+from bayesrob.predict.grid import GridPosterior, grid_posterior, points_log_likelihood
 from bayesrob.progress import FIRST_LINE_S, Progress
 from bayesrob.report.tables import grouped_notes
 
-__all__ = ["SAMPLERS", "COARSE_GRID", "CheckTolerances", "GridPosterior", "NutsSampler",
-           "SamplerResult", "SampleReport", "kde_distribution", "joint_error_distribution",
-           "joint_error_log_prob", "is_sampleable", "arm_model", "prior_predictive",
-           "arm_log_density", "linked_model", "linked_log_density", "grid_posterior",
-           "point_log_density", "prior_spread", "initial_points", "check_pulse_limits",
-           "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error", "DensityGrid",
-           "density_grid", "emcee_density", "sample_linked", "format_sample"]
+__all__ = ["SAMPLERS", "CheckTolerances", "NutsSampler", "SamplerResult",
+           "SampleReport", "arm_model", "prior_predictive", "linked_model",
+           "linked_log_density", "prior_spread", "initial_points", "check_pulse_limits",
+           "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error",
+           "DensityGrid", "density_grid", "emcee_density", "sample_linked",
+           "format_sample"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
@@ -79,167 +78,7 @@ NUTS_WARMUP = 300
 NUTS_SAMPLES = 4000
 NUTS_TARGET_ACCEPT = 0.65
 
-# The prediction's +-30 mm box at 0.4 mm cells: only finds the mass for the zoomed grid. It has
-# as many cells as the zoomed grid, so one compiled likelihood serves both.
-COARSE_GRID = Grid(30.0, 150)
 
-# Width, in bins, of the guide's wall around a histogram table (kde.histogram_guide). Stiffer
-# walls turn NUTS trajectories back sooner; on the default rig's 16 targets 0.25 bin took
-# 2.6 s against 14 s at 0.5 and 77 s at 1 bin (all passing the cross-check), while 0.1 bin
-# began to cost ESS. It shapes trajectories only: the density sampled is the table's.
-HISTOGRAM_WALL = 0.25
-
-
-# --------------------------------------------------------------------------------------------
-# Joint-error models as numpyro distributions
-# --------------------------------------------------------------------------------------------
-
-
-def kde_distribution(data: Any, bandwidth: Any, weights: Any | None = None
-                     ) -> dist.MixtureSameFamily:
-    """A diagonal Gaussian KDE as a numpyro distribution over d-vectors.
-
-    ``data`` (N, d), ``bandwidth`` (d,) in the data's units, ``weights`` (..., N) mixing
-    weights (default uniform, 1/N: the plain KDE). Leading dimensions of ``weights`` become the
-    batch shape, so one call gives the conditional densities at a batch of commands.
-    """
-    data = jnp.asarray(data, dtype=jnp.float64)
-    bw = jnp.asarray(bandwidth, dtype=jnp.float64)
-    n = data.shape[0]
-    if weights is None:
-        weights = jnp.full((n,), 1.0 / n)
-    weights = jnp.asarray(weights, dtype=jnp.float64)
-    batch = weights.shape[:-1]
-    # Components must carry the mixing batch in front of their own mixture axis.
-    loc = jnp.broadcast_to(data, batch + data.shape)
-    comp = dist.Normal(loc, jnp.broadcast_to(bw, loc.shape)).to_event(1)
-    return dist.MixtureSameFamily(dist.Categorical(probs=weights), comp)
-
-
-def error_kind(model: FittedNoiseModel) -> str:
-    if model.conditional is None:
-        return model.spec.family
-    return "COND" if model.conditional.method == "kernel" else "HIST"
-
-
-def is_sampleable(model: FittedNoiseModel) -> bool:
-    """Whether the model can draw joint errors (everything but the histogram COND)."""
-    return error_kind(model) != "HIST"
-
-
-def error_arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
-    """The model's learned state as arrays: traced, not baked in, by the compiled samplers."""
-    kind = error_kind(model)
-    if kind == "IND":
-        if len({p.n for p in model.parts}) > 1:
-            raise ValueError("IND parts were fitted to different numbers of points")
-        out = {"x": np.column_stack([p.data[:, 0] for p in model.parts]),
-               "bw_x": np.array([p.bandwidth[0] for p in model.parts])}
-    elif kind == "CORR":
-        out = {"x": model.parts[0].data, "bw_x": model.parts[0].bandwidth}
-    elif kind == "COND":
-        c = model.conditional
-        out = {"x": c.x_data, "bw_x": c.bw_x, "z": c.z_data, "bw_z": c.bw_z}
-    else:
-        c = model.conditional
-        out = {"table": c.log_table, "lo": c.grid_lo, "widths": c.bin_widths}
-    return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
-
-
-def error_distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | None
-                  ) -> dist.Distribution:
-    x, bw = arrays["x"], arrays["bw_x"]
-    if kind == "IND":
-        # 1-D mixtures side by side (a batch of n joints) made into one n-vector event: the
-        # product density p1(e1) p2(e2) ... that IND is, and exactly sampleable.
-        loc = x.T  # (n, N)
-        scale = jnp.broadcast_to(bw[:, None], loc.shape)
-        mix = dist.Categorical(probs=jnp.full(loc.shape, 1.0 / loc.shape[1]))
-        return dist.MixtureSameFamily(mix, dist.Normal(loc, scale)).to_event(1)
-    if kind == "CORR":
-        return kde_distribution(x, bw)
-    if u is None:
-        raise ValueError("COND needs the command u to condition on")
-    w = kernel_conditional_weights(jnp.asarray(u, dtype=jnp.float64), arrays["z"],
-                                   arrays["bw_z"])
-    return kde_distribution(x, bw, w)
-
-
-def joint_error_distribution(model: FittedNoiseModel, u: Any | None = None) -> dist.Distribution:
-    """The joint-error density of a fitted model as a numpyro distribution over (2,) errors.
-
-    IND and CORR ignore ``u``; the kernel COND needs the command(s) ``u`` ((2,) or (T, 2), the
-    latter giving batch shape (T,)). The histogram COND (the paper's) has a density but no
-    sampler: it raises ``NotImplementedError``; score it with :func:`joint_error_log_prob`.
-    """
-    kind = error_kind(model)
-    if kind == "HIST":
-        raise NotImplementedError(
-            f"model {model.spec.name!r} (histogram COND) is a scored density only; "
-            "use joint_error_log_prob inside numpyro.factor")
-    return error_distribution(kind, error_arrays(model), u)
-
-
-@dataclass(frozen=True)
-class _ArmStatic:
-    """What a compiled program bakes in about one arm; everything else is traced arrays."""
-
-    name: str
-    kind: str
-    jacobian: bool
-    elbow: int
-    bins: tuple[int, ...] = ()  # histogram COND: bins per dimension (x dims, then z)
-    log_floor: float = 0.0  # histogram COND: log density outside the bins
-
-
-def _error_log_prob(static: _ArmStatic, arrays: dict[str, jax.Array], theta_err: jax.Array,
-                    u: jax.Array) -> jax.Array:
-    u = jnp.broadcast_to(jnp.asarray(u, dtype=jnp.float64), theta_err.shape)
-    if static.kind != "HIST":
-        return error_distribution(static.kind, arrays, u).log_prob(theta_err)
-    # The paper's COND: the fitted table itself (grid and emcee see exactly it), with a
-    # gradient from a smooth guide so that NUTS can move on a piecewise-constant density.
-    shape = theta_err.shape[:-1]
-    out = guided_histogram_lookup(theta_err.reshape(-1, 2), u.reshape(-1, 2), arrays["table"],
-                                  arrays["lo"], arrays["widths"], static.bins, static.log_floor,
-                                  HISTOGRAM_WALL)
-    return out.reshape(shape)
-
-
-def _static(model: FittedNoiseModel, arm: kin.Arm | None) -> _ArmStatic:
-    kind = error_kind(model)
-    hist = {}
-    if kind == "HIST":
-        c = model.conditional
-        hist = {"bins": tuple(int(b) for b in c.bins), "log_floor": math.log(c.floor)}
-    return _ArmStatic(arm.name if arm else "", kind, bool(model.spec.jacobian),
-                      int(arm.elbow) if arm else 1, **hist)
-
-
-def _structure(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
-               ) -> tuple[tuple[_ArmStatic, ...], tuple[tuple[kin.ArmParams, dict], ...]]:
-    """Split linked arms into the static part (compile key) and a pytree of arrays."""
-    if len(models) != len(arms) or not arms:
-        raise ValueError("need one fitted model per arm, and at least one arm")
-    statics = tuple(_static(m, a) for m, a in zip(models, arms, strict=True))
-    params = tuple((kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64) for x in a.params)),
-                    error_arrays(m)) for m, a in zip(models, arms, strict=True))
-    return statics, params
-
-
-def joint_error_log_prob(model: FittedNoiseModel, theta_err: jax.Array, u: jax.Array
-                         ) -> jax.Array:
-    """log p(theta_err | u) for errors (..., 2) and commands (..., 2) broadcast together.
-
-    The mixture distribution's ``log_prob`` for the kernel models, the histogram table for the
-    paper's COND; traceable either way.
-    """
-    return _error_log_prob_jit(_static(model, None), error_arrays(model), jnp.asarray(theta_err),
-                               jnp.asarray(u, dtype=jnp.float64))
-
-
-# Compiled once per model structure and shapes, instead of op by op.
-_error_log_prob_jit = jax.jit(_error_log_prob, static_argnums=0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -287,37 +126,13 @@ def prior_predictive(model: FittedNoiseModel, arm: kin.Arm, u: Any, num_samples:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _arm_log_density(static: _ArmStatic, arm_params: kin.ArmParams, arrays: dict,
-                     u: jax.Array, d: jax.Array) -> jax.Array:
-    theta, ok = kin.inverse(arm_params, d, static.elbow)
-    err = kin.wrap_angle(theta - kin.servo(arm_params, u))
-    lp = _error_log_prob(static, arrays, err, u)
-    if static.jacobian:
-        lp = lp + kin.log_abs_det_inverse_jacobian(arm_params, theta)
-    return jnp.where(ok, lp, -jnp.inf)
-
-
-def arm_log_density(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array, d: jax.Array
-                    ) -> jax.Array:
-    """log-likelihood of end points d (..., T, 2) for one arm commanded with u (T, 2).
-
-    log p(theta_err(d) | u) (+ log|det df^-1/dd| when the model applies the Jacobian);
-    -inf where the arm cannot reach d. The same quantity as the grid's
-    :func:`bayesrob.predict.grid.arm_log_likelihood`, computed through the distributions.
-    """
-    (static,), ((arm_params, arrays),) = _structure([model], [arm])
-    return _arm_log_density(static, arm_params, arrays, jnp.asarray(u, dtype=jnp.float64),
-                            jnp.asarray(d, dtype=jnp.float64))
-
-
 def _linked_program(commands: Sequence[jax.Array], params: tuple, *,
-                    statics: tuple[_ArmStatic, ...]) -> None:
+                    statics: tuple[ArmStatic, ...]) -> None:
     t = commands[0].shape[0]
     d = numpyro.sample("d", dist.ImproperUniform(constraints.real, (t,), event_shape=(2,)))
     for static, (arm_params, arrays), u in zip(statics, params, commands, strict=True):
         numpyro.factor(f"loglik_{static.name}",
-                       _arm_log_density(static, arm_params, arrays, u, d))
+                       compiled_arm_log_density(static, arm_params, arrays, u, d))
 
 
 def linked_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseModel],
@@ -329,13 +144,13 @@ def linked_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseM
     wherever the grid box holds the mass. Likelihood: one ``numpyro.factor`` per arm,
     ``loglik_<arm>``. Any number of arms (one arm gives that arm's own prediction).
     """
-    statics, params = _structure(models, arms)
+    statics, params = arm_structures(models, arms)
     _linked_program(tuple(jnp.asarray(u, dtype=jnp.float64) for u in commands), params,
                     statics=statics)
 
 
 @functools.lru_cache(maxsize=64)
-def _compiled_log_density(statics: tuple[_ArmStatic, ...]) -> Callable:
+def _compiled_log_density(statics: tuple[ArmStatic, ...]) -> Callable:
     program = functools.partial(_linked_program, statics=statics)
 
     def one(x, commands, params):
@@ -356,166 +171,10 @@ def linked_log_density(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Ar
     :func:`linked_model`, so emcee and NUTS see literally the same density. The compiled code
     is shared by every model of the same structure (family, Jacobian, branch per arm).
     """
-    statics, params = _structure(models, arms)
+    statics, params = arm_structures(models, arms)
     fn = _compiled_log_density(statics)
     # No conversions here: emcee calls this thousands of times and jit takes numpy arrays.
     return lambda d, commands: fn(d, tuple(commands), params)
-
-
-# --------------------------------------------------------------------------------------------
-# The grid reference
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class GridPosterior:
-    """The grid's end-point density, resolved on a zoomed grid fine enough for moments.
-
-    A coarse grid (default +-30 mm, 150 x 150, the prediction's box) locates the mass; a
-    second ``n x n`` grid over the box that holds all but ``1e-9`` of it (plus a margin)
-    gives mean, covariance and normaliser by the midpoint rule. ``log_normaliser`` is
-    log of the integral of the unnormalised density over the box (per mm^2), so
-    ``loglik(d) - log_normaliser`` is the normalised log density at d.
-    """
-
-    targets: np.ndarray  # (T, 2)
-    lo: np.ndarray  # (T, 2) lower-left corner of each fine grid
-    cell_mm: np.ndarray  # (T, 2) fine cell size
-    n: int
-    prob: np.ndarray  # (T, n*n) mass per fine cell
-    mean: np.ndarray  # (T, 2)
-    cov: np.ndarray  # (T, 2, 2)
-    log_normaliser: np.ndarray  # (T,)
-    edge_mass: np.ndarray  # (T,) coarse-grid mass in its outermost ring of cells
-    coarse: Grid
-    seconds: float = 0.0
-
-    def points(self) -> np.ndarray:
-        """Fine cell centres (T, n*n, 2), x fastest."""
-        return _cell_centres(self.lo, self.cell_mm, self.n)
-
-    def sample(self, seed: int, n: int) -> np.ndarray:
-        """n draws (n, T, 2): a cell by its mass, then uniform within the cell."""
-        rng = np.random.default_rng(seed)
-        pts = self.points()
-        out = np.empty((n, len(self.targets), 2))
-        for t in range(len(self.targets)):
-            # Systematic resampling: n draws spread over the CDF, so even 4 chains land in
-            # the modes in proportion to their mass instead of by luck.
-            cdf = np.cumsum(self.prob[t])
-            pos = (rng.permutation(n) + rng.uniform()) / n
-            idx = np.minimum(np.searchsorted(cdf, pos * cdf[-1]), cdf.size - 1)
-            jitter = rng.uniform(-0.5, 0.5, size=(n, 2)) * self.cell_mm[t]
-            out[:, t] = pts[t, idx] + jitter
-        return out
-
-    def hdr_level(self, log_density: np.ndarray) -> np.ndarray:
-        """Mass of the highest-density region whose boundary passes through each point.
-
-        ``log_density`` (T,): the normalised log density (per mm^2) of one point per target
-        (:func:`point_log_density`). The result is the predicted mass denser than the point:
-        a point lies in the ``m`` HDR when its level is <= m, and for a calibrated model the
-        levels of real outcomes are uniform on (0, 1) (a 2-D probability integral transform).
-        """
-        log_area = np.log(self.cell_mm[:, 0] * self.cell_mm[:, 1])
-        with np.errstate(divide="ignore"):
-            cell_ld = np.log(self.prob.T) - log_area
-        return density_levels(cell_ld, log_density, self.prob.T)
-
-
-def _cell_centres(lo: np.ndarray, cell: np.ndarray, n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    gx, gy = np.meshgrid(i, i)
-    unit = np.column_stack([gx.ravel(), gy.ravel()])
-    return lo[:, None, :] + unit[None] * cell[:, None, :]
-
-
-@functools.lru_cache(maxsize=64)
-def _compiled_loglik(statics: tuple[_ArmStatic, ...]) -> Callable:
-    def one_target(args, params):
-        points, commands = args  # (M, 2), tuple of (2,)
-        return sum(_arm_log_density(s, ap, arr, u[None], points[:, None, :])[:, 0]
-                   for s, (ap, arr), u in zip(statics, params, commands, strict=True))
-
-    # Targets one after the other (lax.map): an (M x N) kernel block per target stays small
-    # where all targets at once would hold T times as much.
-    return jax.jit(lambda points, commands, params: jax.lax.map(
-        lambda a: one_target(a, params), (points, commands)))
-
-
-def _loglik(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
-            commands: Sequence[np.ndarray], points: Any) -> np.ndarray:
-    """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's density.
-
-    Computed by the same per-arm densities as the programs (their equality with
-    :func:`bayesrob.predict.grid.arm_log_likelihood` is tested), compiled once per structure
-    and shapes, so repeated grids (targets, LOO refits, rigs) pay no compilation.
-    """
-    statics, params = _structure(models, arms)
-    cmds = tuple(jnp.asarray(np.atleast_2d(u), dtype=jnp.float64) for u in commands)
-    return np.asarray(_compiled_loglik(statics)(jnp.asarray(points, dtype=jnp.float64), cmds,
-                                                params))
-
-
-def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
-                   commands: Sequence[np.ndarray], targets: np.ndarray,
-                   coarse: Grid = COARSE_GRID, n: int = 150,
-                   tail: float = 1e-9) -> GridPosterior:
-    """Mean, covariance and normaliser of the grid density of each target, on a zoomed grid.
-
-    The paper's 100 x 100 grid has 0.6 mm cells, as wide as the posterior itself (sd ~0.4 to
-    2 mm), so its moments carry discretisation error of the order of the 0.1 mm / 10%
-    tolerances of :func:`cross_check`. The zoom makes that error negligible: the box spans
-    about +-6 posterior sd, so a cell is ~0.08 sd (typically 0.02 to 0.08 mm) and the
-    midpoint rule's relative error in the variance is ~(cell / sd)^2 / 12 < 0.1%.
-    """
-    t0 = time.perf_counter()
-    targets = np.atleast_2d(np.asarray(targets, float))
-    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
-    offsets = coarse.offsets
-    pts = targets[:, None, :] + offsets[None]
-    ll = _loglik(models, arms, commands, pts)
-    if not np.all(np.isfinite(ll).any(axis=1)):
-        t = int(np.flatnonzero(~np.isfinite(ll).any(axis=1))[0])
-        raise ValueError(f"target {t} ({targets[t, 0]:g}, {targets[t, 1]:g}): no point of the "
-                         f"+-{coarse.half_width_mm:g} mm box around it is reached by every arm")
-    p = softmax(ll, axis=-1)
-    step = 2 * coarse.half_width_mm / coarse.n
-    ring = np.any(np.abs(offsets) > coarse.half_width_mm - step, axis=1)
-    edge = p[:, ring].sum(axis=1)
-    lo = np.empty_like(targets)
-    hi = np.empty_like(targets)
-    for t in range(len(targets)):
-        order = np.argsort(p[t])[::-1]
-        k = int(np.searchsorted(np.cumsum(p[t, order]), 1.0 - tail)) + 1
-        keep = pts[t][order[:k]]
-        # Margin of two coarse cells: the kept cells' centres understate the support by half
-        # a cell, and the density between neighbours of the last kept cell is not yet zero.
-        lo[t] = keep.min(axis=0) - 2 * step
-        hi[t] = keep.max(axis=0) + 2 * step
-    cell = (hi - lo) / n
-    fine = _cell_centres(lo, cell, n)
-    llf = _loglik(models, arms, commands, fine)
-    log_normaliser = logsumexp(llf, axis=-1) + np.log(cell[:, 0] * cell[:, 1])
-    prob = softmax(llf, axis=-1)
-    mean = np.einsum("tm,tmk->tk", prob, fine)
-    dev = fine - mean[:, None, :]
-    cov = np.einsum("tm,tmi,tmj->tij", prob, dev, dev)
-    return GridPosterior(targets, lo, cell, n, prob, mean, cov, log_normaliser, edge, coarse,
-                         time.perf_counter() - t0)
-
-
-def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
-                      arms: Sequence[kin.Arm], commands: Sequence[np.ndarray],
-                      points: np.ndarray) -> np.ndarray:
-    """Normalised log density (per mm^2) of one point per target under the grid prediction.
-
-    The unnormalised log-likelihood at the exact point, minus the grid's log normaliser: no
-    discretisation of the point itself, and the same normalisation as every grid prediction.
-    """
-    pts = np.asarray(points, float)[:, None, :]
-    ll = _loglik(models, arms, commands, pts)[:, 0]
-    return ll - post.log_normaliser
 
 
 # --------------------------------------------------------------------------------------------
@@ -576,7 +235,7 @@ def initial_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
     for _ in range(max_rounds):
         z = rng.standard_normal((t_count, m, 2))
         cand = targets[:, None, :] + np.einsum("tij,tmj->tmi", chol, z)
-        lp = _loglik(models, arms, commands, cand)
+        lp = points_log_likelihood(models, arms, commands, cand)
         pool = np.concatenate([pool, cand], axis=1)
         pool_lp = np.concatenate([pool_lp, np.where(np.isnan(lp), -np.inf, lp)], axis=1)
         ok = pool_lp >= pool_lp.max(axis=1, keepdims=True) - INIT_LOG_DENSITY_DROP
@@ -715,7 +374,7 @@ class NutsSampler:
     def run(self, models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
             commands: Sequence[np.ndarray], init: np.ndarray, seed: int = 0) -> SamplerResult:
         """Sample every target; ``init`` (num_chains, T, 2) are the chains' starting points."""
-        statics, params = _structure(models, arms)
+        statics, params = arm_structures(models, arms)
         cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
         c, t = self.num_chains, cmds[0].shape[0]
         if np.shape(init) != (c, t, 2):
@@ -765,7 +424,7 @@ class NutsSampler:
 
 
 @functools.lru_cache(maxsize=64)
-def _linked_potential(statics: tuple[_ArmStatic, ...]) -> Callable:
+def _linked_potential(statics: tuple[ArmStatic, ...]) -> Callable:
     """The potential energy of :func:`linked_model` at z given (commands, params), one
     function per structure: what NutsSampler caches its compiled programs on."""
     program = functools.partial(_linked_program, statics=statics)

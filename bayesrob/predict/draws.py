@@ -38,6 +38,7 @@ from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.calibrate.least_squares import Calibration, calibrate, parameter_covariance
 from bayesrob.data.rig import Rig, RigError
+from bayesrob.errors.distributions import joint_error_distribution
 from bayesrob.errors.latent_errors import (
     LatentJointErrors,
     check_latent_model,
@@ -51,7 +52,6 @@ from bayesrob.errors.noise_models import (
     joint_errors_observed,
     observed_joint_errors,
 )
-from bayesrob.inference.sampling import joint_error_distribution
 from bayesrob.predict.aiming import aim, check_reach
 from bayesrob.predict.fusion import DRAWS, FUSIONS, equilibrium, fused_draws
 from bayesrob.predict.stiffness import StiffnessPrior, stiffness_draws, stiffness_priors

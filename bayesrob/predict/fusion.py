@@ -2,7 +2,7 @@
 
 - ``product`` (the paper's rule, kept as the baseline): the linked end point's density is the
   product of the arms' likelihoods (:mod:`bayesrob.predict.grid`,
-  :func:`bayesrob.inference.sampling.grid_posterior`).
+  :func:`bayesrob.predict.grid.grid_posterior`).
 - ``equilibrium``: linked arms are springs. Left alone, arm a would hold its end point at d_a,
   its *free* end point, whose distribution is the arm's own single-arm prediction at its
   commands. Linked, the end point settles where the arms' elastic forces balance. Linearised
@@ -52,16 +52,14 @@ from numpyro.infer import Predictive
 
 from bayesrob import robot as kin
 from bayesrob.data.vocabulary import DEFAULT_FUSION, FUSIONS  # noqa: F401 (re-exported)
-from bayesrob.errors.noise_models import FittedNoiseModel
-from bayesrob.inference.sampling import (
-    COARSE_GRID,
-    GridPosterior,
+from bayesrob.errors.distributions import (
     error_arrays,
     error_distribution,
     error_kind,
-    grid_posterior,
     is_sampleable,
 )
+from bayesrob.errors.noise_models import FittedNoiseModel
+from bayesrob.predict.grid import COARSE_GRID, GridPosterior, grid_posterior
 from bayesrob.predict.regions import kernels
 from bayesrob.predict.stiffness import given_or_servo_prior
 
@@ -177,7 +175,7 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
     """Arms linked at their end point, settling where their stiffnesses balance.
 
     For each arm k with commands (T, 2): theta_err_k ~ its joint-error model (``kinds`` and
-    ``arrays``: :func:`bayesrob.inference.sampling.error_arrays`, so a compiled caller such as the
+    ``arrays``: :func:`bayesrob.errors.distributions.error_arrays`, so a compiled caller such as the
     configuration designer traces them rather than baking them in), theta_k = g(u) +
     theta_err_k, free point d_k = f(theta_k); log stiffnesses from ``stiffness`` ((2,)
     N mm/rad per arm, None for unknown) or the prior; then the linked point ``d`` =

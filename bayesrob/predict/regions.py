@@ -9,7 +9,7 @@ volume those points stand for. One routine serves both kinds of points:
 - draws from the KDE itself (:func:`hdr_sizes`, :func:`hdr_levels`): each stands for 1/K of
   the mass and 1 / (K p) of the volume, so the size is the Monte Carlo estimate
   vol{p > c} = E_p[1{p > c} / p];
-- the cells of a grid (:mod:`.grid`, :class:`bayesrob.inference.sampling.GridPosterior`): each
+- the cells of a grid (:mod:`.grid`, :class:`bayesrob.predict.grid.GridPosterior`): each
   stands for its own mass and its cell's area, which gives the paper's count of cells.
 
 The HDR *level* of a point is the mass denser than it: inside the m region when below m, and
