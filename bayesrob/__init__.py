@@ -16,8 +16,10 @@ you can write to.
 Every compiled program maps its machine code into the process (about two dozen memory maps
 each), and Linux caps a process's maps (``vm.max_map_count``, 65530 by default): past it XLA
 dies with a segmentation fault in whatever maps next (a compilation, or the cache's
-(de)serialiser). A process that compiles programs for robot after robot (a diagnosis sweep, a
-designer's worker, a test session) calls :func:`release_compiled_programs` between them.
+(de)serialiser). Programs are keyed by a robot's structure, so fitting robot after robot of
+one design adds none; a process that compiles many different programs (the validation suite
+between studies, a designer's worker, a test session) calls :func:`release_compiled_programs`
+between them (`calibrate` no longer does it itself).
 """
 
 from __future__ import annotations

@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob import release_compiled_programs
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig, load_rig
 from bayesrob.sim.physics import gravity_deflection
@@ -75,7 +74,6 @@ def run_bayes(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> d
             rows.append(bayes_rig(Path(tmp) / f"rig{seed}", seed))
             say(f"rig {i}/{len(seeds)} (seed {seed}): r_hat {rows[-1]['r_hat_max']:.3f}, "
                 f"inside {rows[-1]['inside99']:.2f}")
-            release_compiled_programs()
     return {
         "r_hat_max": max(r["r_hat_max"] for r in rows),
         "ess_bulk_min": min(r["ess_bulk_min"] for r in rows),
@@ -130,7 +128,6 @@ def run_compliance(seeds: list[int], *, quick: bool,
             rows.append(r)
             say(f"rig {i}/{len(seeds)} (seed {seed}): geometric {r['geometric_mm']:.2f} mm, "
                 f"compliance {r['compliance_mm']:.2f} mm, floor {r['floor_mm']:.2f} mm")
-            release_compiled_programs()
     return {
         "geometric_over_floor_min": min(r["geometric_mm"] / r["floor_mm"] for r in rows),
         "compliance_over_floor_max": max(r["compliance_mm"] / r["floor_mm"] for r in rows),

@@ -82,7 +82,6 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
     """The simulator's compliant arm6 with 2 mrad of play in every joint, one per seed: named
     joint compliance then backlash, and the validation error after each step. ``quick``
     chooses between joint compliance and backlash only (a smoke run of the same check)."""
-    from bayesrob import release_compiled_programs
     from bayesrob.data.rig import load_rig
     from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.sim.rigs import simulate_arm6_rig
@@ -104,7 +103,6 @@ def play_on_compliance(seeds: list[int], *, quick: bool,
         say(f"[{i}/{len(seeds)}] seed {seed}: named {', '.join(doc['effects']) or 'nothing'}; "
             f"validation {doc['baseline_heldout_error_mm']:.3f} -> "
             + " -> ".join(f"{e:.3f}" for e in ladder) + " mm")
-        release_compiled_programs()
     right = [r for r in rows if r["effects"] == ["joint_compliance", "backlash"]]
     # where it was named, what the play's step did to the error compliance had left
     ratios = [r["ladder_mm"][1] / r["ladder_mm"][0] for r in right]

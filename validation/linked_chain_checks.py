@@ -27,8 +27,6 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob import release_compiled_programs
-
 ARMS = ("left", "right")
 GROUPS = ("frames", "offsets", "geometric", "compliance")
 PRODUCT_ROWS = 3
@@ -128,7 +126,6 @@ def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[st
             say(f"rig {i}/{len(seeds)}: stiffnesses from the URDF's masses, worst error "
                 f"{row['described.max_stiffness_error']:.3f}")
             per_rig.append(row)
-            release_compiled_programs()
     worst = {"known_stiffness.gap_mm": max, "known_stiffness.miss_over_gap": min,
              "product.max_mean_gap_mm": max, "product.max_gap_over_sd": max,
              "product.max_variance_error": max, "described.max_stiffness_error": max}

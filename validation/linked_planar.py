@@ -24,8 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from bayesrob import release_compiled_programs
-
 IMPROVED = ("ind", "corr", "cond")
 EFFECTS = ("gravity_sag", "backlash")
 FUSIONS = ("equilibrium", "product")
@@ -123,7 +121,6 @@ def run(seeds: list[int], *, quick: bool, say: Callable[[str], None]) -> dict[st
             say(f"rig {i}/{len(seeds)} (seed {seed}): equilibrium "
                 + ", ".join(f"{m} {p['coverage50']:.2f} / {p['coverage90']:.2f} / "
                             f"{p['error_ratio']:.2f}" for m, p in eq.items()))
-            release_compiled_programs()
     figures: dict[str, Any] = {}
     for fusion in FUSIONS:
         for model in IMPROVED:
@@ -164,7 +161,6 @@ def three_arms_kde(seeds: list[int], *, quick: bool, say: Callable[[str], None]
             say(f"rig {i}/{len(seeds)} (seed {seed}): " + ", ".join(
                 f"{m} {p['coverage50']:.2f} / {p['coverage90']:.2f} / {p['error_ratio']:.2f}"
                 for m, p in ((m, _pooled([row[m]])) for m in THREE_ARM_MODELS)))
-            release_compiled_programs()
     figures: dict[str, Any] = {}
     for model in THREE_ARM_MODELS:
         pooled = _pooled([r[model] for r in rigs])
@@ -218,7 +214,6 @@ def three_arm_study(seeds: Sequence[int], groups: tuple[str, ...] = THREE_ARM_GR
                          "error_ratio": float(p.expected_error_mm.mean() / o.mean()),
                          "observed_mean_error_mm": float(o.mean())})
             say(json.dumps(rigs[-1]))
-            release_compiled_programs()  # each rig's fits compile programs of their own
     lv = np.concatenate(levels)
     return {"points": int(lv.size), "coverage50": float(np.mean(lv < 0.5)),
             "coverage90": float(np.mean(lv < 0.9)),

@@ -21,7 +21,6 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from bayesrob import release_compiled_programs
 from bayesrob import robot as kin
 from bayesrob.calibrate.identifiability import Identifiability, identifiability
 from bayesrob.data.rig import SETS, Rig
@@ -226,8 +225,6 @@ def calibrate(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
     or "description": held at the robot description's (URDF ``<inertial>``), so that each
     compliance is the joint's own and not its product with an unknown mass scale."""
     t0 = time.perf_counter()
-    # a fit compiles programs for its robot; sweeps fit robot after robot in one process
-    release_compiled_programs()
     unknown = [g for g in groups if g not in kin.ALL_GROUPS]
     if unknown:
         raise ValueError(f"unknown parameter group {unknown[0]!r}; choose from "
