@@ -7,7 +7,7 @@ being arguments.
 
 Memory: ``--robots`` simulated arm6 rigs of seeds 0, 1, ... (40 train, 5 validation rows;
 simulated in a child process, as the simulator's eager steps map memory of their own), each
-calibrated (frames, geometric) in this process with ``release_compiled_programs`` off; prints
+calibrated (frames, geometric) in this process (nothing releases programs); prints
 the process's memory maps, RSS and the calibration's seconds after 1, 10, 50 and 100. Flat
 after the first few means the robots share their programs (keyed by the robot's value, each
 robot's programs took about 530 maps: 53,850 maps and 2.1 GB after 100, near the kernel's
@@ -62,12 +62,10 @@ def memory(n_robots: int, tmp: Path) -> None:
     subprocess.run([sys.executable, "-c", SIMULATE, str(tmp), str(n_robots)], check=True,
                    capture_output=True, cwd=tmp)
     import bayesrob
-    from bayesrob.calibrate import least_squares
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import load_rig
 
-    # off, so the figures show what the programs hold rather than when they were dropped
-    least_squares.release_compiled_programs = lambda *a, **k: False
+    # calibrate drops no programs (it did before: the figures show what the programs hold)
     print(json.dumps({"case": "memory", "bayesrob": bayesrob.__file__,
                       "start_maps": bayesrob.memory_maps()[0], "start_rss_mb": round(_rss_mb())}))
     t_all = time.perf_counter()
