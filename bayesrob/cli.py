@@ -1171,6 +1171,10 @@ def _plan_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=_seed, default=0, help="random seed of the samples (0)")
     p.add_argument("--noise-mm", type=_non_negative_float, default=0.1,
                    help="measurement noise sd (mm) the predicted error is taken with (0.1)")
+    p.add_argument("--omitted-sd", type=_non_negative_float, default=None, metavar="SD",
+                   help="accuracy: prior sd, in typical sizes, of the sag groups (compliance, "
+                        "lateral) --params leaves out, whose bias the predicted error adds "
+                        "(default 1; 0: the calibration's variance only)")
     p.add_argument("--json", metavar="OUT", help="write the plan's summary as JSON")
 
 
@@ -1184,7 +1188,8 @@ def _plan(args: argparse.Namespace) -> int:
     rig = load_plan_rig(args.rig)
     plan = plan_poses(rig, args.n, criterion=args.criterion, groups=args.params,
                       pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
-                      noise_mm=args.noise_mm)
+                      noise_mm=args.noise_mm, **({} if args.omitted_sd is None else
+                                                 {"omitted_sd": args.omitted_sd}))
     print(plan.summary())
     write_poses(plan, args.out)
     print(f"wrote {args.out}")
