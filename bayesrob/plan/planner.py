@@ -205,7 +205,8 @@ def _task_pool(path: str | Path, rig: Rig, pool: Pool, robot: kin.Robot, x: np.n
 def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
                groups: tuple[str, ...] | None = None, pool: str | Path | None = None,
                samples: int | None = None, task: str | Path | None = None, seed: int = 0,
-               noise_mm: float = DEFAULT_NOISE_MM, omitted_sd: float = OMITTED_SD) -> Plan:
+               noise_mm: float = DEFAULT_NOISE_MM, omitted_sd: float = OMITTED_SD,
+               prior_sd: float = PRIOR_SD) -> Plan:
     """Choose ``n`` poses for ``rig`` (see the module's docstring); bad input is a
     :class:`~bayesrob.data.rig.RigError` naming file, row and column. ``omitted_sd``: the
     prior sd (typical sizes) of the sag groups the calibration leaves out, whose bias the
@@ -244,7 +245,7 @@ def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
     (j_meas, k_meas), (j_cand, k_cand), (j_task, k_task) = (
         (j[:, :, fit], j[:, :, omit]) for j in (j_meas, j_cand, j_task))
     free[np.flatnonzero(cols)[~fit]] = False
-    info = np.eye(int(free.sum())) / PRIOR_SD**2
+    info = np.eye(int(free.sum())) / prior_sd**2
     if len(measured):
         j0 = j_meas.reshape(-1, int(free.sum())) / noise_mm
         info += j0.T @ j0
