@@ -1174,7 +1174,10 @@ def _plan_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--omitted-sd", type=_non_negative_float, default=None, metavar="SD",
                    help="accuracy: prior sd, in typical sizes, of the sag groups (compliance, "
                         "lateral) --params leaves out, whose bias the predicted error adds "
-                        "(default 1; 0: the calibration's variance only)")
+                        "(default 0: the calibration's variance only)")
+    p.add_argument("--prior-sd", type=_non_negative_float, default=None, metavar="SD",
+                   help="prior sd of the fitted parameters about nominal, in their typical "
+                        "sizes (default 100: the rows alone fix them)")
     p.add_argument("--json", metavar="OUT", help="write the plan's summary as JSON")
 
 
@@ -1188,8 +1191,8 @@ def _plan(args: argparse.Namespace) -> int:
     rig = load_plan_rig(args.rig)
     plan = plan_poses(rig, args.n, criterion=args.criterion, groups=args.params,
                       pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
-                      noise_mm=args.noise_mm, **({} if args.omitted_sd is None else
-                                                 {"omitted_sd": args.omitted_sd}))
+                      noise_mm=args.noise_mm, **{k: v for k in ("omitted_sd", "prior_sd")
+                                                 if (v := getattr(args, k)) is not None})
     print(plan.summary())
     write_poses(plan, args.out)
     print(f"wrote {args.out}")
