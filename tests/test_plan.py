@@ -218,6 +218,34 @@ def test_bad_input_is_one_line_exit_2_nothing_written(arm6, tmp_path, capsys, ca
     assert not out.exists()
 
 
+def test_omitted_sag_and_prior_flags(arm6, tmp_path, capsys):
+    """--omitted-sd weighs the sag groups --params leaves out (named in the JSON, the
+    predicted error grows by their bias, the plan changes); with the compliances fitted
+    nothing is omitted; --prior-sd 0 is one line, exit 2, nothing written."""
+    import json
+
+    rig = load_plan_rig(arm6 / "rig")
+    base = plan_poses(rig, 10, pool=arm6 / "pool.csv")
+    biased = plan_poses(rig, 10, pool=arm6 / "pool.csv", omitted_sd=1.0)
+    assert base.omitted == () and biased.omitted == ("compliance", "lateral")
+    assert biased.after > base.after
+    assert biased.selection.order.tolist() != base.selection.order.tolist()
+    full = plan_poses(rig, 3, pool=arm6 / "pool.csv", omitted_sd=1.0,
+                      groups=("frames", "geometric", "compliance", "lateral"))
+    assert full.omitted == () and full.omitted_sd == 0.0
+    out, js = tmp_path / "poses.csv", tmp_path / "plan.json"
+    assert main(["plan", str(arm6 / "rig"), "--n", "3", "--out", str(out), "--pool",
+                 str(arm6 / "pool.csv"), "--omitted-sd", "1", "--prior-sd", "1",
+                 "--json", str(js)]) == 0
+    summary = json.loads(js.read_text())
+    assert summary["omitted"] == ["compliance", "lateral"] and summary["prior_sd"] == 1.0
+    capsys.readouterr()
+    bad = tmp_path / "bad.csv"
+    assert main(["plan", str(arm6 / "rig"), "--n", "3", "--out", str(bad), "--pool",
+                 str(arm6 / "pool.csv"), "--prior-sd", "0"]) == 2
+    assert "--prior-sd must be positive" in capsys.readouterr().err and not bad.exists()
+
+
 def test_discriminate_plans_poses_the_effects_differ_at(arm6):
     """Beside frames,geometric the candidates are every chain effect, and the plan raises
     their own information; with every effect fitted there is nothing left to tell apart."""
