@@ -100,7 +100,7 @@ def test_planned_beats_random_in_prediction_and_prefixes_are_plans(arm6):
     short = plan_poses(rig, 15, pool=arm6 / "pool.csv")
     assert short.selection.order.tolist() == plan.selection.order[:15].tolist()
     groups, _ = resolve_groups(rig, None, "accuracy")
-    robot, x, free = _linearisation(rig, groups)
+    robot, x, free, _ = _linearisation(rig, groups, ())
     jac = pose_jacobians(robot, x, plan.pool)[:, :, free] * robot.layout.scales[free]
     a = np.einsum("ndp,ndq->pq", jac, jac) / len(jac)
 

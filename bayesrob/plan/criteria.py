@@ -102,18 +102,8 @@ class Accuracy:
         return gain
 
 
-class _Stateless:
-    """A criterion that scores candidates from B_i, S_i and C alone."""
-
-    def start(self, jac: np.ndarray, b: np.ndarray, cov: np.ndarray) -> None:
-        pass
-
-    def update(self, k: int, jb: np.ndarray, sk: np.ndarray, bk: np.ndarray) -> None:
-        pass
-
-
 @dataclass
-class Identify(_Stateless):
+class Identify:
     """log det of the parameters' information (nats): D-optimality."""
 
     unit = "nats"
@@ -127,7 +117,7 @@ class Identify(_Stateless):
 
 
 @dataclass
-class Discriminate(_Stateless):
+class Discriminate:
     """Summed log det of each candidate effect's information with every other parameter
     fitted beside it (nats): D_s-optimality per effect."""
 

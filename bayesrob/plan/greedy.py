@@ -38,8 +38,10 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
     flat = jac.reshape(-1, p)
     b = (flat @ cov).reshape(jac.shape)
     s = np.eye(dim) + jac @ b.transpose(0, 2, 1)
-    # what a criterion keeps per candidate (B_i A, ...) follows the same rank-dim updates
-    criterion.start(jac, b, cov)
+    # what accuracy keeps per candidate (B_i A, ...) follows the same rank-dim updates
+    keeps = isinstance(criterion, Accuracy)
+    if keeps:
+        criterion.start(jac, b, cov)
     before = criterion.value(cov)
     taken = np.zeros(n_cand, bool)
     order, gains, values = [], [], []
@@ -56,7 +58,8 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
         cov = (cov + cov.T) / 2
         b -= (jb.reshape(-1, dim) @ (sk @ bk)).reshape(jac.shape)
         s -= jb @ sk @ jb.transpose(0, 2, 1)
-        criterion.update(k, jb, sk, bk)
+        if keeps:
+            criterion.update(k, jb, sk, bk)
         order.append(k)
         values.append(criterion.value(cov))
         last = values[-2] if len(values) > 1 else before
