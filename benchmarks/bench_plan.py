@@ -106,16 +106,22 @@ def justin_figure(table: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, len(sets), figsize=(5.2 * len(sets), 4), squeeze=False)
     for ax, name in zip(axes[0], sets, strict=True):
         t = table[name]
-        sizes = sorted(int(n) for n in t["random"])
+        sizes = sorted(int(n) for n in t["random"] if t["random"][n])
         draws = [np.array(t["random"][str(n)]) for n in sizes]
-        med = [np.median(d) for d in draws]
         ax.fill_between(sizes, [np.percentile(d, 25) for d in draws],
                         [np.percentile(d, 75) for d in draws], color="C1", alpha=0.2)
-        ax.plot(sizes, med, "s--", color="C1",
-                label=f"random (median, quartiles of {len(draws[0])} draws)")
-        for key, color, mark in (("accuracy", "C0", "o-"), ("identify", "C2", "^-")):
-            ax.plot(t["ns"], t[key], mark, color=color, lw=2, label=f"plan --for {key}")
+        ax.plot(sizes, [np.median(d) for d in draws], "s--", color="C1", label="random "
+                f"(median, quartiles of {'/'.join(str(len(d)) for d in draws)} draws)")
+        opts = " ".join(f"--{k.replace('_', '-')} {v:g}"
+                        for k, v in t.get("accuracy_options", {}).items())
+        for key, color, mark, label in (
+                ("accuracy", "C0", "o-", f"plan --for accuracy {opts}"),
+                ("accuracy_default", "C0", "o:", "plan --for accuracy (defaults)"),
+                ("identify", "C2", "^-", "plan --for identify")):
+            if key in t:
+                ax.plot(t["ns"], t[key], mark, color=color, lw=2, label=label)
         ax.set_xscale("log")
+        ax.minorticks_off()
         ax.set_xticks(sizes, [str(n) for n in sizes])
         ax.set_xlabel("rows measured")
         ax.set_ylabel("mean error on the 400 validation markers (mm)")

@@ -2,8 +2,8 @@
 
 The calibration's parameters z (each in its typical size, ``ParamLayout.scales``) have,
 after rows with Jacobian J and measurement noise sigma, the Gaussian posterior covariance
-C = (J^T J / sigma^2 + I / PRIOR_SD^2)^-1 about the fit. Measuring one more pose i (its
-marker's Jacobian J_i, dim x p, already divided by sigma) changes it by a rank-dim update:
+C = (J^T J / sigma^2 + I / s_p^2)^-1 about the fit (s_p: PRIOR_SD unless given). One more
+pose i (its marker's Jacobian J_i, dim x p, over sigma) changes it by a rank-dim update:
 with B_i = J_i C and S_i = I + J_i C J_i^T, C' = C - B_i^T S_i^-1 B_i. Each criterion scores
 every candidate from its B_i and S_i at once:
 
