@@ -1059,6 +1059,13 @@ def _plan_args(p: argparse.ArgumentParser) -> None:
     _seed_arg(p, "random seed of the samples (0)")
     p.add_argument("--noise-mm", type=_non_negative_float, default=0.1,
                    help="measurement noise sd (mm) the predicted error is taken with (0.1)")
+    p.add_argument("--omitted-sd", type=_non_negative_float, default=None, metavar="SD",
+                   help="accuracy: prior sd, in typical sizes, of the sag groups (compliance, "
+                        "lateral) --params leaves out, whose bias the predicted error adds "
+                        "(default 0: the calibration's variance only)")
+    p.add_argument("--prior-sd", type=_non_negative_float, default=None, metavar="SD",
+                   help="prior sd of the fitted parameters about nominal, in their typical "
+                        "sizes (default 100: the rows alone fix them)")
     _json_arg(p, "write the plan's summary as JSON")
 
 
@@ -1070,9 +1077,11 @@ def _plan(args: argparse.Namespace) -> int:
 
     if args.noise_mm <= 0:
         raise UsageError(f"--noise-mm must be positive, not {args.noise_mm:g}")
-    plan = plan_poses(load_plan_rig(args.rig), args.n, criterion=args.criterion,
-                      groups=args.params, pool=args.pool, samples=args.samples, task=args.task,
-                      seed=args.seed, noise_mm=args.noise_mm)
+    rig = load_plan_rig(args.rig)
+    plan = plan_poses(rig, args.n, criterion=args.criterion, groups=args.params,
+                      pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
+                      noise_mm=args.noise_mm, **{k: v for k in ("omitted_sd", "prior_sd")
+                                                 if (v := getattr(args, k)) is not None})
     print(plan.summary())
     write_poses(plan, args.out)
     print(f"wrote {args.out}")

@@ -94,6 +94,43 @@ def figure(curves: dict, path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
+def justin_figure(table: dict, path: Path) -> None:
+    """Agile Justin: held-out error against rows measured, the plans' first N rows against
+    random subsets (median and quartiles of the draws), one panel per parameter set."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sets = list(table)
+    fig, axes = plt.subplots(1, len(sets), figsize=(5.2 * len(sets), 4), squeeze=False)
+    for ax, name in zip(axes[0], sets, strict=True):
+        t = table[name]
+        sizes = sorted(int(n) for n in t["random"] if t["random"][n])
+        draws = [np.array(t["random"][str(n)]) for n in sizes]
+        ax.fill_between(sizes, [np.percentile(d, 25) for d in draws],
+                        [np.percentile(d, 75) for d in draws], color="C1", alpha=0.2)
+        ax.plot(sizes, [np.median(d) for d in draws], "s--", color="C1", label="random "
+                f"(median, quartiles of {'/'.join(str(len(d)) for d in draws)} draws)")
+        opts = " ".join(f"--{k.replace('_', '-')} {v:g}"
+                        for k, v in t.get("accuracy_options", {}).items())
+        for key, color, mark, label in (
+                ("accuracy", "C0", "o-", f"plan --for accuracy {opts}"),
+                ("accuracy_default", "C0", "o:", "plan --for accuracy (defaults)"),
+                ("identify", "C2", "^-", "plan --for identify")):
+            if key in t:
+                ax.plot(t["ns"], t[key], mark, color=color, lw=2, label=label)
+        ax.set_xscale("log")
+        ax.minorticks_off()
+        ax.set_xticks(sizes, [str(n) for n in sizes])
+        ax.set_xlabel("rows measured")
+        ax.set_ylabel("mean error on the 400 validation markers (mm)")
+        ax.set_title(f"Agile Justin, --params {name}", fontsize=10)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -102,7 +139,13 @@ def main() -> None:
     p.add_argument("--speed-only", action="store_true")
     p.add_argument("--from-validation", type=Path, default=None, metavar="JSON",
                    help="draw --figure from a validation.json holding plan_sim's run instead")
+    p.add_argument("--justin-table", type=Path, default=None, metavar="JSON",
+                   help="draw --figure from Agile Justin's table (validation/plan.py's "
+                        "justin_table) instead")
     args = p.parse_args()
+    if args.justin_table is not None:
+        justin_figure(json.loads(args.justin_table.read_text()), args.figure)
+        return
     if args.from_validation is not None:
         details = json.loads(args.from_validation.read_text())["studies"]["plan_sim"][
             "details"]

@@ -61,6 +61,33 @@ def test_greedy_matches_direct_covariance_and_brute_force():
     assert d_first == int(np.argmax(brute))
 
 
+def test_bias_aware_accuracy_matches_direct_computation():
+    """With omitted parameters, each greedy value is sqrt(tr(A C) + s^2 ||G D - H||^2 / T)
+    of the chosen prefix computed from scratch (D = C J^T K of the prefix and of the rows
+    measured before), and its first pick is the brute-force argmin of that error."""
+    rng = np.random.default_rng(1)
+    jac, kom = rng.normal(size=(50, 3, 6)), rng.normal(size=(50, 3, 4))
+    j0, k0 = rng.normal(size=(2, 3, 6)), rng.normal(size=(2, 3, 4))
+    g, h = jac[:20].reshape(-1, 6), kom[:20].reshape(-1, 4)
+    sd = 0.7
+
+    def direct(rows: np.ndarray) -> float:
+        jj = np.concatenate([j0, jac[rows]]).reshape(-1, 6)
+        kk = np.concatenate([k0, kom[rows]]).reshape(-1, 4)
+        cov = np.linalg.inv(np.eye(6) * 0.01 + jj.T @ jj)
+        d = cov @ jj.T @ kk
+        return float(np.sqrt((np.trace(g @ cov @ g.T) + sd**2 * np.sum((g @ d - h) ** 2)) / 20))
+
+    crit = Accuracy(g.T @ g / 20, kom, g.T @ h / 20, float(np.sum(h**2)) / 20,
+                    j0.reshape(-1, 6).T @ k0.reshape(-1, 4), sd)
+    j00 = j0.reshape(-1, 6)
+    sel = greedy(jac, np.eye(6) * 0.01 + j00.T @ j00, 10, crit)
+    assert sel.before == pytest.approx(direct(np.array([], int)), rel=1e-9)
+    for n in (1, 4, 10):
+        assert sel.values[n - 1] == pytest.approx(direct(sel.order[:n]), rel=1e-9)
+    assert sel.order[0] == int(np.argmin([direct(np.array([i])) for i in range(50)]))
+
+
 def test_planned_beats_random_in_prediction_and_prefixes_are_plans(arm6):
     """On the arm6 pool the accuracy plan's predicted error at 30 poses is at least 10% below
     the median of 20 random 30-pose subsets' (the predicted error of a subset: the same
@@ -73,7 +100,7 @@ def test_planned_beats_random_in_prediction_and_prefixes_are_plans(arm6):
     short = plan_poses(rig, 15, pool=arm6 / "pool.csv")
     assert short.selection.order.tolist() == plan.selection.order[:15].tolist()
     groups, _ = resolve_groups(rig, None, "accuracy")
-    robot, x, free = _linearisation(rig, groups)
+    robot, x, free, _ = _linearisation(rig, groups, ())
     jac = pose_jacobians(robot, x, plan.pool)[:, :, free] * robot.layout.scales[free]
     a = np.einsum("ndp,ndq->pq", jac, jac) / len(jac)
 
@@ -189,6 +216,34 @@ def test_bad_input_is_one_line_exit_2_nothing_written(arm6, tmp_path, capsys, ca
               "config": "'hand' is not a measured arm"}[case]
     assert expect in err
     assert not out.exists()
+
+
+def test_omitted_sag_and_prior_flags(arm6, tmp_path, capsys):
+    """--omitted-sd weighs the sag groups --params leaves out (named in the JSON, the
+    predicted error grows by their bias, the plan changes); with the compliances fitted
+    nothing is omitted; --prior-sd 0 is one line, exit 2, nothing written."""
+    import json
+
+    rig = load_plan_rig(arm6 / "rig")
+    base = plan_poses(rig, 10, pool=arm6 / "pool.csv")
+    biased = plan_poses(rig, 10, pool=arm6 / "pool.csv", omitted_sd=1.0)
+    assert base.omitted == () and biased.omitted == ("compliance", "lateral")
+    assert biased.after > base.after
+    assert biased.selection.order.tolist() != base.selection.order.tolist()
+    full = plan_poses(rig, 3, pool=arm6 / "pool.csv", omitted_sd=1.0,
+                      groups=("frames", "geometric", "compliance", "lateral"))
+    assert full.omitted == () and full.omitted_sd == 0.0
+    out, js = tmp_path / "poses.csv", tmp_path / "plan.json"
+    assert main(["plan", str(arm6 / "rig"), "--n", "3", "--out", str(out), "--pool",
+                 str(arm6 / "pool.csv"), "--omitted-sd", "1", "--prior-sd", "1",
+                 "--json", str(js)]) == 0
+    summary = json.loads(js.read_text())
+    assert summary["omitted"] == ["compliance", "lateral"] and summary["prior_sd"] == 1.0
+    capsys.readouterr()
+    bad = tmp_path / "bad.csv"
+    assert main(["plan", str(arm6 / "rig"), "--n", "3", "--out", str(bad), "--pool",
+                 str(arm6 / "pool.csv"), "--prior-sd", "0"]) == 2
+    assert "--prior-sd must be positive" in capsys.readouterr().err and not bad.exists()
 
 
 def test_discriminate_plans_poses_the_effects_differ_at(arm6):

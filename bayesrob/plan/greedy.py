@@ -38,15 +38,16 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
     flat = jac.reshape(-1, p)
     b = (flat @ cov).reshape(jac.shape)
     s = np.eye(dim) + jac @ b.transpose(0, 2, 1)
-    # the accuracy criterion's B_i A, kept up to date like B: O(N dim^2 p) a step, not p^2
-    task = getattr(criterion, "task", None)
-    ba = None if task is None else (b.reshape(-1, p) @ task).reshape(jac.shape)
+    # what accuracy keeps per candidate (B_i A, ...) follows the same rank-dim updates
+    keeps = isinstance(criterion, Accuracy)
+    if keeps:
+        criterion.start(jac, b, cov)
     before = criterion.value(cov)
     taken = np.zeros(n_cand, bool)
     order, gains, values = [], [], []
     for _ in range(n):
         s_inv = np.linalg.inv(s)
-        g = np.asarray(criterion.gains(jac, b, s_inv, cov, ba), float)
+        g = np.asarray(criterion.gains(jac, b, s_inv, cov), float)
         g[taken | ~np.isfinite(g)] = -np.inf
         k = int(np.argmax(g))
         taken[k] = True
@@ -57,8 +58,8 @@ def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> S
         cov = (cov + cov.T) / 2
         b -= (jb.reshape(-1, dim) @ (sk @ bk)).reshape(jac.shape)
         s -= jb @ sk @ jb.transpose(0, 2, 1)
-        if ba is not None:
-            ba -= (jb.reshape(-1, dim) @ (sk @ (bk @ task))).reshape(jac.shape)
+        if keeps:
+            criterion.update(k, jb, sk, bk)
         order.append(k)
         values.append(criterion.value(cov))
         last = values[-2] if len(values) > 1 else before
