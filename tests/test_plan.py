@@ -309,3 +309,13 @@ def test_simulate_poses_refuses_a_linked_arm6_rig_in_one_line(tmp_path, capsys):
     assert main(["simulate", str(rig), "--poses", str(poses)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "linked arm6" in err, err
+
+
+def test_plan_out_into_a_directory_not_made_yet(arm6, tmp_path):
+    """--out DIR/poses.csv where DIR does not exist: the output-path check allows a parent the
+    command makes, so the plan is written there rather than dying with a traceback."""
+    out = tmp_path / "new" / "deeper" / "poses.csv"
+    assert main(["plan", str(arm6 / "rig"), "--n", "3", "--pool", str(arm6 / "pool.csv"),
+                 "--out", str(out)]) == 0
+    assert out.read_text().splitlines()[0].startswith("config,set,")
+    assert len(out.read_text().splitlines()) == 4

@@ -292,6 +292,7 @@ def write_poses(plan: Plan, path: str | Path) -> Path:
     path = Path(path)
     buf = io.StringIO()
     csv.writer(buf, lineterminator="\n").writerows(lines)
+    path.parent.mkdir(parents=True, exist_ok=True)  # the output-path check allowed it
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(buf.getvalue())
     os.replace(tmp, path)
