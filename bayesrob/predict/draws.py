@@ -343,9 +343,8 @@ def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
 def _product_nuts(key: jax.Array, structure: kin.RobotStructure, values: dict, x: jax.Array,
                   arms: tuple[str, ...], commands: list, covs: list, noises: jax.Array,
                   start: jax.Array, warmup: int, per_chain: int, chains: int) -> jax.Array:
-    # One compiled program per robot structure and shapes: an MCMC built per call with the
-    # robot's numbers baked into its model compiled anew for every rig (three programs and
-    # about 650 memory maps per planar rig, never released).
+    # One compiled program per robot structure and shapes: an MCMC built per call, with the
+    # robot's numbers baked into its model, compiled anew for every rig and kept its code mapped.
     from numpyro.infer import init_to_value
 
     init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))

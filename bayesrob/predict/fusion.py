@@ -25,7 +25,7 @@ joint's log stiffness is drawn from the planar servo arm's prior
 every target of a draw: an arm is as stiff at one target as at the next).
 
 :func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
-model (the KDE distributions of :mod:`bayesrob.inference.sampling`), pushed through the arm,
+model (the KDE distributions of :mod:`bayesrob.errors.distributions`), pushed through the arm,
 then the stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction;
 their density is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid
 (:func:`draws_posterior`) where
@@ -247,6 +247,15 @@ def equilibrium_program_draws(key: jax.Array, commands: Sequence[jax.Array],
     return out["d"]
 
 
+@partial(jax.jit, static_argnames=("n_arms", "stiffness", "num_samples"))
+def _log_stiffness_draws(key: jax.Array, *, n_arms: int, stiffness: tuple | None,
+                         num_samples: int) -> jax.Array:
+    # compiled once per kind, as equilibrium_program_draws: called eagerly, Predictive
+    # compiled its loop anew on every call
+    return Predictive(lambda: numpyro.deterministic("log_k", _log_stiffness(n_arms, stiffness)),
+                      num_samples=num_samples)(key)["log_k"]
+
+
 def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                       commands: Sequence[np.ndarray], targets: np.ndarray,
                       stiffness: Sequence[Any] | None = None, num_samples: int = DRAWS,
@@ -272,9 +281,8 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
         theta, _ = kin.inverse(a.params, jnp.asarray(free), a.elbow)
         frees.append(free)
         thetas.append(theta)
-    log_k = Predictive(lambda: numpyro.deterministic("log_k", _log_stiffness(len(arms),
-                                                                         stiffness)),
-                       num_samples=num_samples)(key)["log_k"]
+    log_k = _log_stiffness_draws(key, n_arms=len(arms), stiffness=static_stiffness(stiffness),
+                                 num_samples=num_samples)
     k = jnp.stack([springs(kin.jacobian(a.params, th), log_k[:, i, None, :])
                    for i, (a, th) in enumerate(zip(arms, thetas, strict=True))])
     return np.asarray(balance(jnp.asarray(np.stack(frees)), k))
