@@ -36,6 +36,9 @@ CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker"
               "meta")
 TOP_KEYS = ("name", "gravity", "workspace", "arms", "meta")
 N_ARM_PARAMS = 8
+# ``<arm>_d<k>``: the sign of joint k's last move before the row (+1, -1; 0: none or unknown),
+# which decides the side of its play the joint rests on; kept in Measurements.extra
+APPROACH = re.compile(r"(.+)_d(\d+)")
 # A target a little outside the nominal reach is still accepted: nominal lengths are a
 # person's measurements, and the calibrated arm may reach what the nominal one does not.
 REACH_MARGIN = 0.02
@@ -615,12 +618,18 @@ def _load_rows(path: Path, table: tuple, required: list[str], optional: list[str
             raise RigError(f"{path}: missing column '{col}'")
     idx = {h: i for i, h in enumerate(header)}
     extra_cols = [h for h in header if h not in {*required, *optional}]
+    sides = [h for h in extra_cols if (d := APPROACH.fullmatch(h)) and d[1] in widths]
     m = Measurements.blank(len(rows), dim, widths, extra_cols)
     keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in csv_records(path, header, rows, starts):
         members = _config_members(row, idx, arms, where)
         st = row_set(row, idx, where)
         cells(m, r, where, row, idx, members)
+        for h in sides:
+            side = parse_number(row[idx[h]], where, h, allow_empty=True)
+            if not (math.isnan(side) or side in (-1, 0, 1)):
+                raise RigError(f"{where}: column '{h}' must be +1, -1 or 0 (the side the joint "
+                               f"approached its command from) or empty, got {row[idx[h]]!r}")
         if is_planned(row, idx):
             continue  # planned by ``bayesrob design``, not measured yet
         m.observed[r] = [parse_number(row[idx[a]], where, a) for a in "xyz"[:dim]]
@@ -770,11 +779,13 @@ def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
 # ----------------------------------------------------------------------------- writing
 
 
-def measurement_header(arm_names: Iterable[str]) -> list[str]:
+def measurement_header(arm_names: Iterable[str], approach: bool = False) -> list[str]:
+    """The columns of a planar rig's ``measurements.csv``; ``approach`` adds each arm's
+    ``<arm>_d1``, ``<arm>_d2`` after x, y."""
+    arm_names = list(arm_names)
     cols = ["config", "set", "target_x", "target_y"]
-    for a in arm_names:
-        cols += [f"{a}_u1", f"{a}_u2"]
-    return cols + ["x", "y"]
+    cols += [f"{a}_u{j}" for a in arm_names for j in (1, 2)]
+    return cols + ["x", "y"] + [f"{a}_d{j}" for a in arm_names for j in (1, 2) if approach]
 
 
 def format_row(
@@ -784,8 +795,10 @@ def format_row(
     target: Iterable[float] | None,
     commands: dict[str, Iterable[float]],
     observed: Iterable[float],
+    approach: dict[str, Iterable[float]] | None = None,
 ) -> list[str]:
-    """One CSV row in :func:`measurement_header` order; pulse widths are written as given."""
+    """One CSV row in :func:`measurement_header` order; pulse widths are written as given.
+    ``approach``: each arm's approach sides, for a header with them (empty for other arms)."""
 
     def num(v: float) -> str:
         return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.6g}"
@@ -795,8 +808,10 @@ def format_row(
     for a in arm_names:
         row += [num(float(v)) for v in commands[a]] if a in commands else ["", ""]
     # a planned row (not measured yet) leaves x, y empty
-    return row + ["" if v is None or math.isnan(float(v)) else f"{float(v):.4f}"
-                  for v in observed]
+    row += ["" if v is None or math.isnan(float(v)) else f"{float(v):.4f}" for v in observed]
+    for a in arm_names if approach is not None else ():
+        row += [f"{int(v):d}" for v in approach[a]] if a in approach else ["", ""]
+    return row
 
 
 def _toml_value(v: object) -> str:

@@ -375,7 +375,7 @@ class MeasurementLog:
         nothing and leaves the file closed."""
         self.path = Path(path)
         self.arm_names = list(arm_names)
-        self.header = measurement_header(self.arm_names)
+        self.header = measurement_header(self.arm_names, approach=True)
         self.truncated_bytes = 0
         self.truncated_text = ""
         self.rows: list[RecordedRow] = []
@@ -396,6 +396,7 @@ class MeasurementLog:
                 os.truncate(self.path, keep)
         if data:
             self._parse(data)
+        self.approach = self.header != measurement_header(self.arm_names)
         if check_only:
             return
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -414,6 +415,8 @@ class MeasurementLog:
             raise RigError(f"{self.path}: not a UTF-8 text file") from None
         reader = csv.reader(io.StringIO(text, newline=""))
         header = [h.strip() for h in next(reader)]
+        if header == measurement_header(self.arm_names):
+            self.header = header  # written before rows recorded approach sides: keep its form
         if header != self.header:
             raise RigError(f"{self.path}: header {','.join(header)!r} does not match this rig's "
                            f"{','.join(self.header)!r}; resume needs the same rig.toml")
@@ -573,6 +576,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     already safe on disk.
     """
     from bayesrob.progress import progress as progress_report
+    from bayesrob.sim.rigs import approach_sides
 
     log = log or _stderr
     rig_dir = Path(rig_dir)
@@ -610,8 +614,14 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         bar = progress_report(result.total, "collect", "rows", enabled=progress,
                               initial=result.skipped, heartbeat=False)
 
+        # each arm's command before a row, from which its joints' approach sides follow; a
+        # resumed run starts from the last recorded row's
+        last = {a: u for r in mlog.rows for a, u in r.commands.items()}
+
         def run(step: Step, index: int) -> None:
             label = f"[{index + 1}/{result.total}] {step.describe()}"
+            sides = {a: approach_sides(np.array([u]), last.get(a))[0]
+                     for a, u in step.commands.items()}
             for attempt in range(1, ROW_TRIES + 1):
                 controller.move_and_settle(step.commands)
                 if settle_s > 0:
@@ -629,10 +639,12 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                 redone.append(label)
                 log(f"{label}: {dropped}; measuring the row again")
             fields = format_row(names, step.config, step.set, step.target, step.commands,
-                                observed)
+                                observed, sides if mlog.approach else None)
+            x = mlog.header.index("x")
             parsed = RecordedRow(step.config, step.set, step.target, step.commands,
-                                 (float(fields[-2]), float(fields[-1])), 0)
+                                 (float(fields[x]), float(fields[x + 1])), 0)
             mlog.append(fields, parsed)
+            last.update(step.commands)
             result.recorded += 1
             bar.update(1)
 
