@@ -320,32 +320,27 @@ def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> Non
 
 def _parse_arm(name: str, table: dict, where: str) -> ArmSpec:
     _check_keys(table, ARM_KEYS, where, f"[arms.{name}]")
-    for key in ("base", "links", "gain", "offset"):
-        if key not in table:
-            raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
-    base = _pair(table["base"], f"{where}: arms.{name}.base")
-    links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
-    gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
+    key = f"{where}: arms.{name}"
+    for k in ("base", "links", "gain", "offset"):
+        if k not in table:
+            raise RigError(f"{where}: [arms.{name}] is missing key '{k}'")
+    base, links, gain = (_pair(table[k], f"{key}.{k}", positive=k == "links")
+                         for k in ("base", "links", "gain"))
     if 0.0 in gain:
-        raise RigError(f"{where}: arms.{name}.gain must be non-zero, got {list(gain)}")
-    offset = _pair(table["offset"], f"{where}: arms.{name}.offset")
+        raise RigError(f"{key}.gain must be non-zero, got {list(gain)}")
+    offset = _pair(table["offset"], f"{key}.offset")
     elbow = table.get("elbow", 1)
     if elbow not in (1, -1) or isinstance(elbow, bool):
-        raise RigError(f"{where}: arms.{name}.elbow must be +1 or -1, got {elbow!r}")
+        raise RigError(f"{key}.elbow must be +1 or -1, got {elbow!r}")
     limits_raw = table.get("pulse_limits", [[500.0, 2500.0], [500.0, 2500.0]])
     if not isinstance(limits_raw, list) or len(limits_raw) != 2:
-        raise RigError(
-            f"{where}: arms.{name}.pulse_limits must be [[lo, hi], [lo, hi]], got {limits_raw!r}"
-        )
-    limits = tuple(
-        _pair(lim, f"{where}: arms.{name}.pulse_limits[{j}]") for j, lim in enumerate(limits_raw)
-    )
+        raise RigError(f"{key}.pulse_limits must be [[lo, hi], [lo, hi]], got {limits_raw!r}")
+    limits = tuple(_pair(lim, f"{key}.pulse_limits[{j}]") for j, lim in enumerate(limits_raw))
     for j, (lo, hi) in enumerate(limits):
         if lo >= hi:
-            raise RigError(f"{where}: arms.{name}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
-    stiffness = None
-    if "stiffness" in table:
-        stiffness = _pair(table["stiffness"], f"{where}: arms.{name}.stiffness", positive=True)
+            raise RigError(f"{key}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
+    stiffness = (_pair(table["stiffness"], f"{key}.stiffness", positive=True)
+                 if "stiffness" in table else None)
     return ArmSpec(name, base, links, gain, offset, int(elbow), limits,  # type: ignore[arg-type]
                    stiffness)
 
@@ -583,10 +578,8 @@ def _config_members(row: list[str], idx: dict, arms: Iterable[str], where: str) 
         raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
     for m in members:
         if m not in arms:
-            raise RigError(
-                f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
-                f"{', '.join(arms)})"
-            )
+            raise RigError(f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
+                           f"{', '.join(arms)})")
     if len(set(members)) != len(members):
         raise RigError(f"{where}: config {cfg!r} names the same arm twice")
     return members
@@ -656,10 +649,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                 u.append(parse_number(row[idx[col]], where, col))
             for j, (p, (lo, hi)) in enumerate(zip(u, spec.pulse_limits, strict=True)):
                 if not lo <= p <= hi:
-                    raise RigError(
-                        f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm {a!r}'s "
-                        f"pulse_limits [{lo:g}, {hi:g}]"
-                    )
+                    raise RigError(f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm "
+                                   f"{a!r}'s pulse_limits [{lo:g}, {hi:g}]")
             m.commands[a][r] = u
         for a in arms:
             if a not in members:
@@ -677,10 +668,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
             for a in members:
                 if not arms[a].reaches((tx, ty)):
                     lo, hi = arms[a].reach_mm
-                    raise RigError(
-                        f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s reach "
-                        f"({lo:g} to {hi:g} mm from its base)"
-                    )
+                    raise RigError(f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s "
+                                   f"reach ({lo:g} to {hi:g} mm from its base)")
         m.target[r] = tx, ty
 
     required = ["config", "set", "target_x", "target_y", "x", "y",
@@ -769,10 +758,8 @@ def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
     for a in rig.arms:
         n_train = int(meas.mask(a, "train").sum())
         if n_train < min_train_rows:
-            raise RigError(
-                f"{directory / MEASUREMENTS_FILE}: arm {a!r} has {n_train} train rows, fewer "
-                f"than its {N_ARM_PARAMS} parameters"
-            )
+            raise RigError(f"{directory / MEASUREMENTS_FILE}: arm {a!r} has {n_train} train "
+                           f"rows, fewer than its {N_ARM_PARAMS} parameters")
     return rig
 
 

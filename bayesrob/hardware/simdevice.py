@@ -41,6 +41,7 @@ A real Maestro's quirks, each off unless asked for (see :mod:`bayesrob.hardware.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import re
@@ -404,12 +405,9 @@ class SimDevice:
 
     def _close(self, role: str) -> None:
         fds = self._fds.pop(role, None)
-        if fds:
-            for fd in fds:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        for fd in fds or ():
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
     @property
     def received(self) -> bytes:
@@ -557,10 +555,9 @@ class SimDevice:
 
     @staticmethod
     def _write(fd: int, data: bytes) -> None:
-        try:
+        # nobody reading and the buffer full: a UART would overrun the same way
+        with contextlib.suppress(OSError):
             os.write(fd, data)
-        except (BlockingIOError, OSError):
-            pass  # nobody reading and the buffer full: a UART would overrun the same way
 
     @staticmethod
     def _corrupt(data: bytes, rng: np.random.Generator, drop: float, garble: float) -> bytes:
@@ -655,10 +652,8 @@ class SimDevice:
                 self._stop.wait(delay)
             else:
                 next_t = time.monotonic()
-            try:
+            with contextlib.suppress(OSError):
                 os.read(master, 4096)  # a tracker does not listen; drain what a host sent
-            except (BlockingIOError, OSError):
-                pass
             d = self.end_point
             if d is None:
                 continue
@@ -703,11 +698,7 @@ def run_sim_device(rig_dir: str | Path, protocol: str = "maestro", *,
     plant = PhysicalRig(truth, seed)
     device = SimDevice(plant, protocol, seed=truth.seed if seed is None else seed, **kwargs)
     device.start()
-
-    def _stop(signum, frame):
-        device.stop()
-
-    previous = signal.signal(signal.SIGTERM, _stop)
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: device.stop())
     try:
         print(f"servo: {device.servo_port}", file=out, flush=True)
         print(f"tracker: {device.tracker_port}", file=out, flush=True)
