@@ -30,7 +30,7 @@ RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
 SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "stiffness", "meta")
-# Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
+# Keys of an arm described as a 3-D chain (a URDF or a DH table); see _parse_urdf_dh_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
               "gain", "offset", "mount", "origin", "tool", "coupling", "stiffness", "limits",
               "meta")
@@ -686,7 +686,7 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     A linked row (``config`` = ``left+right``) measures the one point where the named arms'
     markers are joined: every member must carry a marker (a measured arm), and the row carries
     the columns of every member's path. Calibration reads single-arm rows only
-    (:meth:`Rig.chain_rows` matches ``config`` exactly), so linked rows never enter a fit."""
+    (:meth:`Rig.rows` matches ``config`` exactly), so linked rows never enter a fit."""
     table = _read_csv(path)
     dim = 3 if "z" in table[0] else 2
     robot = Robot(chains, dim)

@@ -257,6 +257,12 @@ class _Output:
         frac = (now - self.t0) / (self.t1 - self.t0)
         return self.start_us + (self.target_us - self.start_us) * max(0.0, frac)
 
+    def ramp_s(self, target_us: float, now: float) -> float:
+        """How long a ramp to ``target_us`` takes at the speed limit. From "off" there is no
+        position to ramp from: the output starts at its target."""
+        pos = self.position(now)
+        return abs(target_us - pos) / (25.0 * self.speed) if self.speed and pos > 0 else 0.0
+
     def go(self, target_us: float, now: float, duration_s: float) -> None:
         self.start_us = self.position(now)
         self.target_us = target_us
@@ -478,9 +484,7 @@ class SimDevice:
             else:
                 # With a speed limit the output ramps to its home, as the user's guide says.
                 home = self.home_us.get(ch, out.target_us)
-                pos = out.position(now)
-                dur = abs(home - pos) / (25.0 * out.speed) if out.speed and pos > 0 else 0.0
-                self._set_target(ch, home, dur)
+                self._set_target(ch, home, out.ramp_s(home, now))
         # The tracker keeps watching the arms it watched; they now hang limp or at home.
         watched = self.poses[-1].arms if self.poses else None
         self._settle(watched)
@@ -580,11 +584,7 @@ class SimDevice:
             if self.channel_range is not None and us > 0:
                 us = min(max(us, self.channel_range[0]), self.channel_range[1])
             out = self._outputs.get(ch)
-            speed = out.speed if out else 0
-            start = out.position(time.monotonic()) if out else us
-            # From "off" there is no position to ramp from: the output starts at its target.
-            dur = abs(us - start) / (25.0 * speed) if speed and start > 0 else 0.0
-            self._set_target(ch, us, dur)
+            self._set_target(ch, us, out.ramp_s(us, time.monotonic()) if out else 0.0)
         elif command == mae.SET_MULTIPLE_TARGETS:
             n, first = data[0], data[1]
             for i in range(n):
