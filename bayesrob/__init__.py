@@ -19,7 +19,7 @@ dies with a segmentation fault in whatever maps next (a compilation, or the cach
 (de)serialiser). Programs are keyed by a robot's structure, so fitting robot after robot of
 one design adds none; a process that compiles many different programs (the validation suite
 between studies, a designer's worker, a test session) calls :func:`release_compiled_programs`
-between them (`calibrate` no longer does it itself).
+between them.
 """
 
 from __future__ import annotations

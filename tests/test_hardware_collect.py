@@ -131,7 +131,8 @@ def keys(rig_dir: Path) -> list[tuple[str, ...]]:
     """Each row's config, set, target and commands, as text: what resume must reproduce."""
     with (rig_dir / "measurements.csv").open(newline="") as fh:
         rows = list(csv.reader(fh))
-    return [tuple(r[:-2]) for r in rows[1:] if r]
+    x = rows[0].index("x")
+    return [tuple(r[:x]) for r in rows[1:] if r]
 
 
 def planned(rig_dir: Path, grid: int, protocol: str = "maestro",
@@ -935,3 +936,69 @@ def test_collect_measures_a_plan_in_its_order_and_resumes_it(plant, sim_rig, rig
     with device(plant, seed=4) as dev:
         again = run(dev, rig_dir, poses=poses, resume=True)
     assert (again.recorded, again.skipped) == (0, 6)
+
+
+# ------------------------------------------------------------------------------ approach sides
+
+
+def _rows(rig_dir: Path) -> list[dict[str, str]]:
+    with (rig_dir / "measurements.csv").open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _expected_sides(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    """Each row's <arm>_dK as the sign of the arm's move from its command in the row before
+    that commanded it (0 for its first), empty for arms the row leaves out."""
+    last: dict[str, list[float]] = {}
+    out = []
+    for r in rows:
+        want = {f"{a}_d{k}": "" for a in CHANNELS for k in (1, 2)}
+        for a in r["config"].split("+"):
+            u = [float(r[f"{a}_u{k}"]) for k in (1, 2)]
+            for k in (1, 2):
+                want[f"{a}_d{k}"] = str(int(np.sign(u[k - 1] - last[a][k - 1]))
+                                        if a in last else 0)
+            last[a] = u
+        out.append(want)
+    return out
+
+
+def test_collect_records_each_joints_approach_side(plant, rig_dir) -> None:
+    with device(plant, seed=2) as dev:
+        res = run(dev, rig_dir, grid=2)
+    assert res.complete
+    rows = _rows(rig_dir)
+    got = [{c: r[c] for c in want} for r, want in zip(rows, _expected_sides(rows), strict=True)]
+    assert got == _expected_sides(rows)
+    # every side occurs: the grid's moves go both ways, and each arm starts from nothing
+    values = {v for g in got for v in g.values()}
+    assert values == {"", "0", "1", "-1"}
+    assert got[0] == {"top_d1": "0", "top_d2": "0", "bottom_d1": "", "bottom_d2": ""}
+    extra = load_rig(rig_dir, min_train_rows=0).measurements.extra
+    assert extra["bottom_d1"] == [r["bottom_d1"] for r in rows]
+
+
+def test_resumed_collect_takes_sides_from_the_last_recorded_row(plant, rig_dir) -> None:
+    with device(plant, seed=5) as dev:
+        run(dev, rig_dir, grid=2, plan=("train",))
+        res = run(dev, rig_dir, grid=2, plan=("train", "validation"), resume=True)
+    assert (res.skipped, res.recorded) == (8, 8)
+    rows = _rows(rig_dir)
+    assert [{c: r[c] for c in want} for r, want in zip(rows, _expected_sides(rows),
+                                                        strict=True)] == _expected_sides(rows)
+    # the first resumed row (top's first validation row) moved from top's last train row,
+    # not from nothing
+    assert (rows[8]["config"], rows[8]["set"]) == ("top", "validation")
+    assert {rows[8]["top_d1"], rows[8]["top_d2"]} != {"0"}
+
+
+def test_a_file_without_approach_columns_resumes_in_its_own_form(plant, rig_dir) -> None:
+    from bayesrob.data.rig import measurement_header
+
+    old = ",".join(measurement_header(CHANNELS)) + "\n"
+    (rig_dir / "measurements.csv").write_text(old)
+    with device(plant) as dev:
+        res = run(dev, rig_dir, grid=2, plan=("train",), resume=True)
+    assert res.complete and res.recorded == 8
+    assert (rig_dir / "measurements.csv").read_text().startswith(old)
+    assert all("top_d1" not in r for r in _rows(rig_dir))

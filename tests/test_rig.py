@@ -874,3 +874,38 @@ def test_top_level_typo_is_refused_with_a_suggestion(rig_copy, typo, meant):
     with pytest.raises(RigError, match=rf"rig\.toml: rig\.toml has unknown key '{typo}'; did "
                                        rf"you mean '{meant}'\?"):
         load_rig(rig_copy)
+
+
+# ----------------------------------------------------------------------------- approach sides
+
+
+def _with_sides(rig: Path, values: list[str]) -> int:
+    """Add top_d1, top_d2 to every row (empty in the other arm's); ``values[0]`` goes into the
+    third top train row's top_d1. Returns that row's line."""
+    path = rig / MEASUREMENTS_FILE
+    header, rows = read_csv(path)
+    write_csv(path, header + ["top_d1", "top_d2"],
+              [r + (["1", "-1"] if r[0] == "top" else ["", ""]) for r in rows])
+    return edit_row(rig, "top", "train", top_d1=values[0])
+
+
+def test_approach_columns_load_and_are_kept(rig_copy):
+    _with_sides(rig_copy, ["+1"])
+    meas = load_rig(rig_copy).measurements
+    top = meas.mask("top")
+    assert set(meas.extra) == {"top_d1", "top_d2"}
+    sides = np.array(meas.extra["top_d2"])
+    assert (sides[top] == "-1").all() and (sides[~top] == "").all()
+    assert meas.extra["top_d1"].count("+1") == 1
+
+
+@pytest.mark.parametrize("value", ["2", "x", "0.5"])
+def test_bad_approach_sides_are_one_line_errors(rig_copy, value, capsys):
+    from bayesrob.cli import main
+
+    line = _with_sides(rig_copy, [value])
+    assert_mentions(rig_error(rig_copy), f"{rig_copy / MEASUREMENTS_FILE}", f"line {line}:",
+                    "'top_d1'")
+    assert main(["calibrate", str(rig_copy)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"line {line}: column 'top_d1'" in err

@@ -30,12 +30,15 @@ RIG_FILE = "rig.toml"
 MEASUREMENTS_FILE = "measurements.csv"
 SETS = ("train", "validation", "test", "holdout")
 ARM_KEYS = ("base", "links", "gain", "offset", "elbow", "pulse_limits", "stiffness", "meta")
-# Keys of an arm described as a 3-D chain (a URDF or a DH table); see load_chain_arm.
+# Keys of an arm described as a 3-D chain (a URDF or a DH table); see _parse_urdf_dh_arm.
 CHAIN_KEYS = ("urdf", "root", "tip", "dh", "convention", "joint_types", "marker", "instrument",
               "gain", "offset", "mount", "origin", "tool", "coupling", "stiffness", "limits",
               "meta")
 TOP_KEYS = ("name", "gravity", "workspace", "arms", "meta")
 N_ARM_PARAMS = 8
+# ``<arm>_d<k>``: the sign of joint k's last move before the row (+1, -1; 0: none or unknown),
+# which decides the side of its play the joint rests on; kept in Measurements.extra
+APPROACH = re.compile(r"(.+)_d(\d+)")
 # A target a little outside the nominal reach is still accepted: nominal lengths are a
 # person's measurements, and the calibrated arm may reach what the nominal one does not.
 REACH_MARGIN = 0.02
@@ -317,32 +320,27 @@ def _check_keys(table: dict, known: Iterable[str], where: str, what: str) -> Non
 
 def _parse_arm(name: str, table: dict, where: str) -> ArmSpec:
     _check_keys(table, ARM_KEYS, where, f"[arms.{name}]")
-    for key in ("base", "links", "gain", "offset"):
-        if key not in table:
-            raise RigError(f"{where}: [arms.{name}] is missing key '{key}'")
-    base = _pair(table["base"], f"{where}: arms.{name}.base")
-    links = _pair(table["links"], f"{where}: arms.{name}.links", positive=True)
-    gain = _pair(table["gain"], f"{where}: arms.{name}.gain")
+    key = f"{where}: arms.{name}"
+    for k in ("base", "links", "gain", "offset"):
+        if k not in table:
+            raise RigError(f"{where}: [arms.{name}] is missing key '{k}'")
+    base, links, gain = (_pair(table[k], f"{key}.{k}", positive=k == "links")
+                         for k in ("base", "links", "gain"))
     if 0.0 in gain:
-        raise RigError(f"{where}: arms.{name}.gain must be non-zero, got {list(gain)}")
-    offset = _pair(table["offset"], f"{where}: arms.{name}.offset")
+        raise RigError(f"{key}.gain must be non-zero, got {list(gain)}")
+    offset = _pair(table["offset"], f"{key}.offset")
     elbow = table.get("elbow", 1)
     if elbow not in (1, -1) or isinstance(elbow, bool):
-        raise RigError(f"{where}: arms.{name}.elbow must be +1 or -1, got {elbow!r}")
+        raise RigError(f"{key}.elbow must be +1 or -1, got {elbow!r}")
     limits_raw = table.get("pulse_limits", [[500.0, 2500.0], [500.0, 2500.0]])
     if not isinstance(limits_raw, list) or len(limits_raw) != 2:
-        raise RigError(
-            f"{where}: arms.{name}.pulse_limits must be [[lo, hi], [lo, hi]], got {limits_raw!r}"
-        )
-    limits = tuple(
-        _pair(lim, f"{where}: arms.{name}.pulse_limits[{j}]") for j, lim in enumerate(limits_raw)
-    )
+        raise RigError(f"{key}.pulse_limits must be [[lo, hi], [lo, hi]], got {limits_raw!r}")
+    limits = tuple(_pair(lim, f"{key}.pulse_limits[{j}]") for j, lim in enumerate(limits_raw))
     for j, (lo, hi) in enumerate(limits):
         if lo >= hi:
-            raise RigError(f"{where}: arms.{name}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
-    stiffness = None
-    if "stiffness" in table:
-        stiffness = _pair(table["stiffness"], f"{where}: arms.{name}.stiffness", positive=True)
+            raise RigError(f"{key}.pulse_limits[{j}] needs lo < hi, got {[lo, hi]}")
+    stiffness = (_pair(table["stiffness"], f"{key}.stiffness", positive=True)
+                 if "stiffness" in table else None)
     return ArmSpec(name, base, links, gain, offset, int(elbow), limits,  # type: ignore[arg-type]
                    stiffness)
 
@@ -580,10 +578,8 @@ def _config_members(row: list[str], idx: dict, arms: Iterable[str], where: str) 
         raise RigError(f"{where}: column 'config' is empty or malformed: {cfg!r}")
     for m in members:
         if m not in arms:
-            raise RigError(
-                f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
-                f"{', '.join(arms)})"
-            )
+            raise RigError(f"{where}: config {cfg!r} names unknown arm {m!r} (rig.toml has "
+                           f"{', '.join(arms)})")
     if len(set(members)) != len(members):
         raise RigError(f"{where}: config {cfg!r} names the same arm twice")
     return members
@@ -615,12 +611,18 @@ def _load_rows(path: Path, table: tuple, required: list[str], optional: list[str
             raise RigError(f"{path}: missing column '{col}'")
     idx = {h: i for i, h in enumerate(header)}
     extra_cols = [h for h in header if h not in {*required, *optional}]
+    sides = [h for h in extra_cols if (d := APPROACH.fullmatch(h)) and d[1] in widths]
     m = Measurements.blank(len(rows), dim, widths, extra_cols)
     keep = np.zeros(len(rows), bool)
     for r, lineno, where, row in csv_records(path, header, rows, starts):
         members = _config_members(row, idx, arms, where)
         st = row_set(row, idx, where)
         cells(m, r, where, row, idx, members)
+        for h in sides:
+            side = parse_number(row[idx[h]], where, h, allow_empty=True)
+            if not (math.isnan(side) or side in (-1, 0, 1)):
+                raise RigError(f"{where}: column '{h}' must be +1, -1 or 0 (the side the joint "
+                               f"approached its command from) or empty, got {row[idx[h]]!r}")
         if is_planned(row, idx):
             continue  # planned by ``bayesrob design``, not measured yet
         m.observed[r] = [parse_number(row[idx[a]], where, a) for a in "xyz"[:dim]]
@@ -647,10 +649,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
                 u.append(parse_number(row[idx[col]], where, col))
             for j, (p, (lo, hi)) in enumerate(zip(u, spec.pulse_limits, strict=True)):
                 if not lo <= p <= hi:
-                    raise RigError(
-                        f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm {a!r}'s "
-                        f"pulse_limits [{lo:g}, {hi:g}]"
-                    )
+                    raise RigError(f"{where}: column '{a}_u{j + 1}' = {p:g} us is outside arm "
+                                   f"{a!r}'s pulse_limits [{lo:g}, {hi:g}]")
             m.commands[a][r] = u
         for a in arms:
             if a not in members:
@@ -668,10 +668,8 @@ def load_measurements(path: Path, arms: dict[str, ArmSpec]) -> Measurements:
             for a in members:
                 if not arms[a].reaches((tx, ty)):
                     lo, hi = arms[a].reach_mm
-                    raise RigError(
-                        f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s reach "
-                        f"({lo:g} to {hi:g} mm from its base)"
-                    )
+                    raise RigError(f"{where}: target ({tx:g}, {ty:g}) is outside arm {a!r}'s "
+                                   f"reach ({lo:g} to {hi:g} mm from its base)")
         m.target[r] = tx, ty
 
     required = ["config", "set", "target_x", "target_y", "x", "y",
@@ -688,7 +686,7 @@ def load_robot_measurements(path: Path, chains: dict[str, Chain]) -> tuple[Measu
     A linked row (``config`` = ``left+right``) measures the one point where the named arms'
     markers are joined: every member must carry a marker (a measured arm), and the row carries
     the columns of every member's path. Calibration reads single-arm rows only
-    (:meth:`Rig.chain_rows` matches ``config`` exactly), so linked rows never enter a fit."""
+    (:meth:`Rig.rows` matches ``config`` exactly), so linked rows never enter a fit."""
     table = _read_csv(path)
     dim = 3 if "z" in table[0] else 2
     robot = Robot(chains, dim)
@@ -760,21 +758,21 @@ def load_rig(directory: str | Path, min_train_rows: int = N_ARM_PARAMS) -> Rig:
     for a in rig.arms:
         n_train = int(meas.mask(a, "train").sum())
         if n_train < min_train_rows:
-            raise RigError(
-                f"{directory / MEASUREMENTS_FILE}: arm {a!r} has {n_train} train rows, fewer "
-                f"than its {N_ARM_PARAMS} parameters"
-            )
+            raise RigError(f"{directory / MEASUREMENTS_FILE}: arm {a!r} has {n_train} train "
+                           f"rows, fewer than its {N_ARM_PARAMS} parameters")
     return rig
 
 
 # ----------------------------------------------------------------------------- writing
 
 
-def measurement_header(arm_names: Iterable[str]) -> list[str]:
+def measurement_header(arm_names: Iterable[str], approach: bool = False) -> list[str]:
+    """The columns of a planar rig's ``measurements.csv``; ``approach`` adds each arm's
+    ``<arm>_d1``, ``<arm>_d2`` after x, y."""
+    arm_names = list(arm_names)
     cols = ["config", "set", "target_x", "target_y"]
-    for a in arm_names:
-        cols += [f"{a}_u1", f"{a}_u2"]
-    return cols + ["x", "y"]
+    cols += [f"{a}_u{j}" for a in arm_names for j in (1, 2)]
+    return cols + ["x", "y"] + [f"{a}_d{j}" for a in arm_names for j in (1, 2) if approach]
 
 
 def format_row(
@@ -784,8 +782,10 @@ def format_row(
     target: Iterable[float] | None,
     commands: dict[str, Iterable[float]],
     observed: Iterable[float],
+    approach: dict[str, Iterable[float]] | None = None,
 ) -> list[str]:
-    """One CSV row in :func:`measurement_header` order; pulse widths are written as given."""
+    """One CSV row in :func:`measurement_header` order; pulse widths are written as given.
+    ``approach``: each arm's approach sides, for a header with them (empty for other arms)."""
 
     def num(v: float) -> str:
         return "" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.6g}"
@@ -795,8 +795,10 @@ def format_row(
     for a in arm_names:
         row += [num(float(v)) for v in commands[a]] if a in commands else ["", ""]
     # a planned row (not measured yet) leaves x, y empty
-    return row + ["" if v is None or math.isnan(float(v)) else f"{float(v):.4f}"
-                  for v in observed]
+    row += ["" if v is None or math.isnan(float(v)) else f"{float(v):.4f}" for v in observed]
+    for a in arm_names if approach is not None else ():
+        row += [f"{int(v):d}" for v in approach[a]] if a in approach else ["", ""]
+    return row
 
 
 def _toml_value(v: object) -> str:

@@ -16,6 +16,7 @@ recorded, matching them by config, set, commands and target in plan order.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import io
@@ -142,12 +143,10 @@ class Step:
     target: tuple[float, float] | None = None
 
     def matches(self, row: RecordedRow) -> bool:
-        if row.config != self.config or row.set != self.set:
+        if (row.config, row.set, row.target is None) != (self.config, self.set,
+                                                         self.target is None):
             return False
-        if (row.target is None) != (self.target is None):
-            return False
-        if self.target is not None and row.target is not None and not _close(
-                row.target, self.target):
+        if self.target is not None and not _close(row.target or (), self.target):
             return False
         return set(row.commands) == set(self.commands) and all(
             _close(row.commands[a], self.commands[a]) for a in self.commands)
@@ -375,7 +374,7 @@ class MeasurementLog:
         nothing and leaves the file closed."""
         self.path = Path(path)
         self.arm_names = list(arm_names)
-        self.header = measurement_header(self.arm_names)
+        self.header = measurement_header(self.arm_names, approach=True)
         self.truncated_bytes = 0
         self.truncated_text = ""
         self.rows: list[RecordedRow] = []
@@ -396,6 +395,7 @@ class MeasurementLog:
                 os.truncate(self.path, keep)
         if data:
             self._parse(data)
+        self.approach = self.header != measurement_header(self.arm_names)
         if check_only:
             return
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -414,6 +414,8 @@ class MeasurementLog:
             raise RigError(f"{self.path}: not a UTF-8 text file") from None
         reader = csv.reader(io.StringIO(text, newline=""))
         header = [h.strip() for h in next(reader)]
+        if header == measurement_header(self.arm_names):
+            self.header = header  # written before rows recorded approach sides: keep its form
         if header != self.header:
             raise RigError(f"{self.path}: header {','.join(header)!r} does not match this rig's "
                            f"{','.join(self.header)!r}; resume needs the same rig.toml")
@@ -462,16 +464,13 @@ class MeasurementLog:
 
 
 def _fsync_dir(directory: Path) -> None:
-    try:
+    # not supported on Windows: the file's own fsync still holds its rows
+    with contextlib.suppress(OSError):
         fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return  # not supported here (Windows); the file's own fsync still holds its rows
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 # ------------------------------------------------------------------------------ the run
@@ -573,6 +572,7 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
     already safe on disk.
     """
     from bayesrob.progress import progress as progress_report
+    from bayesrob.sim.rigs import approach_sides
 
     log = log or _stderr
     rig_dir = Path(rig_dir)
@@ -610,8 +610,14 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
         bar = progress_report(result.total, "collect", "rows", enabled=progress,
                               initial=result.skipped, heartbeat=False)
 
+        # each arm's command before a row, from which its joints' approach sides follow; a
+        # resumed run starts from the last recorded row's
+        last = {a: u for r in mlog.rows for a, u in r.commands.items()}
+
         def run(step: Step, index: int) -> None:
             label = f"[{index + 1}/{result.total}] {step.describe()}"
+            sides = {a: approach_sides(np.array([u]), last.get(a))[0]
+                     for a, u in step.commands.items()}
             for attempt in range(1, ROW_TRIES + 1):
                 controller.move_and_settle(step.commands)
                 if settle_s > 0:
@@ -629,10 +635,12 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                 redone.append(label)
                 log(f"{label}: {dropped}; measuring the row again")
             fields = format_row(names, step.config, step.set, step.target, step.commands,
-                                observed)
+                                observed, sides if mlog.approach else None)
+            x = mlog.header.index("x")
             parsed = RecordedRow(step.config, step.set, step.target, step.commands,
-                                 (float(fields[-2]), float(fields[-1])), 0)
+                                 (float(fields[x]), float(fields[x + 1])), 0)
             mlog.append(fields, parsed)
+            last.update(step.commands)
             result.recorded += 1
             bar.update(1)
 
@@ -720,19 +728,6 @@ def controller_class(protocol: str) -> type[ServoController]:
     return SSC32 if protocol == "ssc32" else Maestro
 
 
-def n_channels(protocol: str, maestro_model: str | None = None) -> int:
-    from bayesrob.hardware import maestro, ssc32
-
-    return ssc32.MAX_CHANNELS if controller_class(protocol) is ssc32.SSC32 else \
-        maestro.n_channels(maestro_model)
-
-
-def controller_name(protocol: str, maestro_model: str | None = None) -> str:
-    from bayesrob.hardware import maestro
-
-    return "an SSC-32" if protocol == "ssc32" else maestro.describe_model(maestro_model)
-
-
 def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int]],
                     limits: dict, *, baud: int = 9600, maestro_protocol: str = "compact",
                     device_number: int = 12,
@@ -741,18 +736,14 @@ def open_controller(protocol: str, port: str, channels: dict[str, tuple[int, int
                     retries: int = DEFAULT_RETRIES, maestro_model: str | None = None,
                     auto_baud: bool = False) -> ServoController:
     """Open the servo port exclusively and check that the controller answers."""
-    from bayesrob.hardware.maestro import Maestro
-
     cls = controller_class(protocol)
+    maestro = {} if protocol == "ssc32" else {"protocol": maestro_protocol,
+                                              "device": device_number, "model": maestro_model,
+                                              "auto_baud": auto_baud}
     link = SerialLink(open_port(port, baud, timeout_s, "servo"), "servo")
     try:
-        ctl: ServoController
-        if cls is Maestro:
-            ctl = Maestro(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries,
-                          protocol=maestro_protocol,  # type: ignore[arg-type]
-                          device=device_number, model=maestro_model, auto_baud=auto_baud)
-        else:
-            ctl = cls(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries)
+        ctl = cls(link, channels, limits, speed_us_per_s=speed_us_per_s, retries=retries,
+                  **maestro)
         ctl.description = ctl.connect()
     except BaseException:
         link.close()
@@ -765,27 +756,29 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
                      manual: bool = False, grid: int = 4, plan: Sequence[str] = DEFAULT_PLAN,
                      settle_s: float = 1.0, resume: bool = False,
                      tracker_format: TrackerFormat = "pxyt", tracker_baud: int = 115200,
-                     samples: int = 5, baud: int = 9600, maestro_protocol: str = "compact",
-                     device_number: int = 12,
-                     speed_us_per_s: float | None = DEFAULT_SPEED_US_PER_S,
-                     timeout_s: float = DEFAULT_TIMEOUT_S, retries: int = DEFAULT_RETRIES,
-                     maestro_model: str | None = None, auto_baud: bool = False,
+                     samples: int = 5, timeout_s: float = DEFAULT_TIMEOUT_S,
+                     maestro_model: str | None = None,
                      confirm: Callable[[str], bool] | None = terminal_confirm,
-                     progress: bool = False,
-                     log: Callable[[str], None] | None = None,
-                     poses: str | Path | None = None) -> CollectResult:
-    """What ``bayesrob collect`` does: check the arguments, open the ports, run :func:`collect`.
+                     progress: bool = False, log: Callable[[str], None] | None = None,
+                     poses: str | Path | None = None, **controller_options) -> CollectResult:
+    """What ``bayesrob collect`` does: check the arguments, open the ports, run :func:`collect`
+    (``controller_options``: :func:`open_controller`'s).
 
     Everything that can be checked without hardware (rig.toml, channels, the planned pulses
     against pulse_limits) is checked before a port is opened, so a bad request sends nothing.
     """
+    from bayesrob.hardware import maestro, ssc32
+
     if (tracker_port is None) == (not manual):
         raise ArgumentError("give either a tracker port or manual entry")
     rig_dir = Path(rig_dir)
     specs = load_rig_toml(rig_dir / RIG_FILE)["arms"]
-    check_channels(channels, specs, n_channels(protocol, maestro_model),
-                   controller_name(protocol, maestro_model))
     cls = controller_class(protocol)
+    if protocol == "ssc32":
+        check_channels(channels, specs, ssc32.MAX_CHANNELS, "an SSC-32")
+    else:
+        check_channels(channels, specs, maestro.n_channels(maestro_model),
+                       maestro.describe_model(maestro_model))
     quantize = functools.partial(quantize_us, resolution_us=cls.resolution_us)
     specs, workspace, singles, linked = _planned(rig_dir, grid, plan, poses, quantize)
     # Refuse to touch an existing file without --resume, or to resume a different plan,
@@ -796,11 +789,8 @@ def collect_on_ports(rig_dir: str | Path, *, servo_port: str, protocol: str,
         match_recorded(specs, workspace, grid, quantize, singles, bool(linked), existing.rows,
                        existing.path, linked_sets=linked)
     limits = {n: s.pulse_limits for n, s in specs.items()}
-    controller = open_controller(protocol, servo_port, channels, limits, baud=baud,
-                                 maestro_protocol=maestro_protocol, device_number=device_number,
-                                 speed_us_per_s=speed_us_per_s, timeout_s=timeout_s,
-                                 retries=retries, maestro_model=maestro_model,
-                                 auto_baud=auto_baud)
+    controller = open_controller(protocol, servo_port, channels, limits, timeout_s=timeout_s,
+                                 maestro_model=maestro_model, **controller_options)
     (log or _stderr)(f"connected: {controller.description}")
     tlink = None
     try:

@@ -21,11 +21,12 @@ Safety lives here, not in the protocols: every pulse width is checked against th
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 
 import serial
 
@@ -89,35 +90,33 @@ class SerialLink:
         self.what = what
         self.name = getattr(port, "port", None) or what
 
-    def _lost(self, exc: BaseException) -> DisconnectedError:
-        return DisconnectedError(f"lost the {self.what} port {self.name}: {exc}")
+    @contextlib.contextmanager
+    def _io(self) -> Iterator[None]:
+        try:
+            yield
+        except _PORT_ERRORS as exc:
+            raise DisconnectedError(f"lost the {self.what} port {self.name}: {exc}") from None
 
     def write(self, data: bytes) -> None:
         if not isinstance(data, bytes | bytearray):
             raise TypeError(f"serial data must be bytes, not {type(data).__name__}")
-        try:
+        with self._io():
             n = self.port.write(bytes(data))
             self.port.flush()
-        except _PORT_ERRORS as exc:
-            raise self._lost(exc) from None
         if n is not None and n != len(data):
             raise HardwareError(f"{self.what} port {self.name}: wrote {n} of {len(data)} bytes")
 
     def read_exact(self, n: int, request: str) -> bytes:
-        try:
+        with self._io():
             data = self.port.read(n)
-        except _PORT_ERRORS as exc:
-            raise self._lost(exc) from None
         if len(data) != n:
             raise ShortReplyError(f"{self.what} port {self.name}: {request} got {len(data)} of "
                                   f"{n} reply bytes within {self.port.timeout} s")
         return data
 
     def read_until(self, terminator: bytes, request: str, limit: int = 256) -> bytes:
-        try:
+        with self._io():
             data = self.port.read_until(terminator, limit)
-        except _PORT_ERRORS as exc:
-            raise self._lost(exc) from None
         if not data.endswith(terminator):
             raise ShortReplyError(f"{self.what} port {self.name}: {request} got no complete "
                                   f"reply within {self.port.timeout} s (got {data!r})")
@@ -125,26 +124,21 @@ class SerialLink:
 
     def readline(self) -> bytes:
         """One line or whatever arrived before the timeout (the caller judges it)."""
-        try:
+        with self._io():
             return self.port.readline()
-        except _PORT_ERRORS as exc:
-            raise self._lost(exc) from None
 
     def discard_input(self) -> None:
-        try:
+        with self._io():
             self.port.reset_input_buffer()
-        except _PORT_ERRORS as exc:
-            raise self._lost(exc) from None
 
     @property
     def timeout_s(self) -> float:
         return float(self.port.timeout or 0.0)
 
     def close(self) -> None:
-        try:
+        # closing a port that vanished is not worth an error on the way out
+        with contextlib.suppress(*_PORT_ERRORS):
             self.port.close()
-        except _PORT_ERRORS:
-            pass  # closing a port that vanished is not worth an error on the way out
 
 
 def quantize_us(u: Iterable[float], resolution_us: float) -> tuple[float, ...]:

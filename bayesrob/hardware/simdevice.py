@@ -41,6 +41,7 @@ A real Maestro's quirks, each off unless asked for (see :mod:`bayesrob.hardware.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import re
@@ -256,6 +257,12 @@ class _Output:
         frac = (now - self.t0) / (self.t1 - self.t0)
         return self.start_us + (self.target_us - self.start_us) * max(0.0, frac)
 
+    def ramp_s(self, target_us: float, now: float) -> float:
+        """How long a ramp to ``target_us`` takes at the speed limit. From "off" there is no
+        position to ramp from: the output starts at its target."""
+        pos = self.position(now)
+        return abs(target_us - pos) / (25.0 * self.speed) if self.speed and pos > 0 else 0.0
+
     def go(self, target_us: float, now: float, duration_s: float) -> None:
         self.start_us = self.position(now)
         self.target_us = target_us
@@ -404,12 +411,9 @@ class SimDevice:
 
     def _close(self, role: str) -> None:
         fds = self._fds.pop(role, None)
-        if fds:
-            for fd in fds:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        for fd in fds or ():
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
     @property
     def received(self) -> bytes:
@@ -480,9 +484,7 @@ class SimDevice:
             else:
                 # With a speed limit the output ramps to its home, as the user's guide says.
                 home = self.home_us.get(ch, out.target_us)
-                pos = out.position(now)
-                dur = abs(home - pos) / (25.0 * out.speed) if out.speed and pos > 0 else 0.0
-                self._set_target(ch, home, dur)
+                self._set_target(ch, home, out.ramp_s(home, now))
         # The tracker keeps watching the arms it watched; they now hang limp or at home.
         watched = self.poses[-1].arms if self.poses else None
         self._settle(watched)
@@ -557,10 +559,9 @@ class SimDevice:
 
     @staticmethod
     def _write(fd: int, data: bytes) -> None:
-        try:
+        # nobody reading and the buffer full: a UART would overrun the same way
+        with contextlib.suppress(OSError):
             os.write(fd, data)
-        except (BlockingIOError, OSError):
-            pass  # nobody reading and the buffer full: a UART would overrun the same way
 
     @staticmethod
     def _corrupt(data: bytes, rng: np.random.Generator, drop: float, garble: float) -> bytes:
@@ -583,11 +584,7 @@ class SimDevice:
             if self.channel_range is not None and us > 0:
                 us = min(max(us, self.channel_range[0]), self.channel_range[1])
             out = self._outputs.get(ch)
-            speed = out.speed if out else 0
-            start = out.position(time.monotonic()) if out else us
-            # From "off" there is no position to ramp from: the output starts at its target.
-            dur = abs(us - start) / (25.0 * speed) if speed and start > 0 else 0.0
-            self._set_target(ch, us, dur)
+            self._set_target(ch, us, out.ramp_s(us, time.monotonic()) if out else 0.0)
         elif command == mae.SET_MULTIPLE_TARGETS:
             n, first = data[0], data[1]
             for i in range(n):
@@ -655,10 +652,8 @@ class SimDevice:
                 self._stop.wait(delay)
             else:
                 next_t = time.monotonic()
-            try:
+            with contextlib.suppress(OSError):
                 os.read(master, 4096)  # a tracker does not listen; drain what a host sent
-            except (BlockingIOError, OSError):
-                pass
             d = self.end_point
             if d is None:
                 continue
@@ -703,11 +698,7 @@ def run_sim_device(rig_dir: str | Path, protocol: str = "maestro", *,
     plant = PhysicalRig(truth, seed)
     device = SimDevice(plant, protocol, seed=truth.seed if seed is None else seed, **kwargs)
     device.start()
-
-    def _stop(signum, frame):
-        device.stop()
-
-    previous = signal.signal(signal.SIGTERM, _stop)
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: device.stop())
     try:
         print(f"servo: {device.servo_port}", file=out, flush=True)
         print(f"tracker: {device.tracker_port}", file=out, flush=True)

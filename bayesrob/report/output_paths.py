@@ -30,13 +30,6 @@ class OutputPathError(ValueError):
     """An output path the command could not write; the message names the option and path."""
 
 
-def _nearest_existing(path: Path) -> Path:
-    for parent in (path, *path.parents):
-        if parent.exists():
-            return parent
-    return Path.cwd()
-
-
 def _accepts_files(directory: Path) -> bool:
     try:
         fd, probe = tempfile.mkstemp(prefix=".bayesrob-probe-", dir=directory)
@@ -57,7 +50,7 @@ def check_output(path: str | Path, kind: str, option: str) -> None:
     if kind == DIRECTORY and p.exists() and not p.is_dir():
         raise OutputPathError(f"{where}: exists and is not a directory")
     base = p if kind == DIRECTORY and p.is_dir() else p.parent
-    existing = _nearest_existing(base)
+    existing = next((d for d in (base, *base.parents) if d.exists()), Path.cwd())
     if not existing.is_dir():
         raise OutputPathError(f"{where}: {existing} is a file, so it cannot hold the output")
     if not _accepts_files(existing):

@@ -33,12 +33,8 @@ def format_calibration(doc: dict) -> str:
                      f"mm, validation {_fmt(arm['validation_error_mm'])} mm")
         spread = "posterior sd" if doc["method"] == "bayes" else "std err"
         parts.append(format_table(["param", "value", spread], rows))
-    rows = []
-    for config, sets in doc["accuracy"].items():
-        for s, acc in sets.items():
-            lo, hi = acc["ci95_mm"]
-            rows.append([config, s, f"{acc['mean_mm']:.2f}", f"[{lo:.2f}, {hi:.2f}]",
-                         str(acc["n"])])
+    rows = [[config, s, f"{acc['mean_mm']:.2f}", "[{:.2f}, {:.2f}]".format(*acc["ci95_mm"]),
+             str(acc["n"])] for config, sets in doc["accuracy"].items() for s, acc in sets.items()]
     parts.append("\nobserved accuracy (mean Euclidean error, mm)")
     parts.append(format_table(["config", "set", "mean", "95% CI", "n"], rows))
     return "\n".join(parts)
@@ -65,11 +61,8 @@ def format_group_calibration(doc: dict) -> str:
                      f"{p['r_hat_max']:.3f}, bulk ESS min {p['ess_bulk_min']:.0f}, "
                      f"{p['divergences']} divergences, noise sd {p['noise_sd_mm']:.3f} mm; "
                      "values below are at the posterior mean")
-    rows = []
-    for s, arms in doc["errors"].items():
-        for arm, e in arms.items():
-            rows.append([s, arm, _fmt(e["mean_mm"]), _fmt(e["sd_mm"]), _fmt(e["max_mm"]),
-                         str(e["n"])])
+    rows = [[s, arm, _fmt(e["mean_mm"]), _fmt(e["sd_mm"]), _fmt(e["max_mm"]), str(e["n"])]
+            for s, arms in doc["errors"].items() for arm, e in arms.items()]
     parts.append("\nmarker error (mm)")
     parts.append(format_table(["set", "arm", "mean", "sd", "max", "n"], rows))
     parts += [f"note: {n}" for n in doc.get("notes", [])]

@@ -23,10 +23,6 @@ def _pick(rep: Reproduction, family: str, prefer_paper: bool | None = None) -> l
     return names
 
 
-def _setups(rep: Reproduction) -> list[str]:
-    return list(rep.rows)
-
-
 def _cond_model(rep: Reproduction, prefer_paper: bool = True) -> str | None:
     """The COND variant to show: the paper's figures show COND, by default its paper-faithful
     variant; ``prefer_paper=False`` shows the improved one (the prediction a reader would use)."""
@@ -45,7 +41,7 @@ def workspace_errors(rep: Reproduction, scale: float = 10.0) -> Figure:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Circle
 
-    configs = _setups(rep)
+    configs = list(rep.rows)
     # the prediction the package recommends, held against what was observed: the improved
     # COND (the paper's over-predicts, which this figure would otherwise seem to endorse)
     model = _cond_model(rep, prefer_paper=False)
@@ -203,14 +199,14 @@ def corr_densities(rep: Reproduction) -> Figure:
     return fig
 
 
-def _covering_half_width(pred, mass: float = 0.995) -> float:
-    """Smallest half-width (mm, a grid cell edge) whose box holds ``mass`` at every target."""
+def _mass_half_width(pred, p: np.ndarray, mass: float) -> float:
+    """Smallest half-width (mm, a grid cell edge) of the centred box holding ``mass`` of each
+    of the densities ``p`` (..., n, n) on ``pred``'s grid."""
     n = pred.grid.n
-    p = pred.prob.reshape(-1, n, n)
+    p = p.reshape(-1, n, n)
     step = 2 * pred.grid.half_width_mm / n
     for k in range(1, n // 2 + 1):
-        inner = p[:, n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum(axis=(1, 2))
-        if np.all(inner >= mass):
+        if np.all(p[:, n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum(axis=(1, 2)) >= mass):
             return k * step
     return pred.grid.half_width_mm
 
@@ -224,14 +220,15 @@ def cond_grid(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
     from matplotlib.lines import Line2D
 
     model = _cond_model(rep)
-    configs = _setups(rep)
+    configs = list(rep.rows)
     fig = plt.figure(figsize=(6.2 * len(configs), 7.0), layout="constrained")
     subfigs = np.atleast_1d(fig.subfigures(1, len(configs), wspace=0.03))
     for sf, c in zip(subfigs, configs, strict=True):
         pred = rep.predictions[model][c]
         t = len(pred.targets)
         side = int(np.ceil(np.sqrt(t)))
-        half = zoom_mm if zoom_mm is not None else float(np.ceil(_covering_half_width(pred)))
+        half = (zoom_mm if zoom_mm is not None
+                else float(np.ceil(_mass_half_width(pred, pred.prob, 0.995))))
         # Lay panels out as the targets lie in the workspace: rows by y (top first), then x.
         order = np.lexsort((pred.targets[:, 0], -pred.targets[:, 1]))
         axes = np.atleast_2d(sf.subplots(side, side, sharex=True, sharey=True))
@@ -276,28 +273,17 @@ def cond_grid(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
     return fig
 
 
-def _error_mass_half_width(pred, mass: float = 0.99) -> float:
-    """Smallest half-width (mm, a grid cell edge) whose box holds ``mass`` of Figure 8's density."""
-    n = pred.grid.n
-    e = pred.error_density
-    step = 2 * pred.grid.half_width_mm / n
-    for k in range(1, n // 2 + 1):
-        if e[n // 2 - k:n // 2 + k, n // 2 - k:n // 2 + k].sum() >= mass:
-            return k * step
-    return pred.grid.half_width_mm
-
-
 def error_densities(rep: Reproduction, zoom_mm: float | None = None) -> Figure:
     """Figure 8: observed errors (top row) and each model's error density summed over targets.
 
     All panels share one width, chosen (unless ``zoom_mm`` is given) to hold 99% of every
     model's density: the paper-faithful models spread wider than the errors they predict.
     """
-    configs = _setups(rep)
+    configs = list(rep.rows)
     models = [s.name for s in rep.specs]
     if zoom_mm is None:
-        widest = max((_error_mass_half_width(rep.predictions[m][c])
-                      for m in models for c in configs), default=5.0)
+        preds = (rep.predictions[m][c] for m in models for c in configs)
+        widest = max((_mass_half_width(p, p.error_density, 0.99) for p in preds), default=5.0)
         zoom_mm = float(np.ceil(max(widest, 3.0)))
     nrow = 1 + len(models)
     height = 3.0 * nrow
