@@ -44,7 +44,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob.robot import Robot, urdf_chain
-from bayesrob.sim.rigs import random_poses, simulate_arm6_rig, true_parameters, write_arm6_rig
+from bayesrob.sim.rigs import (
+    POSES_STREAM,
+    measure_arm6_poses,
+    random_poses,
+    simulate_arm6_rig,
+    true_parameters,
+    write_arm6_rig,
+)
 from bayesrob.sim.truth import Arm6Truth, arm6_urdf_path
 
 ROD_KG = np.array([2.0, 5.0, 1.5, 0.7, 0.7, 0.1])  # spread along each link
@@ -126,12 +133,15 @@ def _joint_torques(robot: Robot, joints: np.ndarray, links: np.ndarray
     return local, np.einsum("nja,ja->nj", local, np.asarray(robot.chains["arm"].axes))
 
 
-def _play(robot: Robot, x: np.ndarray, q: np.ndarray, scale: float, frames) -> np.ndarray:
+def _play(robot: Robot, x: np.ndarray, q: np.ndarray, scale: float, frames,
+          moved: np.ndarray | None = None) -> np.ndarray:
     """Where each joint rests in its play (N, 6) rad: towards its gravity torque where that
-    beats the friction, else towards where it came from (the previous row's pose)."""
+    beats the friction, else towards where it came from (``moved``, +1 / -1; by default the
+    side of the previous row's pose)."""
     joints, links = (np.asarray(a) for a in frames(x, q, np.zeros((q.shape[0], 7, 3))))
     _, about = _joint_torques(robot, joints, links)
-    moved = np.sign(np.diff(q, axis=0, prepend=q[:1] - 1.0))
+    if moved is None:
+        moved = np.sign(np.diff(q, axis=0, prepend=q[:1] - 1.0))
     side = np.where(np.abs(about) > STICK_NMM, np.sign(about), moved)
     return 0.5 * PLAY_RAD * scale * side
 
@@ -163,50 +173,92 @@ def _true_points(robot: Robot, x: np.ndarray, q: np.ndarray, effects: tuple[str,
     return np.asarray(points(x, q + defl[:, :6], bend))
 
 
+@dataclass
+class _GeneratedArm:
+    """A generated arm as it really is: its true parameters and the case's physics."""
+
+    case: ChainCase
+    errors: Arm6Truth
+    robot: Robot
+    x: jax.Array
+    frames: object
+    points: object
+    phase: np.ndarray
+
+    @classmethod
+    def build(cls, case: ChainCase, rng: np.random.Generator) -> _GeneratedArm:
+        errors = Arm6Truth(seed=case.seed)
+        nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
+                             marker=errors.marker_nominal_mm,
+                             instrument=errors.instrument_nominal)
+        robot = Robot({"arm": nominal}, 3)
+        x = jnp.asarray(true_parameters(robot, errors, rng))
+        frames = jax.jit(lambda x, q, b: robot.element_frames(
+            x, "arm", q, bend=jnp.asarray(b)))
+
+        def points(x, q, bend):
+            joints, links = robot.element_frames(x, "arm", q, bend=bend)
+            marker = x[robot.layout.slices[("arm", "marker")]]
+            return links[-1, :, :3, :3] @ marker + links[-1, :, :3, 3]
+
+        phase = np.random.default_rng([case.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi,
+                                                                            (2, 6))
+        return cls(case, errors, robot, x, frames, jax.jit(points), phase)
+
+    def measure(self, q_read: np.ndarray, rng: np.random.Generator,
+                moved: np.ndarray | None = None) -> np.ndarray:
+        """Marker points (N, 3) with noise at the joint readings ``q_read`` (N, 6), measured
+        in this order; ``moved``: each joint's approach side where the rows record it."""
+        case, errors = self.case, self.errors
+        q = q_read + rng.normal(0, errors.joint_noise_rad, q_read.shape)
+        if "encoder_error" in case.effects:
+            q = q + case.scale * (ENCODER_RAD[0] * np.sin(q_read + self.phase[0]) +
+                                  ENCODER_RAD[1] * np.sin(2 * q_read + self.phase[1]))
+        if "backlash" in case.effects:
+            q = q + _play(self.robot, self.x, q, case.scale, self.frames, moved)
+        p = _true_points(self.robot, self.x, q, case.effects, case.scale, self.frames,
+                         self.points)
+        return p + rng.normal(0, errors.measurement_noise_mm, p.shape)
+
+
 def make_chain_rig(case: ChainCase, out_dir: str | Path) -> Path:
     """Write the case's rig directory (rig.toml, arm6.urdf, measurements.csv; no truth)."""
     out = Path(out_dir)
     if case.source == "simulator":
-        physics = {"compliance": "joint_compliance" in case.effects,
-                   "encoder_eccentricity": 1e-3 * case.scale * ("encoder_error" in case.effects),
-                   "joint_play_rad": 2e-3 * case.scale * ("backlash" in case.effects)}
-        if "lateral_compliance" in case.effects:
-            raise ValueError("the simulator has no lateral compliance")
-        path = simulate_arm6_rig(out, Arm6Truth(seed=case.seed, **physics))
+        path = simulate_arm6_rig(out, simulator_truth(case))
         (path / "truth.toml").unlink()  # the diagnosis must not need it
         return path
     out.mkdir(parents=True, exist_ok=True)
-    errors = Arm6Truth(seed=case.seed)
     rng = np.random.default_rng([case.seed, 61])
-    nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
-                         marker=errors.marker_nominal_mm, instrument=errors.instrument_nominal)
-    robot = Robot({"arm": nominal}, 3)
-    x = jnp.asarray(true_parameters(robot, errors, rng))
-    frames = jax.jit(lambda x, q, b: robot.element_frames(
-        x, "arm", q, bend=jnp.asarray(b)))
-
-    def points(x, q, bend):
-        joints, links = robot.element_frames(x, "arm", q, bend=bend)
-        marker = x[robot.layout.slices[("arm", "marker")]]
-        return links[-1, :, :3, :3] @ marker + links[-1, :, :3, 3]
-
-    points = jax.jit(points)
-    phase = np.random.default_rng([case.seed, ENCODER_STREAM]).uniform(-np.pi, np.pi, (2, 6))
+    arm = _GeneratedArm.build(case, rng)
     rows = []
-    for set_name, n in (("train", errors.n_train), ("validation", errors.n_validation),
-                        ("holdout", errors.n_holdout)):
+    for set_name, n in (("train", arm.errors.n_train), ("validation", arm.errors.n_validation),
+                        ("holdout", arm.errors.n_holdout)):
         q_read = random_poses(rng, n)
-        q = q_read + rng.normal(0, errors.joint_noise_rad, q_read.shape)
-        if "encoder_error" in case.effects:
-            q = q + case.scale * (ENCODER_RAD[0] * np.sin(q_read + phase[0]) +
-                                  ENCODER_RAD[1] * np.sin(2 * q_read + phase[1]))
-        if "backlash" in case.effects:
-            q = q + _play(robot, x, q, case.scale, frames)
-        p = _true_points(robot, x, q, case.effects, case.scale, frames, points)
-        p = p + rng.normal(0, errors.measurement_noise_mm, p.shape)
+        p = arm.measure(q_read, rng)
         rows += [(set_name, qr, pc) for qr, pc in zip(q_read, p, strict=True)]
-    write_arm6_rig(out, f"arm6-generated-seed{case.seed}", rows, errors)
+    write_arm6_rig(out, f"arm6-generated-seed{case.seed}", rows, arm.errors)
     return out
+
+
+def simulator_truth(case: ChainCase) -> Arm6Truth:
+    """The simulator's arm6 physics of a ``simulator`` case."""
+    if "lateral_compliance" in case.effects:
+        raise ValueError("the simulator has no lateral compliance")
+    return Arm6Truth(seed=case.seed, compliance="joint_compliance" in case.effects,
+                     encoder_eccentricity=1e-3 * case.scale * ("encoder_error" in case.effects),
+                     joint_play_rad=2e-3 * case.scale * ("backlash" in case.effects))
+
+
+def measure_generated_poses(case: ChainCase, rig_dir: str | Path, q_cmd: np.ndarray) -> int:
+    """Append train rows at the joint commands ``q_cmd`` (N, 6) to a generator case's rig
+    (made by :func:`make_chain_rig`), measured in this order by the same hidden arm, with
+    each joint's approach side recorded (``arm_d1..6``); the play rests on that side where
+    gravity's torque does not beat the friction. Their noise comes from a stream of its own."""
+    arm = _GeneratedArm.build(case, np.random.default_rng([case.seed, 61]))
+    rng = np.random.default_rng([case.seed, 61, POSES_STREAM])
+    return measure_arm6_poses(rig_dir, ["train"] * len(q_cmd), q_cmd,
+                              plant=lambda q, approach: arm.measure(q, rng, approach))
 
 
 def chain_cases(seeds) -> list[ChainCase]:

@@ -15,7 +15,7 @@ import csv
 import io
 import os
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -366,20 +366,27 @@ def approach_sides(q_cmd: np.ndarray, previous: np.ndarray | None) -> np.ndarray
 
 
 def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarray,
-                        seed: int = 0) -> int:
+                        seed: int = 0,
+                        plant: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+                        ) -> int:
     """Measure the joint commands ``q_cmd`` (N, 6), in this order, on the simulated arm6 in
     ``rig_dir`` (its truth.toml) and append them to its measurements.csv with their ``sets``
     and each joint's approach side (``arm_d1..6``, from the command before: the arm moves
-    from pose to pose). Returns the rows appended."""
+    from pose to pose). ``plant(q_cmd, approach) -> points (N, 3)`` measures instead, for an
+    arm made by other physics (a validation study's). Returns the rows appended."""
     import tomllib
 
     out = Path(rig_dir)
-    table = dict(tomllib.loads((out / "truth.toml").read_text())["chain_truth"])
-    names = [f.name for f in Arm6Truth.__dataclass_fields__.values()]
-    truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
-                          for k, v in table.items() if k in names})
-    rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
-    plant = _Arm6Plant.build(truth, rng)
+    if plant is None:
+        table = dict(tomllib.loads((out / "truth.toml").read_text())["chain_truth"])
+        names = [f.name for f in Arm6Truth.__dataclass_fields__.values()]
+        truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
+                              for k, v in table.items() if k in names})
+        rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
+        arm6 = _Arm6Plant.build(truth, rng)
+
+        def plant(q: np.ndarray, approach: np.ndarray) -> np.ndarray:
+            return arm6.measure(q, rng, rng, approach)
     path = out / "measurements.csv"
     with path.open(newline="") as fh:
         rows = list(csv.reader(fh))
@@ -392,7 +399,7 @@ def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarr
     idx = {h: i for i, h in enumerate(header)}
     previous = (np.array([float(body[-1][idx[c]]) for c in cmd_cols]) if body else None)
     approach = approach_sides(np.asarray(q_cmd, float), previous)
-    p = plant.measure(np.asarray(q_cmd, float), rng, rng, approach)
+    p = plant(np.asarray(q_cmd, float), approach)
     for s, qc, d, pc in zip(sets, q_cmd, approach, p, strict=True):
         row = [""] * len(header)
         row[idx["config"]], row[idx["set"]] = "arm", s
