@@ -57,8 +57,7 @@ class ArmTruth(ArmGeometry):
         return kin.ArmParams.from_spec(self)
 
     def robot(self) -> kin.Robot:
-        """The arm as a 2-joint chain of the general model, its columns the joint angles (the
-        servo map, with its ripple, stays outside): what the simulator's physics acts on."""
+        """The arm as a 2-joint chain whose columns are the joint angles (servo map outside)."""
         angles = kin.ArmParams(*(jnp.asarray(v, dtype=jnp.float64)
                                  for v in (self.base, self.links, (1.0, 1.0), (0.0, 0.0))))
         return kin.Robot({self.name: kin.planar_chain(self.name, angles)}, 2)
@@ -194,8 +193,7 @@ def arm6_urdf_path() -> Path:
 
 @dataclass
 class _ArmErrors:
-    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are: the
-    settings a single-arm and a linked chain rig share."""
+    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are."""
 
     seed: int = 0
     n_train: int = 80
@@ -233,7 +231,7 @@ class Arm6Truth(_ArmErrors):
 
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:
-    """The true parameter values a simulated chain rig (one arm or two linked) was made with."""
+    """The true parameter values a simulated arm6 rig (one arm or linked) was made with."""
     doc = tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())
     return doc.get("chain_truth", doc.get("linked_chain_truth"))["true_params"]
 
