@@ -8,7 +8,7 @@ study ``bayesrob validate diagnosis``. Every rig is diagnosed from its files alo
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import jax
@@ -51,12 +51,12 @@ def test_the_three_named_effects_are_registered():
 
 @pytest.mark.parametrize("name", ["gravity_sag", "backlash", "servo_nonlinearity"])
 def test_an_effect_at_its_initial_values_changes_nothing(name):
-    eff = fx.make_effect(name, _ctx())
+    eff = fx.REGISTRY[name](_ctx())
     s = eff.settings(kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3,
                                                           -2.0, -1.0])),
                      np.array([[1400.0, 1500.0], [1600.0, 1550.0]]))
     if s is not None:
-        eff = eff.with_setting(jnp.asarray(s[0]))
+        eff = replace(eff, setting=jnp.asarray(s[0]))
     theta = jnp.array([[0.3, 1.2], [1.1, -0.4]])
     params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3, 0, 0.0]))
     out = eff.apply(params, jnp.asarray(eff.initial()), jnp.full((2, 2), 1500.0), theta)
@@ -66,7 +66,7 @@ def test_an_effect_at_its_initial_values_changes_nothing(name):
 
 def test_gravity_sag_deflects_towards_the_gravity_torque():
     """A level arm pointing right under gravity (0, -1) sags clockwise (negative angles)."""
-    eff = fx.make_effect("gravity_sag", _ctx())
+    eff = fx.REGISTRY["gravity_sag"](_ctx())
     params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 150, 1e-3, 1e-3, 0, 0.0]))
     out = eff.apply(params, jnp.array([0.01, 0.005, 0.02]), None, jnp.array([0.0, 0.0]))
     assert out[0] < 0 and out[1] < 0
@@ -76,7 +76,7 @@ def test_gravity_sag_deflects_towards_the_gravity_torque():
 
 
 def test_gravity_sag_magnitude_is_the_sag_of_a_straight_level_arm():
-    eff = fx.make_effect("gravity_sag", _ctx())
+    eff = fx.REGISTRY["gravity_sag"](_ctx())
     params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 150, 1e-3, 1e-3, 0, 0.0]))
     rep = eff.magnitude_report(params, np.array([0.01, 0.002, 0.004]), np.eye(11) * 1e-8)
     assert rep["values"]["sag_full_reach_mm"]["value"] == pytest.approx(350 * 0.012 + 150 * 0.004)
@@ -184,13 +184,13 @@ def test_chain_only_effects_are_a_one_line_error_for_planar_rigs():
 
 
 def test_backlash_keeps_one_setting_per_sign_pattern():
-    eff = fx.make_effect("backlash", _ctx())
+    eff = fx.REGISTRY["backlash"](_ctx())
     params = kin.ArmParams.from_vector(jnp.array([0, 0, 200, 200, 1.5e-3, 1.5e-3, -1.0, -3.0]))
     u = np.stack(np.meshgrid(np.linspace(1100, 1900, 5), np.linspace(1100, 1900, 5)),
                  -1).reshape(-1, 2)
     settings = eff.settings(params, u)
     theta = kin.servo(params, jnp.asarray(u))
-    patterns = {np.asarray(eff.with_setting(jnp.asarray(s)).signs(theta)).tobytes()
+    patterns = {np.asarray(replace(eff, setting=jnp.asarray(s)).signs(theta)).tobytes()
                 for s in settings}
     assert len(patterns) == len(settings) <= len(fx.Backlash.RHO_GRID)
 

@@ -1,9 +1,5 @@
-"""The design file (``bayesrob design DESIGN.toml``): its format, read and checked in full.
-
-Apart from the search (:mod:`bayesrob.design.search`) so that a mistake in the file is one
-line before the numerical stack is imported or any module is calibrated; only NumPy and the
-standard library are needed here. The format is in docs/design.md;
-examples/design/design.toml is a commented example.
+"""The design file (``bayesrob design DESIGN.toml``, docs/design.md), read and checked in full
+apart from the search, so a mistake in it is one line before the numerical stack is imported.
 """
 
 from __future__ import annotations
@@ -30,9 +26,6 @@ TOP_KEYS = ("fusion", "seed", "draws", "tracker_noise_mm", "modules", "mounts", 
 
 class DesignError(ValueError):
     """A design file, a module or the search itself is unusable; the message is one line."""
-
-
-# ------------------------------------------------------------------------------ the file
 
 
 @dataclass(frozen=True)
@@ -79,7 +72,6 @@ class DesignSpec:
 
     @property
     def dim(self) -> int:
-        """2 for the plane, 3 for space: the mounts' and the task's coordinates."""
         return int(self.mounts.shape[1])
 
 
@@ -224,7 +216,6 @@ def load_design(path: str | Path) -> DesignSpec:
 
 
 def _groups(value: Any, where: str) -> tuple[str, ...]:
-    """A chain module's calibration groups: "frames,geometric" or a list of names."""
     names = value.split(",") if isinstance(value, str) else value
     if not isinstance(names, list | tuple) or not names or not all(
             isinstance(n, str) and n.strip() in ALL_GROUPS for n in names):
@@ -234,7 +225,7 @@ def _groups(value: Any, where: str) -> tuple[str, ...]:
 
 
 def _box(value: Any, dim: int, where: str) -> np.ndarray:
-    """A task box's corners: (4, 2) counter-clockwise in the plane, (8, 3) in space."""
+    # a task box's corners: (4, 2) counter-clockwise in the plane, (8, 3) in space
     shape = "[[x0, x1], [y0, y1]]" if dim == 2 else "[[x0, x1], [y0, y1], [z0, z1]]"
     try:
         box = np.asarray(value, float)

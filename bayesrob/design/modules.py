@@ -1,25 +1,12 @@
 """The designer's modules: calibrated arms of any rig, mounted anywhere, aimed and drawn.
 
-A module is an arm of a rig directory, calibrated on the rig's single-arm ``train`` rows with
-its joint-error model fitted to them, once. Mounting it moves its calibrated base to the mount
-point and keeps everything else (its orientation, so gravity acts as it did while it was
-calibrated). What the search asks of a module is the same for every robot:
-
-- ``aim(targets, mount)``: its commands (T, c) at world targets from that mount, or None when
-  one is out of its reach or limits;
-- ``draws(job, arms, mounts, index)`` (of the modules' class): draws (S, T, dim) of a
-  candidate's end point, each draw **one build** (each module's parameters off by one draw
-  from its calibration's covariance, the same at every target; its joint errors and the
-  tracker's noise at each target), and what the candidate's record adds;
-- ``sketch(mount, target)``: the module's outline for the figure; ``write_rig``: a candidate
-  as a rig directory.
-
-A module's joint-error model is picked as ``bayesrob predict`` picks it
-(:func:`bayesrob.predict.draws.fit_joint_errors`): a Parzen density of the joint errors where
-the rows observe them (as many joints as measured coordinates), else the latent population.
-The paper's planar arms take that kernel route's closed-form specialisation
-(:class:`PaperModule`: eight parameters, closed-form inverse, the exact grid where no program
-draws); every other robot is a :class:`CalibratedModule`. A design places one kind.
+A module is a rig's arm calibrated once on its single-arm ``train`` rows, with its joint-error
+model picked as ``bayesrob predict`` picks it. Mounting moves its calibrated base and keeps
+its orientation, so gravity acts as it did in calibration. The search asks every module the
+same: ``aim(targets, mount)`` (commands, or None out of reach), ``draws`` (S, T, dim) of a
+candidate's end point, each draw **one build**, ``sketch`` and ``write_rig``. The paper's
+planar arms are :class:`PaperModule` (closed forms, the exact grid); every other robot is a
+:class:`CalibratedModule`. A design places one kind.
 """
 
 from __future__ import annotations
@@ -61,10 +48,9 @@ if TYPE_CHECKING:
 __all__ = ["Module", "PaperModule", "CalibratedModule", "load_modules", "linked_priors",
            "stiffness_record", "mounted_truth", "COV_JITTER"]
 
-# Keeps a parameter covariance with an unidentified direction sampleable, in each parameter's
-# own scale: an absolute 1e-12 added gain noise of 1e-6 rad/us (1.5 mrad at 1500 us) to arms
-# whose gains are fitted to far better, and widened every prediction (tuning inventories 1-4:
-# single arms predicted at 1.43-1.76 of the observed q95 with it, 1.28-1.44 without).
+# Keeps a parameter covariance with an unidentified direction sampleable, relative to each
+# parameter: an absolute 1e-12 added 1.5 mrad of gain noise at 1500 us and widened every
+# prediction (tuning inventories 1-4: q95 ratios 1.43-1.76 with it, 1.28-1.44 without).
 COV_JITTER = 1e-9
 
 
@@ -97,15 +83,10 @@ def _fail(design: DesignSpec, m: ModuleSpec, message: str) -> DesignError:
     return DesignError(f"{design.path}: [modules.{m.name}]: {message}")
 
 
-# ------------------------------------------------------------------ the paper's planar arms
-
-
 @dataclass
 class PaperModule:
-    """A planar arm of the paper: its joint errors the rows observe (two joints, two measured
-    coordinates: J^-1 r, read off its closed-form inverse), so its model is a density of them
-    (``models/``); calibrated by its eight parameters, its builds drawn by the equilibrium
-    program or the exact grid."""
+    """A planar arm of the paper: its model a density of the joint errors its rows observe
+    (J^-1 r), calibrated by its eight parameters, drawn by the equilibrium program or grid."""
 
     name: str
     arm: kin.Arm  # calibrated, at the base it was calibrated at
@@ -123,11 +104,9 @@ class PaperModule:
 
     @property
     def truth(self) -> ArmTruth | None:
-        """The module's own true arm, when its rig was simulated."""
         return self.truth_rig.arms.get(self.arm.name) if self.truth_rig else None
 
     def at(self, base: Sequence[float]) -> kin.Arm:
-        """The module with its base moved to ``base``."""
         return replace(self.arm, name=self.name,
                        params=self.arm.params._replace(base=jnp.asarray(base, jnp.float64)))
 
@@ -213,9 +192,8 @@ class PaperModule:
     @staticmethod
     def draws(job: Any, arms: Sequence[str], mounts: Sequence[int], index: int
               ) -> tuple[np.ndarray, dict]:
-        """Builds (S, T, 2) of a candidate: the equilibrium program's draws
-        (:func:`bayesrob.predict.fusion.equilibrium_program`, one compiled program per kind of
-        assembly), or :func:`_grid_builds` where no program draws the whole assembly."""
+        """Builds (S, T, 2) of a candidate: the equilibrium program's draws (one compiled
+        program per kind of assembly), or :func:`_grid_builds` where no program draws."""
         mods: list[PaperModule] = [job.modules[a] for a in arms]
         placed = [m.at(job.mounts[j]) for m, j in zip(mods, mounts, strict=True)]
         commands = [job.reach[a, j] for a, j in zip(arms, mounts, strict=True)]
@@ -237,9 +215,8 @@ class PaperModule:
     def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, PaperModule],
                   reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
                   ) -> None:
-        """rig.toml (the modules' calibrated values at their new bases), measurements.csv
-        (the planned rows, x and y empty) and, when every module is simulated, truth.toml
-        (their physics at the new bases) for ``bayesrob simulate DIR --planned``."""
+        """rig.toml (calibrated values at the new bases), measurements.csv (the planned rows, x
+        and y empty) and, for simulated modules, truth.toml for ``simulate DIR --planned``."""
         import csv
         import math
 
@@ -279,17 +256,10 @@ class PaperModule:
 
 def _grid_builds(job: Any, mods: Sequence[PaperModule], arms: Sequence[kin.Arm],
                  commands: Sequence[np.ndarray], index: int) -> np.ndarray:
-    """Builds (S, T, 2) where no program draws the whole assembly (the product of
-    likelihoods, or the paper's histogram COND, which cannot draw joint errors).
-
-    Each build's joint errors and tracker noise are one draw per target of the fused grid
-    density (:func:`bayesrob.predict.fusion.fused_posterior`, as ``bayesrob predict`` gives it); its
-    calibration errors are one draw per module from the module's covariance, shared by the
-    targets as in the program's builds. A module's draw moves its arm's end point at target t
-    by Delta_a(t) = f(p + delta, g_{p + delta}(u_t)) - f(p, g_p(u_t)); the fused point moves
-    by the arms' shifts weighted by their end-point precisions P_a = (J_a C_a J_a^T)^-1 (C_a
-    the covariance of the joint errors the model was fitted to): the mean of a product of
-    Gaussian likelihoods, each moved by its own shift. One arm moves by its own shift.
+    """Builds (S, T, 2) where no program draws the whole assembly (the product rule, or the
+    histogram COND): one draw per target of the fused grid density, plus one calibration
+    error per module shared by the targets; linked arms' shifts are weighted by their end-point
+    precisions (J C J^T)^-1, as the mean of a product of shifted Gaussian likelihoods.
     """
     post, _ = fused_posterior([m.fitted for m in mods], arms, commands, job.targets,
                               job.fusion, seed=job.seed + index, num_samples=job.draws)
@@ -314,8 +284,7 @@ def _grid_builds(job: Any, mods: Sequence[PaperModule], arms: Sequence[kin.Arm],
 
 @jax.jit
 def _calibration_shift(params: kin.ArmParams, u: jax.Array, delta: jax.Array) -> jax.Array:
-    """(S, T, 2): how far each parameter error delta (S, 8) moves the end point the arm
-    reaches at commands u (T, 2)."""
+    """(S, T, 2): how far each parameter error delta (S, 8) moves the end point at u (T, 2)."""
     v = params.to_vector()
 
     def reached(d: jax.Array) -> jax.Array:
@@ -326,35 +295,18 @@ def _calibration_shift(params: kin.ArmParams, u: jax.Array, delta: jax.Array) ->
 
 
 def mounted_truth(module: PaperModule, base: Sequence[float]) -> ArmTruth:
-    """A simulated module's true arm, moved with its calibrated base to ``base``: the
-    mounting moves the whole module, so its calibration's base error moves with it."""
+    """A simulated module's true arm moved with its calibrated base to ``base`` (the base
+    error moves with the module)."""
     shift = np.asarray(base, float) - np.asarray(module.arm.params.base, float)
     b = np.asarray(module.truth.base) + shift
     return replace(module.truth, name=module.name, base=(float(b[0]), float(b[1])))
 
 
-# ------------------------------------------------------------------ any calibrated robot
-
-
 @dataclass
 class CalibratedModule:
-    """An arm of a URDF / DH robot: a Parzen density of its joint errors where its rows
-    observe them, else (more joints than measured coordinates) their latent population.
-
-    It is a root arm of its rig (no torso under it), calibrated with the groups its design
-    entry names; its joint-error model is fitted as ``bayesrob predict`` fits it
-    (:func:`bayesrob.predict.draws.fit_joint_errors`). A world target t is the point
-    t - mount + base of its own frame: it is aimed there (position-only inverse kinematics
-    from its nearest train pose, as ``bayesrob predict`` aims) and drawn there, and the draws
-    are moved back.
-
-    A placement's free-point draws do not depend on the other arms of the candidate, so each
-    worker draws them once per (module, mount) and every candidate that uses the placement
-    reuses them (common random numbers also make the ranking less noisy); linked arms then
-    balance (:func:`bayesrob.predict.fusion.equilibrium`, with the tracker's noise put
-    back). Each build's stiffnesses are the rig's ``stiffness`` or the log-normal prior,
-    linked arms of one rig centred on their fitted sags as ``bayesrob predict`` centres them.
-    """
+    """A root arm of a URDF / DH robot, calibrated and fitted as ``bayesrob predict`` does; a
+    world target t is aimed and drawn at t - mount + base. A placement's draws are made once
+    per worker and reused by every candidate (common random numbers rank less noisily)."""
 
     name: str
     arm: str  # the arm of its rig
@@ -369,12 +321,10 @@ class CalibratedModule:
         return self.mods.robot.dim
 
     def local(self, points: np.ndarray, mount: Sequence[float]) -> np.ndarray:
-        """World points as seen from the module's own frame when its base is at ``mount``."""
         return np.asarray(points, float) - np.asarray(mount, float) + self.base
 
     def aim(self, targets: np.ndarray, mount: Sequence[float]) -> np.ndarray | None:
-        """Joint columns (T, c) whose calibrated model reaches every target (within the
-        inverse kinematics' tolerance), or None."""
+        """Joint columns (T, c) whose calibrated model reaches every target, or None."""
         try:
             return aim(self.rig, self.mods.robot, self.mods.x, self.arm,
                              self.local(targets, mount))
@@ -382,7 +332,6 @@ class CalibratedModule:
             return None
 
     def sketch(self, mount: Sequence[float], target: np.ndarray) -> np.ndarray:
-        """Base and end point: a line from the mount to ``target``."""
         return np.array([np.asarray(mount, float), np.asarray(target, float)])
 
     @classmethod
@@ -455,10 +404,8 @@ class CalibratedModule:
     def write_rig(candidate: dict, targets: np.ndarray, modules: dict[str, CalibratedModule],
                   reach: dict[tuple[str, int], np.ndarray], region: np.ndarray, out: Path
                   ) -> None:
-        """Each module's calibrated URDF (``<module>.urdf``), rig.toml with its instrument
-        pose at the mount (orientation kept), and measurements.csv with the planned linked
-        rows (targets and joint columns, x, y, z empty) for ``bayesrob collect`` or a
-        simulator to fill."""
+        """Each module's calibrated URDF, rig.toml (instrument poses at the mounts, orientation
+        kept) and measurements.csv with the planned linked rows, x, y, z empty."""
         import csv
 
         from bayesrob.calibrate.least_squares import arm_table
@@ -530,13 +477,10 @@ def _rig_parameters(job: Any, m: CalibratedModule) -> jax.Array:
 
 
 def linked_priors(modules: Sequence[CalibratedModule]) -> list[StiffnessPrior]:
-    """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms of
-    one rig: where the modules are distinct arms of one rig and each took the prior, their arm
-    terms are centred on their fitted sags
-    (:func:`bayesrob.predict.stiffness.sag_scaled_priors`); else each module's own. Modules
-    of different rigs keep their own, as their sags come from different calibrations. Like
-    ``predict``, it takes arms with paths of equal joint counts to be of one model (alike
-    first moments): that is what lets a sag stand for a stiffness."""
+    """The linked modules' log joint stiffness priors, as ``bayesrob predict`` links arms:
+    distinct arms of one rig centred on their fitted sags
+    (:func:`bayesrob.predict.stiffness.sag_scaled_priors`); modules of different rigs keep
+    their own, as their sags come from different calibrations."""
     own = [m.mods.stiffness[m.arm] for m in modules]
     arms = {m.arm for m in modules}
     if len({m.rig_index for m in modules}) > 1 or len(arms) < len(modules):
@@ -561,15 +505,13 @@ def _candidate_priors(job: Any, names: Sequence[str]) -> list[StiffnessPrior]:
 
 def stiffness_record(job: Any, names: Sequence[str]) -> list[dict[str, Any]]:
     """What a linked candidate's balance drew each module's joint stiffnesses from, in
-    ``names``' order, for ``design.json``: the record ``predict``'s JSON gives per arm
-    (:meth:`chain_prediction.StiffnessPrior.record`)."""
+    ``names``' order, for ``design.json`` (as ``predict``'s JSON gives it per arm)."""
     return [p.record() for p in _candidate_priors(job, names)]
 
 
 def _log_stiffness(job: Any, names: Sequence[str]) -> list[jax.Array]:
-    """Linked modules' joint log stiffnesses, each (S, n). Each module draws its standard
-    normals from its own seed, the same in every candidate it is in (common random numbers);
-    the candidate's arms then set their centres and sds (:func:`linked_priors`)."""
+    """Linked modules' joint log stiffnesses, each (S, n): each module's standard normals from
+    its own seed, the same in every candidate (common random numbers)."""
     key = ("stiffness", tuple(names))
     if key not in job.cache:
         priors = _candidate_priors(job, names)

@@ -1,29 +1,16 @@
 """The design search (``bayesrob design``): which calibrated modules, mounted where and linked
-how, reach a required accuracy over a task region; the file's format is
-:mod:`bayesrob.design.file`, the modules :mod:`bayesrob.design.modules`.
+how, reach a required accuracy over a task region.
 
-Every assembly of ``min_arms`` to ``max_arms`` modules on distinct mount points is a
-candidate; those where some module cannot reach some target from its mount
-(``Module.aim``) are dropped before anything is predicted. The others are predicted a
-priori, from the modules' single-arm data only (as ``bayesrob predict`` does), and ranked:
-requirement met first, then fewest modules, then the smaller predicted error quantile over
-the region.
+Every assembly of ``min_arms`` to ``max_arms`` modules on distinct mounts that reaches every
+target is predicted a priori from single-arm data, and ranked: requirement met, fewest
+modules, smaller predicted error quantile. Each draw is one build (calibration errors the
+same at every target, joint errors and tracker noise per target). A pooled quantile that
+just meets the requirement misses it half the time once built, so the requirement means one
+thing for every module kind and fusion: at least ``confidence`` of the builds have their own
+``quantile`` within ``error_mm`` (:func:`score`).
 
-A candidate's prediction is draws of its end point, each draw one assembly as it might be
-built: its modules' parameters off by one draw of their calibration errors, the same at every
-target, then the joint errors and the tracker's noise at each target. The error is the
-distance from the target of the point as the tracker would measure it; its quantile "over
-the region" pools every target, one target as likely as another. An assembly whose pooled
-quantile just meets the requirement misses it about half the time once built, so the
-requirement means one thing for every module kind and fusion: it is met when at least
-``confidence`` of the builds have their own ``quantile`` over the targets within
-``error_mm`` (:func:`score`).
-
-Candidates are evaluated as Dask tasks (``dask.distributed``, a ``LocalCluster`` by default or
-a running scheduler): batches of candidates per task, so each worker compiles its JAX program
-once per kind of assembly and reuses it (the modules' arrays and the bases are traced
-arguments, not constants). The modules are scattered to every worker once; each task carries
-only its candidates' names and mounts.
+Candidates run as Dask tasks in batches, so each worker compiles one program per kind of
+assembly (modules' arrays and bases are traced arguments); the modules are scattered once.
 """
 
 from __future__ import annotations
@@ -53,16 +40,15 @@ __all__ = ["Candidate", "Job", "DesignResult", "task_targets", "reach_table",
 
 BATCH = 25  # candidates per Dask task: enough to hide a task's overhead, small to spread well
 MAX_CANDIDATES = 200_000
-# Worker processes run one XLA thread each: two workers on two cores then share nothing, and a
-# single worker is not secretly using both cores (the speed-up benchmark would lie).
+# One XLA thread per worker process: two workers on two cores share nothing, and one worker
+# does not secretly use both cores (the speed-up benchmark would lie).
 WORKER_ENV = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """``n`` targets inside the polygon ``region``: a scrambled Halton sequence over its
-    bounding box, keeping the points inside (even spread, reproducible from ``seed``). A 3-D
-    region is a box: the sequence fills it."""
+    """``n`` targets inside the polygon (or 3-D box) ``region``: a scrambled Halton sequence
+    over its bounding box, keeping the points inside."""
     from matplotlib.path import Path as Polygon
     from scipy.stats import qmc
 
@@ -78,9 +64,6 @@ def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
         if len(out) >= n:
             return out[:n]
     raise DesignError(f"the task region {region.tolist()} has no area to place {n} targets in")
-
-
-# ------------------------------------------------------------------------------ candidates
 
 
 @dataclass(frozen=True)
@@ -102,8 +85,7 @@ class Candidate:
 
 def reach_table(modules: dict[str, Module], mounts: np.ndarray, targets: np.ndarray
                 ) -> dict[tuple[str, int], np.ndarray]:
-    """{(module, mount index): commands (T, c)} for every placement that reaches every
-    target."""
+    """{(module, mount index): commands (T, c)} for every placement reaching every target."""
     out = {}
     for name, m in modules.items():
         for j, mount in enumerate(mounts):
@@ -134,9 +116,6 @@ def enumerate_candidates(design: DesignSpec, reach: dict[tuple[str, int], np.nda
     return out
 
 
-# ------------------------------------------------------------------------------ evaluation
-
-
 @dataclass(frozen=True)
 class Job:
     """What every task shares (scattered to the workers once)."""
@@ -152,15 +131,13 @@ class Job:
     seed: int
     tracker_noise_mm: float
     mounts: np.ndarray  # (P, dim)
-    # each worker's draws that candidates share (per placement, per rig's parameters, per
-    # linked module set's priors and stiffnesses)
+    # each worker's draws that candidates share (placements, rigs' parameters, priors)
     cache: dict = field(default_factory=dict, compare=False)
 
 
 def score(job: Job, cand: Candidate, d: np.ndarray) -> dict:
-    """A candidate's record from its builds d (S, T, dim): per target and pooled quantiles of
-    the distance from the target, and whether it meets the requirement: at least
-    ``confidence`` of its builds have their own ``quantile`` over the targets within
+    """A candidate's record from its builds d (S, T, dim): quantiles of the distance from the
+    targets, and whether ``confidence`` of its builds have their own ``quantile`` within
     ``error_mm``."""
     dist = np.linalg.norm(d - job.targets[None], axis=-1).T  # (T, S)
     per = np.quantile(dist, job.quantile, axis=1)
@@ -169,9 +146,8 @@ def score(job: Job, cand: Candidate, d: np.ndarray) -> dict:
     # each draw is one possible built assembly: its own quantile over the targets
     own = np.quantile(dist, job.quantile, axis=0)
     confidence = float(np.mean(own <= job.error_mm))
-    # the error this assembly keeps within in `confidence` of the builds (the inverted CDF
-    # makes "meets" exactly "assured <= error_mm"): any requirement can be checked against it
-    # without predicting again; and the error it exceeds in `confidence` of them
+    # the error kept within in `confidence` of the builds (the inverted CDF makes "meets"
+    # exactly "assured <= error_mm"), and the error exceeded in `confidence` of them
     assured = float(np.quantile(own, job.confidence, method="inverted_cdf"))
     optimistic = float(np.quantile(own, 1.0 - job.confidence, method="inverted_cdf"))
     return {
@@ -191,8 +167,7 @@ def score(job: Job, cand: Candidate, d: np.ndarray) -> dict:
 
 
 def evaluate(job: Job, cand: Candidate, index: int) -> dict:
-    """A candidate's record: its builds drawn by its modules' kind (``Module.draws``; the
-    index seeds them), scored."""
+    """A candidate's record: its builds drawn by its modules' kind (seeded by ``index``)."""
     d, extra = type(job.modules[cand.arms[0]]).draws(job, cand.arms, cand.mounts, index)
     return score(job, cand, d) | extra
 
@@ -201,9 +176,6 @@ def evaluate_batch(job: Job, batch: Sequence[tuple[int, Candidate]]) -> list[tup
     """Predict every candidate of a batch (one Dask task): (index, result) pairs."""
     release_compiled_programs()  # a worker lives through many batches
     return [(i, evaluate(job, c, i)) for i, c in batch]
-
-
-# ------------------------------------------------------------------------------ the run
 
 
 @dataclass
@@ -289,14 +261,9 @@ def _rank_key(c: dict) -> tuple:
 
 
 class OneCorePerWorker(WorkerPlugin):
-    """Pins each local worker process, every thread of it, to a core of its own.
-
-    XLA sizes its thread pool to the cores a process may use and splits some operations over
-    it; two unpinned workers on two cores then run four busy threads and each goes at about
-    half speed (measured: 0.20 s per candidate instead of 0.115). Pinned, a worker's pool is
-    one core and the workers share nothing. The worker's name (0, 1, ... in a LocalCluster,
-    kept when a lost worker is restarted) picks the core.
-    """
+    """Pins each local worker process, every thread of it, to a core its name picks: XLA
+    sizes its pool to the cores it may use, and two unpinned workers on two cores ran at half
+    speed (0.20 s per candidate instead of 0.115)."""
 
     def __init__(self, cores: Sequence[int]):
         self.cores = tuple(cores)
@@ -360,12 +327,8 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
                scheduler: str | None = None, workers: int = 2, batch: int = BATCH,
                limit: int | None = None, progress: bool = False,
                evaluate: Callable = evaluate_batch, client: Any = None) -> DesignResult:
-    """Enumerate, filter, predict (as Dask tasks) and rank the candidate assemblies.
-
-    ``limit``: evaluate only the first ``limit`` candidates (benchmarks). ``client``: an open
-    Dask client to use instead of making one. ``evaluate``: the task function (tests wrap it
-    to lose a worker mid-run).
-    """
+    """Enumerate, filter, predict (as Dask tasks) and rank the candidate assemblies;
+    ``limit``: the first candidates only (benchmarks); ``evaluate``: the task function."""
     from distributed import as_completed
 
     from bayesrob.progress import progress as make_progress
@@ -410,11 +373,8 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
 
 def write_candidate_rig(candidate: dict, result: DesignResult, modules: dict[str, Module],
                         out_dir: str | Path) -> Path:
-    """The candidate as a rig directory (``Module.write_rig``: rig.toml with the modules'
-    calibrated values at their mounts, measurements.csv with the planned test rows, commands
-    and targets with the measured coordinates empty, and truth.toml when every module is
-    simulated, for ``bayesrob simulate DIR --planned``; ``bayesrob collect`` on hardware),
-    and design.json: the candidate and the requirement."""
+    """The candidate as a rig directory (``Module.write_rig``) to measure, and design.json:
+    the candidate and the requirement."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     kind = type(modules[candidate["arms"][0]])

@@ -1,29 +1,16 @@
 """Diagnosis of any robot (URDF/DH chains and trees): which physical effects does the
-geometric calibration miss?
+geometric calibration (``frames,geometric``) miss?
 
-Starting from the geometric calibration (``frames,geometric``), each candidate effect is a
-calibration group of :mod:`bayesrob.robot.chain` (``joint_compliance`` is the
-``compliance`` group: joints giving way under gravity, masses unknown; ``lateral_compliance``
-is ``lateral``: the same torques bending each joint across its axis; ``encoder_error`` is
-``encoder``: a once-per-revolution sinusoid in each revolute joint's angle; ``backlash`` is
-``backlash``: each joint's play, taken on the side its fitted gravity deflection points to,
-so it is tried once joint compliance is named: without masses only a fitted deflection says
-which side a joint rests on). Effects are named
-greedily: each round fits every remaining candidate on most of the ``train`` poses and scores
-it on the rest (the *selection* poses, drawn once with the seed, both markers of a pose on the
-same side). A candidate passes when its paired per-row error drop on the selection poses is
-more than ``rule.Z`` standard errors; of those that pass, the one whose mean selection error
-drops the most per parameter it adds is named. An encoder's sinusoid in a shoulder's angle
-takes up part of its gravity sag with fewer parameters: compliance explains more per
-parameter, goes first, and the mimic then no longer passes on top of it. Beside the decision
-each candidate and named step reports its selection rows' log density gain and whether it
-clears the parameter guard of :mod:`bayesrob.diagnose.rule` (not deciding here). A
-candidate that passed beside the named one with selection errors within ``rule.Z`` standard
-errors of its is reported as its *rival*: these poses cannot tell the two apart, and the name
-is the rule's choice between them. A candidate whose own group the rank analysis leaves no
-parameter never passes. The ``validation`` rows are never looked at while deciding: the ladder
-(mean / sd / max error after each named effect, refitted on every train row) is reported on
-them.
+Each candidate effect is a calibration group (``joint_compliance``: ``compliance``;
+``lateral_compliance``: ``lateral``; ``encoder_error``: ``encoder``; ``backlash``, tried once
+compliance is named, since only a fitted deflection says which side a joint rests on).
+Effects are named greedily: each round fits every remaining candidate on most ``train`` poses
+and scores it on the *selection* poses (drawn once with the seed). A candidate passes when its
+paired per-row error drop there exceeds ``rule.Z`` standard errors; the one dropping the mean
+error most per added parameter is named (so compliance goes before an encoder sinusoid that
+mimics part of it). A passing candidate within ``rule.Z`` standard errors of the named one is
+reported as its *rival*. The ``validation`` rows are never looked at while deciding: the
+ladder (errors after each named effect, refitted on every train row) is reported on them.
 """
 
 from __future__ import annotations
@@ -47,27 +34,20 @@ from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_dif
 from bayesrob.robot import SAG_GROUPS
 from bayesrob.robot.effects import ALIASES, resolve_effects
 
-# effect name -> the calibration group that models it
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no
-# side (its columns are zero). Fitted with the compliance in one candidate it only cost time:
-# on the simulator's compliant arm with play (seed 11) it passed in round 1 with less drop
-# per parameter than joint compliance alone, and on the arm with play and stiff joints it
-# did not pass (z 1.6).
+# side; fitted with it in one candidate it only cost time (seed 11: less drop per parameter
+# than joint compliance alone; with stiff joints z 1.6).
 NEEDS = {"backlash": "joint_compliance"}
-# Once an effect is named, the selection fits of backlash and the encoder terms start from
-# the named model's fit (each corrects the angles of joints that fit already holds) with
-# fewer evaluations: on Justin each such fit from the nominal robot took 23-32 s of the
-# diagnosis's time. The compliance groups start from the nominal robot: started from the
-# named fit, lateral compliance after joint compliance stopped at 4.05 mm on Justin's
-# selection poses against 3.48 from the nominal robot.
+# Once an effect is named, backlash and encoder fits start from the named model's fit with
+# fewer evaluations (from the nominal robot each took 23-32 s on Justin); the compliance
+# groups start from the nominal robot (from the named fit, lateral compliance stopped at 4.05
+# mm on Justin's selection poses against 3.48).
 WARM_STARTED = ("encoder_error", "backlash")
 WARM_NFEV = 40
 BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
-# Least-squares evaluations per stage of a selection fit (compared, not reported): on Justin
-# its fits with joint compliance used 320 evaluations; stopped at 140 per stage, every
-# selection error came out as before to 0.01 mm (drops between candidates: 0.1-5 mm), in
-# half the time.
+# Least-squares evaluations per stage of a selection fit: on Justin 140 (of 320) left every
+# selection error as before to 0.01 mm (drops between candidates: 0.1-5 mm), in half the time.
 SELECTION_NFEV = 140
 # the parameter guard, reported beside each candidate and step (not deciding: rule.py)
 GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
@@ -93,11 +73,8 @@ class GroupDiagnosis:
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
         default_factory=dict, repr=False)
 
-    def to_dict(self) -> dict:
-        """``bayesrob diagnose RIG --json``'s document on a chain rig (as :meth:`to_json`)."""
-        return self.to_json()
-
     def to_json(self) -> dict:
+        """``bayesrob diagnose RIG --json``'s document on a chain rig."""
         last = self.steps[-1] if self.steps else self.baseline
         return {
             "rig": self.rig, "robot": "chain", "effects": self.effects,
@@ -115,9 +92,10 @@ class GroupDiagnosis:
             "seconds": self.seconds, "notes": self.notes, "sag_steps": self.sag_steps,
         }
 
+    to_dict = to_json
+
 
 def _split(rig: Rig, seed: int) -> Rig:
-    """The rig with a share of its train poses relabelled ``selection``."""
     meas = rig.measurements
     train = np.flatnonzero(meas.set == "train")
     pose = meas.extra.get("pose")
@@ -151,14 +129,11 @@ def _selection_rows(rig: Rig, cal: Calibration) -> tuple[np.ndarray, np.ndarray]
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str],
                 selected: np.ndarray | None = None) -> Calibration:
-    """A ladder step refitted on every train row: with joints giving way under gravity and
-    ``sag_steps`` > 1, its torques taken that many times (towards equilibrium); where that fit
-    has not reached its equilibrium (one more step moves a train marker by more than
-    SAG_CONVERGED_MM), what it fitted is an iteration, not a physical model, so the step is
-    refitted at one step (the stated first-order model) and a note says so. ``selected``: the
-    step's one-step selection fit; where its own sag does not settle within ``sag_steps``
-    steps, no equilibrium fit is tried (it saves a fit that would be thrown away; on Justin
-    both steps pass it, and joint compliance alone still ends off its fixed point)."""
+    """A ladder step refitted on every train row, its gravity torques taken ``sag_steps``
+    times; where that fit is off its equilibrium (one more step moves a train marker over
+    SAG_CONVERGED_MM) it is an iteration, not a physical model, so the step is refitted at one
+    step and a note says so. ``selected``: the step's selection fit, whose own unsettled sag
+    skips the equilibrium fit."""
     if sag_steps > 1 and set(SAG_GROUPS) & set(groups):
         label = ",".join(groups)
         moved = (None if selected is None else
@@ -181,11 +156,9 @@ def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[s
 
 def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int = 0,
                     progress: bool = False, sag_steps: int = 1) -> GroupDiagnosis:
-    """Name the effects the geometric calibration of a rig misses (module docstring).
-
-    ``sag_steps``: the ladder's fits with joints giving way take the gravity torques that many
-    times, each at the pose the last sagged into (:func:`_ladder_fit`); the selection of the
-    effects is made with one step either way, so the names do not depend on it."""
+    """Name the effects the geometric calibration of a rig misses (module docstring);
+    ``sag_steps`` applies to the ladder's fits only (:func:`_ladder_fit`), so the names do not
+    depend on it."""
     import time
 
     from bayesrob.progress import progress as make_progress

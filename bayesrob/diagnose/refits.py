@@ -1,30 +1,15 @@
-"""Model criticism: find where the forward model and the measurements disagree, name the
-missing physical effect, add it and show the gap shrink.
+"""Model criticism of planar arms: name the missing physical effect, add it and show the gap
+shrink (the paper could only say its model "was too constrained"), from the rig files alone.
 
-The paper could only conclude that its kinematic model "was too constrained". This module
-says which effect is missing, how big it is and how much the model gains from it:
-
-1. Fit each arm's base model (the eight-parameter geometric calibration).
-2. Look at the residuals for structure noise would not show: lack of fit against the
-   repeated (``validation``) measurements, spatial autocorrelation (Moran's I, permutation
-   test), the residuals regressed on each candidate effect's signature (a score test) and
-   jumps between neighbouring points; and say where in the workspace the disagreement is.
-3. Fit every candidate effect (:mod:`bayesrob.robot.effects`) added to the current model, arm by
-   arm (scipy least squares, JAX Jacobian), and score it on data it was not fitted on: the
-   ``validation`` rows and leave-one-out refits over ``train`` (exact LOO up to 40 points,
-   10-fold beyond; each refit profiles the structural settings again without its rows).
-   The pointwise log predictive densities of a Gaussian measurement model with a fitted
-   scale (widened by the parameters' uncertainty) are compared with ``arviz.compare``:
-   elpd difference and its standard error. Where the rig has ``holdout`` rows (new poses,
-   not the repeated training commands ``validation`` holds), the models are scored on them
-   too, and reported beside validation; they decide nothing.
-4. Name the best candidate that passes :class:`bayesrob.diagnose.rule.DecisionRule`, add
-   it, repeat until none passes; if none passes in the first round, pairs are tried (named
-   when they pass against the base model and each member alone). The arms an effect is added
-   to are chosen on one half of the train rows and scored on the other (cross-fitting), so
-   the choice does not flatter the score. Refits, not PSIS-LOO: :func:`rule.elpd_diff`.
-
-Everything works on the rig files alone; nothing here knows how the data were made.
+1. Fit each arm's eight-parameter base model; test its residuals for structure noise would
+   not show (lack of fit against the repeats, Moran's I, score tests, jumps) and say where.
+2. Fit every candidate effect (:mod:`bayesrob.robot.effects`) into the current model and
+   score it on data it was not fitted on: cross-validated refits over ``train`` (exact LOO up
+   to 40 points, structural settings profiled again) under a Gaussian measurement model;
+   ``holdout`` rows are reported beside, deciding nothing.
+3. Name the best candidate passing :class:`bayesrob.diagnose.rule.DecisionRule`, repeat; if
+   none passes at first, try pairs (each member needed). The arms an effect goes to are
+   chosen on one half of the train rows and scored on the other (cross-fitting).
 """
 
 from __future__ import annotations
@@ -50,9 +35,6 @@ from bayesrob.robot import effects as fx
 N_BASE = len(kin.PARAM_NAMES)
 
 
-# ------------------------------------------------------------------------------ data
-
-
 @dataclass
 class ArmData:
     """One arm's single-arm rows: what the diagnosis fits and scores."""
@@ -64,8 +46,7 @@ class ArmData:
     u_val: np.ndarray  # (m, 2)
     d_val: np.ndarray  # (m, 2)
     ctx: fx.EffectContext
-    # ``holdout`` rows: new poses, reported beside validation and never used to decide (the
-    # validation rows repeat the training commands, so they only see repeatability).
+    # new poses, reported and never decided on (validation rows only see repeatability)
     u_hold: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     d_hold: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
@@ -82,7 +63,6 @@ class ArmData:
         return self.ctx.to_array()
 
     def replicate_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Indices (train, validation) of rows that repeat the same command."""
         ti, vi = [], []
         for j, uv in enumerate(self.u_val):
             hit = np.flatnonzero(np.all(np.abs(self.u - uv) < 1e-9, axis=1))
@@ -92,15 +72,9 @@ class ArmData:
         return np.array(ti, int), np.array(vi, int)
 
 
-# ------------------------------------------------------------------------------ models
-
-
 class _ModelFns:
-    """Jitted functions of one model structure (base + named effects), shared by all arms.
-
-    The arm's context is an argument, not a constant, so one compilation serves every arm
-    and rig with the same number of rows.
-    """
+    """Jitted functions of one model structure (base + named effects), the arm's context an
+    argument, so one compilation serves every arm and rig with the same number of rows."""
 
     def __init__(self, names: tuple[str, ...]):
         self.names = names
@@ -123,10 +97,8 @@ class _ModelFns:
         prior_sd = jnp.asarray(self.prior_sd)
 
         def res_prior(v, ctx, settings, u, d, w):
-            # Residuals of the rows (weight 0 drops a row, for cross-validation) and a weak
-            # Gaussian penalty on the effects' parameters as pseudo-residuals: it keeps
-            # directions the data cannot see (a sign that never flips in a fold) at "no
-            # effect" instead of wherever the solver happened to leave them.
+            # Weight 0 drops a row (cross-validation); a weak penalty on the effects' parameters
+            # keeps directions the data cannot see at "no effect", not where the solver left them.
             r = ((pred(v, ctx, settings, u) - d) * w[:, None]).ravel()
             return jnp.concatenate([r, v[N_BASE:] / prior_sd])
 
@@ -143,17 +115,15 @@ class _ModelFns:
                 return out[:m], out[m:].reshape(m, self.n_params)
             return both
 
-        # One compiled function per job, value and Jacobian together: scipy asks for both
-        # at the same points, and compilation and transfers, not arithmetic, are what
-        # these small models cost.
-        self._residuals = with_jac(res_prior)
+        # Value and Jacobian in one compiled function: scipy asks for both at the same points,
+        # and compilation and transfers, not arithmetic, are what these small models cost.
+        self.residuals = with_jac(res_prior)  # (2n + q,), (2n + q, p)
+        flat_predict = with_jac(pred)
 
         def predict(v, ctx, settings, u):
-            r, J = self._predict(v, ctx, settings, u)
+            r, J = flat_predict(v, ctx, settings, u)
             return r.reshape(-1, 2), J.reshape(-1, 2, self.n_params)
 
-        self._predict = with_jac(pred)
-        self.residuals = self._residuals  # (2n + q,), (2n + q, p)
         self.predict = predict  # (n, 2), (n, 2, p)
 
     def unpack(self, v, ctx, settings):
@@ -176,7 +146,7 @@ def model_fns(names: tuple[str, ...]) -> _ModelFns:
 
 
 def _base_scales(v: np.ndarray) -> np.ndarray:
-    """Typical sizes of the base parameters, so the solver's steps mean the same in each."""
+    # typical sizes of the base parameters, so the solver's steps mean the same in each
     return np.array([10.0, 10.0, 10.0, 10.0, 0.05 * abs(v[4]) + 1e-9, 0.05 * abs(v[5]) + 1e-9,
                      0.05, 0.05])
 
@@ -223,15 +193,11 @@ def _profile_fit(fns: _ModelFns, v0: np.ndarray, ctx: jax.Array, grid: list[tupl
 
 
 def _gauss2_logpdf(r: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """log N(r | 0, cov) for r (n, 2), cov (n, 2, 2)."""
     det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
     inv = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
                     np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], -2) / det[:, None, None]
     quad = np.einsum("ni,nij,nj->n", r, inv, r)
     return -np.log(2 * np.pi) - 0.5 * np.log(det) - 0.5 * quad
-
-
-# ------------------------------------------------------------------------------ evaluation
 
 
 @dataclass
@@ -258,8 +224,8 @@ class ArmEval:
     hold_lpd: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (h,)
 
     def magnitudes(self, data: ArmData) -> dict:
-        """Each effect's fitted size in physical terms, with standard errors (computed once,
-        and only for models someone asks about: candidates that lose never need it)."""
+        """Each effect's fitted size with standard errors (computed once, on demand: losing
+        candidates never need it)."""
         if self._magnitudes is None:
             self._magnitudes = _magnitudes(model_fns(self.effects), data, self)
         return self._magnitudes
@@ -279,11 +245,8 @@ def _folds(n: int, k: int | None, seed: int) -> list[np.ndarray]:
 
 def _predictive(fns: _ModelFns, fit: _Fit, ctx: jax.Array, u: np.ndarray, d: np.ndarray,
                 s2: float, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals (n, 2), errors (mm) and log predictive densities of rows (u, d) under a fit.
-
-    The predictive is Gaussian: measurement scale s2 plus the parameters' uncertainty
-    pushed through the model's Jacobian at each row.
-    """
+    """Residuals (n, 2), errors (mm) and Gaussian log predictive densities of rows (u, d)
+    under a fit: scale s2 plus the parameters' uncertainty through the Jacobian."""
     pred, J = fns.predict(fit.v, ctx, _jsettings(fit.settings), jnp.asarray(u))
     pcov = s2 * np.eye(2)[None] + np.einsum("nip,pq,njq->nij", J, cov, J)
     r = d - pred
@@ -302,13 +265,9 @@ def _cov(fit: _Fit, dof: int) -> tuple[float, np.ndarray]:
 
 def evaluate_arm(data: ArmData, names: tuple[str, ...], start: ArmEval | None = None,
                  k_folds: int | None = None, seed: int = 0) -> ArmEval:
-    """Fit ``base + names`` to the arm's train rows and score it on held-out data.
-
-    ``start``: a fitted model whose effects are a prefix of ``names`` (warm start; the new
-    effects start at their ``initial`` values). Without it the base model is fitted first,
-    from the nominal values as :func:`bayesrob.calibrate.arms.calibrate_arm` does.
-    ``k_folds``: None for exact leave-one-out up to 40 points, else 10-fold.
-    """
+    """Fit ``base + names`` to the arm's train rows and score it on held-out data. ``start``:
+    a fitted model whose effects prefix ``names`` (warm start; else the base model first);
+    ``k_folds``: None for exact leave-one-out up to 40 points, else 10-fold."""
     names = tuple(names)
     fns = model_fns(names)
     ctx = data.ctx_array
@@ -364,7 +323,6 @@ def _settings_grid(fns: _ModelFns, data: ArmData, v: np.ndarray) -> list[tuple]:
 
 def _cross_validate(fns: _ModelFns, data: ArmData, v: np.ndarray, grid: list[tuple],
                     k_folds: int | None, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Refit without each fold (structural settings profiled again), predict the fold."""
     ctx = data.ctx_array
     u, d = jnp.asarray(data.u), jnp.asarray(data.d)
     n, p = len(data.u), fns.n_params
@@ -383,13 +341,9 @@ def _cross_validate(fns: _ModelFns, data: ArmData, v: np.ndarray, grid: list[tup
 
 def _mixture_predictive(fns: _ModelFns, fit: _Fit, ctx: jax.Array, u: np.ndarray,
                         d: np.ndarray, dof: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Like :func:`_predictive`, averaged over the structural settings that were profiled.
-
-    A setting is a discrete unknown (which side of a sign change a point lies on); rather
-    than bet on the best one, the prediction mixes the settings, weighted by their profile
-    likelihood exp(-(RSS - RSS_min) / 2 s^2). A point near a sign change is then predicted
-    as "one side or the other", not confidently on the wrong side.
-    """
+    """:func:`_predictive` mixed over the profiled structural settings, weighted by their
+    profile likelihood exp(-(RSS - RSS_min) / 2 s^2): a point near a sign change is predicted
+    as "one side or the other", not confidently on the wrong side."""
     fits = fit.all or [fit]
     s2_best = fit.cost / dof
     logw = np.array([-(f.cost - fit.cost) / (2 * s2_best) for f in fits])
@@ -428,9 +382,6 @@ def _magnitudes(fns: _ModelFns, data: ArmData, ev: ArmEval) -> dict:
     return out
 
 
-# ------------------------------------------------------------------------------ residual tests
-
-
 def workspace_regions(points: np.ndarray) -> list[str]:
     """Name each point's third of the workspace: 'lower-left', 'middle-centre', ..."""
     lo, hi = points.min(axis=0), points.max(axis=0)
@@ -467,7 +418,6 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
     rng = np.random.default_rng(seed)
     resid = ev.resid_train
     ti, vi = data.replicate_pairs()
-    # Where each command was repeated, the mean of both residuals halves the noise.
     field_ = resid.copy()
     if len(ti):
         field_[ti] = (resid[ti] + ev.resid_val[vi]) / 2
@@ -482,7 +432,7 @@ def residual_tests(data: ArmData, ev: ArmEval, candidates: Sequence[str] = (),
     out["morans_i"] = {"value": moran,
                        "p_value": float((1 + np.sum(perm >= moran)) / (n_perm + 1))}
 
-    # Lack of fit against pure error from the repeated commands (an F test).
+    # lack of fit against pure error from the repeated commands (an F test)
     if len(ti) >= 3:
         pure = data.d[ti] - data.d_val[vi]
         ss_pe = float(np.sum(pure**2) / 2)
@@ -531,13 +481,9 @@ def _pair_where(a: str, b: str) -> str:
 
 
 def _score_test(data: ArmData, ev: ArmEval, name: str) -> dict:
-    """Regress the residuals on the effect's signature, orthogonal to what the fit can absorb.
-
-    The Lagrange-multiplier test at the current fit: T = r'P S (S'P S)^-1 S'P r / s^2 with
-    S = d prediction / d extra at no effect and P the projection off the fitted parameters'
-    Jacobian; chi2 with as many degrees of freedom as the effect has parameters. Effects with
-    structural settings report the best setting (so their p value is optimistic).
-    """
+    """The Lagrange-multiplier test of an effect at the current fit: T = r'P S (S'P S)^-1 S'P
+    r / s^2 (S its signature, P off the fitted Jacobian), chi2 with the effect's parameter
+    count; of structural settings the best (so the p value is optimistic)."""
     names = (*ev.effects, name)
     fns = model_fns(names)
     ctx = data.ctx_array
@@ -562,9 +508,6 @@ def _score_test(data: ArmData, ev: ArmEval, name: str) -> dict:
             best = {"chi2": T, "df": q, "p_value": float(scipy.stats.chi2.sf(T, q)),
                     "explained_fraction": explained / max(float(rp @ rp), 1e-300)}
     return best
-
-
-# ------------------------------------------------------------------------------ the workflow
 
 
 @dataclass
@@ -649,14 +592,9 @@ def halves(n: int, seed: int) -> np.ndarray:
 
 
 def _takes(before: ArmEval, after: ArmEval, rows: np.ndarray) -> bool:
-    """Does an arm take the effect, judged on ``rows`` of its train set alone: its
-    cross-validated elpd rises there, or its cross-validated error falls by 10% or more.
-
-    The second clause is for an arm that needs an effect whose density gain only shows once
-    a second effect is in: with one of two effects in, the fit tightens (smaller fitted
-    scale) while the other effect's misfit remains, so a few points cost more log density
-    than all the others gain, though the errors fall.
-    """
+    """Does an arm take the effect, judged on ``rows`` alone: its cross-validated elpd rises,
+    or its error falls by 10% (with one of two needed effects in, the tightened fit can lose
+    density on a few points while the errors fall)."""
     if not rows.any():
         return False
     gain = float(np.sum(after.cv_lpd[rows] - before.cv_lpd[rows]))
@@ -666,9 +604,8 @@ def _takes(before: ArmEval, after: ArmEval, rows: np.ndarray) -> bool:
 
 def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
               ) -> tuple[np.ndarray, np.ndarray]:
-    """Pooled cross-validated lpd and cross-validated errors of the model in
-    which each half of an arm's train rows is predicted by the model chosen on the other
-    half (the candidate where the other half says the arm takes it, else the current one)."""
+    """Pooled cross-validated lpd and errors, each half of an arm's train rows predicted by
+    the model chosen on the other half."""
     cv, err = [], []
     for a, cur in current.items():
         n = len(cur.cv_lpd)
@@ -685,11 +622,8 @@ def _crossfit(current: dict[str, ArmEval], cand: dict[str, ArmEval], seed: int
 
 def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, ArmEval],
                      rule: DecisionRule, seed: int = 0) -> dict:
-    """Pool a candidate's arms: the arms it helps get it, the rest keep their model.
-
-    The named arms are chosen on every train row; the score (elpd and cross-validated error)
-    is cross-fitted (:func:`_crossfit`), so the choice of arms does not flatter it.
-    """
+    """Pool a candidate's arms (the arms it helps get it), scored cross-fitted
+    (:func:`_crossfit`) so the choice of arms does not flatter it."""
     arms = [a for a in cand
             if _takes(current[a], cand[a], np.ones(len(current[a].cv_lpd), bool))]
     cv, cv_err = _crossfit(current, cand, seed)
@@ -722,11 +656,8 @@ def _step_record(name: str, arms: list[str], before: dict[str, ArmEval],
 def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
                  fitted: dict[str, dict[str, ArmEval]], add: Callable,
                  rule: DecisionRule, seed: int = 0) -> list[dict]:
-    """Score every pair of candidates added together (the first as fitted alone).
-
-    A pair passes when it passes the rule against the current model *and* against each of
-    its members alone: both effects have to be needed, not one carrying the other.
-    """
+    """Score every pair of candidates added together; a pair passes against the current
+    model *and* each member alone, so both effects are needed."""
     out = []
     for i, first in enumerate(candidates):
         for second in candidates[i + 1:]:
@@ -753,19 +684,14 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
 def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRule | None = None,
              k_folds: int | None = None, seed: int = 0, progress: bool = False,
              max_steps: int | None = None) -> Diagnosis:
-    """Run the model-criticism workflow on a rig's single-arm rows (see the module docstring).
-
-    ``candidates``: effect names to try (default: every registered effect); a chain
-    effect's name asks for its planar instance (``joint_compliance``: ``gravity_sag``), and
-    one with none is a one-line ``ValueError`` (:func:`bayesrob.robot.effects.resolve_effects`).
-    """
+    """Run the model-criticism workflow on a rig's single-arm rows; ``candidates`` as
+    :func:`bayesrob.robot.effects.resolve_effects` takes them (default: all)."""
     from bayesrob.progress import progress as make_progress
 
     rule = rule or DecisionRule()
     candidates = fx.resolve_effects(candidates)
     arms = list(rig.arms)
     data = {a: ArmData.from_rig(rig, a) for a in arms}
-    # Rounds are not known in advance; the total is the usual case (one step per effect).
     bar = make_progress(len(arms) * (1 + len(candidates) * (len(candidates) + 1) // 2),
                         "diagnose", "fits", enabled=progress)
 
@@ -786,8 +712,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
     baseline = dict(current)
     tests_before = {a: residual_tests(data[a], current[a], candidates, seed=seed) for a in arms}
     history, steps, rounds = [dict(current)], [], []
-    # An effect stays a candidate for the arms that do not have it yet: the arm that did
-    # not take it in one round may need it once another effect has been added.
+    # An effect stays a candidate for the arms without it: one may need it once another is in.
     pending = {a: list(candidates) for a in arms}
 
     def add(model: dict[str, ArmEval], name: str, only: Sequence[str] | None = None

@@ -1,10 +1,7 @@
-"""The diagnosis's decision rule and its parameter guard (docs/diagnose.md, "The parameter
-guard"). The evidence: pointwise log predictive densities of rows the candidate's fit did not
-see (leave-one-out refits, held-back selection poses), before and after it is added. The guard
-asks ``nats_per_parameter`` nats of gain for each added parameter (on a real 7-joint arm a
-24-parameter encoder error at selection z 4.9 made the validation error worse, 1.01 -> 1.06
-mm); it is off in the rule and reported beside URDF/DH candidates, having cost a true effect on
-the report rigs.
+"""The diagnosis's decision rule on the log densities of rows a candidate's fit did not see,
+and its parameter guard (docs/diagnose.md): ``nats_per_parameter`` nats per added parameter (a
+real 7-joint arm's 24-parameter encoder error at z 4.9 made validation worse, 1.01 -> 1.06 mm);
+off in the rule and reported beside URDF/DH candidates, as it cost a true effect.
 """
 
 from __future__ import annotations
@@ -69,11 +66,9 @@ class DecisionRule:
 
 
 def elpd_diff(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
-    """The held-out elpd gain ``after - before`` (nats) and its standard error, by
-    ``arviz.compare`` of the two pointwise log densities of the same rows. They are exact
-    (refitted leave-one-out, or rows held back from the fit), not PSIS estimates: with 16
-    points and 8-14 parameters a planar arm's posterior moves too much when a point is left
-    out for importance sampling (Pareto k > 1 on most points when tried)."""
+    """The held-out elpd gain ``after - before`` (nats) and its standard error by
+    ``arviz.compare`` of exact pointwise densities (refits, not PSIS: with 16 points and 8-14
+    parameters Pareto k exceeded 1 on most points)."""
     import arviz as az
 
     from bayesrob.compare.comparison import elpd_data

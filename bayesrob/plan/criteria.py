@@ -7,22 +7,16 @@ pose i (its marker's Jacobian J_i, dim x p, over sigma) changes it by a rank-dim
 with B_i = J_i C and S_i = I + J_i C J_i^T, C' = C - B_i^T S_i^-1 B_i. Each criterion scores
 every candidate from its B_i and S_i at once:
 
-- ``accuracy``: the predicted end-point error over a task region, sqrt(tr(A C) + bias) mm
-  with A = G^T G / T from the task poses' Jacobians G (A-/I-optimal in the end point); a
-  pose's gain is the drop of the squared error. The bias is that of the effects the
-  calibration leaves out (omitted parameters w, prior sd s in their typical sizes, signature
-  K at the measured rows and H at the task): the fit absorbs D w = C J^T K w of them into its
-  parameters, so the task's error gains s^2 ||G D - H||^2 / T = s^2 (tr(D^T A D) -
-  2 tr(D^T R) + e0), R = G^T H / T, e0 = tr(H^T H) / T (bias-aware I-optimality: without it
-  the plan spreads poses to shrink a variance the omitted sag then outweighs). One pose moves
-  D by B_i^T U_i, U_i = S_i^-1 (K_i - J_i D), so this too is scored for every candidate at once.
-- ``identify``: the information on the parameters, log det C^-1 (D-optimal, the classic
-  criterion); a pose's gain is log det S_i (the matrix determinant lemma).
-- ``discriminate``: for each candidate effect E (a group of parameters beside the base
-  model and the other effects), log det of its information once every other parameter is
-  fitted too, -log det C_EE (D_s-optimal: the part of the effect's signature no other
-  parameter can mimic, the classic criterion for telling nested models apart). A pose's gain
-  sums, over the effects, -log det(I - S_i^-1 B_iE C_EE^-1 B_iE^T).
+- ``accuracy``: the predicted end-point error over a task region, sqrt(tr(A C) + bias) mm,
+  A = G^T G / T from the task poses' Jacobians G (I-optimal). The bias is that of omitted
+  effects (parameters w, prior sd s, signature K at the rows and H at the task): the fit
+  absorbs D w = C J^T K w, so the error gains s^2 (tr(D^T A D) - 2 tr(D^T R) + e0),
+  R = G^T H / T, e0 = tr(H^T H) / T (without it the plan shrinks a variance the omitted sag
+  outweighs); one pose moves D by B_i^T S_i^-1 (K_i - J_i D).
+- ``identify``: log det C^-1 (D-optimal); a pose's gain is log det S_i.
+- ``discriminate``: per candidate effect E, -log det C_EE (D_s-optimal: the part of its
+  signature no other parameter mimics); a pose's gain sums -log det(I - S_i^-1 B_iE C_EE^-1
+  B_iE^T).
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
 """Greedy selection with rank-dim updates: the pose that helps most given those before it.
-
-A greedy plan is ordered so that every prefix is itself the greedy plan of its length: a
-person who stops measuring early still holds a good plan. (For the D-optimal criterion the
-greedy choice is within a factor (1 - 1/e) of the best set of its size: log det is
-submodular in the rows.)
+Every prefix is the greedy plan of its length, so stopping early still leaves a good plan
+(for D-optimality within (1 - 1/e) of the best set: log det is submodular).
 """
 
 from __future__ import annotations
@@ -27,11 +24,9 @@ class Selection:
 
 
 def greedy(jac: np.ndarray, info: np.ndarray, n: int, criterion: Criterion) -> Selection:
-    """Choose ``n`` of the candidates ``jac`` (N, dim, p; each row's Jacobian over the noise
-    sd) one at a time, each the one that improves ``criterion`` most given those before it,
-    starting from the information ``info`` (p, p) of the prior and the rows measured already.
-    The covariance and every candidate's B_i = J_i C are updated by the chosen pose's
-    rank-dim correction, so a step costs O(N dim^2 p) beside the criterion's own scoring."""
+    """Choose ``n`` of the candidates ``jac`` (N, dim, p; Jacobians over the noise sd) one at a
+    time, from the information ``info`` (p, p) of the prior and rows measured; rank-dim
+    updates of C and every B_i = J_i C make a step O(N dim^2 p)."""
     cov = np.linalg.inv(info)
     cov = (cov + cov.T) / 2
     n_cand, dim, p = jac.shape

@@ -1,10 +1,6 @@
-"""``bayesrob plan``: choose the poses to measure next, and write them as ``poses.csv``.
-
-Given what a rig has measured already (possibly nothing) and the parameter groups its
-calibration will fit, the planner linearises the calibration at the nominal robot (the
-compliances at one typical size, so the effects that gravity drives show their signature),
-scores every candidate pose by :mod:`bayesrob.plan.criteria` and picks them greedily
-(:mod:`bayesrob.plan.greedy`).
+"""``bayesrob plan``: choose the poses to measure next, and write them as ``poses.csv``: the
+calibration linearised at the nominal robot (compliances at one typical size, so gravity's
+effects show their signature), candidates scored by :mod:`.criteria`, picked greedily.
 """
 
 from __future__ import annotations
@@ -136,8 +132,6 @@ def resolve_groups(rig: Rig, groups: tuple[str, ...] | None, criterion: str
 
 def _linearisation(rig: Rig, groups: tuple[str, ...], omitted: tuple[str, ...]
                    ) -> tuple[kin.Robot, np.ndarray, np.ndarray, np.ndarray]:
-    """The robot, the parameter vector the plan linearises at, the fitted parameters and the
-    omitted ones whose bias the plan weighs."""
     sags = bool(set(kin.SAG_GROUPS) & set(groups))
     robot = with_gravity(rig) if sags or omitted else rig.robot
     layout = robot.layout
@@ -152,9 +146,8 @@ def _linearisation(rig: Rig, groups: tuple[str, ...], omitted: tuple[str, ...]
 
 def _task_pool(path: str | Path, rig: Rig, pool: Pool, robot: kin.Robot, x: np.ndarray,
                limits: dict) -> Pool:
-    """A task file: poses (command columns) or targets (``x,y[,z]``), a target aimed at from
-    the pool's nearest poses and refused in one line where no pose of the pool's range
-    reaches it."""
+    """A task file: poses (command columns) or targets (``x,y[,z]``) aimed at from the pool's
+    nearest poses (refused in one line where none reaches)."""
     path = Path(path)
     text = read_text(path, "task")
     header = [h.strip() for h in next(csv.reader(io.StringIO(text)), [])]
@@ -210,11 +203,9 @@ def plan_poses(rig: Rig, n: int, *, criterion: str = "accuracy",
                samples: int | None = None, task: str | Path | None = None, seed: int = 0,
                noise_mm: float = DEFAULT_NOISE_MM, omitted_sd: float = OMITTED_SD,
                prior_sd: float = PRIOR_SD) -> Plan:
-    """Choose ``n`` poses for ``rig`` (see the module's docstring); bad input is a
-    :class:`~bayesrob.data.rig.RigError` naming file, row and column. ``omitted_sd``: the
-    prior sd (typical sizes) of the sag groups the calibration leaves out, whose bias the
-    ``accuracy`` criterion adds to the variance (0: variance only); ``prior_sd``: the fitted
-    parameters' prior sd about nominal (typical sizes)."""
+    """Choose ``n`` poses for ``rig``; bad input is a one-line RigError. ``omitted_sd``, and
+    ``prior_sd`` (about nominal): prior sds in typical sizes of the sag groups left out (whose
+    bias ``accuracy`` adds; 0: none) and of the fitted parameters."""
     t0 = time.perf_counter()
     if criterion not in ("accuracy", "identify", "discriminate"):
         raise RigError(f"unknown criterion {criterion!r} (accuracy, identify, discriminate)")

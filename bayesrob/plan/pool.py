@@ -1,11 +1,6 @@
-"""The candidate poses a plan chooses from, and the rig it plans for.
-
-A pool is a table of commands a person knows to be safe (a CSV with the rig's command
-columns ``<arm>_u1..N``, a ``config`` column naming the measured arm where the rig has
-several), or samples drawn inside the joint limits (rig.toml ``limits`` per arm in command
-units; else a URDF's ``<limit lower upper>``; a planar arm's ``pulse_limits``). A rig may be
-planned for before its first measurement: no ``measurements.csv``, or one with a header only.
-Every mistake in these files is a :class:`~bayesrob.data.rig.RigError` naming file, row and column.
+"""The candidate poses a plan chooses from, and the rig it plans for (measured or not yet).
+A pool is a CSV of safe commands (``<arm>_u1..N``, ``config`` naming the measured arm), or
+samples inside the joint limits (rig.toml ``limits``, a URDF's ``<limit>``, ``pulse_limits``).
 """
 
 from __future__ import annotations
@@ -171,8 +166,7 @@ def read_pool(path: str | Path, rig: Rig, limits: dict[str, np.ndarray | None],
         if arm not in measured:
             raise RigError(f"{path}: line {line}: column 'config' = {arm!r} is not a measured "
                            f"arm of the rig ({', '.join(measured)})")
-    # column by column (a pool of thousands of rows): a cell that does not parse is named by
-    # parse_number, row by row, only once the column is known to hold one
+    # column by column (pools of thousands of rows); parse_number names a bad cell row by row
     commands = {c: np.full((len(body), ch.n_columns), np.nan) for c, ch in robot.chains.items()}
     for c, ch in robot.chains.items():
         on = np.isin(config, [a for a in measured if c in {x.name for x in robot.path(a)}])
@@ -206,10 +200,9 @@ def read_pool(path: str | Path, rig: Rig, limits: dict[str, np.ndarray | None],
 
 def sample_pool(rig: Rig, limits: dict[str, np.ndarray | None], m: int,
                 rng: np.random.Generator) -> Pool:
-    """``m`` poses drawn uniformly inside the limits, the measured arm of each drawn in turn.
-    Planar arms with a ``workspace`` are aimed (nominal closed form) at points drawn in it
-    instead, keeping those they reach within their pulse limits: most of a servo's pulse
-    range puts the end point outside the workspace the rig was set up for."""
+    """``m`` poses drawn uniformly inside the limits, measured arms in turn; planar arms with a
+    ``workspace`` are aimed at points drawn in it instead (most of a servo's range points
+    outside the workspace)."""
     robot = rig.robot
     measured = robot.measured_arms()
     config = np.array([measured[i % len(measured)] for i in range(m)])

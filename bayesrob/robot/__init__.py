@@ -1,9 +1,6 @@
-"""Kinematic models: one general chain/tree model for every robot (:mod:`.chain`), read from
-URDF (:mod:`.urdf`) or DH tables (:mod:`.dh`), and the paper's planar two-link arm
-(:mod:`.planar`), whose closed-form functions are a tested specialisation of the chain.
-
-The planar functions are re-exported here because the grid predictions, samplers and
-diagnosis work on them directly (``from bayesrob import kinematics as kin; kin.forward_u``).
+"""Kinematic models: one chain/tree model for every robot (:mod:`.chain`), read from URDF
+(:mod:`.urdf`) or DH tables (:mod:`.dh`), and the paper's planar arm (:mod:`.planar`), a
+tested specialisation whose functions the grid, samplers and diagnosis use directly.
 """
 
 from bayesrob.robot.chain import (

@@ -1,21 +1,12 @@
 """One kinematic model for every robot: serial chains of revolute and prismatic joints in 3-D,
-mounted on each other to form trees, measured by an instrument.
+mounted on each other to form trees, measured by an instrument (mm and rad).
 
-A :class:`Chain` is data: for each joint the fixed transform from the previous frame to the
-joint's frame (its *origin*, a URDF-style xyz/rpy pose), the joint's axis and kind, then a
-*tool* transform to the tip frame. Joint values come from the measured columns through the
-command map (``q_act = gain * u + offset``) and a linear coupling (``q = C @ q_act``, so a
-passive joint can equal a combination of others). A chain may be mounted on the tip frame of
-another (``mount``), which makes a tree whose shared links have one set of parameters.
-
-A :class:`Robot` holds the chains and the nominal pose of the robot base in the instrument's
-frame. Its calibration parameters are one flat vector with a name and a group for every entry
-(:class:`ParamLayout`): ``frames`` (instrument pose, marker positions), ``offsets`` (joint zero
-offsets), ``geometric`` (a six-number correction of every origin and tool transform) and
-``servo`` (command gains). Forward kinematics is a pure JAX function of that vector and the
-rows' columns, vectorised over rows, differentiable, in float64.
-
-Units: mm and rad (URDF metres are converted when read).
+A :class:`Chain` is data: each joint's *origin* (a URDF-style xyz/rpy pose in the previous
+frame), axis and kind, then a *tool* transform; joint values are ``C @ (gain * u + offset)``
+of the measured columns, so a passive joint can follow others. A chain may be ``mount``-ed on
+another's tip, making a tree. A :class:`Robot`'s calibration parameters are one flat vector
+with a name and group per entry (:class:`ParamLayout`); forward kinematics is a pure JAX
+function of it and the rows' columns.
 """
 
 from __future__ import annotations
@@ -32,26 +23,19 @@ import numpy as np
 
 import bayesrob.robot.transforms as tf
 
-# The parameter groups (the optional ones: joints that give way under gravity, see
-# Robot.deflections; revolute joints read through an eccentric encoder, see Robot.joint_values;
-# play in the joints that gravity takes up, see Robot.sag) and the links' mass sources are
-# names the command line checks before it imports this module: they are defined there.
+# The parameter groups and the links' mass sources are names the command line checks before
+# it imports this module: they are defined there.
 from bayesrob.data.vocabulary import ALL_GROUPS, GROUPS, MASS_SOURCES, OPTIONAL_GROUPS  # noqa: F401
 
 JOINT_KINDS = ("revolute", "prismatic")
 SAG_GROUPS = ("compliance", "lateral", "backlash")  # the groups gravity's torques drive
 G_N_PER_KG = 9.81  # weight per kg: torques in N mm with lever arms in mm
 LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's middle
-# MASS_SOURCES: the links' masses fitted with the compliances (only their products are seen),
-# or held at the description's (a URDF's <inertial>). The first is the default everywhere the
-# choice is offered.
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 # A joint's play is taken on the side its gravity deflection points to, as
-# tanh(deflection / PLAY_SIDE_RAD): a deflection of 0.1 mrad, the joints' repeatability on the
-# arms this package has seen, already puts three quarters of the play on that side. Smaller
-# deflections (a vertical axis, a torque passing through zero) leave the joint in the middle
-# of its play: which side it rests on there depends on how it was approached, which the rows
-# do not record.
+# tanh(deflection / PLAY_SIDE_RAD): 0.1 mrad, the joints' repeatability on the arms seen so
+# far, puts three quarters of it there; smaller deflections leave the joint mid-play (its side
+# then depends on the approach, which the rows do not record).
 PLAY_SIDE_RAD = 1e-4
 # chains off a path, per chain: (path elements it weighs on, its first element, its links'
 # frames (E_c, N, 4, 4), its name), as Robot.side_frames gives them
@@ -63,9 +47,8 @@ class KinematicsError(ValueError):
 
 
 def _canonical(v: object, ordered: bool = False) -> object:
-    """A hashable, comparable form of a field's value: arrays by dtype, shape and bytes (the
-    values a traced program bakes in, so equal forms trace equal programs), dicts as item
-    tuples (sorted unless their order means something: ``ordered``), sequences as tuples."""
+    """A hashable, comparable form of a field's value: arrays by dtype, shape and bytes (what
+    a traced program bakes in), dicts as item tuples (sorted unless ``ordered``)."""
     if isinstance(v, np.ndarray):
         return ("ndarray", v.dtype.str, v.shape, v.tobytes())
     if isinstance(v, dict):
@@ -87,14 +70,9 @@ def _digest(value: object) -> int:
 
 
 class _ByValue:
-    """Equality and hash from every dataclass field's canonical form: robots and chains are
-    values (equal when built apart from one description), and a :class:`RobotStructure`, so
-    compared, is the static argument of ``jax.jit`` (one compiled program per process for
-    every robot of one design).
-
-    The fields are taken as immutable once built: the form and its hash are cached on first
-    use, as are a robot's structure and nominal values. Nothing in this package changes a
-    chain's arrays or a robot's chains in place."""
+    """Equality and hash from every dataclass field's canonical form, so a
+    :class:`RobotStructure` can be ``jax.jit``'s static argument (one program per design).
+    The fields are taken as immutable: the form and its hash are cached on first use."""
 
     _ordered_fields: tuple[str, ...] = ()  # dict fields whose order is part of the value
 
@@ -121,10 +99,8 @@ class _ByValue:
 
 @dataclass(frozen=True, eq=False)
 class Chain(_ByValue):
-    """A serial chain's structure and nominal values (mm, rad), equal to another with the same
-    fields (``source`` included: it does not enter the kinematics, but the masses and torque
-    limits read from it do enter fits and predictions, and a calibrated URDF is written from
-    it, so two chains differing there are not interchangeable)."""
+    """A serial chain's structure and nominal values (mm, rad). ``source`` counts in equality:
+    the masses and limits read from it enter fits, and a calibrated URDF is written from it."""
 
     name: str
     joint_names: tuple[str, ...]
@@ -165,8 +141,7 @@ class Chain(_ByValue):
 
     @property
     def weighed(self) -> bool:
-        """Whether the description gives every moving link a mass and first moment (what a
-        fit holding the masses, ``masses="description"``, holds them at)."""
+        """Whether the description gives every moving link a mass and first moment."""
         return (self.source.get("link_masses_kg") is not None
                 and self.source.get("link_moments_kg_mm") is not None)
 
@@ -314,9 +289,8 @@ def _revolute(chain: Chain) -> np.ndarray:
 
 
 def _times_rigid(nominal: jax.Array, t: jax.Array) -> jax.Array:
-    """``nominal @ t`` for a rigid transform t (last row 0, 0, 0, 1), written as XLA computes
-    it when ``nominal`` is a constant (it splits the product at t's constant row), so that
-    a nominal transform passed in as an argument gives the bits it gave as a constant."""
+    """``nominal @ t`` for a rigid transform t, split at t's constant row as XLA computes it
+    for a constant ``nominal``, so an argument gives the bits a constant gave."""
     return nominal[:, :3] @ t[:3, :] + nominal[:, 3:] * jnp.array([0.0, 0.0, 0.0, 1.0])
 
 
@@ -330,12 +304,9 @@ def _joint_motion(kind: str, axis: np.ndarray, q: jax.Array) -> jax.Array:
 
 @dataclass(frozen=True, eq=False)
 class Robot(_ByValue):
-    """Chains (parents first) and the dimension of the measured points (2 or 3).
-
-    Equal to another robot with equal fields (the chains in the same order: it is the
-    parameter vector's), and hashed by them. The compiled programs take its
-    :attr:`structure` as their static argument and its :attr:`nominal_values` as arrays, so
-    robots of one design share them whatever their numbers."""
+    """Chains (parents first, the parameter vector's order) and the dimension of the measured
+    points (2 or 3). Compiled programs take its :attr:`structure` as their static argument
+    and its :attr:`nominal_values` as arrays, so robots of one design share them."""
 
     _ordered_fields = ("chains",)  # their order is the parameter vector's
 
@@ -344,12 +315,10 @@ class Robot(_ByValue):
     # Unit gravity in the robot base frame: joints give way under it when the compliance
     # parameters are non-zero (None: no gravity model).
     gravity: np.ndarray | None = None
-    # How many times the sag's gravity torques are taken: once at the commanded pose (1),
-    # then each time at the pose the previous step sagged into, a fixed-point iteration
-    # towards torque equilibrium. Each step shrinks the change by the torques' sensitivity to
-    # the pose where that is below one: about 1e-3 on a few mrad of sag. Fits of Agile
-    # Justin's free masses (fitted sag up to 0.2 rad) land where the iteration does not
-    # converge, so more steps are not the default there (docs/robots.md).
+    # How many times the sag's gravity torques are taken: at the commanded pose, then at the
+    # pose each step sagged into (a fixed-point iteration, contracting by about 1e-3 on a few
+    # mrad of sag). Agile Justin's fits (sag up to 0.2 rad) land where it does not converge,
+    # so one step is the default (docs/robots.md).
     sag_steps: int = 1
 
     def __post_init__(self) -> None:
@@ -382,9 +351,8 @@ class Robot(_ByValue):
         return [f"{c.name}_u{k + 1}" for c in self.path(arm) for k in range(c.n_columns)]
 
     def joint_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
-        """Joint values (N, n) of ``chain`` for its columns u (N, m) under parameters x: the
-        commanded value q = C (gain u + offset) + zero offset, then, for a revolute joint,
-        its encoder's eccentricity, q + a sin q + b cos q (zero unless ``encoder`` is fitted)."""
+        """Joint values (N, n) of ``chain`` for its columns u (N, m): q = C (gain u + offset) +
+        zero offset, then a revolute joint's encoder eccentricity, q + a sin q + b cos q."""
         q = self._commanded_values(x, chain, u)
         a, b = self._encoder(x, chain)
         return q + a * jnp.sin(q) + b * jnp.cos(q)
@@ -396,24 +364,20 @@ class Robot(_ByValue):
         return q_act @ jnp.asarray(chain.coupling).T + x[sl[(chain.name, "offset")]]
 
     def _encoder(self, x: jax.Array, chain: Chain) -> tuple[jax.Array, jax.Array]:
-        """Each joint's eccentricity coefficients (a, b), zero for a prismatic joint."""
         ab = x[self.layout.slices[(chain.name, "encoder")]].reshape(chain.n_joints, 2)
         revolute = _revolute(chain)
         return ab[:, 0] * revolute, ab[:, 1] * revolute
 
     def _elements(self, arm: str) -> dict[str, np.ndarray]:
         """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
-        a tool is an element whose motion is nothing), for one ``lax.scan``: a loop the
-        compiler sees once, however many joints the robot has. The indices and axes are the
-        structure's (shared by robots of one design); ``nominal``, the origins' transforms,
-        is this robot's (arguments of a compiled program, not constants in it)."""
+        a tool's motion is nothing) for one ``lax.scan``, which compiles once however many
+        joints there are. Indices and axes are the structure's, ``nominal`` this robot's."""
         parts = [self._matrices["origins"][c.name] for c in self.path(arm)]
         concrete = all(isinstance(p, np.ndarray) for p in parts)
         return {**_element_table(self.structure, arm),
                 "nominal": np.concatenate(parts) if concrete else jnp.concatenate(parts)}
 
     def _element_values(self, x: jax.Array, arm: str, u: jax.Array) -> jax.Array:
-        """Joint values (N, E) of the path's elements for rows u (zero on tools)."""
         qs, col = [], 0
         for chain in self.path(arm):
             qs.append(self.joint_values(x, chain, u[:, col:col + chain.n_columns]))
@@ -431,10 +395,9 @@ class Robot(_ByValue):
                        deflection: jax.Array | None = None, bend: jax.Array | None = None
                        ) -> tuple[jax.Array, jax.Array]:
         """Frames along the path to ``arm`` (instrument frame), each (E, N, 4, 4): ``joints``,
-        where each element's motion happens (its axis passes through the origin), and
-        ``links``, the frame after the motion (the child link's). ``deflection`` (N, E) is
-        added to the elements' joint values (zero on tools); ``bend`` (N, E, 3), a small rotation
-        about each joint's own axes before its motion (lateral compliance)."""
+        where each element's motion happens, and ``links``, the frame after it. ``deflection``
+        (N, E) adds to the joint values; ``bend`` (N, E, 3) rotates about each joint's own
+        axes before its motion (lateral compliance)."""
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
         el = self._elements(arm)
@@ -463,10 +426,9 @@ class Robot(_ByValue):
 
     def side_frames(self, x: jax.Array, arm: str, side: dict[str, jax.Array]
                     ) -> Hanging:
-        """For each chain off ``arm``'s path, its links' frames (E_c, N, 4, 4) in the pose of
-        ``side`` (columns of a side arm's path, per row), with where it hangs: (how many of
-        ``arm``'s path elements it hangs beyond, its first element on the side arm's path,
-        frames, that side arm)."""
+        """For each chain off ``arm``'s path, in the pose of ``side`` (a side arm's path columns):
+        (how many of ``arm``'s path elements it hangs beyond, its first element on the side
+        arm's path, its links' frames (E_c, N, 4, 4), that side arm)."""
         on_path = {c.name for c in self.path(arm)}
         done: set[str] = set()
         out = []
@@ -485,26 +447,16 @@ class Robot(_ByValue):
 
     def deflections(self, x: jax.Array, arm: str, u: jax.Array,
                     side: dict[str, jax.Array] | None = None) -> jax.Array:
-        """How far each joint on the path gives way under gravity, (N, E) rad (mm if prismatic).
-
-        Joint e turns by its compliance times the gravity torque about its axis of the links
-        beyond it on the path: tau_e = a_e . (sum_k (m_k (p_k - o_e)) x g), with each link's
-        mass m_k and first moment h_k = m_k c_k (its centre of mass c_k in its own frame), so
-        sum_k m_k p_k = sum_k (m_k t_k + R_k h_k). Masses are not known: the compliance
-        calibration fits them with the compliances (only their products are identifiable; the
-        rank analysis drops the rest). The torques are taken at the commanded pose: a
-        deflection of a few mrad changes them by a few parts in a thousand, far below what the
-        data resolve; ``sag_steps`` takes them again at the sagged pose, towards equilibrium.
-        With ``backlash`` fitted, each joint also moves by its half play p_e towards the side it
-        gives way to: + p_e tanh(deflection_e / PLAY_SIDE_RAD).
-        """
+        """How far each joint on the path gives way under gravity, (N, E) rad (mm if prismatic):
+        its compliance times tau_e = a_e . (sum_k (m_k (p_k - o_e)) x g) of the links beyond it
+        (masses and first moments fitted with the compliances), at the commanded pose, plus
+        its half play p_e tanh(deflection_e / PLAY_SIDE_RAD)."""
         return self.sag(x, arm, u, side)[0]
 
     def sag(self, x: jax.Array, arm: str, u: jax.Array,
             side: dict[str, jax.Array] | None = None) -> tuple[jax.Array, jax.Array]:
-        """The joints' deflections (N, E) of :meth:`deflections` and the bending (N, E, 3):
-        each joint's lateral compliances times the gravity torque about the two axes across
-        its own, a small rotation in the joint's frame (bearing and link bending)."""
+        """The joints' deflections (N, E) of :meth:`deflections` and the bending (N, E, 3), lateral
+        compliances times the torque about the two axes across each joint's own."""
         x = jnp.asarray(x)
         return self._sag_at(x, arm, *self._sag_frames(x, arm, u, side))
 
@@ -534,10 +486,9 @@ class Robot(_ByValue):
 
     def _torques(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
                  hanging: Hanging = ()) -> tuple[jax.Array, jax.Array]:
-        """The gravity torques of sag() in frames already computed, linear in the masses and
-        first moments: each element's torque in its joint's frame (E, N, 3) and about its
-        axis (E, N). One function for the sag and its written-out derivative, which must
-        take the same torques."""
+        """The gravity torques of sag() in frames already computed: each element's torque in
+        its joint's frame (E, N, 3) and about its axis (E, N); the sag and its written-out
+        derivative must take the same ones."""
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         weight, mass = self._weights(xz, el["link_idx"], links)
@@ -586,9 +537,7 @@ class Robot(_ByValue):
 
     def _sag_coefficients(self, x: jax.Array, arm: str
                           ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """Each element's compliance (E,), lateral compliances (E, 2) and half play (E,), read
-        in one place for the sag and its written-out derivative (a tool's zero where an
-        element has none)."""
+        """Each element's compliance (E,), lateral compliances (E, 2) and half play (E,)."""
         el = self._elements(arm)
         xz = jnp.concatenate([x, jnp.zeros(1)])
         return xz[el["compliance_idx"]], xz[el["lateral_idx"]], xz[el["play_idx"]]
@@ -597,19 +546,10 @@ class Robot(_ByValue):
                              links: jax.Array, hanging: Hanging, idx: np.ndarray,
                              w_q: jax.Array, w_phi: jax.Array,
                              torques: tuple[jax.Array, jax.Array]) -> jax.Array:
-        """The sag's part of the marker Jacobian, (N, 3, C) over the parameters x[idx]:
-        sum_e w_q[e, n, i] d defl[n, e] / dc + sum_e,j w_phi[e, n, j, i] d bend[n, e, j] / dc
-        for :meth:`_sag_at` in the frames given, held fixed (``w_q``: d marker / d joint value,
-        (E, N, 3); ``w_phi``: d marker / d bend about the joint's own axes, (E, N, 3, 3)); the
-        same as contracting ``jax.jacfwd`` of the sag with them (tested).
-
-        Written out from the sag's structure rather than pushed through it: every torque is
-        linear in the masses and first moments, and a link's enter through its own frame
-        alone (mass and first moment), so the marker's derivative by them is that frame
-        dotted with the weights of the elements the link hangs beyond, summed along the
-        chain. Forward mode pushes each of the C (Justin: 144) tangents through every
-        torque; this is a few passes (docs/diagnose.md). ``torques``: :meth:`_torques` in
-        these frames, which the caller has already taken for the sag itself."""
+        """The sag's part of the marker Jacobian, (N, 3, C) over x[idx], in the frames given
+        held fixed (``w_q``, ``w_phi``: d marker / d joint value and / d bend; tested equal to
+        ``jax.jacfwd``), written out since every torque is linear in the masses and moments: a
+        few passes, where forward mode pushes C (Justin: 144) tangents through every torque."""
         el = self._elements(arm)
         n = joints.shape[1]
         zero = len(self.layout.params)
@@ -667,17 +607,14 @@ class Robot(_ByValue):
         return jnp.concatenate([*sources, jnp.zeros((n, 3, 1))], axis=-1)[..., pos[np.asarray(idx)]]
 
     def n_path_joints(self, arm: str) -> int:
-        """How many joints the path to ``arm`` has (its mounts' and its own)."""
         return sum(c.n_joints for c in self.path(arm))
 
     def tip_transforms(self, x: jax.Array, arm: str, u: jax.Array,
                        joint_errors: jax.Array | None = None,
                        side: dict[str, jax.Array] | None = None) -> jax.Array:
-        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns).
-
-        ``joint_errors`` (N, n_path_joints) are added to the path's joint values, base first
-        (what a joint-error model draws). ``side``: the other arms' path columns in the same
-        rows (:meth:`side_arms`), whose weight then bends the chains they share with ``arm``.
+        """Tip frames (N, 4, 4) of ``arm`` in the instrument frame, for rows u (N, columns);
+        ``joint_errors`` (N, n_path_joints) add to the path's joint values, base first;
+        ``side``: the other arms' columns (:meth:`side_arms`), whose weight bends shared chains.
         """
         u = jnp.atleast_2d(jnp.asarray(u))
         deflection = None
@@ -693,12 +630,9 @@ class Robot(_ByValue):
 
     def marker_jacobian(self, x: jax.Array, arm: str, u: jax.Array,
                         side: dict[str, jax.Array] | None = None) -> jax.Array:
-        """d marker_points / d x, (N, dim, P), from prefix and suffix products.
-
-        Every parameter enters as one factor of the product of transforms, so each derivative
-        is (product before it) @ (derivative of the factor) @ (product after it, applied to
-        the marker): one pass forward and one back, instead of pushing every parameter's
-        tangent through the whole chain (what ``jax.jacfwd`` does, tested equal).
+        """d marker_points / d x, (N, dim, P): each parameter is one factor of the product of
+        transforms, so one pass forward and one back give every derivative (tested equal to
+        ``jax.jacfwd``, which pushes each tangent through the whole chain).
         """
         x = jnp.asarray(x)
         u = jnp.atleast_2d(jnp.asarray(u))
@@ -716,7 +650,7 @@ class Robot(_ByValue):
         axes = jnp.asarray(el["axes"])
         prismatic = jnp.asarray(el["prismatic"])
         factors = jnp.asarray(el["nominal"]) @ tf.perturbation(deltas)  # (E, 4, 4)
-        turn = tf.rot_axis_batch(axes, q * (1.0 - prismatic)[:, None])  # (E, N, 3, 3)
+        turn = jax.vmap(tf.rot_axis)(axes, q * (1.0 - prismatic)[:, None])  # (E, N, 3, 3)
         motions = tf.homogeneous(turn, (q * prismatic[:, None])[..., None] * axes[:, None, :])
         if self.gravity is not None:
             motions = _bend(jnp.swapaxes(bend, 0, 1)) @ motions
@@ -777,14 +711,10 @@ class Robot(_ByValue):
             start += k + 1
             col += chain.n_columns
         if self.gravity is not None:
-            # The compliance parameters move the marker through the joints they deflect and
-            # bend: d p / d c = sum_e (d p / d q_e)(d defl_e / d c) + (d p / d phi_e)
-            # (d phi_e / d c), the sag's own derivative taken in the frames its torques are
-            # taken in, held fixed. How those frames move with the sag (with sag_steps > 1),
-            # the sag's dependence on the geometry, offsets and gains are left out, and a
-            # bend's derivative is taken at zero bend: relative changes of order 1e-3 in a sag
-            # of a few mrad (tests/test_chain.py: jax.jacfwd). Where the sag is large (Agile
-            # Justin's fits) the calibration finishes with the exact Jacobian.
+            # The sag's derivative in its torques' frames held fixed: how they move with the
+            # sag, its dependence on geometry, offsets and gains, and the bend's beyond zero
+            # are left out (relative 1e-3 on a few mrad, tests/test_chain.py); where the sag
+            # is large (Agile Justin) the calibration finishes with the exact Jacobian.
             idx = np.flatnonzero(self.layout.group_mask(SAG_GROUPS))
             gens = jnp.stack([jnp.zeros((4, 4)).at[:3, :3].set(jnp.cross(jnp.eye(3), e))
                               for e in jnp.eye(3)])  # about the joint's own x, y, z
@@ -811,8 +741,6 @@ class Robot(_ByValue):
 
     @cached_property
     def structure(self) -> RobotStructure:
-        """What the compiled programs are specialised on: everything but the numbers that
-        differ between two robots of one design (see :class:`RobotStructure`)."""
         return RobotStructure(
             tuple(ChainStructure(c.name, c.joint_names, c.kinds, np.asarray(c.axes),
                                  np.asarray(c.coupling), c.mount)
@@ -830,10 +758,8 @@ class Robot(_ByValue):
 
     @cached_property
     def nominal_values(self) -> dict:
-        """The robot's numbers apart from its structure, as a pytree of arrays: what a
-        compiled program of :attr:`structure` takes beside the parameter vector
-        (:meth:`RobotStructure.robot` puts them back together inside it). On the device
-        once, rather than copied there at every call."""
+        """The robot's numbers apart from its structure, a pytree a compiled program takes
+        beside the parameter vector; on the device once, not copied at every call."""
         chains = {c.name: {"origins": c.origins, "gain": c.gain, "offset": c.offset,
                            "marker": c.marker, "instrument": c.instrument}
                   for c in self.chains.values()}
@@ -842,11 +768,8 @@ class Robot(_ByValue):
             "gravity": None if self.gravity is None else np.asarray(self.gravity, float)})
 
     def with_values(self, x: np.ndarray) -> Robot:
-        """A robot whose nominal values are those of the parameter vector x (deltas folded in).
-
-        The result has zero corrections and reproduces ``marker_points(x, ...)`` at its own
-        nominal vector: what a calibrated URDF / rig file holds.
-        """
+        """A robot whose nominal values are those of the parameter vector x (deltas folded in):
+        what a calibrated URDF / rig file holds."""
         x = np.asarray(x, float)
         sl = self.layout.slices
         chains = {}
@@ -882,10 +805,8 @@ class Robot(_ByValue):
 
 @dataclass(frozen=True, eq=False)
 class ChainStructure(_ByValue):
-    """A chain's part of a :class:`RobotStructure`. The axes are structure: no parameter
-    group corrects them (an origin's rotation does), the simulator does not vary them, a
-    calibrated robot keeps them, and the element tables' frames across each axis (an argmin)
-    and the sag's projections are taken from them on the host."""
+    """A chain's part of a :class:`RobotStructure`. The axes are structure: no group corrects
+    them, and the frames across each axis (an argmin) are taken from them on the host."""
 
     name: str
     joint_names: tuple[str, ...]
@@ -897,12 +818,8 @@ class ChainStructure(_ByValue):
 
 @dataclass(frozen=True, eq=False)
 class RobotStructure(_ByValue):
-    """The static part of a robot, the key of its compiled programs: chain names and order,
-    joint names and kinds, axes, couplings, mounts, the points' dimension, whether gravity is
-    modelled and its sag steps, and so the parameter layout. The origins, instrument poses,
-    markers, gains, offsets and gravity's direction are :attr:`Robot.nominal_values`,
-    arguments of the programs; ``source`` (a URDF's path, masses, limits) is in neither, as
-    no program reads it."""
+    """The static part of a robot, the key of its compiled programs (and so the parameter
+    layout); the numbers are :attr:`Robot.nominal_values`, and ``source`` is in neither."""
 
     chains: tuple[ChainStructure, ...]
     dim: int
@@ -922,16 +839,15 @@ class RobotStructure(_ByValue):
 
     @cached_property
     def layout(self) -> ParamLayout:
-        """The parameter layout's names, groups and slices; nominal values and scales are
-        NaN, as they are a robot's numbers, which a program must take from its arguments."""
+        """The parameter layout, its nominal values and scales NaN: a program takes those
+        from its arguments."""
         sk = self.skeleton.layout
         return ParamLayout(tuple(replace(p, nominal=np.nan, scale=np.nan) for p in sk.params),
                            sk.slices)
 
     def robot(self, values: dict) -> Robot:
-        """The robot of this structure with ``values`` (:attr:`Robot.nominal_values`, traced
-        inside a compiled program): it computes what the robot the values came from does, but
-        is no value to hash or compare (its arrays may be tracers)."""
+        """The robot of this structure with ``values`` (:attr:`Robot.nominal_values`, maybe
+        tracers): it computes as the original does, but is no value to hash or compare."""
         chains = {}
         for c in self.chains:
             v = values["chains"][c.name]

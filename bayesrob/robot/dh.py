@@ -1,16 +1,10 @@
 """Chains from Denavit-Hartenberg tables, in the modified (Craig) or the standard convention.
 
-Rows are ``[d, theta, a, alpha]`` (mm, rad), the joint value adding to theta (revolute) or d
-(prismatic):
-- modified: ``T_i = Rx(alpha) Tx(a) Rz(theta + q) Tz(d)``. Since ``Rz(q)`` and ``Tz(d)``
-  commute, this is the fixed origin ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` followed by the joint's
-  motion about z.
-- standard: ``T_i = Rz(theta + q) Tz(d) Tx(a) Rx(alpha)``: the joint's motion about z comes
-  first, and the fixed part ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` becomes the next joint's origin
-  (the last one becomes the tool).
-A DH table is one description of the general :class:`~bayesrob.robot.chain.Chain`; the
-calibration corrects every origin with six numbers, so the DH singularity of near-parallel
-axes (which Hayati's extra beta angle works around) does not arise.
+Rows are ``[d, theta, a, alpha]`` (mm, rad). Modified: ``Rx(alpha) Tx(a) Rz(theta + q) Tz(d)``,
+the fixed origin then the motion about z (``Rz(q)`` and ``Tz(d)`` commute); standard:
+``Rz(theta + q) Tz(d) Tx(a) Rx(alpha)``, whose fixed part becomes the next joint's origin (the
+last the tool). The calibration corrects every origin with six numbers, so the singularity of
+near-parallel axes (Hayati's beta) does not arise.
 """
 
 from __future__ import annotations

@@ -1,40 +1,18 @@
-"""Physical effects that augment an arm's forward model, for the model-criticism workflow.
+"""Physical effects that correct a planar arm's servo angles, for the model-criticism workflow.
 
-The base model says an arm holds exactly the angles its servo map commands,
-``theta = g(u) = gain * u + offset``. An *effect* is a physically parameterised correction
-to those angles,
-
-    theta_actual = effect.apply(params, extra, u, theta)
-
-where ``params`` are the eight base parameters (:class:`~bayesrob.robot.ArmParams`),
-``extra`` the effect's own unknowns (fitted together with ``params`` by least squares, so
-``apply`` is written in JAX and the Jacobian comes from JAX), ``u`` the pulse widths and
-``theta`` the angles before the effect. The end point is then ``f(theta_actual)``.
-
-The forms here are deliberately *not* the simulator's (a dead band, a sinusoidal ripple,
-point masses on ideal springs): the diagnosis has to recognise an effect in data made by
-physics it does not know, so each candidate is the simplest family that a physicist would
-write down for the effect, with unknown coefficients.
-
-Adding an effect is one small class::
-
-    @register
-    class Droop(Effect):
-        name = "droop"
-        summary = "one line for the report"
-        def param_names(self): return ("k",)
-        def scales(self): return np.array([1e-3])
-        def apply(self, params, extra, u, theta): return theta + extra[0] * ...
-
-and nothing else changes: ``bayesrob diagnose`` picks up every registered name.
-An effect may also expose *structural settings* (``settings()``), values that a gradient
-cannot fit (which side of a sign change a point lies on); the fit profiles over them.
+An effect maps the angles ``theta = gain * u + offset`` to
+``effect.apply(params, extra, u, theta)``, with ``extra`` its own unknowns, fitted with the
+eight base parameters by least squares (so ``apply`` is JAX). The forms are deliberately
+*not* the simulator's: the diagnosis must recognise an effect in data made by physics it does
+not know, so each is the simplest family a physicist would write down. A ``@register``-ed
+subclass of :class:`Effect` is all ``bayesrob diagnose`` needs; ``settings()`` gives values a
+gradient cannot fit (which side of a sign change a point lies on), profiled over by the fit.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cache
 from typing import ClassVar
 
@@ -48,12 +26,9 @@ from bayesrob.data.vocabulary import CHAIN_EFFECTS
 
 @dataclass(frozen=True)
 class EffectContext:
-    """What an effect may know about an arm besides its parameters: fixed, not fitted.
-
-    ``u_centre`` / ``u_half_span``: centre and half-width (us) of the pulses the arm was
-    commanded with, so polynomial terms are written in a normalised pulse in [-1, 1] and
-    their coefficients are comparable between arms and rigs.
-    """
+    """What an effect may know about an arm besides its parameters: fixed, not fitted. The
+    commanded pulses' centre and half-width (us) normalise polynomial terms to [-1, 1], so
+    their coefficients compare between arms and rigs."""
 
     gravity: tuple[float, float] = (0.0, -1.0)
     u_centre: tuple[float, float] = (1500.0, 1500.0)
@@ -83,15 +58,13 @@ class Effect:
 
     name: ClassVar[str] = ""
     summary: ClassVar[str] = ""
-    # Effects are applied in increasing stage: 0 acts on the servo map (what the servo
-    # tries to hold), 1 on the load path (what the joint does under that command).
+    # applied in increasing stage: 0 on the servo map, 1 on the load path
     stage: ClassVar[int] = 1
 
     ctx: EffectContext = field(default_factory=EffectContext)
     # The structural setting in use (one row of ``settings()``); a JAX array while fitting.
     setting: object = None
 
-    # -- what an effect must define ----------------------------------------------------
     def param_names(self) -> tuple[str, ...]:
         raise NotImplementedError
 
@@ -103,36 +76,22 @@ class Effect:
               theta: jax.Array) -> jax.Array:
         raise NotImplementedError
 
-    # -- what it may define -------------------------------------------------------------
     def prior_sd(self) -> np.ndarray:
-        """Width of the weak zero-centred penalty on the parameters (see the diagnosis).
-
-        Generous on purpose (ten typical sizes): it only decides what happens in directions
-        the data cannot see at all.
-        """
+        """Width of the weak zero-centred penalty on the parameters: generous (ten typical
+        sizes), as it only decides directions the data cannot see at all."""
         return 10.0 * self.scales()
 
     def initial(self) -> np.ndarray:
-        """Start of the fit: no effect at all, so the base fit is the starting point."""
         return np.zeros(len(self.param_names()))
 
     def settings(self, params: kin.ArmParams, u: np.ndarray) -> np.ndarray | None:
-        """Candidate structural settings (G, s) to profile over, or None if there are none.
-
-        ``params``/``u`` (the base fit and the arm's commands) let an effect drop settings
-        that make no difference on these commands.
-        """
+        """Candidate structural settings (G, s) to profile over, or None; ``params`` and ``u``
+        let an effect drop settings that make no difference on these commands."""
         return None
 
-    def with_setting(self, setting: object) -> Effect:
-        return replace(self, setting=setting)
-
     def magnitudes(self, params: kin.ArmParams, extra: jax.Array) -> dict[str, jax.Array]:
-        """Physical sizes (JAX scalars) derived from the fit; their keys end in their unit.
-
-        Uncertainties come from the delta method on the fit's covariance, so these must be
-        differentiable in ``params`` and ``extra``.
-        """
+        """Physical sizes (JAX scalars, keys ending in their unit), differentiable: their
+        uncertainties come from the delta method on the fit's covariance."""
         return {}
 
     def describe(self, values: dict[str, tuple[float, float]]) -> str:
@@ -141,10 +100,8 @@ class Effect:
 
     def magnitude_report(self, params: kin.ArmParams, extra: np.ndarray,
                          cov: np.ndarray | None) -> dict:
-        """Magnitudes with standard errors from ``cov`` (over the base 8 + extra parameters).
-
-        Returns ``{"values": {name: {"value", "se"}}, "text": str}``.
-        """
+        """``{"values": {name: {"value", "se"}}, "text": str}``, standard errors from ``cov``
+        (over the base 8 + extra parameters)."""
         v = jnp.concatenate([params.to_vector(), jnp.asarray(extra, dtype=jnp.float64)])
         setting = None if self.setting is None else jnp.asarray(self.setting)
         value_fn, jac_fn = _magnitude_fns(type(self))
@@ -187,9 +144,8 @@ def register(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
-# The chain effects' names that have a planar instance: the planar ``gravity_sag`` is joint
-# compliance on a two-link arm in a vertical plane (``tests/test_diagnosis.py`` checks it
-# deflects as the chain's compliance group does on ``kinematics.planar_chain``).
+# Chain effects with a planar instance (``gravity_sag`` deflects as the chain's compliance
+# group does on ``planar_chain``: tests/test_diagnosis.py).
 ALIASES = {"joint_compliance": "gravity_sag"}
 # Chain effects with no planar instance, and why: what a planar rig can be asked instead.
 CHAIN_ONLY = {
@@ -201,10 +157,8 @@ CHAIN_ONLY = {
 
 
 def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list[str]:
-    """Candidate effect names for a planar rig (the registered effects) or, with ``chain``, a
-    URDF/DH chain (the calibration groups' effects): None asks for all; each name is said once
-    in that robot's words (``joint_compliance`` is a planar rig's ``gravity_sag``). A name the
-    robot has no model for is a one-line ``ValueError`` saying what to ask for instead."""
+    """Candidate effect names (None: all) of a planar rig or, with ``chain``, a URDF/DH chain,
+    each once in that robot's words; a name it has no model for is a one-line ValueError."""
     known = CHAIN_EFFECTS if chain else REGISTRY
     aliases = {p: c for c, p in ALIASES.items()} if chain else ALIASES
     if names is None:
@@ -224,13 +178,6 @@ def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list
     return out
 
 
-def make_effect(name: str, ctx: EffectContext) -> Effect:
-    try:
-        return REGISTRY[name](ctx)
-    except KeyError:
-        raise ValueError(f"unknown effect {name!r}; known: {', '.join(REGISTRY)}") from None
-
-
 def apply_effects(effects: tuple[Effect, ...], params: kin.ArmParams, extras: list[jax.Array],
                   u: jax.Array) -> jax.Array:
     """Joint angles of the augmented model: g(u) corrected by each effect in stage order."""
@@ -241,21 +188,14 @@ def apply_effects(effects: tuple[Effect, ...], params: kin.ArmParams, extras: li
     return theta
 
 
-# ------------------------------------------------------------------------------ helpers
-
-
 def _cross(a: jax.Array, g: jax.Array) -> jax.Array:
-    """z of a x g: the torque per unit weight of a mass at lever a about the pivot."""
+    # z of a x g: the torque per unit weight of a mass at lever a about the pivot
     return a[..., 0] * g[1] - a[..., 1] * g[0]
 
 
 def lever_signatures(theta: jax.Array, gravity: tuple[float, float]) -> tuple[jax.Array, jax.Array]:
-    """Gravity torque per unit (mass x lever) of mass along link 1 and along link 2.
-
-    Any mass distribution on straight links, lumped or spread, gives a shoulder torque
-    ``A * s1 + B * s12`` and an elbow torque ``B' * s12`` with A, B, B' >= 0: these two
-    functions of the configuration are all the torque geometry there is.
-    """
+    """Gravity torque per unit (mass x lever) along link 1 and along link 2: any mass on
+    straight links gives a shoulder torque ``A s1 + B s12`` and an elbow torque ``B' s12``."""
     g = jnp.asarray(gravity, dtype=jnp.float64)
     t1 = theta[..., 0]
     t12 = t1 + theta[..., 1]
@@ -268,23 +208,15 @@ def _straight_reach_mm(params: kin.ArmParams) -> tuple[jax.Array, jax.Array]:
     return params.links[0] + params.links[1], params.links[1]
 
 
-# ------------------------------------------------------------------------------ effects
-
-
 @register
 @dataclass(frozen=True)
 class GravitySag(Effect):
-    """Joints give way under the gravity torque, in proportion to it (compliant servos).
-
-    deflection_1 = c11 * s1 + c12 * s12,  deflection_2 = c22 * s12,
-    with s1, s12 the lever signatures (:func:`lever_signatures`) at the commanded angles and
-    c = (mass x lever x g) / stiffness in radians. Three coefficients cover any mass
-    distribution along straight links; no spring law or mass positions are assumed.
-    """
+    """Joints give way in proportion to the gravity torque: deflections ``c11 s1 + c12 s12``
+    and ``c22 s12`` (:func:`lever_signatures`; c = mass x lever x g / stiffness, rad), which
+    cover any mass distribution along straight links."""
 
     name: ClassVar[str] = "gravity_sag"
     summary: ClassVar[str] = "joint deflection proportional to the gravity torque"
-    stage: ClassVar[int] = 1
     ITERATIONS: ClassVar[int] = 3
 
     def param_names(self) -> tuple[str, ...]:
@@ -341,22 +273,14 @@ class GravitySag(Effect):
 @register
 @dataclass(frozen=True)
 class Backlash(Effect):
-    """Play in a joint: it rests against one side of its gear play, the side gravity pulls to.
-
-    delta_j = beta_j * sign(torque_j): a constant offset whose sign flips where the gravity
-    torque on the joint changes sign (absorbed into the servo offset where it never does).
-    The elbow's torque has the sign of s12; the shoulder's that of (1 - rho) s1 + rho s12,
-    where rho in [0, 1] is where the arm's mass sits (0: all on link 1, 1: all at the end).
-    rho cannot be found by gradient (the sign is flat in it), so it is a structural setting
-    the fit profiles over.
-    """
+    """Play in a joint, taken on the side gravity pulls to: ``beta_j sign(torque_j)``. The
+    elbow's torque has the sign of s12, the shoulder's that of (1 - rho) s1 + rho s12, rho in
+    [0, 1] where the mass sits: flat for a gradient, so a structural setting."""
 
     name: ClassVar[str] = "backlash"
     summary: ClassVar[str] = "joint offset whose sign follows the gravity torque"
-    stage: ClassVar[int] = 1
     RHO_GRID: ClassVar[np.ndarray] = np.linspace(0.0, 1.0, 41)
-    # Lever signature (sine of the lever's angle off the vertical) over which the side of
-    # the play changes: 0.05 is about 3 degrees of arm rotation.
+    # lever signature over which the side of the play changes: about 3 degrees of rotation
     FLOAT_WIDTH: ClassVar[float] = 0.05
 
     def param_names(self) -> tuple[str, ...]:
@@ -369,11 +293,8 @@ class Backlash(Effect):
         return jnp.asarray(0.3 if self.setting is None else jnp.reshape(self.setting, (-1,))[0])
 
     def signs(self, theta: jax.Array) -> jax.Array:
-        """Which side of its play each joint rests on, -1..1.
-
-        A smooth step, not a sign: near zero torque a joint floats in its play, and a hard
-        step would make the fit jump whenever a parameter moves a point across the line.
-        """
+        """Which side of its play each joint rests on, -1..1: a smooth step, since near zero
+        torque a joint floats in its play and a hard step would make the fit jump."""
         s1, s12 = lever_signatures(theta, self.ctx.gravity)
         rho = self._rho()
         lever = jnp.stack([(1 - rho) * s1 + rho * s12, s12], -1)
@@ -424,11 +345,8 @@ class Backlash(Effect):
 @register
 @dataclass(frozen=True)
 class ServoNonlinearity(Effect):
-    """A curved pulse-to-angle map: quadratic and cubic terms in the normalised pulse.
-
-    delta_j = q_j x_j^2 + k_j x_j^3 with x = (u - u_centre) / u_half_span over the commanded
-    range. Constant and linear parts are the servo map's own offset and gain.
-    """
+    """A curved pulse-to-angle map: ``q_j x^2 + k_j x^3`` in the normalised pulse (constant
+    and linear parts are the servo map's own)."""
 
     name: ClassVar[str] = "servo_nonlinearity"
     summary: ClassVar[str] = "quadratic + cubic terms in the pulse-to-angle map"

@@ -1,14 +1,7 @@
-"""The planar two-link arm of the paper, as pure JAX functions (a specialisation of the chain).
-
-Notation follows the paper: ``f(theta)`` maps joint angles to the end point,
-``g(u) = gain * u + offset`` maps pulse widths (microseconds) to joint angles (radians).
-Everything broadcasts over leading dimensions, so the same functions serve one point,
-a grid of test points or a batch of targets, and they are differentiable for the
-samplers and the least-squares fit.
-
-The same arm is also a 2-joint planar :class:`~bayesrob.robot.chain.Chain`
-(:func:`planar_chain`); the closed-form inverse here is kept for speed and tested equal to the
-general chain.
+"""The planar two-link arm of the paper, as pure JAX functions broadcasting over leading
+dimensions: ``f(theta)`` joint angles to end point, ``g(u) = gain * u + offset`` pulse widths
+(us) to angles. It is also a 2-joint :class:`~bayesrob.robot.chain.Chain`
+(:func:`planar_chain`); the closed forms here are kept for speed, tested equal to the chain.
 """
 
 from __future__ import annotations
@@ -84,12 +77,9 @@ def servo_inverse(params: ArmParams, theta: jax.Array) -> jax.Array:
 
 def forward(params: ArmParams, theta: jax.Array) -> jax.Array:
     """f(theta): end point (..., 2) in mm."""
-    t1 = theta[..., 0]
-    t12 = t1 + theta[..., 1]
-    l1, l2 = params.links[..., 0:1], params.links[..., 1:2]
-    c = jnp.stack([jnp.cos(t1), jnp.sin(t1)], -1)
+    t12 = theta[..., 0] + theta[..., 1]
     c12 = jnp.stack([jnp.cos(t12), jnp.sin(t12)], -1)
-    return params.base + l1 * c + l2 * c12
+    return elbow_point(params, theta) + params.links[..., 1:2] * c12
 
 
 def elbow_point(params: ArmParams, theta: jax.Array) -> jax.Array:
@@ -103,12 +93,8 @@ def forward_u(params: ArmParams, u: jax.Array) -> jax.Array:
 
 
 def inverse(params: ArmParams, d: jax.Array, elbow: int | jax.Array) -> tuple[jax.Array, jax.Array]:
-    """f^-1(d) by the law of cosines on the given elbow branch.
-
-    Returns ``(theta, reachable)``. ``elbow`` = +1 takes theta2 >= 0, -1 theta2 <= 0.
-    Unreachable points are clamped to the nearest reachable configuration (so gradients
-    stay finite) and flagged False in ``reachable``.
-    """
+    """f^-1(d) by the law of cosines on the ``elbow`` branch (+1: theta2 >= 0): ``(theta,
+    reachable)``, unreachable points clamped to the nearest reachable configuration."""
     l1, l2 = params.links[..., 0], params.links[..., 1]
     p = d - params.base
     r2 = jnp.sum(p**2, axis=-1)
@@ -133,21 +119,15 @@ def jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
 
 
 def log_abs_det_inverse_jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
-    """log |det d f^-1 / d d| at the configuration theta: -log |l1 l2 sin theta2|.
-
-    The change-of-variables term that turns a density on joint-angle errors into a
-    density on end points (NOTES: the paper omits it).
-    """
+    """log |det d f^-1 / d d| = -log |l1 l2 sin theta2|: the change of variables from joint
+    errors to end points, which the paper omits."""
     l1, l2 = params.links[..., 0], params.links[..., 1]
     return -jnp.log(jnp.abs(l1 * l2 * jnp.sin(theta[..., 1])))
 
 
 def choose_elbow(params: ArmParams, u: np.ndarray, d: np.ndarray, default: int = 1) -> int:
-    """The elbow branch that lies closest to the training data, as the paper chose it.
-
-    Compares each branch's f^-1(d_obs) with the commanded angles g(u); falls back to the
-    rig's ``elbow`` when there is no data.
-    """
+    """The elbow branch whose f^-1(d) lies closest to the commanded angles g(u), as the paper
+    chose it (``default`` without data)."""
     if len(u) == 0:
         return default
     theta_cmd = servo(params, jnp.asarray(u))
@@ -193,12 +173,8 @@ class Arm:
 
 
 def planar_chain(name: str, params: ArmParams) -> Chain:
-    """The planar arm as a 2-joint chain of the general model (mm, rad; z = 0).
-
-    The base is the first origin, the links the next origin and the tool, and the servo map is
-    the chain's command map, so ``Robot({name: chain}, dim=2).marker_points(nominal, name, u)``
-    equals :func:`forward_u`.
-    """
+    """The planar arm as a 2-joint chain (z = 0) whose ``marker_points`` at its nominal vector
+    equal :func:`forward_u`: base and links as origins, the servo map as the command map."""
     (bx, by), (l1, l2) = np.asarray(params.base, float), np.asarray(params.links, float)
     origins = np.zeros((3, 6))
     origins[0, :2] = bx, by

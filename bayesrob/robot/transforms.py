@@ -1,9 +1,6 @@
-"""Rigid transforms in 3-D: rotations, homogeneous matrices, and the xyz/rpy poses URDF uses.
-
-Poses are written as six numbers ``[x, y, z, roll, pitch, yaw]`` (mm, rad), meaning
-``Trans(x, y, z) @ Rz(yaw) @ Ry(pitch) @ Rx(roll)``, which is URDF's ``<origin xyz rpy>``
-convention. The JAX functions broadcast over leading dimensions and are differentiable; the
-NumPy ones build the constant (nominal) transforms once.
+"""Rigid transforms in 3-D. Poses are ``[x, y, z, roll, pitch, yaw]`` (mm, rad), meaning
+``Trans(x, y, z) @ Rz(yaw) @ Ry(pitch) @ Rx(roll)`` as URDF's ``<origin xyz rpy>``; the NumPy
+functions build the constant (nominal) transforms once.
 """
 
 from __future__ import annotations
@@ -42,11 +39,6 @@ def rot_axis(axis: jax.Array, angle: jax.Array) -> jax.Array:
     return jnp.eye(3) + jnp.sin(a) * kx + (1 - jnp.cos(a)) * (kx @ kx)
 
 
-def rot_axis_batch(axes: jax.Array, angles: jax.Array) -> jax.Array:
-    """Rodrigues for one axis per leading row: axes (E, 3), angles (E, N) -> (E, N, 3, 3)."""
-    return jax.vmap(rot_axis)(axes, angles)
-
-
 def homogeneous(rot: jax.Array, trans: jax.Array) -> jax.Array:
     """4x4 matrices from rotations (..., 3, 3) and translations (..., 3)."""
     top = jnp.concatenate([rot, trans[..., :, None]], -1)
@@ -54,27 +46,16 @@ def homogeneous(rot: jax.Array, trans: jax.Array) -> jax.Array:
     return jnp.concatenate([top, bottom], -2)
 
 
-def pose_matrix(pose: jax.Array) -> jax.Array:
-    """4x4 matrix of ``[x, y, z, roll, pitch, yaw]`` (URDF's order: Rz(yaw) Ry(pitch) Rx(roll))."""
-    pose = jnp.asarray(pose)
-    rot = rot_z(pose[..., 5]) @ rot_y(pose[..., 4]) @ rot_x(pose[..., 3])
-    return homogeneous(rot, pose[..., :3])
-
-
 def perturbation(delta: jax.Array) -> jax.Array:
-    """A small correction ``[dx, dy, dz, rx, ry, rz]`` as Trans(d) Rx Ry Rz.
-
-    At zero its six derivatives are the three translations and the three infinitesimal
-    rotations about the frame's own axes, so no direction is singular, whatever the nominal
-    pose (unlike DH parameters on parallel axes, or rpy at pitch = 90 degrees).
-    """
+    """A small correction ``[dx, dy, dz, rx, ry, rz]`` as Trans(d) Rx Ry Rz: at zero its
+    derivatives are the frame's own translations and rotations, singular in no direction."""
     delta = jnp.asarray(delta)
     rot = rot_x(delta[..., 3]) @ rot_y(delta[..., 4]) @ rot_z(delta[..., 5])
     return homogeneous(rot, delta[..., :3])
 
 
 def np_pose_matrix(pose: np.ndarray) -> np.ndarray:
-    """:func:`pose_matrix` in NumPy: a constant, also when called while JAX traces."""
+    """A pose's 4x4 matrix in NumPy: a constant, also when called while JAX traces."""
     x, y, z, r, p, w = np.asarray(pose, float)
     cr, sr, cp, sp, cw, sw = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(w), np.sin(w)
     rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
@@ -87,11 +68,8 @@ def np_pose_matrix(pose: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_pose(t: np.ndarray) -> np.ndarray:
-    """``[x, y, z, roll, pitch, yaw]`` of a 4x4 matrix, the inverse of :func:`pose_matrix`.
-
-    At gimbal lock (|pitch| = 90 degrees) roll is set to 0 and yaw carries the rotation, so the
-    returned pose still gives back the same matrix.
-    """
+    """``[x, y, z, roll, pitch, yaw]`` of a 4x4 matrix, the inverse of :func:`np_pose_matrix`
+    (at gimbal lock roll is 0 and yaw carries the rotation)."""
     t = np.asarray(t, float)
     r = t[:3, :3]
     pitch = float(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))

@@ -1,14 +1,9 @@
 """Chains from URDF files, and calibrated URDF files out.
 
-Only what kinematics needs is read, with the standard XML parser: each joint's ``type``,
-``origin`` (xyz in metres, rpy in rad), ``axis``, ``parent``/``child`` link and ``mimic``, its
-``limit`` effort, and each link's ``inertial`` mass and centre (a sagging chain's weights when
-the file's masses are to be trusted). Meshes and inertia tensors are left alone, and written
-back untouched. The chain between two
-named links becomes a :class:`~bayesrob.robot.chain.Chain` in mm: fixed joints are folded
-into the next joint's origin (or into the tool), ``continuous`` joints are revolute, and a
-``mimic`` joint is a coupled passive joint (its multiplier goes into the coupling matrix, its
-offset into its origin, where a turn about the joint's own axis is exact).
+Only what kinematics needs is read (joints' type, origin, axis, links, mimic and effort
+limit; links' inertial mass and centre); meshes and inertia tensors are written back
+untouched. Fixed joints fold into the next origin (or the tool), ``continuous`` is revolute,
+and a ``mimic`` joint is a coupled passive joint (its offset a turn in its origin).
 """
 
 from __future__ import annotations
@@ -20,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import bayesrob.robot.transforms as tf
-from bayesrob.robot.chain import Chain, KinematicsError, Robot
+from bayesrob.robot.chain import Chain, KinematicsError, Robot, _joint_motion
 
 M_TO_MM = 1000.0
 
@@ -51,9 +46,8 @@ def _parse(path: Path, text: str | None = None) -> ET.Element:
 
 
 def _check_references(root: ET.Element, path: Path) -> None:
-    """Every name a joint refers to exists, whether or not the chain asked for passes it: a
-    misspelt link or joint is a mistake in the file, and read as is it would silently cut a
-    tree or drop a coupling."""
+    """Every name a joint refers to exists, on the chain asked for or not: a misspelt one
+    would silently cut a tree or drop a coupling."""
     links = [el.get("name") for el in root.findall("link")]
     joints = [el.get("name") for el in root.findall("joint")]
     for kind, names in (("link", links), ("joint", joints)):
@@ -176,14 +170,7 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, *, text: str | 
         if mim is not None:
             mult = float(mim.get("multiplier", "1"))
             off = float(mim.get("offset", "0")) * (M_TO_MM if kind == "prismatic" else 1.0)
-            axis_u = axis / np.linalg.norm(axis)
-            if kind == "revolute":
-                motion = np.eye(4)
-                motion[:3, :3] = np.asarray(tf.rot_axis(axis_u, np.float64(off)))
-            else:
-                motion = np.eye(4)
-                motion[:3, 3] = axis_u * off
-            t = t @ motion
+            t = t @ np.asarray(_joint_motion(kind, axis / np.linalg.norm(axis), np.float64(off)))
             mimics.append((mim.get("joint"), mult))
         else:
             mimics.append(None)
@@ -229,9 +216,6 @@ def urdf_chain(path: str | Path, root: str, tip: str, name: str, *, text: str | 
                        coupling=coupling, source=source, **chain_kwargs)
 
 
-# ----------------------------------------------------------------------------- writing
-
-
 def _set_origin(joint: ET.Element, t: np.ndarray) -> None:
     pose = tf.matrix_to_pose(t)
     o = joint.find("origin")
@@ -267,11 +251,8 @@ def _patched(robot: Robot, calibrated: Robot) -> ET.ElementTree:
 
 
 def _generated(calibrated: Robot, name: str) -> ET.ElementTree:
-    """A kinematics-only URDF of a robot described by DH tables or planar arms.
-
-    Couplings are not written as ``<mimic>`` (which follows one joint only, not a combination
-    such as -(q2 + q3)): the rig file beside the URDF carries them.
-    """
+    """A kinematics-only URDF of a robot described by DH tables or planar arms; couplings go
+    in the rig file, as ``<mimic>`` follows one joint only, not -(q2 + q3)."""
     robot_el = ET.Element("robot", name=name)
     ET.SubElement(robot_el, "link", name="base_link")
 
@@ -297,13 +278,9 @@ def _generated(calibrated: Robot, name: str) -> ET.ElementTree:
 
 
 def write_urdf(robot: Robot, x: np.ndarray, out: str | Path, name: str = "robot") -> Robot:
-    """Write the calibrated robot (parameters x) as URDF; returns the calibrated robot.
-
-    A robot read from one URDF file gets that file back with its joints' origins replaced (so
-    meshes, inertias and limits survive); any other robot gets a kinematics-only URDF with
-    links ``<arm>_link<i>`` and tip links ``<arm>_tip``. The instrument pose and the markers
-    are not part of a URDF: they go into the rig file beside it.
-    """
+    """Write the calibrated robot (parameters x) as URDF and return it: its own file with the
+    origins replaced (meshes, inertias and limits survive), else a kinematics-only URDF with
+    links ``<arm>_link<i>`` and ``<arm>_tip``; instrument pose and markers go in the rig file."""
     calibrated = robot.with_values(x)
     kinds = {c.source.get("kind") for c in robot.chains.values()}
     files = {c.source.get("path") for c in robot.chains.values()}

@@ -1,17 +1,6 @@
-"""Where simulated arms settle: the least potential energy of their springs and weights.
-
-A free arm settles where its joint springs (dead band and stiffness of
-:mod:`bayesrob.sim.physics`) balance its weights; arms linked at one point settle where their
-summed energy is least with the points together: a tug of war between their stiffnesses, not
-an average. Two solvers, one physics:
-
-- :class:`PhysicalRig`, the paper's servo-driven planar arms (pulse widths in, end points
-  out): BFGS on the energy of each arm (the general energy's closed form on a 2-joint chain),
-  linked arms eliminated through their closed-form inverse
-  (:func:`bayesrob.robot.inverse`), so the dead band's kink needs no Hessian;
-- :func:`linked_equilibrium`, arms of revolute joints in 3-D: Newton's method on the Lagrange
-  conditions with closed-form first and second derivatives of one forward pass.
-
+"""Where simulated arms settle: the least energy of their springs and weights (linked arms: a
+tug of war between their stiffnesses). :class:`PhysicalRig`: the paper's planar arms by BFGS
+(the dead band's kink needs no Hessian); :func:`linked_equilibrium`: 3-D arms by Newton.
 Linked rows are aimed through a calibrated model by :func:`position_ik`.
 """
 
@@ -35,7 +24,6 @@ from bayesrob.sim.truth import GRAVITY, POSE_HI, POSE_LO, TRUTH_FILE, ArmTruth, 
 
 
 def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
-    """The angle each servo tries to hold for pulse widths u (..., 2)."""
     theta = kin.servo(arm.params, u)
     if "servo_nonlinearity" in effects:
         theta = theta + servo_ripple(u, arm.u_mid, arm.nonlinearity_rad,
@@ -43,11 +31,9 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
     return theta
 
 
-# The planar arms' energy in closed form: the one energy of _arm_evaluate on the arm's 2-joint
-# chain (ArmTruth.robot, its links' masses at their centres of mass, ArmTruth.link_masses),
-# tested equal to it. BFGS stops where the energy is flat to rounding, about 1e-6 mm from
-# the minimum, so any other arithmetic moves every simulated planar rig by that much; this
-# one is what the pinned rigs were made with, and a tenth of a millisecond faster per step.
+# The planar arms' energy in closed form, tested equal to _arm_evaluate's on the 2-joint chain:
+# BFGS stops where the energy is flat to rounding (about 1e-6 mm off), so other arithmetic
+# would move every pinned planar rig by that much.
 
 
 class _ArmArrays(NamedTuple):
@@ -69,7 +55,6 @@ def _arm_arrays(arm: ArmTruth, effects: Sequence[str]) -> _ArmArrays:
 
 
 def _mass_points(params: kin.ArmParams, theta: jax.Array) -> jax.Array:
-    """Positions (4, 2) of the point masses: mid link 1, elbow, mid link 2, end."""
     elbow = kin.elbow_point(params, theta)
     end = kin.forward(params, theta)
     return jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
@@ -101,8 +86,7 @@ def _linked_energy_vg(d: jax.Array, theta_cmds: tuple, arms: tuple, gravity: jax
 
 
 def _least_energy(value_and_grad: Callable, x0: np.ndarray, scale: float) -> np.ndarray:
-    """Where an energy (given with its gradient) is least, by BFGS from ``x0``; ``scale``
-    divides it so the optimiser's tolerances mean the same for stiff and soft servos."""
+    # ``scale`` divides the energy so the tolerances mean the same for stiff and soft servos
 
     def obj(x: np.ndarray) -> tuple[float, np.ndarray]:
         v, gr = value_and_grad(jnp.asarray(x))
@@ -113,11 +97,8 @@ def _least_energy(value_and_grad: Callable, x0: np.ndarray, scale: float) -> np.
 
 
 class PhysicalRig:
-    """The simulated hardware: pulse widths in, settled end points out.
-
-    Used by ``bayesrob simulate`` and by the simulated serial device, so the files and the
-    pseudo-terminal answer with the same physics.
-    """
+    """The simulated hardware: pulse widths in, settled end points out (for ``bayesrob
+    simulate`` and the simulated serial device alike)."""
 
     def __init__(self, truth: Truth, seed: int | None = None):
         self.truth = truth
@@ -134,13 +115,11 @@ class PhysicalRig:
         return float(jnp.min(self._arrays[name].stiffness))
 
     def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
-        """Equilibrium joint angles of a free arm holding commanded angles theta_cmd."""
         tc = jnp.asarray(theta_cmd, dtype=jnp.float64)
         return _least_energy(lambda t: _arm_energy_vg(t, tc, self._arrays[name], self._gravity),
                              np.asarray(theta_cmd, float), self._k_scale(name))
 
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
-        """Common end point of arms linked at their end points (least total energy)."""
         names = tuple(theta_cmds)
         arrays = tuple(self._arrays[n] for n in names)
         elbows = tuple(int(self.truth.arms[n].elbow) for n in names)
@@ -193,18 +172,9 @@ class LinkedEquilibrium:
 
 def _arm_program(robot: Robot, arm: str) -> Callable:
     """A compiled ``(x, u, u0, k, weight, centre, backlash, periodic=False) -> dict`` of one
-    arm over rows u (N, n), compiled once per process for all robots of ``robot``'s structure:
-    the energy of springs (stiffness k, N mm/rad, a dead band of half-width ``backlash``)
-    holding the joint columns at u0 (``periodic``: the difference wrapped to a turn) plus the
-    potential of the link weights (N, each at ``centre`` of the way along its link: 0.5 for
-    arm6, as in ``physics.gravity_deflection``), its gradient and Hessian, and the marker with
-    its first and second derivatives.
-
-    The derivatives are closed forms on the frames of one forward pass (no automatic
-    differentiation through the chain's scan, which took seconds to compile): a point r
-    carried beyond joint j moves by a_j x (r - o_j) when j turns (axis a_j through o_j), and
-    d2 r / du_i du_j = a_i x (a_j x (r - o_j)) for i <= j, since joint i carries axis j and
-    its origin along.
+    arm over rows u (N, n): spring and weight energy, its gradient and Hessian, the marker and
+    its two derivatives, in closed form on one forward pass (autodiff through the scan took
+    seconds to compile): d r / du_j = a_j x (r - o_j), d2 r / du_i du_j = a_i x (a_j x (r - o_j)).
     """
     chain = robot.chains[arm]
     if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
@@ -261,7 +231,7 @@ def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np
 
 
 def _middles(robot: Robot, arm: str) -> tuple[jax.Array, jax.Array]:
-    """Centres of mass at the links' middles and no dead band: arm6's physics."""
+    # arm6's physics: centres of mass at the links' middles, no dead band
     n = robot.chains[arm].n_joints
     return jnp.full(n, 0.5), jnp.zeros(n)
 
@@ -279,11 +249,8 @@ def linked_energy(robot: Robot, x: np.ndarray, u: Mapping[str, np.ndarray],
                   u0: Mapping[str, np.ndarray], stiffness: Mapping[str, np.ndarray],
                   masses_kg: Mapping[str, np.ndarray] | None = None,
                   gravity: Sequence[float] | None = GRAVITY) -> np.ndarray:
-    """Total potential energy (N mm) of the arms at joint columns ``u[arm]`` (N, n), per row:
-    springs of stiffness ``stiffness[arm]`` (N mm/rad) holding the columns at ``u0[arm]``,
-    plus the potential of the link masses (``masses_kg[arm]``, kg, at the links' centres)
-    under ``gravity`` (instrument frame; None or no masses: none). The markers need not meet.
-    """
+    """Total potential energy (N mm) per row of the arms at columns ``u[arm]`` (N, n), as
+    :func:`linked_equilibrium` weighs it; the markers need not meet."""
     arms = tuple(u)
     ks, weights = _physics_arguments(robot, arms, stiffness, masses_kg, gravity)
     states = _arm_states(robot, arms, jnp.asarray(x, float),
@@ -324,19 +291,10 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
                        masses_kg: Mapping[str, np.ndarray] | None = None,
                        gravity: Sequence[float] | None = GRAVITY, tol_mm: float = 1e-9,
                        max_iter: int = 40) -> LinkedEquilibrium:
-    """The exact equilibrium of arms whose markers are joined by a ball joint, row by row.
-
-    Each arm's joints are torsional springs (``stiffness[arm]``, N mm/rad) holding its joint
-    columns at ``u0[arm]`` (N, n) (commanded plus joint noise); the links' point masses
-    (``masses_kg[arm]``, kg, at the links' centres as in ``physics.gravity_deflection``) hang
-    under ``gravity`` (a direction in the instrument frame; None: no gravity). The arms settle
-    at the minimum of their summed energy subject to every marker (true parameters ``x``)
-    being at one point; the joint's orientation is free. Solved by Newton's method on the
-    Lagrange conditions with exact first and second derivatives, started from each arm's own
-    (free) equilibrium, itself found by Newton on its energy. Raises LinkedSimulationError
-    when a row does not converge (markers more than ``tol_mm`` apart, at most 1e-6 mm) or
-    stops at a point that is not a constrained minimum.
-    """
+    """The exact equilibrium of arms whose markers are joined by a ball joint, row by row:
+    springs (``stiffness[arm]``, N mm/rad) hold the columns at ``u0[arm]`` (N, n) and link
+    masses (kg) hang under ``gravity`` (None: none). LinkedSimulationError when the markers
+    stay over ``tol_mm`` (at most 1e-6 mm) apart or the point is no constrained minimum."""
     arms = tuple(u0)
     if len(arms) < 2:
         raise ValueError("a linked equilibrium needs two arms or more")

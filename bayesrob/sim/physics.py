@@ -1,18 +1,6 @@
-"""The physical terms of the simulator, for any chain: what makes a built arm's end point
-differ from where its model puts it.
-
-- gravity: the torque of the links' point masses about each joint (:func:`gravity_torques`);
-- compliance: joints give way by that torque over their stiffness (:func:`gravity_deflection`,
-  or the springs of an energy the equilibria minimise, :mod:`bayesrob.sim.equilibrium`);
-- backlash: a dead band in the joint's spring (:func:`dead_band`), or play taken up on the side
-  gravity pushes the joint to (:func:`play_offsets`);
-- servo non-linearity: a ripple on the pulse-to-angle map (:func:`servo_ripple`);
-- encoder error: an eccentric encoder disk (:func:`encoder_error`);
-- joint repeatability and instrument noise, and the per-seed spread of stiffnesses and masses
-  between two builds of one design (:func:`draw_stiffnesses`).
-
-Each random draw has a stream of its own (``*_STREAM``, spawned from the rig's seed), so
-switching one effect on leaves every other draw of a rig as it was.
+"""The simulator's physical terms for any chain: gravity, compliance, backlash (dead band or
+play), servo ripple, eccentric encoders, stiffness spread. Each random draw has a stream of its
+own (``*_STREAM``), so switching one effect on leaves every other draw as it was.
 """
 
 from __future__ import annotations
@@ -36,35 +24,30 @@ STIFFNESS_STREAM = 17  # the drawn stiffnesses' own random stream
 
 
 def dead_band(x: jax.Array, b: jax.Array) -> jax.Array:
-    """What a spring with a dead band of half-width ``b`` sees of a deflection ``x``: nothing
-    inside the band, the excess beyond it (backlash)."""
+    """What a spring with a dead band of half-width ``b`` sees of a deflection ``x``."""
     return jnp.sign(x) * jnp.maximum(jnp.abs(x) - b, 0.0)
 
 
 def servo_ripple(u: jax.Array, u_mid: jax.Array, amplitude_rad: jax.Array,
                  period_us: jax.Array) -> jax.Array:
-    """The servo map's departure from its line at pulse widths ``u`` (rad): ``amplitude
-    sin(2 pi (u - u_mid) / period)``, as a feedback potentiometer's track and the gear train
-    give; over the few hundred microseconds a workspace uses it bends the map visibly."""
+    """The servo map's departure from its line at pulse widths ``u`` (rad), as a feedback
+    potentiometer's track and the gear train give."""
     phase = 2 * jnp.pi * (u - u_mid) / jnp.asarray(period_us)
     return jnp.asarray(amplitude_rad) * jnp.sin(phase)
 
 
 def encoder_error(q_read: np.ndarray, eccentricity: float, phase: np.ndarray) -> np.ndarray:
-    """How far each joint really is from the angle its eccentric encoder reads (rad): a disk
-    of radius 1 whose centre sits ``eccentricity`` off the axis at ``phase``, read by a fixed
-    head, puts the read angle ahead of the true one by atan2(e sin(q - phase), 1 + e cos(q -
-    phase))."""
+    """How far each joint really is from the angle its eccentric encoder reads (rad): a unit
+    disk ``eccentricity`` off the axis at ``phase``, read by a fixed head."""
     d = np.asarray(q_read) - np.asarray(phase)
     return -np.arctan2(eccentricity * np.sin(d), 1.0 + eccentricity * np.cos(d))
 
 
 def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
                  rng: np.random.Generator, approach: np.ndarray | None = None) -> np.ndarray:
-    """Where each joint rests in its play (N, n) rad: half the play towards its gravity torque
-    ``tau`` (N mm), or, where the torque is weaker than ``stick_nmm``, towards the side it
-    was approached from: ``approach`` (N, n; +1, -1) where given and non-zero, else drawn
-    from ``rng``."""
+    """Where each joint rests in its play (N, n) rad: towards its gravity torque ``tau``
+    (N mm), or, where that is weaker than ``stick_nmm``, towards the side it was approached
+    from (``approach`` where non-zero, else drawn)."""
     drawn = rng.choice([-1.0, 1.0], size=tau.shape)
     if approach is not None:
         drawn = np.where(approach != 0, np.sign(approach), drawn)
@@ -95,12 +78,8 @@ def _torques(structure: RobotStructure, arm: str, values: dict, x: jax.Array, q:
 
 def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                     masses_kg: np.ndarray, gravity: np.ndarray) -> np.ndarray:
-    """The gravity torque (N, n) about each joint's axis at joint values q (N mm).
-
-    Each link's mass sits halfway along the next origin's translation (its centre); the
-    torque about a joint is that of the masses beyond it about its axis. Compiled once per
-    process for every robot of ``robot``'s structure.
-    """
+    """The gravity torque (N, n) about each joint's axis at joint values q (N mm), each link's
+    mass halfway along the next origin's translation."""
     return np.asarray(_torques(robot.structure, arm, robot.nominal_values, jnp.asarray(x),
                                jnp.asarray(q), jnp.asarray(masses_kg, float),
                                jnp.asarray(gravity, float)))
@@ -109,11 +88,8 @@ def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
 def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                        masses_kg: np.ndarray, stiffness: np.ndarray,
                        gravity: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Joint deflections (N, n) at equilibrium: dq = tau(q + dq) / k, by fixed-point steps
-    (torques of :func:`gravity_torques`). Deflections are a few mrad, so the step contracts
-    fast: at arm6's masses and stiffnesses four steps leave about 1e-6 rad, eight about
-    1e-12 rad (more for softer joints).
-    """
+    """Joint deflections (N, n) at equilibrium, dq = tau(q + dq) / k, by fixed-point steps:
+    at arm6's masses four leave about 1e-6 rad, eight about 1e-12 rad."""
     dq = np.zeros_like(q)
     for _ in range(iterations):
         dq = gravity_torques(robot, x, arm, q + dq, masses_kg, gravity) / stiffness
@@ -132,8 +108,7 @@ def link_weights(masses_kg: np.ndarray | None, gravity: Sequence[float] | None,
 def draw_stiffnesses(seed: int, profiles: Mapping[str, Sequence[float]], log_sd: float
                      ) -> dict[str, np.ndarray]:
     """Each arm's joint stiffnesses for a seed: its profile times exp(N(0, sd) per arm +
-    N(0, sd) per joint), arms in the order given, from the seed's own stream. Two servos of
-    one model are not equally stiff, nor are two arms' mountings and links."""
+    N(0, sd) per joint), arms in the order given."""
     rng = np.random.default_rng([seed, STIFFNESS_STREAM])
     out = {}
     for name, profile in profiles.items():

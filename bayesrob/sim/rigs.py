@@ -1,12 +1,7 @@
 """Writing simulated rig directories (rig.toml, measurements.csv, truth.toml) from a truth
-(:mod:`bayesrob.sim.truth`), and measuring a rig's planned rows in simulation.
-
-The paper's rigs (:func:`simulate_rig`) are aimed on a grid through each arm's nominal model,
-then linked through the models calibrated on their train rows; arm6 rigs
-(:func:`simulate_arm6_rig`, :func:`simulate_linked_arm6_rig`) are measured at random poses,
-and their linked rows aimed through the calibrated models at random targets. Training,
-validation and holdout rows are at different poses; holdout rows draw their noise from a
-stream of their own.
+(:mod:`bayesrob.sim.truth`), and measuring a rig's planned rows in simulation. Linked rows are
+aimed through the arms' models calibrated on their train rows; holdout rows draw their noise
+from a stream of their own.
 """
 
 from __future__ import annotations
@@ -17,6 +12,7 @@ import os
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -66,12 +62,8 @@ def grid_points(workspace, n: int) -> np.ndarray:
 
 
 def holdout_points(workspace, n: int) -> np.ndarray:
-    """The centres of the n x n grid's (n - 1) x (n - 1) cells, row by row from the top left.
-
-    The training grid shifted by half a cell, keeping the points inside the workspace: each
-    is as far from the training poses as the grid allows, so errors there measure accuracy at
-    new poses, where the paper's ``validation`` repeats only measure repeatability.
-    """
+    """The centres of the n x n grid's cells, row by row from the top left: as far from the
+    training poses as the grid allows, so errors there measure accuracy at new poses."""
     if n < 2:
         return np.zeros((0, 2))
     g = grid_points(workspace, n)
@@ -105,16 +97,10 @@ def round_pulse(u: np.ndarray) -> np.ndarray:
 
 def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
                  holdout: bool = True) -> Path:
-    """Write a rig directory (rig.toml, measurements.csv, truth.toml) from the truth.
-
-    Training commands aim at the grid through each arm's *nominal* inverse model (a person
-    aiming approximately); validation repeats them; the linked ``test`` rows aim both arms at
-    each grid point through their own inverse models calibrated on the train rows. Then the
-    ``holdout`` rows, at new poses (:func:`holdout_points`, between the grid points): each
-    arm alone aimed through its nominal model, then the arms linked and aimed through their
-    calibrated models. Their noise comes from a stream of its own, so the rows before them
-    are those a run without holdout rows (``holdout=False``) writes, byte for byte.
-    """
+    """Write a rig directory (rig.toml, measurements.csv, truth.toml) from the truth: train
+    rows aimed at the grid through the *nominal* models (as a person aims), validation repeats,
+    linked ``test`` rows through the calibrated models, then ``holdout`` rows from a noise
+    stream of their own (the rows before are byte for byte those of ``holdout=False``)."""
     from bayesrob.calibrate.arms import calibrate_arm  # calibration needs rig types only
 
     out = Path(out_dir)
@@ -147,10 +133,7 @@ def simulate_rig(out_dir: str | Path, truth: Truth, progress: bool = False,
                 bar.update()
             if set_name == "train":
                 train[name] = (u_all, np.asarray(obs))
-    calibrated = {}
-    for name in names:
-        u, d = train[name]
-        calibrated[name] = calibrate_arm(specs[name], u, d).arm
+    calibrated = {name: calibrate_arm(specs[name], *train[name]).arm for name in names}
     linked = "+".join(names)
 
     for target in grid:
@@ -197,12 +180,9 @@ def _check_limits(name: str, u: np.ndarray, limits) -> None:
 
 def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
                     ) -> tuple[int, int]:
-    """Measure a rig's planned rows (commands given, x and y empty) with the physics of its
-    ``truth.toml``: how a candidate written by ``bayesrob design`` is tried in simulation.
-
-    Rows already measured are kept as they are; the file is replaced in one step at the end,
-    so an interrupted run leaves it unchanged. Returns (rows measured, rows in the file).
-    """
+    """Measure a rig's planned rows (commands given, x and y empty) with its ``truth.toml``'s
+    physics, replacing the file in one step at the end. Returns (rows measured, rows in the
+    file)."""
     directory = Path(directory)
     truth_path = directory / TRUTH_FILE
     if not truth_path.is_file():
@@ -241,19 +221,20 @@ def measure_planned(directory: str | Path, seed: int = 0, progress: bool = False
         row[idx["x"]], row[idx["y"]] = (f"{v:.6g}" for v in d)
         bar.update()
     bar.close()
-    buf = io.StringIO()
-    csv.writer(buf).writerows([header, *body])
-    tmp = path.with_suffix(".csv.tmp")
-    tmp.write_text(buf.getvalue())
-    os.replace(tmp, path)
+    _replace_csv(path, [header, *body], csv.writer)
     return len(planned), len(body)
 
 
-# ------------------------------------------------------------------------------ arm6
+def _replace_csv(path: Path, rows: list, writer: Callable) -> None:
+    # in one step, so an interrupted run leaves the file as it was
+    buf = io.StringIO()
+    writer(buf).writerows(rows)
+    tmp = path.with_suffix(".csv.tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
 
 
 def random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Random joint angles over the working range."""
     return rng.uniform(POSE_LO, POSE_HI, size=(n, 6))
 
 
@@ -290,8 +271,7 @@ class _Arm6Plant:
 
     @classmethod
     def build(cls, truth: Arm6Truth, rng: np.random.Generator) -> _Arm6Plant:
-        """The plant of ``truth``: its true parameters as ``truth.true_params`` has them, or,
-        before they are drawn, drawn from ``rng``."""
+        # the true parameters as ``truth.true_params`` has them, or, before that, drawn
         nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
                              marker=truth.marker_nominal_mm,
                              instrument=truth.instrument_nominal)
@@ -369,11 +349,10 @@ def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarr
                         seed: int = 0,
                         plant: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
                         ) -> int:
-    """Measure the joint commands ``q_cmd`` (N, 6), in this order, on the simulated arm6 in
-    ``rig_dir`` (its truth.toml) and append them to its measurements.csv with their ``sets``
-    and each joint's approach side (``arm_d1..6``, from the command before: the arm moves
-    from pose to pose). ``plant(q_cmd, approach) -> points (N, 3)`` measures instead, for an
-    arm made by other physics (a validation study's). Returns the rows appended."""
+    """Measure the joint commands ``q_cmd`` (N, 6), in order, on the simulated arm6 in
+    ``rig_dir`` and append them to its measurements.csv with their ``sets`` and approach
+    sides (``arm_d1..6``); ``plant(q_cmd, approach) -> points (N, 3)`` measures instead, for
+    an arm made by other physics (a validation study's). Returns the rows appended."""
     import tomllib
 
     out = Path(rig_dir)
@@ -410,11 +389,7 @@ def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarr
         for a, v in zip("xyz", pc, strict=True):
             row[idx[a]] = f"{v:.4f}"
         body.append(row)
-    buf = io.StringIO()
-    csv.writer(buf, lineterminator="\n").writerows([header, *body])
-    tmp = path.with_suffix(".csv.tmp")
-    tmp.write_text(buf.getvalue())
-    os.replace(tmp, path)
+    _replace_csv(path, [header, *body], partial(csv.writer, lineterminator="\n"))
     return len(q_cmd)
 
 
@@ -459,12 +434,10 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedAr
     from bayesrob.calibrate.least_squares import calibrate
 
     rig = load_rig(out)
-    # The rig's robot is the simulator's (same URDF, names and layout): one compiled program
-    # per arm then serves the inverse kinematics and the physics.
+    # the simulator's robot, so one compiled program per arm serves the aim and the physics
     if rig.robot.layout.names != robot.layout.names:
         raise RuntimeError("the written rig does not read back as the simulated robot")
-    # The commands come from what a user would have: each arm's model calibrated on its own
-    # train rows, not the truth.
+    # aimed as predict aims, through each arm's model calibrated on its train rows (not truth)
     cal = calibrate(rig, tuple(truth.calibration_groups))
     box = np.asarray(truth.target_box_mm, float)
     targets = rng.uniform(box[:, 0], box[:, 1], size=(truth.n_linked, 3))
@@ -487,17 +460,9 @@ def _aim_and_settle(out: Path, robot: Robot, x_true: np.ndarray, truth: LinkedAr
 
 
 def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Path:
-    """Write a rig of two arm6 arms, ``left`` and ``right`` (or ``truth.arms``), into out_dir:
-    rig.toml, arm6.urdf (nominal), measurements.csv and truth.toml.
-
-    Each arm has single-arm train, validation and holdout rows at random poses (as
-    :func:`simulate_arm6_rig`, with its own true geometry, noise and compliance). Then each
-    arm is calibrated on its train rows (``truth.calibration_groups``) and the ``left+right``
-    (``+``-joined ``truth.arms``) test rows aim every arm at random targets in
-    ``truth.target_box_mm`` through their calibrated models (position-only inverse
-    kinematics); their observed point is where the joined markers really settle
-    (:func:`linked_equilibrium`), plus measurement noise.
-    """
+    """Write a rig of linked arm6 arms into out_dir: single-arm rows at random poses, and
+    linked ``test`` rows aimed at random targets through each arm's calibrated model, observed
+    where the joined markers really settle (:func:`linked_equilibrium`) plus noise."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(truth.seed)
@@ -520,9 +485,8 @@ def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Pat
         q_cmd = random_poses(rng, sum(n for _, n in sets))
         q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
         if truth.compliance:
-            # Frames in the instrument frame, so gravity is the instrument's -z. Eight steps:
-            # the softer arm's fixed point contracts more slowly than four steps allow (they
-            # leave up to 6e-6 rad).
+            # Gravity is the instrument's -z; eight steps, as four leave the softer arm's fixed
+            # point up to 6e-6 rad off.
             q = q + physics.gravity_deflection(robot, x_true, arm, q, masses[arm],
                                                stiffness[arm], np.asarray(GRAVITY), iterations=8)
         p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))

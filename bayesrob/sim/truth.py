@@ -1,23 +1,13 @@
-"""What a simulated rig really is: the truths the simulator builds its rigs from and writes to
-``truth.toml`` (only tests and studies read it). Two configurations of one physics
-(:mod:`bayesrob.sim.physics`, :mod:`bayesrob.sim.equilibrium`):
+"""What a simulated rig really is, as written to ``truth.toml`` (only tests and studies read
+it); all randomness flows from the seed. Two configurations of one physics:
 
-- the paper's setup (:func:`paper_truth`, :func:`three_arm_truth`): servo-driven planar arms,
-  each a 2-joint chain (:meth:`ArmTruth.robot`) whose joints are springs pulling towards the
-  commanded angles, under the weight of point masses (links at mid-link, the elbow servo, an
-  end mass), aimed on a grid. Its effects (names are a contract, ``vocabulary.EFFECTS``):
-  ``gravity_sag`` gives the servos their real stiffness (without it they are
-  ``STIFF_FACTOR`` times stiffer, so gravity still picks the side of a dead band but no
-  longer deflects a joint measurably); ``backlash`` a dead band, where the gravity torque on
-  a joint changes sign the end point jumps (the paper's bottom-arm discontinuity);
-  ``servo_nonlinearity`` a ripple on the pulse-to-angle map. Always on: joint repeatability
-  noise on the commanded angle and measurement noise on the end point;
-- arm6 (:class:`Arm6Truth`, :class:`LinkedArm6Truth`): a 6-joint URDF arm whose true
-  geometry differs from its nominal URDF, measured at random poses; its joints give way under
-  gravity, read through eccentric encoders, rest in their play; linked arms are joined at one
-  marker point.
-
-All randomness flows from the seed, so a rig is reproducible from its ``truth.toml``.
+- the paper's servo-driven planar arms (:func:`paper_truth`), springs pulling to the commanded
+  angles under point masses, aimed on a grid. Effects (``vocabulary.EFFECTS``): ``gravity_sag``
+  gives the servos their real stiffness (without it they are ``STIFF_FACTOR`` times stiffer,
+  so gravity still picks the side of a dead band), ``backlash`` a dead band (the paper's
+  bottom-arm jump), ``servo_nonlinearity`` a ripple on the pulse-to-angle map;
+- arm6 (:class:`Arm6Truth`, :class:`LinkedArm6Truth`): a 6-joint URDF arm off its nominal
+  geometry at random poses, with sag, eccentric encoders and play; linked arms share a marker.
 """
 
 from __future__ import annotations
@@ -64,21 +54,18 @@ class ArmTruth(ArmGeometry):
 
     @property
     def params(self) -> kin.ArmParams:
-        return kin.ArmParams(*(jnp.asarray(x, dtype=jnp.float64)
-                               for x in (self.base, self.links, self.gain, self.offset)))
+        return kin.ArmParams.from_spec(self)
 
     def robot(self) -> kin.Robot:
-        """The arm as a 2-joint chain of the general model, its columns the joint angles (the
-        servo map, with its ripple, stays outside): what the simulator's physics acts on."""
+        """The arm as a 2-joint chain whose columns are the joint angles (servo map outside)."""
         angles = kin.ArmParams(*(jnp.asarray(v, dtype=jnp.float64)
                                  for v in (self.base, self.links, (1.0, 1.0), (0.0, 0.0))))
         return kin.Robot({self.name: kin.planar_chain(self.name, angles)}, 2)
 
     @property
     def link_masses(self) -> tuple[np.ndarray, np.ndarray]:
-        """Each link's mass (kg) with what it carries (the elbow servo on link 1, the end mass
-        on link 2), and where along the link their centre of mass sits (fraction of its
-        length)."""
+        """Each link's mass (kg) with what it carries (elbow servo, end mass) and where along
+        the link (fraction of its length) their centre of mass sits."""
         link = np.asarray(self.link_mass_kg, float)
         carried = np.array([self.elbow_mass_kg, self.end_mass_kg])
         mass = link + carried
@@ -118,7 +105,6 @@ class Truth:
                 raise ValueError(f"unknown effect {e!r}; known: {', '.join(EFFECTS)}")
         return replace(self, effects=effects)
 
-    # -- file round trip ---------------------------------------------------------------
     def to_toml(self) -> str:
         return "# True parameters of a simulated rig. Only tests read this file.\n" + \
             dump_toml(asdict(self))
@@ -152,15 +138,10 @@ def _offsets_for(base, links, gain, elbow, limits, workspace) -> tuple[float, fl
 
 def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
                 stiffness_log_sd: float = 0.0) -> Truth:
-    """The paper's setup: a top arm hung from a strut, a bottom arm standing on the base.
-
-    The bottom arm carries most of its mobile mass in the elbow servo and bends its elbow to
-    the left, so across the workspace the gravity torque on its shoulder changes sign and the
-    shoulder's backlash makes the end point jump, as the paper saw.
-
-    ``stiffness_log_sd`` > 0 draws each arm's joint stiffnesses for this seed
-    (:func:`with_drawn_stiffness`); 0 keeps every arm at the same (2500, 1800) N mm/rad.
-    """
+    """The paper's setup: a top arm hung from a strut, a bottom arm standing on the base,
+    whose elbow-heavy left-bent pose flips its shoulder's gravity torque across the workspace
+    (backlash then makes the jump the paper saw). ``stiffness_log_sd``: see
+    :func:`with_drawn_stiffness`."""
     workspace = ((80.0, 260.0), (100.0, 280.0))
     limits = ((600.0, 2400.0), (600.0, 2400.0))
     arms = {}
@@ -178,14 +159,9 @@ def paper_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
 
 
 def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
-    """The truth with each arm's joint stiffnesses drawn for its seed: the arm's own ones
-    scaled by exp(N(0, sd) per arm + N(0, sd) per joint), as the 3-D simulator draws them.
-
-    Two servos of one model are not equally stiff, and neither are two arms' mountings and
-    links. With one stiffness for every arm, a prior that linked arms are alike is right by
-    construction, so predictions judged on such rigs flatter it. The draws come from a stream
-    of their own: the rest of the rig is what the seed always gave. 0 leaves the truth as is.
-    """
+    """The truth with each arm's stiffnesses scaled by exp(N(0, sd) per arm + N(0, sd) per
+    joint) for its seed, from a stream of their own (0: as is). With one stiffness for every
+    arm, a prior that linked arms are alike would be right by construction."""
     if not (np.isfinite(log_sd) and log_sd >= 0):
         raise ValueError(f"stiffness_log_sd must be a finite number >= 0, got {log_sd}")
     if log_sd == 0:
@@ -199,11 +175,8 @@ def with_drawn_stiffness(truth: Truth, log_sd: float) -> Truth:
 
 def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
                     stiffness_log_sd: float = 0.0) -> Truth:
-    """The paper's two arms and a third standing to the left of the workspace (``side``):
-    three arms linked at one end point, for predictions of assemblies of more than two.
-
-    With ``stiffness_log_sd`` the top and bottom arms get the stiffnesses :func:`paper_truth`
-    draws for the seed, and the side arm the next draws of the same stream."""
+    """The paper's two arms and a third (``side``) standing left of the workspace, for
+    assemblies of more than two; stiffnesses drawn as :func:`paper_truth` does."""
     pair = paper_truth(effects, seed, grid)
     base, links, gain = (-170.0, 190.0), (260.0, 240.0), (0.00151, 0.00149)
     limits = ((600.0, 2400.0), (600.0, 2400.0))
@@ -214,17 +187,13 @@ def three_arm_truth(effects: Iterable[str] = (), seed: int = 0, grid: int = 4,
     return with_drawn_stiffness(truth, stiffness_log_sd)
 
 
-# ------------------------------------------------------------------------------ arm6
-
-
 def arm6_urdf_path() -> Path:
     return Path(str(files("bayesrob.data") / "arm6" / ARM6_URDF))
 
 
 @dataclass
 class _ArmErrors:
-    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are: the
-    settings a single-arm and a linked chain rig share."""
+    """How far a simulated arm6 is from its nominal URDF and how noisy its rows are."""
 
     seed: int = 0
     n_train: int = 80
@@ -262,16 +231,14 @@ class Arm6Truth(_ArmErrors):
 
 
 def load_true_params(rig_dir: str | Path) -> dict[str, float]:
-    """The true parameter values a simulated chain rig (one arm or two linked) was made with."""
+    """The true parameter values a simulated arm6 rig (one arm or linked) was made with."""
     doc = tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())
     return doc.get("chain_truth", doc.get("linked_chain_truth"))["true_params"]
 
 
-# Two arm6 arms facing each other over a shared workspace (and, for assemblies of three, a
-# third from the side), their markers joined by a ball joint for the linked rows. The joined
-# point is found exactly, as the minimum of the arms' summed spring and gravity energy under
-# the constraint that the markers coincide: the prediction code under test balances
-# linearised stiffnesses, so the simulator must not.
+# Arm6 arms facing each other, markers joined by a ball joint for the linked rows. The joined
+# point is the exact constrained energy minimum: prediction balances linearised stiffnesses,
+# so the simulator must not.
 
 LINKED_ARMS = ("left", "right")
 # A third arm for assemblies of three: facing the targets from the side (its base 450 mm from
@@ -282,20 +249,11 @@ THIRD_ARM_INSTRUMENT = (450.0, -450.0, 0.0, 0.0, 0.0, np.pi / 2)
 THIRD_ARM_STIFFNESS_SCALE = 0.8
 
 
-def _left_stiffness() -> tuple[float, ...]:
-    return Arm6Truth().stiffness_nmm_per_rad
-
-
 @dataclass
 class LinkedArm6Truth(_ArmErrors):
-    """What a simulated rig of linked arm6 arms (two, or ``arms``) really is (truth.toml).
-
-    Per-arm settings are tables keyed by arm name (``left``, ``right``; ``arms`` names the
-    arms, in order: :func:`three_arm6_truth` adds ``front``); everything else is
-    shared. ``true_params`` holds every arm's parameters under their full names
-    (``left.marker.x``); ``linked_rows`` what the linked rows really did (filled by
-    :func:`simulate_linked_arm6_rig`).
-    """
+    """What a simulated rig of linked arm6 arms (``arms``, in order) really is (truth.toml):
+    per-arm tables keyed by arm name; ``true_params`` under full names (``left.marker.x``) and
+    ``linked_rows`` filled by :func:`simulate_linked_arm6_rig`."""
 
     n_linked: int = 24
     arms: tuple[str, ...] = LINKED_ARMS
@@ -306,15 +264,13 @@ class LinkedArm6Truth(_ArmErrors):
     # The right arm is the softer one (0.6 of the left's stiffness): where the linked point
     # settles between the arms depends on the ratio.
     stiffness_nmm_per_rad: dict[str, tuple[float, ...]] = field(default_factory=lambda: {
-        "left": _left_stiffness(), "right": tuple(0.6 * k for k in _left_stiffness())})
-    # Two arms of one model are not equally stiff, nor are two rigs' arms: each seed draws its
-    # arms' stiffnesses about the profile above, log k = log(profile) + N(0, sd) per arm +
-    # N(0, sd) per joint, from a stream of its own (the rest of the rig is what the seed always
-    # gave); truth.toml records what was drawn. 0: the profile as it is, on every seed.
+        "left": Arm6Truth.stiffness_nmm_per_rad,
+        "right": tuple(0.6 * k for k in Arm6Truth.stiffness_nmm_per_rad)})
+    # Each seed draws its arms' stiffnesses about the profile above, log k = log(profile) +
+    # N(0, sd) per arm + N(0, sd) per joint, from a stream of its own (0: the profile).
     stiffness_log_sd: float = 0.3
-    # Nor is a built arm's link mass what its description (arm6.urdf, masses_kg at the links'
-    # middles) says: each arm's true masses are those scaled by a log-normal factor per arm and
-    # per link, from a stream of their own; ``drawn_masses_kg`` records them. 0: as described.
+    # True link masses: the description's times a log-normal factor per arm and per link, from
+    # a stream of their own (0: as described); ``drawn_masses_kg`` records them.
     mass_log_sd: float = 0.0
     drawn_masses_kg: dict = field(default_factory=dict)
     # Linked targets are drawn uniformly in this box (instrument frame, mm): between the bases,
@@ -337,10 +293,8 @@ class LinkedArm6Truth(_ArmErrors):
 
 
 def three_arm6_truth(**kwargs: Any) -> LinkedArm6Truth:
-    """Three arm6 arms joined at one point: ``left`` and ``right`` as in
-    :class:`LinkedArm6Truth` and ``front`` (:data:`THIRD_ARM`) facing the targets from the
-    side; ``kwargs`` as the class takes them. Its stiffness profile is the left arm's times
-    :data:`THIRD_ARM_STIFFNESS_SCALE`, drawn about per seed as the others are."""
+    """:class:`LinkedArm6Truth` (``kwargs``) with a third arm, ``front``, facing the targets
+    from the side, its stiffness the left arm's times :data:`THIRD_ARM_STIFFNESS_SCALE`."""
     base = LinkedArm6Truth()
     instrument = {**base.instrument_nominal, THIRD_ARM: THIRD_ARM_INSTRUMENT}
     stiffness = {**base.stiffness_nmm_per_rad,
@@ -352,22 +306,20 @@ def three_arm6_truth(**kwargs: Any) -> LinkedArm6Truth:
 
 
 def drawn_stiffness(truth: LinkedArm6Truth) -> dict[str, tuple[float, ...]]:
-    """Each arm's joint stiffnesses (N mm/rad) for the rig of ``truth.seed``: its profile
-    scaled by a log-normal factor per arm and per joint (``stiffness_log_sd``)."""
+    """Each arm's joint stiffnesses (N mm/rad) drawn about its profile for ``truth.seed``."""
     drawn = draw_stiffnesses(truth.seed, {a: truth.stiffness_nmm_per_rad[a]
                                           for a in truth.arms}, truth.stiffness_log_sd)
     return {a: tuple(float(v) for v in k) for a, k in drawn.items()}
 
 
 def drawn_masses(truth: LinkedArm6Truth) -> dict[str, np.ndarray]:
-    """Each arm's true link masses (kg) for the rig of ``truth.seed``: the described masses
-    scaled by exp(N(0, ``mass_log_sd``)) per arm and per link."""
+    """Each arm's true link masses (kg) for ``truth.seed``: the described ones scaled by
+    exp(N(0, ``mass_log_sd``)) per arm and per link."""
     rng = np.random.default_rng([truth.seed, MASS_STREAM])
     m = np.asarray(truth.masses_kg, float)
     return {a: m * np.exp(truth.mass_log_sd * rng.normal(size=m.shape)) for a in truth.arms}
 
 
 def load_linked_truth(rig_dir: str | Path) -> dict:
-    """The ``linked_chain_truth`` table of a rig written by
-    :func:`~bayesrob.sim.rigs.simulate_linked_arm6_rig`."""
+    """The ``linked_chain_truth`` table of a simulated linked arm6 rig."""
     return tomllib.loads((Path(rig_dir) / TRUTH_FILE).read_text())["linked_chain_truth"]
