@@ -1,14 +1,10 @@
 """The paper's eight parameters of each planar arm, calibrated from its measured end points,
 and the observed accuracy of the calibrated arms.
 
-A planar arm is a 2-joint chain (:func:`kinematics.planar_chain`): its base is the shoulder's
-origin, its links the elbow's and the tool's origins along x, its servo map the chain's gains
-and offsets. So ``least-squares`` is the group fit of :mod:`bayesrob.calibrate.least_squares`
-restricted to those eight columns of the offsets, servo and geometric groups, in the arm's own
-base frame (a rig's ``calibrate --params`` frees the frames instead, to the same predictions),
-with its one covariance. ``hill-climb`` is the paper's procedure
-(:mod:`bayesrob.calibrate.hill_climb`); ``bayes`` (:mod:`bayesrob.calibrate.bayes`) samples the same
-eight columns.
+A planar arm is a 2-joint chain: base the shoulder's origin, links the elbow's and tool's
+origins along x, servo map the gains and offsets. ``least-squares`` is the group fit of
+:mod:`.least_squares` restricted to those eight columns in the arm's own base frame;
+``hill-climb`` the paper's procedure; ``bayes`` (:mod:`.bayes`) samples the same eight.
 """
 
 from __future__ import annotations
@@ -55,10 +51,7 @@ class ArmCalibration:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        """This arm's entry of ``bayesrob calibrate --json`` (as :meth:`to_json`)."""
-        return self.to_json()
-
-    def to_json(self) -> dict:
+        """This arm's entry of ``bayesrob calibrate --json``."""
         se = kin.ArmParams.from_vector(jnp.asarray(self.params_se))
         out = {
             "params": self.arm.params.as_dict(),
@@ -72,16 +65,16 @@ class ArmCalibration:
         out.update(self.extra)
         return out
 
+    to_json = to_dict
+
 
 def mean_error_mm(params: kin.ArmParams, u: np.ndarray, d: np.ndarray) -> float:
-    """Mean Euclidean distance between f(g(u)) and the observed end points."""
     pred = np.asarray(kin.forward_u(params, jnp.asarray(u)))
     return float(np.mean(np.linalg.norm(pred - d, axis=-1)))
 
 
 def arm_robot(v: np.ndarray) -> tuple[kin.Robot, np.ndarray]:
-    """The arm of eight parameters ``v`` as a one-chain robot, and the indices (8,) of the
-    eight among the robot's parameters."""
+    """The arm of eight parameters ``v`` as a one-chain robot, and the eight's indices (8,)."""
     robot = kin.Robot({ARM: kin.planar_chain(ARM, kin.ArmParams.from_vector(
         jnp.asarray(v, float)))}, 2)
     names = [p.name for p in robot.layout.params]
@@ -89,8 +82,7 @@ def arm_robot(v: np.ndarray) -> tuple[kin.Robot, np.ndarray]:
 
 
 def arm_covariance(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Gauss-Newton covariance (8, 8) of an arm's fitted parameters ``v``
-    (``ArmParams.to_vector`` order) on its train rows; NaN when the rows cannot fix them."""
+    """Gauss-Newton covariance (8, 8) of an arm's fitted parameters ``v`` on its train rows."""
     robot, idx = arm_robot(v)
     res, jac, *_ = residual_function(robot, {ARM: (np.asarray(u, float),
                                                    np.asarray(d, float), None)})
@@ -100,8 +92,7 @@ def arm_covariance(v: np.ndarray, u: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def arm_fit(robot: kin.Robot, idx: np.ndarray, u: np.ndarray, d: np.ndarray) -> Calibration:
-    """The least squares of an arm's eight, the columns ``idx`` of its chain (:func:`arm_robot`),
-    on its rows (u: pulses (N, 2), d: end points (N, 2))."""
+    """The least squares of an arm's eight, the columns ``idx`` of its chain, on its rows."""
     eight = np.zeros(robot.layout.nominal.size, bool)
     eight[idx] = True
     return fit(robot, {ARM: (u, d, None)}, ARM_GROUPS, candidates=eight, tol=ARM_TOL,
@@ -147,8 +138,8 @@ def calibrate_arm(spec: ArmSpec, u: np.ndarray, d: np.ndarray, method: Method = 
 
 def calibrate_arms(rig: Rig, method: Method = "least-squares", fit_arm=None
                    ) -> dict[str, ArmCalibration]:
-    """Calibrate every arm of a rig on its single-arm ``train`` rows (``fit_arm``: another fit
-    of one arm than :func:`calibrate_arm`, called as it is, the method aside)."""
+    """Calibrate every arm of a rig on its single-arm ``train`` rows (``fit_arm``: called as
+    :func:`calibrate_arm`, the method aside)."""
     out = {}
     for name, spec in rig.arms.items():
         u, d = rig.rows(name, "train")
@@ -159,7 +150,6 @@ def calibrate_arms(rig: Rig, method: Method = "least-squares", fit_arm=None
 
 
 def mean_ci95(errors: np.ndarray) -> dict:
-    """Mean with the Student-t 95% confidence interval of the mean."""
     e = np.asarray(errors, float)
     n = len(e)
     mean = float(np.mean(e)) if n else float("nan")
@@ -170,11 +160,8 @@ def mean_ci95(errors: np.ndarray) -> dict:
 
 
 def predicted_points(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
-    """Where the model says the rows of a config ended up.
-
-    A single arm: f(g(u)) of the commands sent. Linked arms: the target the commands aimed at,
-    as the paper did (the commands came from the arms' own inverse models).
-    """
+    """Where the model says a config's rows ended up: one arm's f(g(u)); linked arms' target,
+    as the paper did (their commands came from the arms' own inverse models)."""
     rows = rig.config_rows(config, set)
     members = config.split("+")
     if len(members) == 1:
@@ -188,14 +175,12 @@ def predicted_points(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) 
 
 
 def observed_errors(rig: Rig, arms: dict[str, kin.Arm], config: str, set: str) -> np.ndarray:
-    """Euclidean distance (mm) between predicted and observed end point, row by row."""
     rows = rig.config_rows(config, set)
     pred = predicted_points(rig, arms, config, set)
     return np.linalg.norm(pred - rows["observed"], axis=-1)
 
 
 def observed_accuracy(rig: Rig, arms: dict[str, kin.Arm]) -> dict[str, dict[str, dict]]:
-    """Mean error with 95% CI per config and set, for every config and set present."""
     out: dict[str, dict[str, dict]] = {}
     for config in rig.configs:
         for s in SETS:

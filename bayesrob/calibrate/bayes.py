@@ -1,31 +1,22 @@
 """Bayesian calibration (numpyro NUTS): the posterior of the parameters the least squares fits.
 
-One model (:func:`calibration_model`) for every robot: the parameters sampled (indices ``idx``
-of its vector, the rest held) with Normal priors around nominal (:class:`Priors`, by group),
-a measurement-noise sd ~ HalfNormal, every measured coordinate ~ Normal(marker point, noise
-sd). A rig's groups (:func:`calibrate_bayes`, ``calibrate --params ... --method bayes``) sample
-the columns the rank analysis keeps; the paper's planar arms (:func:`calibrate_arms_bayes`,
-``calibrate --method bayes``) the eight columns of each arm's 2-joint chain
-(:func:`~bayesrob.calibrate.arms.arm_robot`) under :data:`ARM_PRIORS`, as their least squares
-fits them (docs/bayesian-calibration.md gives the priors' reasons).
-
-NUTS samples in coordinates whitened at the least-squares fit by its Laplace approximation
-(x[idx] = x_ls + (noise_sd / s) L z, L L^T the Gauss-Newton covariance with the prior's
-information added, s the residuals' rms): there the posterior is close to a standard normal
-however correlated the parameters (a planar arm's gain and offset, its base and links) and
-whatever the noise, so the trajectories are short. It is one compiled program per robot
-structure, settings and data shapes (:func:`_nuts_chain`), reused across robots of a design,
-chains and simulated data sets (:func:`sbc`). From a planar arm's posterior,
-:func:`predict_end_points` draws end points of single or linked arms (the product of the arms'
-Gaussian likelihoods, the rule of :mod:`bayesrob.predict.grid`) and :func:`predicted_accuracy`
-summarises them as a setup's expected mean error with a 95 % interval.
+One model (:func:`calibration_model`) for every robot: Normal priors around nominal by group
+(:class:`Priors`; docs/bayesian-calibration.md gives their reasons), a HalfNormal noise sd,
+every measured coordinate Normal about the marker point. A rig's groups
+(:func:`calibrate_bayes`) sample the columns the rank analysis keeps; a planar arm
+(:func:`calibrate_arms_bayes`) the eight columns of its 2-joint chain. NUTS samples in
+coordinates whitened at the least-squares fit by its Laplace approximation, where the
+posterior is close to a standard normal however correlated the parameters, so trajectories
+are short; one compiled program per robot structure, settings and data shapes.
 """
 
 from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -57,13 +48,9 @@ from bayesrob.data.rig import ArmSpec, Rig
 COVERAGE_LEVELS = (0.5, 0.9, 0.95)
 
 
-# ----------------------------------------------------------------------------- the model
-
-
 @dataclass(frozen=True)
 class Priors:
-    """Prior sd of each calibration group around the robot's nominal values (mm, rad), and
-    the scale of the HalfNormal prior on the measurement-noise sd."""
+    """Prior sd of each group around nominal (mm, rad) and the noise sd's HalfNormal scale."""
 
     instrument_mm: float = 200.0  # a rough placement of the robot in the measuring frame
     instrument_rad: float = 0.2
@@ -79,7 +66,6 @@ class Priors:
     effect_sizes: float = 10.0
 
     def sd(self, layout: kin.ParamLayout) -> np.ndarray:
-        """Prior sd (P,) of every parameter of the layout."""
         base = {sl.start + k for (_, part), sl in layout.slices.items() if part == "origins"
                 for k in range(3)}  # the first origin's position
         out = np.empty(len(layout.params))
@@ -101,7 +87,6 @@ class Priors:
         return out
 
     def arm_dict(self) -> dict[str, float]:
-        """The priors of a planar arm's eight, as its ``calibrate --json`` entry names them."""
         return {"base_mm": self.origin_mm if self.base_mm is None else self.base_mm,
                 "links_mm": self.origin_mm, "gain_rel": self.gain_rel,
                 "offset_rad": self.offset_rad, "noise_halfnormal_mm": self.noise_mm}
@@ -112,8 +97,6 @@ ARM_PRIORS = Priors(noise_mm=5.0)  # a planar arm's: the rest of its priors are 
 
 @dataclass(frozen=True)
 class SamplerSettings:
-    """NUTS settings (the calibration's defaults)."""
-
     num_warmup: int = 500
     num_samples: int = 500
     num_chains: int = 2
@@ -125,9 +108,8 @@ class SamplerSettings:
 def calibration_model(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
                       data: tuple, x: jax.Array, idx: jax.Array, prior_sd: jax.Array,
                       noise_mm: jax.Array) -> None:
-    """The numpyro model of a robot's rows ``data`` ((u, d, side) per arm of ``arms``; d None
-    samples the prior predictive): ``x`` the parameter vector at the prior's mean where
-    sampled (``idx``), held elsewhere; ``values`` the robot's nominal values."""
+    """The model of a robot's rows ``data`` ((u, d, side) per arm; d None: prior predictive):
+    ``x`` at the prior's mean where sampled (``idx``), held elsewhere."""
     import numpyro
     import numpyro.distributions as dist
 
@@ -155,9 +137,9 @@ def _potential_fn_gen(structure, arms, centre, chol, s, *model_args):
 @functools.partial(jax.jit, static_argnames=("structure", "arms", "settings"))
 def _nuts_chain(rng_key, init_params, model_args, *, structure: kin.RobotStructure,
                 arms: tuple[str, ...], settings: SamplerSettings):
-    """One NUTS chain, warm-up and sampling: numpyro's NUTS kernel through its functional
-    ``hmc`` interface, as ``MCMC.run`` recompiles its loop on every call; the robot's numbers
-    and the data are arguments, so a robot structure, settings and data shapes compile once."""
+    """One NUTS chain through numpyro's functional ``hmc`` (``MCMC.run`` recompiles its loop on
+    every call); the robot's numbers and the data are arguments, so a robot structure,
+    settings and data shapes compile once."""
     from numpyro.infer.hmc import hmc
 
     init_kernel, sample_kernel = hmc(
@@ -175,29 +157,26 @@ def _nuts_chain(rng_key, init_params, model_args, *, structure: kin.RobotStructu
     return jax.tree.map(lambda x: x[settings.num_warmup:], out)
 
 
-_COMPILED: dict = {}
-_COMPILE_SECONDS: dict = {}
+def _compile_seconds(run: Callable[[], Any]) -> tuple[Any, float]:
+    """``run()`` and the seconds JAX spent in it tracing, lowering and compiling (or reading
+    from the persistent cache) :func:`_nuts_chain`: jit's own cache holds the program, so
+    ``release_compiled_programs`` drops it and the first call of a structure pays for it."""
+    spent = []
 
+    def listen(event: str, seconds: float, **kw: Any) -> None:
+        if event.startswith("/jax/core/compile/") and "_nuts_chain" in kw.get("fun_name", ""):
+            spent.append(seconds)
 
-def _compiled_chain(key, init, args, **static):
-    """The compiled chain for this structure, settings and data shapes (compiled ahead of
-    time, timed)."""
-    sig = (*static.values(), jax.tree.structure(args),
-           tuple(np.shape(a) for a in jax.tree.leaves(args)))
-    if sig not in _COMPILED:
-        t0 = time.perf_counter()
-        _COMPILED[sig] = _nuts_chain.lower(key, init, args, **static).compile()
-        _COMPILE_SECONDS[sig] = time.perf_counter() - t0
-    return _COMPILED[sig]
-
-
-# ----------------------------------------------------------------------------- posterior
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        return run(), float(sum(spent))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 @dataclass
 class Posterior:
-    """Posterior draws of the sampled parameters and the noise sd, with the sampler's
-    diagnostics."""
+    """Posterior draws of the sampled parameters and the noise sd, with diagnostics."""
 
     x: np.ndarray  # (chains, draws, k) the sampled parameters
     noise_sd: np.ndarray  # (chains, draws) mm
@@ -207,7 +186,6 @@ class Posterior:
 
     @property
     def draws(self) -> np.ndarray:
-        """Parameter draws (chains * draws, k)."""
         return self.x.reshape(-1, self.x.shape[-1])
 
     @property
@@ -225,9 +203,9 @@ class Posterior:
 
 def _whitening(res, jac, x_fit: np.ndarray, idx: np.ndarray, prior_mean: np.ndarray,
                prior_sd: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Centre and square root L (k, k) of the Laplace approximation at the least-squares fit
-    ``x_fit``, and the residuals' rms s (the noise sd at the fit). Where the rows leave no
-    degree of freedom or the fit is wild (20 prior sd out), the prior's instead."""
+    """Centre and square root L (k, k) of the Laplace approximation at ``x_fit`` and the
+    residuals' rms s; the prior's where the rows leave no degree of freedom or the fit is
+    wild (20 prior sd out)."""
     r = np.asarray(res(jnp.asarray(x_fit)))
     s = max(float(np.sqrt(r @ r / max(r.size - idx.size, 1))), 1e-3)
     free = np.zeros(x_fit.size, bool)
@@ -242,7 +220,6 @@ def _whitening(res, jac, x_fit: np.ndarray, idx: np.ndarray, prior_mean: np.ndar
 
 def _diagnostics(x: np.ndarray, noise: np.ndarray, diverging: np.ndarray,
                  steps: np.ndarray) -> dict:
-    """R-hat and effective sample sizes from arviz, over the parameters and the noise sd."""
     import arviz as az
 
     idata = az.from_dict(posterior={"x": x, "noise_sd": noise},
@@ -257,7 +234,6 @@ def _diagnostics(x: np.ndarray, noise: np.ndarray, diverging: np.ndarray,
 
 def _model_args(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarray,
                 priors: Priors) -> tuple:
-    """The arguments of :func:`calibration_model` after its static ones."""
     data = tuple((jnp.asarray(u, float), None if d is None else jnp.asarray(d, float), side)
                  for u, d, side in rows.values())
     return (robot.nominal_values, data, jnp.asarray(x), jnp.asarray(idx),
@@ -268,14 +244,12 @@ def sample_posterior(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarra
                      x_fit: np.ndarray, priors: Priors = Priors(),
                      settings: SamplerSettings = SamplerSettings(), seed: int = 0,
                      diagnostics: bool = True) -> Posterior:
-    """NUTS posterior of the parameters ``idx`` of ``robot`` given its ``rows``: ``x`` the
-    parameter vector at the prior's mean where sampled, held elsewhere; ``x_fit`` the
-    least-squares fit the sampler is whitened at. The chains run one after another; the
-    first call per structure, settings and data shapes compiles the sampler. ``diagnostics``
+    """NUTS posterior of the parameters ``idx`` of ``robot`` given its ``rows`` (``x`` as in
+    :func:`calibration_model`), whitened at the least-squares fit ``x_fit``. ``diagnostics``
     off: the divergences alone (arviz's R-hat needs two chains)."""
     from numpyro.distributions import biject_to, constraints
 
-    t0, c0 = time.perf_counter(), sum(_COMPILE_SECONDS.values())
+    t0 = time.perf_counter()
     idx = np.asarray(idx)
     res, jac, *_ = residual_function(robot, rows)
     centre, chol, s = _whitening(res, jac, np.asarray(x_fit, float), idx, x[idx],
@@ -287,21 +261,18 @@ def sample_posterior(robot: kin.Robot, rows: Rows, x: np.ndarray, idx: np.ndarra
     inits = [{"z": jnp.asarray(rng.standard_normal(idx.size)),
               "noise_sd": jnp.asarray(np.log(s) + 0.15 * rng.standard_normal())}
              for _ in keys]
-    chain = _compiled_chain(keys[0], inits[0], args, structure=robot.structure,
-                            arms=tuple(rows), settings=settings)
-    outs = [chain(k, init, args) for k, init in zip(keys, inits, strict=True)]
+    chain = functools.partial(_nuts_chain, structure=robot.structure, arms=tuple(rows),
+                              settings=settings)
+    outs, compile_seconds = _compile_seconds(lambda: [
+        chain(k, init, args) for k, init in zip(keys, inits, strict=True)])
     z = np.stack([np.asarray(o[0]["z"]) for o in outs])
     noise = np.stack([np.asarray(biject_to(constraints.positive)(o[0]["noise_sd"]))
                       for o in outs])
     diverging, steps = (np.stack([np.asarray(o[i]) for o in outs]) for i in (1, 2))
     draws = centre + noise[..., None] / s * (z @ chol.T)
-    compile_seconds = sum(_COMPILE_SECONDS.values()) - c0
     return Posterior(draws, noise, _diagnostics(draws, noise, diverging, steps) if diagnostics
                      else {"divergences": int(diverging.sum())},
                      time.perf_counter() - t0 - compile_seconds, compile_seconds)
-
-
-# ----------------------------------------------------------------------------- planar arms
 
 
 @dataclass
@@ -315,7 +286,6 @@ class ArmPosterior(Posterior):
 
     @property
     def arm(self) -> kin.Arm:
-        """The arm at the posterior-mean parameters."""
         return kin.Arm(self.name, kin.ArmParams.from_vector(jnp.asarray(self.mean)), self.elbow,
                        self.pulse_limits)
 
@@ -337,8 +307,8 @@ def _forward_draws(draws: jax.Array, u: jax.Array) -> jax.Array:
 
 def _arm_problem(spec: ArmSpec, u: np.ndarray, d: np.ndarray | None
                  ) -> tuple[kin.Robot, np.ndarray, Rows, np.ndarray]:
-    """A planar arm as its chain: the robot, the eight's indices (PARAM_NAMES order), its
-    rows and the shift from the chain's values of the eight to the arm's."""
+    """A planar arm as its chain: robot, the eight's indices, rows, and the shift from the
+    chain's values of the eight to the arm's."""
     v0 = np.asarray(kin.ArmParams.from_spec(spec).to_vector())
     robot, idx = arm_robot(v0)
     rows = {ARM: (np.asarray(u, float), None if d is None else np.asarray(d, float), None)}
@@ -349,8 +319,7 @@ def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
                          priors: Priors = ARM_PRIORS,
                          settings: SamplerSettings = SamplerSettings(), seed: int = 0,
                          diagnostics: bool = True) -> ArmPosterior:
-    """NUTS posterior of one arm's eight parameters given its rows (u, d: (N, 2) each): the
-    posterior of its chain's eight columns (:func:`sample_posterior`)."""
+    """NUTS posterior of one arm's eight parameters given its rows (u, d: (N, 2) each)."""
     robot, idx, rows, shift = _arm_problem(spec, u, d)
     nominal = robot.layout.nominal
     try:
@@ -364,24 +333,16 @@ def sample_arm_posterior(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
                         pulse_limits=spec.pulse_limits)
 
 
-# ----------------------------------------------------------------------------- calibration
-
-
 @dataclass
 class BayesArmCalibration(ArmCalibration):
-    """An :class:`ArmCalibration` that also carries the posterior draws."""
-
     posterior: ArmPosterior | None = None
 
 
 def predictive_coverage(posterior: ArmPosterior, u: np.ndarray, d: np.ndarray,
                         levels=COVERAGE_LEVELS, seed: int = 0) -> dict[str, float]:
-    """Fraction of observed points inside the central posterior predictive region of each level.
-
-    The region of a row is bounded by the Mahalanobis distance (under the predictive draws'
-    own mean and covariance) that the given fraction of the draws falls within, so it needs no
-    Gaussian assumption about the predictive distribution itself.
-    """
+    """Fraction of observed points inside the central posterior predictive region of each
+    level, bounded by the Mahalanobis distance the level's fraction of draws falls within (no
+    Gaussian assumption about the predictive itself)."""
     draws = posterior.predictive(u, seed)  # (S, T, 2)
     mean = draws.mean(axis=0)
     dev = draws - mean
@@ -399,7 +360,6 @@ def calibrate_arm_bayes(spec: ArmSpec, u: np.ndarray, d: np.ndarray,
                         priors: Priors = ARM_PRIORS,
                         settings: SamplerSettings = SamplerSettings(),
                         seed: int = 0) -> BayesArmCalibration:
-    """Bayesian calibration of one arm: posterior mean and sd, errors, diagnostics, coverage."""
     u = np.asarray(u, float)
     d = np.asarray(d, float)
     post = sample_arm_posterior(spec, u, d, priors, settings, seed)
@@ -445,20 +405,11 @@ def calibrate_arms_bayes(rig: Rig, priors: Priors = ARM_PRIORS,
         spec, u, d, uv, dv, priors, settings, seed))
 
 
-# ----------------------------------------------------------------------------- prediction
-
-
 def predict_end_points(posteriors: dict[str, ArmPosterior], commands: dict[str, np.ndarray],
                        noise: bool = True, seed: int = 0) -> np.ndarray:
-    """Draws (S, T, 2) of the end point of a setup for commands (T, 2) per arm.
-
-    One arm: f(g(u)) under each posterior draw, plus that draw's Gaussian noise if ``noise``.
-    Several arms linked at their end points: each arm's draw says the end point is
-    Normal(f_a(g_a(u_a)), sigma_a^2 I); their product (the rule :mod:`bayesrob.predict.grid`
-    applies to the joint-error likelihoods) is Normal with the precision-weighted mean and
-    variance 1 / sum_a sigma_a^-2. The arms' posteriors are independent, so their draws are
-    paired by index (S = the fewest draws of any arm).
-    """
+    """Draws (S, T, 2) of a setup's end point for commands (T, 2) per arm: f(g(u)) per
+    posterior draw (plus its noise if ``noise``); linked arms' Normal(f_a(g_a(u_a)), sigma_a^2)
+    multiplied, the precision-weighted mean, their independent draws paired by index."""
     names = list(commands)
     n = min(posteriors[a].draws.shape[0] for a in names)
     mus = [posteriors[a].forward_draws(np.asarray(commands[a], float))[:n] for a in names]
@@ -477,23 +428,18 @@ def predict_end_points(posteriors: dict[str, ArmPosterior], commands: dict[str, 
 
 def predicted_accuracy(posteriors: dict[str, ArmPosterior], commands: dict[str, np.ndarray],
                        reference: np.ndarray | None = None, seed: int = 0) -> dict:
-    """Predicted mean error of a setup, with the parameter uncertainty propagated.
-
-    The error of a row is the distance from the point the setup is judged against
-    (``reference``: e.g. the target for linked arms; default the posterior-mean prediction)
-    to where the end point lands, drawn from :func:`predict_end_points`. Returned:
-    ``expected_error_mm`` (mean over draws and rows), ``interval95_mm`` (2.5 and 97.5 % points
-    of the mean over the rows in one draw: where the setup's observed mean error should fall),
-    ``noise_only_error_mm`` (the same with every arm at its posterior-mean parameters, so the
-    difference is what parameter uncertainty adds) and ``per_row_mm``.
-    """
+    """Predicted mean error of a setup from ``reference`` (default the posterior-mean
+    prediction), parameter uncertainty propagated: ``expected_error_mm``, ``interval95_mm``
+    (where the observed mean error should fall), ``noise_only_error_mm`` (every arm at its
+    posterior mean: the difference is what parameter uncertainty adds) and ``per_row_mm``."""
     draws = predict_end_points(posteriors, commands, noise=True, seed=seed)
     if reference is None:
         reference = predict_end_points(posteriors, commands, noise=False).mean(axis=0)
     reference = np.asarray(reference, float)
     err = np.linalg.norm(draws - reference[None], axis=-1)  # (S, T)
     per_draw = err.mean(axis=1)
-    fixed = {a: _at_posterior_mean(p) for a, p in posteriors.items() if a in commands}
+    fixed = {a: replace(p, x=np.broadcast_to(p.mean, p.x.shape).copy())
+             for a, p in posteriors.items() if a in commands}
     err0 = np.linalg.norm(predict_end_points(fixed, commands, noise=True, seed=seed)
                           - reference[None], axis=-1)
     return {
@@ -504,15 +450,9 @@ def predicted_accuracy(posteriors: dict[str, ArmPosterior], commands: dict[str, 
     }
 
 
-def _at_posterior_mean(post: ArmPosterior) -> ArmPosterior:
-    """The same posterior with every parameter draw replaced by the posterior mean."""
-    return replace(post, x=np.broadcast_to(post.mean, post.x.shape).copy())
-
-
 def predicted_accuracy_document(rig: Rig, cal: dict[str, BayesArmCalibration],
                                 seed: int = 0) -> dict:
-    """Observed vs predicted mean error of every setup (single arms on validation rows,
-    linked arms on test rows), in the shape of ``accuracy.json``'s ``setups``."""
+    """Observed vs predicted mean error of every setup, as ``accuracy.json``'s ``setups``."""
     from bayesrob.predict.grid import setup_set, setups
 
     arms = {n: c.arm for n, c in cal.items()}
@@ -530,19 +470,13 @@ def predicted_accuracy_document(rig: Rig, cal: dict[str, BayesArmCalibration],
 
 
 def report_extras(rig: Rig, cal: dict[str, BayesArmCalibration]) -> dict:
-    """Top-level keys the ``calibrate --method bayes`` report adds to the common ones."""
     return {"predicted_accuracy": predicted_accuracy_document(rig, cal)}
-
-
-# ----------------------------------------------------------------------------- SBC
 
 
 def draw_from_prior(spec: ArmSpec, u: np.ndarray, n: int, priors: Priors = ARM_PRIORS,
                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` data sets from the model itself (numpyro's prior predictive of
-    :func:`calibration_model` for the arm's chain): parameters and noise sd from the prior,
-    end points from the Gaussian likelihood at the commands u. Returns params (n, 8), noise sd
-    (n,) and end points (n, N, 2)."""
+    """``n`` data sets from the model's own prior predictive at commands u: params (n, 8),
+    noise sd (n,) and end points (n, N, 2)."""
     from numpyro.infer import Predictive
 
     robot, idx, rows, shift = _arm_problem(spec, u, None)
@@ -555,10 +489,8 @@ def draw_from_prior(spec: ArmSpec, u: np.ndarray, n: int, priors: Priors = ARM_P
 
 @dataclass
 class SBCResult:
-    """Simulation-based calibration: true values and thinned posterior draws per data set.
-
-    Quantities (last axis): the eight parameters in PARAM_NAMES order, then the noise sd.
-    """
+    """Simulation-based calibration: true values and thinned posterior draws per data set,
+    of the eight parameters in PARAM_NAMES order, then the noise sd."""
 
     truth: np.ndarray  # (R, 9)
     draws: np.ndarray  # (R, L, 9)
@@ -573,14 +505,12 @@ class SBCResult:
 
     @property
     def ranks(self) -> np.ndarray:
-        """(R, 9) ranks in 0..L: how many of the L draws lie below the true value."""
+        """(R, 9): how many of the L draws lie below the true value."""
         return np.sum(self.draws < self.truth[:, None, :], axis=1)
 
     def uniformity(self, bins: int, ranks: np.ndarray | None = None) -> dict:
-        """Chi-square test of uniform ranks per quantity, Bonferroni-combined over the nine.
-
-        ``bins`` must divide L + 1 so every bin holds the same number of rank values.
-        """
+        """Chi-square test of uniform ranks per quantity, Bonferroni-combined; ``bins`` must
+        divide L + 1 so every bin holds as many rank values."""
         ranks = self.ranks if ranks is None else ranks
         values = self.n_draws + 1
         if values % bins:
@@ -594,13 +524,9 @@ class SBCResult:
 def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
         priors: Priors = ARM_PRIORS, settings: SamplerSettings = SamplerSettings(num_chains=1),
         seed: int = 0) -> SBCResult:
-    """Simulation-based calibration (Talts et al. 2018) of the model at an arm's commands u.
-
-    Each data set is drawn from the model's own prior and likelihood (:func:`draw_from_prior`),
-    not from the physical simulator: only then are the ranks of the true values among the
-    posterior draws exactly uniform when the sampler is right. The draws of each chain are
-    thinned evenly to ``n_draws`` to make them nearly independent.
-    """
+    """Simulation-based calibration (Talts et al. 2018) at an arm's commands u: data sets from
+    the model's own prior (not the simulator: only then are the true values' ranks exactly
+    uniform when the sampler is right), draws thinned evenly to ``n_draws``."""
     u = np.asarray(u, float)
     rng = np.random.default_rng(seed)
     total = settings.num_chains * settings.num_samples
@@ -620,16 +546,11 @@ def sbc(spec: ArmSpec, u: np.ndarray, n_datasets: int, n_draws: int = 49,
                      time.perf_counter() - t0)
 
 
-# ----------------------------------------------------------------------------- any robot
-
-
 def calibrate_bayes(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, priors: Priors = Priors(),
                     settings: SamplerSettings = SamplerSettings(), seed: int = 0,
                     progress=None) -> Calibration:
-    """NUTS posterior of a rig's identifiable parameters (and the noise sd): the parameters the
-    rank analysis fixes stay at the least-squares fit. Returns a
-    :class:`~bayesrob.calibrate.least_squares.Calibration` whose x is the posterior mean and se
-    the posterior sd, with R-hat, bulk ESS and the noise level from arviz."""
+    """NUTS posterior of a rig's identifiable parameters (the rest at the least-squares fit):
+    a :class:`Calibration` whose x is the posterior mean, se the posterior sd."""
     sags = [g for g in groups if g in kin.SAG_GROUPS]
     if sags:
         # masses times compliances: in the least-squares fit's whitened coordinates the

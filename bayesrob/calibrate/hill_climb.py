@@ -1,9 +1,4 @@
-"""The paper's calibration, kept as a selectable baseline: a hill climb on an arm's eight
-parameters (``calibrate --method hill-climb``).
-
-Coordinate steps on the summed Euclidean error, halving the steps when none helps, stopped as
-soon as the error on the ``validation`` rows rises.
-"""
+"""The paper's calibration, a selectable baseline (``calibrate --method hill-climb``)."""
 
 from __future__ import annotations
 
@@ -21,26 +16,19 @@ def _summed_errors(vs: jax.Array, u: jax.Array, d: jax.Array) -> jax.Array:
     return jnp.sum(jnp.linalg.norm(pred - d, axis=-1), axis=-1)
 
 
-def step_scales(v0: np.ndarray) -> np.ndarray:
-    """Typical sizes of the eight parameters, so steps mean the same in each."""
-    return np.array([10.0, 10.0, 10.0, 10.0, 0.05 * abs(v0[4]), 0.05 * abs(v0[5]), 0.05, 0.05])
-
-
 def hill_climb(v0: np.ndarray, u: np.ndarray, d: np.ndarray, u_val: np.ndarray | None,
                d_val: np.ndarray | None, max_iter: int = 20000) -> tuple[np.ndarray, int]:
-    """The paper's hill climb on J = sum ||f(g(u_i)) - d_i||, halted when validation rises;
-    returns the eight parameters (``ArmParams.to_vector`` order) and the iterations taken.
-
-    Each iteration takes the best of the +-step moves of every parameter; when none improves
-    the training cost the steps halve. The validation cost is checked at each halving (a
-    finished climb at one step size): checking after every single step would stop on the
+    """The paper's hill climb on J = sum ||f(g(u_i)) - d_i||: the best +-step move of any of
+    the eight parameters, the steps halving when none helps; returns the eight and the
+    iterations. Validation is checked at each halving: after every step it would stop on the
     first wobble of measurement noise, long before the fit is any good.
     """
     uj, dj = jnp.asarray(u), jnp.asarray(d)
     costs = _summed_errors
     has_val = u_val is not None and len(u_val) > 0
     v = v0.copy()
-    scale = step_scales(v0)
+    # the eight's typical sizes, so a step means the same in each
+    scale = np.array([10.0, 10.0, 10.0, 10.0, 0.05 * abs(v0[4]), 0.05 * abs(v0[5]), 0.05, 0.05])
     step = scale * 0.1
     best = float(costs(jnp.asarray(v[None]), uj, dj)[0])
     val = float(costs(jnp.asarray(v[None]), jnp.asarray(u_val), jnp.asarray(d_val))[0]) \

@@ -1,7 +1,5 @@
-"""Which parameters the rows can identify: a rank analysis of the residuals' Jacobian.
-
-A parameter whose column the earlier (simpler) ones explain is held at nominal and reported
-with what explains it; one no measured point depends on is reported as not observed.
+"""Which parameters the rows can identify: a rank analysis of the residuals' Jacobian. A
+column the earlier (simpler) ones explain is held at nominal, reported with what explains it.
 """
 
 from __future__ import annotations
@@ -26,8 +24,6 @@ RANK_TOL = 1e-4
 
 @dataclass
 class Identifiability:
-    """Which parameters the rows can identify, and how the others depend on them."""
-
     free: np.ndarray  # (P,) bool: fitted
     not_observed: list[str]  # no measured point depends on these at all
     unidentifiable: list[dict]  # {"name", "group", "explained_by": {name: coefficient}}

@@ -1,13 +1,9 @@
 """Least squares over named parameter groups: one calibration for every robot.
 
-A rig's robot (URDF/DH chains, or the paper's planar arms as 2-joint chains) is fitted on its
-``train`` rows by scipy's trust-region least squares with the JAX Jacobian, over the groups
-asked for, after a rank analysis (:mod:`bayesrob.calibrate.identifiability`) that holds at
-nominal whatever the rows cannot tell apart; the instrument poses and markers ("frames") are
-always fitted. The paper's eight parameters of a planar arm are one instance of these groups
-(:mod:`bayesrob.calibrate.arms`). The parameters' Gauss-Newton covariance
-(:func:`covariance`) is the one every consumer uses: standard errors, prediction at new
-poses, the designer.
+scipy's trust-region least squares with the JAX Jacobian on the ``train`` rows, over the groups
+asked for (frames always), after a rank analysis that holds at nominal whatever the rows cannot
+tell apart. A planar arm's eight parameters are one instance (:mod:`.arms`). The Gauss-Newton
+:func:`covariance` is the one every consumer uses.
 """
 
 from __future__ import annotations
@@ -58,11 +54,7 @@ class Calibration:
     masses: str = "fitted"
 
     def to_dict(self) -> dict:
-        """``bayesrob calibrate RIG --params ... --json``'s document but the rig's name, which
-        the command adds (as :meth:`to_json`)."""
-        return self.to_json()
-
-    def to_json(self) -> dict:
+        """``bayesrob calibrate RIG --params ... --json``'s document but the rig's name."""
         layout = self.robot.layout
         return {
             "method": self.method,
@@ -84,10 +76,11 @@ class Calibration:
             **self.extra,
         }
 
+    to_json = to_dict
+
 
 def side_rows(rig: Rig, robot: kin.Robot, arm: str, set: str) -> dict[str, jax.Array] | None:
-    """The rest of the pose in ``arm``'s rows of a set, where it matters (joints that give
-    way under gravity) and the rows carry it; else None."""
+    """The rest of the pose in ``arm``'s rows of a set where gravity weighs it, else None."""
     if robot.gravity is None:
         return None
     side = rig.side_rows(arm, set)
@@ -95,7 +88,6 @@ def side_rows(rig: Rig, robot: kin.Robot, arm: str, set: str) -> dict[str, jax.A
 
 
 def set_rows(rig: Rig, robot: kin.Robot, set: str) -> Rows:
-    """The rows of ``set`` of every measured arm that has some, as the fit takes them."""
     out = {}
     for arm in robot.measured_arms():
         u, d = rig.rows(arm, set)
@@ -106,8 +98,7 @@ def set_rows(rig: Rig, robot: kin.Robot, set: str) -> Rows:
 
 def marker_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
                      ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per measured arm with rows in ``set``: the observed markers (n, dim) and the residuals
-    observed - model (n, dim), row by row."""
+    """Per measured arm with rows in ``set``: observed markers and residuals (n, dim) each."""
     return {arm: (d, d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u),
                                                                 side)))
             for arm, (u, d, side) in set_rows(rig, robot, set).items()}
@@ -115,7 +106,6 @@ def marker_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
 
 def marker_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
                      ) -> dict[str, np.ndarray]:
-    """Per measured arm, the distance (mm) between model and observed marker, row by row."""
     return {a: np.linalg.norm(r, axis=1)
             for a, (_, r) in marker_residuals(rig, robot, x, set).items()}
 
@@ -160,10 +150,8 @@ def _fit_exact_jacobian(structure: kin.RobotStructure, arms: tuple[str, ...], va
 
 
 def residual_function(robot: kin.Robot, rows: Rows):
-    """Residuals and their Jacobian as functions of the parameters alone, compiled once per
-    process for all robots of ``robot``'s structure (the rows and the nominal values are
-    arguments, so a second calibration of the same rig, or of another rig of a robot of the
-    same design, is warm). Returns (residuals, Jacobian, number of residuals, exact columns)."""
+    """(residuals, Jacobian, number of residuals, exact columns) as functions of the
+    parameters, compiled once per structure (rows and nominal values are arguments)."""
     structure, values = robot.structure, robot.nominal_values
     arms = tuple(rows)
     data = tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
@@ -190,8 +178,8 @@ LATERAL_PRIOR_MM = 10.0
 
 
 def prior_penalty(layout: kin.ParamLayout, groups: tuple[str, ...]) -> np.ndarray:
-    """Per parameter, the weight (mm per unit) of its zero-centred penalty row beside the
-    residuals: the lateral compliances' prior when ``lateral`` is fitted, else zero."""
+    """Per parameter, the weight (mm per unit) of its zero-centred penalty row: the lateral
+    compliances' prior when ``lateral`` is fitted, else zero."""
     lateral = layout.group_mask(("lateral",)) if "lateral" in groups else np.zeros(
         len(layout.params), bool)
     return np.where(lateral, LATERAL_PRIOR_MM / layout.scales, 0.0)
@@ -201,9 +189,8 @@ POLISH_NFEV = 20  # exact-Jacobian steps after a fit with joints giving way unde
 
 
 def with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
-    """The rig's robot with its gravity model on. A new object each call, equal to the last:
-    the compiled residuals and Jacobians are keyed by the robot's structure, so every
-    calibration of a diagnosis (and of any rig of a robot of the same design) reuses them."""
+    """The rig's robot with its gravity model on (equal each call, so the compiled programs,
+    keyed by structure, are reused)."""
     gravity = np.zeros(3)
     gravity[: len(rig.gravity)] = rig.gravity  # a planar rig's gravity lies in its plane
     return replace(rig.robot, gravity=gravity, sag_steps=sag_steps)
@@ -212,18 +199,12 @@ def with_gravity(rig: Rig, sag_steps: int = 1) -> kin.Robot:
 def calibrate(rig: Rig, groups: tuple[str, ...] = kin.GROUPS, progress=None,
               polish: bool = True, max_nfev: int = 300, start: np.ndarray | None = None,
               sag_steps: int = 1, masses: str = "fitted") -> Calibration:
-    """Least squares (scipy's trust region, JAX Jacobian) over the parameter ``groups`` on the
-    rig's ``train`` rows, after the rank analysis; frames (instrument poses, markers) always.
-    ``polish``: finish a fit with joints giving way under gravity with the exact Jacobian
-    (off: faster, a little short of the optimum; the diagnosis's comparisons use that).
-    ``max_nfev``: residual evaluations allowed to each of the fit's least-squares stages.
-    ``start``: the parameter vector to start from (a fit of fewer groups on the same rig, its
-    frames fitted), instead of the nominal one. ``sag_steps``: how many times the sag's
-    torques are taken, the first at the commanded pose, each next at the pose the last one
-    sagged into (:attr:`kinematics.Robot.sag_steps`). ``masses``: "fitted" (the links' masses
-    and first moments are free, the rank analysis keeping what the compliances make visible),
-    or "description": held at the robot description's (URDF ``<inertial>``), so that each
-    compliance is the joint's own and not its product with an unknown mass scale."""
+    """Least squares over the parameter ``groups`` (frames always) on the rig's ``train`` rows.
+    ``polish``: finish a sagging fit with the exact Jacobian (off: faster, a little short).
+    ``max_nfev``: per stage. ``start``: a fit of fewer groups to start from. ``sag_steps``:
+    times the sag's torques are taken (:attr:`Robot.sag_steps`). ``masses``: "fitted", or
+    "description" (held at the URDF's ``<inertial>``, so each compliance is the joint's own
+    and not its product with an unknown mass scale)."""
     t0 = time.perf_counter()
     unknown = [g for g in groups if g not in kin.ALL_GROUPS]
     if unknown:
@@ -247,10 +228,9 @@ def fit(robot: kin.Robot, rows: Rows, groups: tuple[str, ...],
         candidates: np.ndarray | None = None, progress=None, polish: bool = True,
         max_nfev: int = 300, start: np.ndarray | None = None, masses: str = "fitted",
         tol: float = 1e-10) -> Calibration:
-    """The least squares of :func:`calibrate` on given rows (``errors`` left empty): the
-    parameters of ``groups`` (or the mask ``candidates`` of them) that the rank analysis
-    keeps; with "frames" among the groups and no ``start``, the frames are fitted first.
-    ``tol``: the solver's tolerances."""
+    """:func:`calibrate`'s least squares on given rows (``errors`` left empty) of the
+    parameters of ``groups`` (or the mask ``candidates``) the rank analysis keeps; without a
+    ``start``, the frames first."""
     t0 = time.perf_counter()
     layout = robot.layout
     sags = robot.gravity is not None and bool(set(kin.SAG_GROUPS) & set(groups))
@@ -347,7 +327,6 @@ def fit(robot: kin.Robot, rows: Rows, groups: tuple[str, ...],
 
 
 def link_mask(layout: kin.ParamLayout) -> np.ndarray:
-    """The parameters (P,) that weigh the links: every chain's masses and first moments."""
     mask = np.zeros(len(layout.params), bool)
     for key, sl in layout.slices.items():
         if key[1] == "links":
@@ -356,9 +335,8 @@ def link_mask(layout: kin.ParamLayout) -> np.ndarray:
 
 
 def described_links(robot: kin.Robot, x: np.ndarray) -> np.ndarray:
-    """Put every chain's link masses and first moments from its description into ``x`` (in
-    place) and return the mask (P,) of those parameters; a chain whose description does not
-    weigh every moving link is an error."""
+    """Put every chain's described link masses and first moments into ``x`` (in place) and
+    return their mask (P,); a chain whose description does not weigh every link is an error."""
     layout = robot.layout
     held = np.zeros(layout.nominal.shape, bool)
     for c in robot.chains.values():
@@ -378,12 +356,9 @@ SAG_CONVERGED_MM = 0.01  # a tenth of the markers' noise on the arms seen so far
 
 
 def sag_convergence(rig: Rig, x: np.ndarray, sag_steps: int = 1) -> dict:
-    """How far one more step of the sag's torques (taken at the pose the fitted sag leaves)
-    moves the train markers, for the parameters ``x`` of the rig's gravity model with
-    ``sag_steps`` steps: ``sag_next_step_mm`` (largest). One step is a first-order model
-    whose free masses and compliances absorb the rest (docs/robots.md); when more steps were
-    asked for and the last still moves a marker by more than SAG_CONVERGED_MM, a note says
-    that the iteration did not reach the torque equilibrium."""
+    """``sag_next_step_mm``: how far one more step of the sag's torques moves a train marker
+    at most, with a note when more than one step was asked for and the last still moves one
+    by over SAG_CONVERGED_MM (one step is a first-order model: docs/robots.md)."""
     # the rig's gravity robots: equal to the fit's, so its compiled residuals serve here
     robot = with_gravity(rig, sag_steps)
     further = with_gravity(rig, sag_steps + 1)
@@ -404,10 +379,8 @@ def sag_convergence(rig: Rig, x: np.ndarray, sag_steps: int = 1) -> dict:
 
 def covariance(full_res, full_jac, x: np.ndarray, free: np.ndarray,
                penalty: np.ndarray | None = None) -> np.ndarray:
-    """Gauss-Newton covariance (P, P) of the fitted parameters, s^2 (J^T J)^-1 with s^2 the
-    residuals' mean square over their degrees of freedom; zero where fixed, NaN on the free
-    block when the rows leave no degree of freedom. A prior's penalty rows
-    (:func:`prior_penalty`) add their information."""
+    """Gauss-Newton covariance (P, P), s^2 (J^T J)^-1 with the penalty rows' information
+    added; zero where fixed, NaN on the free block when no degree of freedom is left."""
     r = np.asarray(full_res(jnp.asarray(x)))
     dof = r.size - int(free.sum())
     cov = np.zeros((len(x), len(x)))
@@ -430,23 +403,19 @@ def covariance(full_res, full_jac, x: np.ndarray, free: np.ndarray,
 
 
 def standard_errors(cov: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """Standard errors (P,) of the ``free`` parameters from their :func:`covariance`; NaN
-    where a parameter was held."""
     se = np.full(len(free), np.nan)
     se[free] = np.sqrt(np.clip(np.diag(cov)[free], 0, None))
     return se
 
 
 def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
-    """The calibrated parameters' covariance (P, P) on the train rows (zero where fixed): what
-    a prediction at a new pose inherits from the fit, beside the joint errors."""
+    """The calibrated parameters' :func:`covariance` on the train rows."""
     full_res, full_jac, *_ = residual_function(cal.robot, set_rows(rig, cal.robot, "train"))
     return covariance(full_res, full_jac, cal.x, cal.ident.free,
                       prior_penalty(cal.robot.layout, cal.groups))
 
 
 def marker_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
-    """Marker error statistics per set and arm (and over all arms) at parameters x."""
     errors = {}
     for s in SETS:
         dist = marker_distances(rig, robot, x, s)
@@ -457,9 +426,8 @@ def marker_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
 
 
 def calibrated_rig_document(rig: Rig, cal: Calibration, urdf_name: str) -> dict:
-    """rig.toml of the calibrated robot, its arms read from the URDF ``urdf_name`` that
-    :func:`bayesrob.robot.write_urdf` wrote: origins and offsets are in the URDF, marker
-    positions and instrument poses (not part of a URDF) here."""
+    """rig.toml of the calibrated robot read from the URDF ``urdf_name`` (origins, offsets)
+    plus the markers and instrument poses a URDF has no place for."""
     calibrated = cal.robot.with_values(cal.x)
     keys = kin.urdf.generated_arm_keys(calibrated)
     measured = calibrated.measured_arms()
@@ -469,8 +437,7 @@ def calibrated_rig_document(rig: Rig, cal: Calibration, urdf_name: str) -> dict:
 
 
 def arm_table(c: kin.Chain, urdf_name: str, keys: dict, measured: bool) -> dict:
-    """One calibrated chain as a rig.toml arm read from ``urdf_name`` (``keys``: its root and
-    tip there): the instrument pose (or mount), the marker, coupling, gains and offsets."""
+    """One calibrated chain as a rig.toml arm read from ``urdf_name`` (``keys``: root, tip)."""
     table: dict = {"urdf": urdf_name, **keys}
     if c.mount is not None:
         table["mount"] = c.mount

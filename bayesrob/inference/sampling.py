@@ -1,24 +1,13 @@
 """The joint-error models as numpyro programs, sampled by NUTS and emcee and checked on the grid.
 
-The grid (:mod:`bayesrob.predict.grid`) answers "where will the end point be" exactly, but only on
-a 2-D box. Here the same models are probabilistic programs, so standard Bayesian tools apply:
-
-- Every kernel joint-error model is a numpyro distribution whose density *is* the KDE
-  (:mod:`bayesrob.errors.distributions`).
-- :func:`arm_model`, one arm: u -> theta = g(u) + theta_err, theta_err ~ model -> d = f(theta)
-  (+ optional measurement noise). Its prior predictive is the push-forward of the joint-error
-  density, which the grid reproduces exactly when the model applies the Jacobian.
-- :func:`linked_model`, any number of arms linked at their end point: the end point d is the
-  latent, with a flat improper prior on the plane (``ImproperUniform``), and each arm adds
-  ``numpyro.factor`` with the log of its density of theta_err(d) = f^-1(d) - g(u) (plus the
-  log-Jacobian in the improved variants): the product of likelihoods, written as a program.
-  The grid's implied prior is flat within its +-30 mm box; the two agree because the posterior
-  mass outside that box is negligible (``GridPosterior.edge_mass`` reports it).
-
-:func:`run_nuts` and :func:`run_emcee` sample the linked posterior and return arviz
-``InferenceData``; :func:`bayesrob.predict.grid.grid_posterior` computes the reference moments
-on a zoomed grid;
-:func:`cross_check` compares them; :func:`sample_linked` is the ``bayesrob sample`` command.
+:func:`arm_model` is one arm as a generative program (its prior predictive is the push-forward
+of the joint-error density); :func:`linked_model` is any number of arms linked at their end
+point: a flat prior on the shared point d and one ``numpyro.factor`` per arm with the log
+density of its joint error at d, the product of likelihoods written as a program. The grid
+(:func:`bayesrob.predict.grid.grid_posterior`) is flat within its box; the two agree because
+the mass outside that box is negligible (``edge_mass`` reports it). :func:`run_nuts` and
+:func:`run_emcee` return arviz ``InferenceData``, :func:`cross_check` compares them with the
+grid, and :func:`sample_linked` is the ``bayesrob sample`` command.
 """
 
 from __future__ import annotations
@@ -54,7 +43,13 @@ from bayesrob.errors.distributions import (
 )
 from bayesrob.errors.noise_models import FittedNoiseModel
 from bayesrob.predict.aiming import check_pulse_limits, check_reach
-from bayesrob.predict.grid import GridPosterior, grid_posterior, points_log_likelihood
+from bayesrob.predict.grid import (
+    Grid,
+    GridPosterior,
+    grid_posterior,
+    points_log_likelihood,
+    zoomed_grid,
+)
 from bayesrob.progress import FIRST_LINE_S, Progress
 from bayesrob.report.tables import grouped_notes
 
@@ -62,8 +57,7 @@ __all__ = ["SAMPLERS", "CheckTolerances", "NutsSampler", "SamplerResult",
            "SampleReport", "arm_model", "prior_predictive", "linked_model",
            "linked_log_density", "prior_spread", "initial_points", "check_pulse_limits",
            "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error",
-           "DensityGrid", "density_grid", "emcee_density", "sample_linked",
-           "format_sample"]
+           "emcee_density", "sample_linked", "format_sample"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
@@ -77,24 +71,16 @@ SAMPLERS = ("nuts", "emcee", "grid")
 NUTS_WARMUP = 300
 NUTS_SAMPLES = 4000
 NUTS_TARGET_ACCEPT = 0.65
-
-
-
-
-# --------------------------------------------------------------------------------------------
-# Programs
-# --------------------------------------------------------------------------------------------
+# cells per side of the coarse and the zoomed grid that check a marker point (3-D included)
+MARKER_GRID_N = 41
 
 
 def arm_model(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array,
-              measurement_noise_mm: float = 0.0, observed: jax.Array | None = None) -> None:
-    """One arm as a generative program, for commands ``u`` (T, 2).
-
-    theta_err ~ the joint-error model (at u for COND), theta = g(u) + theta_err,
-    d_true = f(theta), d ~ Normal(d_true, measurement_noise_mm) per axis (d = d_true when the
-    noise is 0). The histogram COND enters as a flat latent times a ``numpyro.factor``: such a
-    program can be conditioned and run by MCMC, but not forward-sampled.
-    """
+              measurement_noise_mm: float = 0.0) -> None:
+    """One arm at commands ``u`` (T, 2): theta_err ~ the joint-error model, d = f(g(u) +
+    theta_err), plus Normal measurement noise if ``measurement_noise_mm``. The histogram COND
+    enters as a flat latent times a ``numpyro.factor``: conditioned and run by MCMC, never
+    forward-sampled."""
     u = jnp.atleast_2d(jnp.asarray(u, dtype=jnp.float64))
     t = u.shape[0]
     with numpyro.plate("targets", t):
@@ -107,11 +93,8 @@ def arm_model(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array,
         d_true = kin.forward(arm.params, kin.servo(arm.params, u) + theta_err)
         if measurement_noise_mm > 0:
             numpyro.deterministic("d_true", d_true)
-            numpyro.sample("d", dist.Normal(d_true, measurement_noise_mm).to_event(1),
-                           obs=observed)
+            numpyro.sample("d", dist.Normal(d_true, measurement_noise_mm).to_event(1))
         else:
-            if observed is not None:
-                raise ValueError("observing d needs measurement_noise_mm > 0")
             numpyro.deterministic("d", d_true)
 
 
@@ -137,13 +120,8 @@ def _linked_program(commands: Sequence[jax.Array], params: tuple, *,
 
 def linked_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseModel],
                  arms: Sequence[kin.Arm]) -> None:
-    """Arms linked at their end point, as a program over the shared end point d (T, 2).
-
-    ``commands[k]`` (T, 2) are the pulses sent to ``arms[k]``; T independent targets are
-    sampled at once. Prior: flat on the plane (``ImproperUniform``), which is the grid's prior
-    wherever the grid box holds the mass. Likelihood: one ``numpyro.factor`` per arm,
-    ``loglik_<arm>``. Any number of arms (one arm gives that arm's own prediction).
-    """
+    """Arms linked at their end point: the shared point d (T, 2) flat on the plane, one
+    ``numpyro.factor`` ``loglik_<arm>`` per arm at its pulses ``commands[k]`` (T, 2)."""
     statics, params = arm_structures(models, arms)
     _linked_program(tuple(jnp.asarray(u, dtype=jnp.float64) for u in commands), params,
                     statics=statics)
@@ -151,11 +129,10 @@ def linked_model(commands: Sequence[jax.Array], *, models: Sequence[FittedNoiseM
 
 @functools.lru_cache(maxsize=64)
 def _compiled_log_density(statics: tuple[ArmStatic, ...]) -> Callable:
-    program = functools.partial(_linked_program, statics=statics)
+    potential = _linked_potential(statics)
 
     def one(x, commands, params):
-        t = commands[0].shape[0]
-        lp, _ = log_density(program, (commands, params), {}, {"d": x.reshape(t, 2)})
+        lp = -potential(x.reshape(commands[0].shape[0], 2), commands, params)
         # emcee treats NaN as an error; the clamp in f^-1 keeps it finite, this is a guard.
         return jnp.where(jnp.isnan(lp), -jnp.inf, lp)
 
@@ -164,22 +141,14 @@ def _compiled_log_density(statics: tuple[ArmStatic, ...]) -> Callable:
 
 def linked_log_density(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
                        ) -> Callable[[jax.Array, tuple[jax.Array, ...]], jax.Array]:
-    """The linked program's log joint density, jitted and vectorised over walkers.
-
-    Returns ``fn(d, commands)`` with ``d`` (W, T * 2) flat (emcee's layout) and ``commands`` a
-    tuple of (T, 2) arrays: (W,) log densities. It is ``numpyro.infer.util.log_density`` of
-    :func:`linked_model`, so emcee and NUTS see literally the same density. The compiled code
-    is shared by every model of the same structure (family, Jacobian, branch per arm).
-    """
+    """``fn(d, commands)``: the (W,) log densities of :func:`linked_model` at ``d`` (W, T * 2,
+    emcee's layout), by ``numpyro.infer.util.log_density``, so emcee and NUTS see the same
+    density; compiled once per structure (family, Jacobian, branch per arm)."""
     statics, params = arm_structures(models, arms)
     fn = _compiled_log_density(statics)
     # No conversions here: emcee calls this thousands of times and jit takes numpy arrays.
     return lambda d, commands: fn(d, tuple(commands), params)
 
-
-# --------------------------------------------------------------------------------------------
-# Where the samplers start
-# --------------------------------------------------------------------------------------------
 
 # Starting spread in units of the widest arm's own end-point sd: over-dispersed, as r_hat
 # needs, yet a few posterior widths only, so warm-up and burn-in absorb it.
@@ -191,13 +160,9 @@ INIT_LOG_DENSITY_DROP = 9.21
 
 def prior_spread(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                  targets: np.ndarray) -> np.ndarray:
-    """Covariance (T, 2, 2) of the widest arm's end point around each target, by its model.
-
-    Each arm's joint errors (the covariance of the errors its model was fitted to) pushed
-    through its Jacobian at the target: the spread of that arm's own prediction. Linked arms
-    pull the end point to where their predictions overlap, so the linked posterior is
-    narrower than the widest arm's, and a start drawn from this spread over-disperses it.
-    """
+    """Covariance (T, 2, 2) of the widest arm's own prediction at each target (its fitted
+    joint errors through its Jacobian): wider than the linked posterior, so starts drawn from
+    it over-disperse."""
     targets = np.atleast_2d(np.asarray(targets, float))
     out = np.zeros((len(targets), 2, 2))
     for model, arm in zip(models, arms, strict=True):
@@ -216,15 +181,10 @@ def initial_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                    commands: Sequence[np.ndarray], targets: np.ndarray, n: int, seed: int = 0,
                    overdispersion: float = INIT_OVERDISPERSION, max_rounds: int = 20
                    ) -> np.ndarray:
-    """n starting end points (n, T, 2) per target, found without the grid.
-
-    Candidates are draws of N(target, overdispersion^2 * :func:`prior_spread`): the
-    calibrated target plus the spread the arms' own models give. A start is drawn among the
-    candidates whose density is within ``INIT_LOG_DENSITY_DROP`` of the densest one seen, so
-    no chain starts where the density is nil (beyond an arm's reach, or off the paper COND's
-    table, whose floor is flat and gives NUTS no gradient to follow). The grid that checks
-    the samplers has no hand in where they start: they must find the modes themselves.
-    """
+    """n starting end points (n, T, 2) per target, without the grid (the samplers must find
+    the modes themselves): draws of N(target, overdispersion^2 * :func:`prior_spread`) whose
+    density is within ``INIT_LOG_DENSITY_DROP`` of the densest seen, so no chain starts where
+    the density is nil (beyond reach, or on the paper COND's flat floor, with no gradient)."""
     targets = np.atleast_2d(np.asarray(targets, float))
     t_count = len(targets)
     chol = np.linalg.cholesky(overdispersion ** 2 * prior_spread(models, arms, targets))
@@ -251,11 +211,6 @@ def initial_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                      "around it")
 
 
-# --------------------------------------------------------------------------------------------
-# Samplers
-# --------------------------------------------------------------------------------------------
-
-
 @dataclass
 class SamplerResult:
     """One sampler's draws of the linked end point: InferenceData plus the figures we check."""
@@ -278,9 +233,8 @@ class SamplerResult:
 
     @property
     def cov(self) -> np.ndarray:
-        x = self.draws
-        dev = x - x.mean(axis=0)
-        return np.einsum("sti,stj->tij", dev, dev) / (x.shape[0] - 1)
+        dev = self.draws - self.mean
+        return np.einsum("sti,stj->tij", dev, dev) / (dev.shape[0] - 1)
 
     @property
     def ess_bulk(self) -> float:
@@ -304,24 +258,16 @@ def _summary(idata: az.InferenceData) -> Any:
 
 
 _DIMS = {"d": ["target", "xy"]}
-_COORDS = {"xy": ["x", "y"]}
 
 
 class NutsSampler:
-    """numpyro's NUTS kernel on :func:`linked_model` (:meth:`run`) or any point's potential
-    (:meth:`sample`), compiled once per potential and shapes, vectorised over targets.
+    """numpyro's NUTS kernel (``hmc(..., algo="NUTS")``, with its step-size and mass-matrix
+    adaptation) on :func:`linked_model` (:meth:`run`) or any point's potential (:meth:`sample`),
+    in a jitted ``lax.scan`` vmapped over (target, chain) lanes, each with its own adaptation.
 
-    The kernel is ``numpyro.infer.hmc.hmc(..., algo="NUTS")`` (the one ``numpyro.infer.NUTS``
-    wraps), with its own step-size and dense mass-matrix adaptation, driven by a jit-compiled
-    ``lax.scan`` that is ``vmap``-ed over (target, chain) lanes: each target keeps its own
-    adaptation, and the T targets are independent 2-D posteriors sampled side by side.
-
-    Why not ``numpyro.infer.MCMC``: its ``run`` re-compiles the sampling loop on every call
-    (seconds to tens of seconds on 2 cores). Here the fitted models and arm parameters are
-    traced arguments, not constants, so the compiled code is cached per structure (family,
-    Jacobian and branch of each arm) and shapes: a second :meth:`run` for another target set,
-    another rig or a refitted model of the same family pays no compilation. Compilation is
-    done ahead of time and timed separately (``SamplerResult.compile_seconds``).
+    Not ``numpyro.infer.MCMC``: its ``run`` re-compiles the loop on every call. Here models and
+    arm parameters are traced arguments, so the programs are compiled ahead of time (timed as
+    ``compile_seconds``) once per potential and shapes, whatever the targets, rig or refit.
     """
 
     def __init__(self, *, num_chains: int = 4, num_warmup: int = NUTS_WARMUP,
@@ -384,10 +330,9 @@ class NutsSampler:
 
     def sample(self, potential: Callable, init: np.ndarray, lane: Any = (), shared: Any = (),
                seed: int = 0) -> SamplerResult:
-        """NUTS on ``potential(z, lane, shared)``, the potential energy of one target's point z
-        (1, dim), from ``init`` (num_chains, T, dim): one lane per (target, chain), target-major,
-        each a 1-target program; ``lane`` holds arrays with a row per lane, ``shared`` the
-        arrays every lane reads. The programs are compiled once per potential and shapes."""
+        """NUTS on ``potential(z, lane, shared)`` of one target's point z (1, dim) from ``init``
+        (num_chains, T, dim), a lane per (target, chain), target-major; ``lane`` holds arrays
+        with a row per lane, ``shared`` those every lane reads."""
         init = np.asarray(init, float)
         c, t, dim = init.shape
         z0 = jnp.asarray(init.transpose(1, 0, 2).reshape(t * c, 1, dim))
@@ -425,8 +370,8 @@ class NutsSampler:
 
 @functools.lru_cache(maxsize=64)
 def _linked_potential(statics: tuple[ArmStatic, ...]) -> Callable:
-    """The potential energy of :func:`linked_model` at z given (commands, params), one
-    function per structure: what NutsSampler caches its compiled programs on."""
+    """:func:`linked_model`'s potential energy at z given (commands, params), one function per
+    structure: what NutsSampler caches its programs on."""
     program = functools.partial(_linked_program, statics=statics)
     return lambda z, commands, params: -log_density(program, (commands, params), {}, {"d": z})[0]
 
@@ -443,59 +388,46 @@ def run_nuts(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
              num_warmup: int = NUTS_WARMUP, num_samples: int = NUTS_SAMPLES,
              dense_mass: bool = True, target_accept_prob: float = NUTS_TARGET_ACCEPT,
              progress_bar: bool = False) -> SamplerResult:
-    """Sample the linked posterior of every target with NUTS (see :class:`NutsSampler`).
-
-    ``init`` (num_chains, T, 2): starting end points, normally :func:`initial_points` (the
-    target plus the arms' prior spread, over-dispersed); its first axis sets the number of
-    chains. Chains that start apart and must find the modes themselves let r_hat and the
-    grid check see a sampler that misses a mode backlash has split off; starting them at
-    draws from the grid would hand them the modes. Samplers with the same settings are
-    shared across calls, and so is their compiled code.
-    """
+    """Sample the linked posterior of every target with NUTS (:class:`NutsSampler`, shared by
+    calls with the same settings) from ``init`` (num_chains, T, 2), normally
+    :func:`initial_points`: chains that start apart and find the modes themselves let r_hat
+    and the grid check see a sampler that misses a mode backlash split off."""
     sampler = _shared_nuts(int(np.shape(init)[0]), num_warmup, num_samples, dense_mass,
                            target_accept_prob)
     sampler.progress_bar = progress_bar
     return sampler.run(models, arms, commands, init, seed)
 
 
-def _emcee_moves() -> list:
-    """:func:`run_emcee`'s default moves: 70% differential evolution, 30% ``KDEMove``."""
-    return [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
-
-
 def run_emcee(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
               commands: Sequence[np.ndarray], init: np.ndarray, *, n_steps: int = 2500,
-              burn: int = 500, seed: int = 0, progress: bool = False,
-              moves: Any = None) -> SamplerResult:
-    """Sample the linked posterior with emcee's EnsembleSampler, one 2-D ensemble per target.
-
-    ``init`` (W, T, 2): the walkers' start, normally :func:`initial_points`. The log density is
-    :func:`linked_log_density` (jit-compiled once per model structure), evaluated for all
-    walkers in one call (``vectorize=True``). Default moves: 70% differential evolution, 30%
-    ``KDEMove`` (proposals from a KDE of the complementary walkers). With walkers spread over
-    the modes, both jump between modes of a posterior that backlash has split; on a bimodal
-    test case the default stretch move left the covariance 10-20% off where this mix is
-    within 2%. The first ``burn`` steps of each walker are dropped: they include the walkers'
-    contraction from their over-dispersed start.
-    """
+              burn: int = 500, seed: int = 0, progress: bool = False) -> SamplerResult:
+    """Sample the linked posterior with emcee, one 2-D ensemble per target, walkers from
+    ``init`` (W, T, 2), all evaluated in one call of :func:`linked_log_density`; the first
+    ``burn`` steps (the contraction from the over-dispersed start) are dropped."""
     init = np.asarray(init, float)
-    t_count = init.shape[1]
     cmds = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     lp = linked_log_density(models, arms)
     rng = np.random.default_rng(seed)
-    bar = Progress(t_count * n_steps, "emcee", "steps", enabled=progress, postfix="compiling")
-    first = tuple(jnp.asarray(u[:1]) for u in cmds)
-    compile_seconds = _compile_halves(lambda x: lp(x, first), init[:, 0, :])
+    per_target = [tuple(jnp.asarray(u[t:t + 1]) for u in cmds) for t in range(init.shape[1])]
+    return _emcee([lambda x, c=c: np.asarray(lp(x, c)) for c in per_target], init,
+                  [int(rng.integers(2**31)) for _ in per_target], n_steps, burn, progress)
+
+
+def _emcee(log_probs: Sequence[Callable], init: np.ndarray, states: Sequence[int],
+           n_steps: int, burn: int, progress: bool) -> SamplerResult:
+    """One ensemble per target t on ``log_probs[t]``, walkers from ``init`` (W, T, dim), its
+    random state seeded by ``states[t]``; the first target's compilation timed apart."""
+    bar = Progress(len(log_probs) * n_steps, "emcee", "steps", enabled=progress,
+                   postfix="compiling")
+    compile_seconds = _compile_halves(log_probs[0], init[:, 0, :])
     bar.set_postfix("sampling")
-    draws = []
     t0 = time.perf_counter()
-    for t in range(t_count):
-        c = tuple(jnp.asarray(u[t:t + 1]) for u in cmds)
-        draws.append(_ensemble(lambda x, c=c: np.asarray(lp(x, c)), init[:, t, :],
-                               int(rng.integers(2**31)), n_steps, burn, bar, moves))
+    draws = [_ensemble(lp, init[:, t, :], state, n_steps, burn, bar)
+             for t, (lp, state) in enumerate(zip(log_probs, states, strict=True))]
     seconds = time.perf_counter() - t0
     bar.close()
-    idata = az.from_dict(posterior={"d": np.stack(draws, axis=2)}, dims=_DIMS, coords=_COORDS)
+    idata = az.from_dict(posterior={"d": np.stack(draws, axis=2)}, dims=_DIMS,
+                         coords={"xy": ["x", "y", "z"][:init.shape[2]]})
     return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
 
 
@@ -508,12 +440,15 @@ def _compile_halves(log_prob: Callable, x: np.ndarray) -> float:
     return time.perf_counter() - t0
 
 
-def _ensemble(log_prob: Callable, init: np.ndarray, state: int, n_steps: int, burn: int, bar,
-              moves: Any = None) -> np.ndarray:
-    """emcee's EnsembleSampler from ``init`` (W, dim), every walker in one call of
-    ``log_prob``, its random state seeded by ``state``: the draws (W, n_steps - burn, dim)."""
-    sampler = emcee.EnsembleSampler(*init.shape, log_prob, vectorize=True,
-                                    moves=_emcee_moves() if moves is None else moves)
+def _ensemble(log_prob: Callable, init: np.ndarray, state: int, n_steps: int, burn: int, bar
+              ) -> np.ndarray:
+    """emcee's EnsembleSampler from ``init`` (W, dim), its random state seeded by ``state``:
+    the draws (W, n_steps - burn, dim)."""
+    # With walkers spread over the modes, differential evolution and KDE proposals jump
+    # between the modes backlash splits: on a bimodal case the default stretch move left the
+    # covariance 10-20% off, this mix within 2%.
+    moves = [(emcee.moves.DEMove(), 0.7), (emcee.moves.KDEMove(), 0.3)]
+    sampler = emcee.EnsembleSampler(*init.shape, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(state).get_state()
     # KDEMove solves small triangular systems through scipy every step: multi-threaded BLAS
     # hands each one between threads, ~6 ms instead of ~0.05 ms on 2 busy cores.
@@ -521,71 +456,6 @@ def _ensemble(log_prob: Callable, init: np.ndarray, state: int, n_steps: int, bu
         for _ in sampler.sample(init, iterations=n_steps):
             bar.update()
     return np.swapaxes(sampler.get_chain(), 0, 1)[:, burn:]
-
-
-# --------------------------------------------------------------------------------------------
-# Any log density of one point (a URDF/DH rig's linked markers): the samplers and the grid
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Box:
-    half_width_mm: float
-
-
-@dataclass
-class DensityGrid:
-    """A point's posterior by the midpoint rule on a regular grid in 2-D or 3-D: the zoomed
-    grid over the box a coarse one found holding all but ``1e-9`` of the mass. The fields
-    :func:`cross_check` reads, with one target."""
-
-    targets: np.ndarray  # (1, dim)
-    lo: np.ndarray  # (1, dim)
-    cell_mm: np.ndarray  # (1, dim)
-    n: int
-    mean: np.ndarray  # (1, dim)
-    cov: np.ndarray  # (1, dim, dim)
-    edge_mass: np.ndarray  # (1,) the coarse grid's mass in its outermost layer of cells
-    coarse: Box
-    seconds: float = 0.0
-
-
-def _grid_mass(log_density: Callable, lo: np.ndarray, cell: np.ndarray, n: int
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Cell centres (n^dim, dim) and their normalised masses."""
-    axes = [lo[i] + (np.arange(n) + 0.5) * cell[i] for i in range(len(lo))]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(lo))
-    # compiled whole: dispatched op by op, a mixture of a few hundred components in 3-D
-    # stalled XLA's CPU runtime for minutes
-    lp = np.asarray(jax.jit(lambda p: jax.lax.map(log_density, p, batch_size=1024))(
-        jnp.asarray(pts)))
-    w = np.exp(lp - lp.max())
-    return pts, w / w.sum()
-
-
-def density_grid(log_density: Callable, centre: np.ndarray, half_width_mm: float,
-                 n: int = 41) -> DensityGrid:
-    """The posterior of ``log_density`` (a JAX function of one point) by the midpoint rule:
-    a coarse n^dim grid of +-``half_width_mm`` about ``centre`` finds the mass, a second over
-    the box holding all but 1e-9 of it (plus a cell) gives mean and covariance."""
-    t0 = time.perf_counter()
-    centre = np.asarray(centre, float)
-    dim = len(centre)
-    cell = np.full(dim, 2 * half_width_mm / n)
-    lo = centre - half_width_mm
-    pts, mass = _grid_mass(log_density, lo, cell, n)
-    idx = np.stack(np.unravel_index(np.arange(n**dim), (n,) * dim), -1)
-    edge = float(mass[np.any((idx == 0) | (idx == n - 1), axis=1)].sum())
-    keep = mass > 1e-9 * mass.max()
-    lo2 = pts[keep].min(0) - cell
-    hi2 = pts[keep].max(0) + cell
-    cell2 = (hi2 - lo2) / n
-    pts, mass = _grid_mass(log_density, lo2, cell2, n)
-    mean = mass @ pts
-    dev = pts - mean
-    cov = np.einsum("k,ki,kj->ij", mass, dev, dev)
-    return DensityGrid(centre[None], lo2[None], cell2[None], n, mean[None], cov[None],
-                       np.array([edge]), Box(half_width_mm), time.perf_counter() - t0)
 
 
 def _marker_potential(z: jax.Array, lane: Any, arrays: tuple) -> jax.Array:
@@ -598,24 +468,10 @@ def _marker_potential(z: jax.Array, lane: Any, arrays: tuple) -> jax.Array:
 
 def emcee_density(log_density: Callable, init: np.ndarray, *, n_steps: int = 2500,
                   burn: int = 500, seed: int = 0, progress: bool = False) -> SamplerResult:
-    """emcee's EnsembleSampler on ``log_density`` of one point, walkers starting at ``init``
-    (W, dim), with :func:`run_emcee`'s moves and burn-in."""
-    init = np.asarray(init, float)
+    """:func:`run_emcee` on ``log_density`` of one point, walkers from ``init`` (W, dim)."""
     batch = jax.jit(jax.vmap(log_density))
-    compile_seconds = _compile_halves(lambda x: batch(jnp.asarray(x)), init)
-    t0 = time.perf_counter()
-    with Progress(n_steps, "emcee", "steps", enabled=progress, postfix="sampling") as bar:
-        d = _ensemble(lambda x: np.asarray(batch(jnp.asarray(x))), init, seed, n_steps, burn,
-                      bar)
-    seconds = time.perf_counter() - t0
-    idata = az.from_dict(posterior={"d": d[:, :, None, :]}, dims=_DIMS,
-                         coords={"xy": ["x", "y", "z"][:init.shape[1]]})
-    return SamplerResult("emcee", idata, seconds, _summary(idata), compile_seconds)
-
-
-# --------------------------------------------------------------------------------------------
-# The cross-check
-# --------------------------------------------------------------------------------------------
+    return _emcee([lambda x: np.asarray(batch(jnp.asarray(x)))],
+                  np.asarray(init, float)[:, None, :], [seed], n_steps, burn, progress)
 
 
 @dataclass(frozen=True)
@@ -631,15 +487,10 @@ class CheckTolerances:
 
 def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
                 tol: CheckTolerances = CheckTolerances()) -> dict[str, Any]:
-    """Compare each sampler with the grid; returns ``{"passed": bool, "failures": [str]}``.
-
-    Per target: the distance between the sampler's and the grid's mean <= ``tol.mean_mm``;
-    ||C_sampler - C_grid||_F / ||C_grid||_F <= ``tol.cov_rel``; and per sampler, over all
-    coordinates, max r_hat <= ``tol.r_hat`` and min bulk ESS >= ``tol.ess_bulk``. And the
-    grid itself: more than ``tol.edge_mass`` on the edge of its box means the box truncates
-    the posterior (its flat prior is then not the programs'). Every failure is listed with
-    its figures.
-    """
+    """Compare each sampler with the grid: ``{"passed": bool, "failures": [str]}``, every
+    failure with its figures. Per target, mean within ``tol.mean_mm`` and covariance within
+    ``tol.cov_rel`` (relative Frobenius); per sampler, r_hat and bulk ESS; and the grid's
+    own edge mass (above ``tol.edge_mass`` its box truncates the posterior)."""
     failures: list[str] = []
     for t in np.flatnonzero(grid.edge_mass > tol.edge_mass):
         failures.append(f"grid: {grid.edge_mass[t]:.1e} of the mass lies on the edge of the "
@@ -647,7 +498,8 @@ def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
                         f"({grid.targets[t, 0]:.1f}, {grid.targets[t, 1]:.1f}): the box "
                         "truncates the posterior, so its flat prior differs from the programs'")
     for res in results:
-        mean, cov = res.mean, res.cov
+        mean = res.mean
+        dcs = cov_rel_error(res.cov, grid.cov)
         for t in range(len(grid.targets)):
             tgt = f"target ({grid.targets[t, 0]:.1f}, {grid.targets[t, 1]:.1f})"
             dm = float(np.linalg.norm(mean[t] - grid.mean[t]))
@@ -655,7 +507,7 @@ def cross_check(grid: GridPosterior, results: Sequence[SamplerResult],
                 failures.append(f"{res.name}: mean {np.round(mean[t], 3).tolist()} is {dm:.3f} mm"
                                 f" from the grid's {np.round(grid.mean[t], 3).tolist()} "
                                 f"(> {tol.mean_mm} mm) at {tgt}")
-            dc = float(np.linalg.norm(cov[t] - grid.cov[t]) / np.linalg.norm(grid.cov[t]))
+            dc = float(dcs[t])
             if not dc <= tol.cov_rel:
                 failures.append(f"{res.name}: covariance differs from the grid's by {dc:.1%} "
                                 f"(Frobenius, > {tol.cov_rel:.0%}) at {tgt}")
@@ -671,14 +523,9 @@ def cov_rel_error(cov: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.linalg.norm(cov - ref, axis=(-2, -1)) / np.linalg.norm(ref, axis=(-2, -1))
 
 
-# --------------------------------------------------------------------------------------------
-# The `bayesrob sample` command
-# --------------------------------------------------------------------------------------------
-
-
 @dataclass
 class SampleReport:
-    """What :func:`sample_linked` computed: the JSON document plus the live objects."""
+    """What :func:`sample_linked` computed: the ``sample --json`` document, live objects."""
 
     document: dict
     grid: GridPosterior
@@ -689,14 +536,19 @@ class SampleReport:
         return bool(self.document["check"]["passed"])
 
     def to_dict(self) -> dict:
-        """The ``bayesrob sample --json`` document."""
         return self.document
 
 
-def _judge(doc: dict, grid: GridPosterior | DensityGrid, results: dict[str, SamplerResult],
-           tol: CheckTolerances, burn: int, sampler: str, notes: Sequence[str] = ()) -> None:
-    """Each sampler's entry of ``doc["samplers"]``, the ``check`` against the grid, and
-    ``notes`` with, when the grid truncates the posterior, why no sampler ran."""
+def _run_and_judge(doc: dict, grid: GridPosterior, runs: dict[str, Callable[[], SamplerResult]],
+                   tol: CheckTolerances, burn: int, sampler: str, notes: Sequence[str] = ()
+                   ) -> dict[str, SamplerResult]:
+    """Run the samplers asked for, unless the grid truncates the posterior (nothing valid to
+    check them against); then each one's entry of ``doc["samplers"]``, the ``check`` (always,
+    ``--sampler grid`` included: a truncating grid is a wrong answer whoever asked) and
+    ``notes``."""
+    truncated = bool(np.any(grid.edge_mass > tol.edge_mass))
+    results = {name: run() for name, run in runs.items()
+               if sampler in (name, "all") and not truncated}
     for name, res in results.items():
         entry = {**_moments(res.mean[0], res.cov[0]), "ess_bulk": res.ess_bulk,
                  "ess_tail": res.ess_tail, "r_hat": res.r_hat, "seconds": res.seconds,
@@ -715,16 +567,17 @@ def _judge(doc: dict, grid: GridPosterior | DensityGrid, results: dict[str, Samp
     check["compared"] = list(results)
     doc["check"] = check
     doc["notes"] = list(notes)
-    if np.any(grid.edge_mass > tol.edge_mass) and sampler != "grid":
+    if truncated and sampler != "grid":
         doc["notes"].append("no sampler was run: the grid reference truncates the posterior, "
                             "so there is nothing valid to check a sampler against")
+    return results
 
 
 def _moments(mean: np.ndarray, cov: np.ndarray) -> dict:
     return {"mean": [float(x) for x in mean], "cov": [[float(x) for x in r] for r in cov]}
 
 
-def _grid_entry(grid: GridPosterior | DensityGrid, **extra: float) -> dict:
+def _grid_entry(grid: GridPosterior, **extra: float) -> dict:
     """The grid reference's entry of ``doc["samplers"]`` (its one target)."""
     return {**_moments(grid.mean[0], grid.cov[0]), "seconds": grid.seconds,
             "cell_mm": grid.cell_mm[0].tolist(), "n": grid.n, "box_lo": grid.lo[0].tolist(),
@@ -738,24 +591,14 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
                   walkers: int = 32, steps: int = 2500, burn: int = 500,
                   tol: CheckTolerances = CheckTolerances(), models_dir: Any = None,
                   groups: tuple[str, ...] | None = None) -> SampleReport:
-    """Sample the end point of a setup aimed at ``target`` and check the samplers on the grid.
+    """Sample the end point of ``config`` (arms joined by '+') aimed at ``target`` with
+    ``sampler`` ("nuts", "emcee", "grid" or "all") and check the samplers on the grid.
 
-    ``config``: one arm or arms joined by '+'. Each arm is commanded through its own
-    calibrated inverse model (``Arm.command(target)``); a target outside an arm's reach, or
-    one that needs pulses outside its limits, is refused (ValueError naming the target, the
-    arm and its reach) before any model is fitted or sampler compiled. ``sampler``: "nuts",
-    "emcee", "grid" or "all". The grid posterior is always computed: it is the reference. The
-    chains and walkers start from :func:`initial_points` (the target plus the arms' prior
-    spread), never from the grid, so they must find the modes themselves. :func:`cross_check`
-    judges the grid itself (a box whose edge holds mass truncates the posterior: then no
-    sampler is run, there being nothing valid to compare with) and every sampler that ran;
-    the document's ``check`` says whether it passed and lists every failure.
-
-    A rig of URDF/DH arms (2-D or 3-D) is calibrated over ``groups`` (default
-    :data:`bayesrob.robot.GROUPS`), each arm aimed by :func:`bayesrob.predict.aiming.aim`,
-    and the point sampled under its arms' marker densities (:func:`_sample_markers`); so is a
-    planar rig given ``groups``, its arms as the 2-joint chains they are.
-    """
+    Each planar arm is aimed by its calibrated inverse (a target out of reach or off its
+    pulse limits is refused in one line before any fit); chains and walkers start from
+    :func:`initial_points`, never the grid. A rig of URDF/DH arms, or a planar rig given
+    ``groups``, is calibrated over ``groups`` and sampled under its arms' marker densities
+    (:func:`_sample_markers`)."""
     from bayesrob.calibrate.arms import calibrate_arms
     from bayesrob.errors.noise_models import discover_models, fit_noise_models
 
@@ -791,7 +634,6 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         bar.set_postfix("grid posterior")
         grid = grid_posterior(models, arm_list, commands, target)
         bar.update()
-    truncated = bool(np.any(grid.edge_mass > tol.edge_mass))
     doc: dict[str, Any] = {
         "target": [float(x) for x in target[0]],
         "config": config,
@@ -803,24 +645,19 @@ def sample_linked(rig: Rig, config: str, target: Sequence[float], model: str = "
         "init": f"NUTS chains and emcee walkers start at the target plus draws of "
                 f"{INIT_OVERDISPERSION:g} x the widest arm's prior spread (its joint errors "
                 "through its Jacobian), not at the grid",
-        "samplers": {},
+        "samplers": {"grid": _grid_entry(grid)},
     }
-    doc["samplers"]["grid"] = _grid_entry(grid)
-    results: dict[str, SamplerResult] = {}
-    if sampler in ("nuts", "all") and not truncated:
-        results["nuts"] = run_nuts(models, arm_list, commands,
-                                   initial_points(models, arm_list, commands, target,
-                                                  num_chains, seed),
-                                   seed=seed, num_warmup=num_warmup, num_samples=num_samples,
-                                   progress_bar=progress)
-    if sampler in ("emcee", "all") and not truncated:
-        results["emcee"] = run_emcee(models, arm_list, commands,
-                                     initial_points(models, arm_list, commands, target,
-                                                    walkers, seed + 1),
-                                     n_steps=steps, burn=burn, seed=seed, progress=progress)
-    # Always judged, --sampler grid included: a grid whose box truncates the posterior is a
-    # wrong answer whoever asked for it.
-    _judge(doc, grid, results, tol, burn, sampler)
+
+    def starts(n: int, s: int) -> np.ndarray:
+        return initial_points(models, arm_list, commands, target, n, s)
+
+    results = _run_and_judge(doc, grid, {
+        "nuts": lambda: run_nuts(models, arm_list, commands, starts(num_chains, seed),
+                                 seed=seed, num_warmup=num_warmup, num_samples=num_samples,
+                                 progress_bar=progress),
+        "emcee": lambda: run_emcee(models, arm_list, commands, starts(walkers, seed + 1),
+                                   n_steps=steps, burn=burn, seed=seed, progress=progress)},
+        tol, burn, sampler)
     if "nuts" in results and any(not is_sampleable(m) for m in models):
         doc["notes"].append(
             "the histogram COND is piecewise constant in the joint errors and zero outside its "
@@ -845,9 +682,8 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
                     models_dir: Any, num_chains: int, walkers: int, steps: int, burn: int,
                     tol: CheckTolerances) -> SampleReport:
     """:func:`sample_linked` on a rig of URDF/DH arms: the shared point of arms aimed at
-    ``target`` has the density prod_a p_a(point | u_a) of the arms' marker densities
-    (:class:`bayesrob.errors.marker_density.MarkerDensity`, flat prior); NUTS and emcee sample
-    it and a grid over it (:func:`density_grid`, 2-D or 3-D) checks both."""
+    ``target`` has the density prod_a p_a(point | u_a) of the arms' marker densities (flat
+    prior); NUTS and emcee sample it and a zoomed grid (2-D or 3-D) checks both."""
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import RigError
     from bayesrob.errors.marker_density import fit_marker_model, marker_model_kind
@@ -878,13 +714,16 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         def log_density(p):
             return -_marker_potential(p[None], (), arrays)
 
+        # compiled whole: dispatched op by op, a mixture of a few hundred components in 3-D
+        # stalled XLA's CPU runtime for minutes
+        grid_ll = jax.jit(lambda p: jax.lax.map(log_density, p, batch_size=1024))
         draws = [d.sample(seed + 7 + i, 2000)[:, 0] for i, d in enumerate(densities)]
         spread = max(float(np.sqrt(np.linalg.eigvalsh(np.cov(x.T)).max())) for x in draws)
         centres = np.array([d.centre[0] for d in densities])
         half = 10.0 * spread + float(np.ptp(centres, axis=0).max())
-        grid = density_grid(log_density, centres.mean(0), half)
+        grid = zoomed_grid(lambda pts: np.asarray(grid_ll(jnp.asarray(pts[0])))[None],
+                           centres.mean(0), Grid(half, MARKER_GRID_N), MARKER_GRID_N)
         bar.update()
-    truncated = bool(grid.edge_mass[0] > tol.edge_mass)
     rng = np.random.default_rng(seed)
 
     def start(n: int) -> np.ndarray:
@@ -892,15 +731,12 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         dev = np.concatenate([x - x.mean(0) for x in draws])
         return target[0] + INIT_OVERDISPERSION * dev[rng.choice(len(dev), n, replace=False)]
 
-    results = {}
-    if sampler in ("nuts", "all") and not truncated:
-        nuts = _shared_nuts(num_chains, NUTS_WARMUP, NUTS_SAMPLES, True, NUTS_TARGET_ACCEPT)
-        nuts.progress_bar = progress
-        results["nuts"] = nuts.sample(_marker_potential, start(num_chains)[:, None], (),
-                                      tuple(arrays), seed)
-    if sampler in ("emcee", "all") and not truncated:
-        results["emcee"] = emcee_density(log_density, start(walkers), n_steps=steps,
-                                         burn=burn, seed=seed, progress=progress)
+    def nuts() -> SamplerResult:
+        sampler = _shared_nuts(num_chains, NUTS_WARMUP, NUTS_SAMPLES, True, NUTS_TARGET_ACCEPT)
+        sampler.progress_bar = progress
+        return sampler.sample(_marker_potential, start(num_chains)[:, None], (), tuple(arrays),
+                              seed)
+
     doc = {
         "target": [float(v) for v in target[0]], "config": config, "model": model,
         "marker_model": kind,
@@ -913,9 +749,12 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         "params": list(cal.groups),
         "samplers": {"grid": _grid_entry(grid, box_half_width_mm=half)},
     }
-    _judge(doc, grid, results, tol, burn, sampler,
-           [f"calibrated with --params {','.join(cal.groups)}; each arm aimed by its "
-            "calibrated inverse kinematics"])
+    results = _run_and_judge(doc, grid, {
+        "nuts": nuts,
+        "emcee": lambda: emcee_density(log_density, start(walkers), n_steps=steps, burn=burn,
+                                       seed=seed, progress=progress)},
+        tol, burn, sampler, [f"calibrated with --params {','.join(cal.groups)}; each arm aimed "
+                             "by its calibrated inverse kinematics"])
     return SampleReport(doc, grid, results)
 
 

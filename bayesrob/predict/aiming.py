@@ -1,10 +1,6 @@
-"""Aiming arms at targets: the inverse kinematics of a calibrated arm, and the one-line
-refusals of a target it cannot reach.
-
-Any arm (a URDF/DH chain, or a planar arm as a 2-joint chain) is aimed by :func:`aim`:
-position-only damped Gauss-Newton through its calibrated model, from the train poses nearest
-the target. The planar arm's closed form (:meth:`bayesrob.robot.Arm.command`) is its
-specialisation, which the paper's pipeline uses.
+"""Aiming arms at targets: :func:`aim`, position-only damped Gauss-Newton through any arm's
+calibrated model from the nearest train poses (the planar closed form,
+:meth:`bayesrob.robot.Arm.command`, is its specialisation), and the one-line refusals.
 """
 
 from __future__ import annotations
@@ -23,9 +19,8 @@ __all__ = ["aim", "check_reach", "check_pulse_limits", "IK_TOL_MM"]
 
 IK_TOL_MM = 1e-3
 IK_ITERATIONS = 60
-# Train poses (nearest first) an aim may start from while its solution leaves the train
-# range: enough for a target near the range's edge to find a neighbour on the calibrated
-# branch, few enough that a target truly beyond it costs at most that many solves
+# Train poses (nearest first) an aim may start from while its solution leaves the train range:
+# enough for a target near the edge to find the calibrated branch, few for one beyond it
 AIM_SEEDS = 8
 
 @partial(jax.jit, static_argnames=("structure", "arm"))
@@ -41,8 +36,8 @@ def _column_jacobian_program(structure: kin.RobotStructure, arm: str, values: di
 
 
 def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
-    """A jitted (x, u) -> (points (T, dim), d points / d columns (T, dim, c)), compiled once
-    per process for all robots of ``robot``'s structure."""
+    """(x, u) -> (points (T, dim), d points / d columns (T, dim, c)), one program per
+    structure."""
     return partial(_column_jacobian_program, robot.structure, arm, robot.nominal_values)
 
 
@@ -50,13 +45,10 @@ def aim(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
               ) -> np.ndarray:
     """Columns (T, c) putting ``arm``'s marker on each target under the calibrated model.
 
-    Damped minimum-norm Gauss-Newton steps from the train pose whose observed point is
-    nearest, so the redundant arm stays on the branch of poses it was calibrated on. Where
-    that lands outside the range of the train commands (a column beyond its train minimum or
-    maximum: another branch, where the calibration extrapolates), the next nearest train
-    poses are tried in turn, up to AIM_SEEDS, and the first solution inside the range is
-    taken, else the one least beyond it. A target it does not reach within IK_TOL_MM from
-    any of them is refused with one line, and so is one a planar arm's pulse limits refuse.
+    Damped minimum-norm Gauss-Newton from the train pose observed nearest, so a redundant arm
+    stays on its calibrated branch; where that leaves the train commands' range, the next
+    nearest (up to AIM_SEEDS) are tried and the first solution inside (else the least beyond)
+    taken. A target missed by over IK_TOL_MM, or off a planar arm's pulse limits, is refused.
     """
     targets = np.atleast_2d(np.asarray(targets, float))
     u_train, d_train = rig.rows(arm, "train")
@@ -98,20 +90,16 @@ def aim(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
 
 
 def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
-    """Joint units (rad; mm on a prismatic joint) per command unit of each of ``arm``'s
-    columns, from the description's gains: the servo gain on planar arms, whose columns are
-    pulse widths (so a step limit in radians does not read as 0.3 us, which never reaches a
-    target), 1 on URDF/DH joints unless the rig gives a ``gain``. The nominal gains, not the
-    calibrated ones, so the steps do not depend on the fit. Couplings are left out: a column
-    moving its joints by +-1 (the usual coupling) is limited as its joint."""
+    """Joint units per command unit of ``arm``'s columns, from the nominal gains (so steps do
+    not depend on the fit): a planar arm's pulse columns are limited in radians, not read as
+    0.3 us a step, which never reaches a target. Couplings (usually +-1) are left out."""
     return np.concatenate([np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
                            for c in robot.path(arm)])
 
 
 def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`aim`'s Gauss-Newton steps from seeds ``u`` (T, c): the columns and how far
-    each target is missed (mm). ``per_rad`` (c,): radians per unit of each column."""
+    """:func:`aim`'s Gauss-Newton from seeds ``u`` (T, c): the columns and the misses (mm)."""
     for _ in range(IK_ITERATIONS):
         p, jac = (np.asarray(v) for v in f(xj, jnp.asarray(u)))
         r = targets - p
@@ -144,8 +132,7 @@ def check_reach(arm: kin.Arm, target: np.ndarray, u: np.ndarray) -> None:
 
 def check_pulse_limits(name: str, target: np.ndarray, u: np.ndarray,
                        limits: Sequence[tuple[float, float]], note: str = "") -> None:
-    """Refuse pulses ``u`` aimed at ``target`` beyond an arm's pulse limits: one line naming
-    target, arm, pulse and limits (``note`` appended)."""
+    """Refuse pulses ``u`` aimed at ``target`` beyond an arm's pulse limits, in one line."""
     for j, (p, (a, b)) in enumerate(zip(u, limits, strict=True)):
         if not a <= p <= b:
             raise ValueError(f"target ({', '.join(f'{v:g}' for v in target)}) is outside the "

@@ -1,17 +1,10 @@
 """The accuracy of an assembly predicted before it is built (``bayesrob predict``).
 
-An assembly is one arm or several arms linked at their end point (``top+bottom+side``). Only
-the modules' single-arm ``train`` rows are used: each arm is calibrated on them and its
-joint-error model fitted to them, each arm is aimed at every target through its calibrated
-inverse model, and the linked end point is predicted by a fusion rule
-(:mod:`bayesrob.predict.fusion`). A rig without any linked row works: that is the point.
-
-Per target: the expected end point, the expected distance from the target, and the areas of
-the 50% / 90% highest-density regions (volumes in 3-D).
-
-The prediction is a set of draws of the end point at each target (:mod:`.draws`), for any
-robot and any number of arms; its figures are those of the draws and of their KDE's regions
-(:mod:`.regions`).
+An assembly is one arm or several linked at their end point (``top+bottom+side``), predicted
+from the modules' single-arm ``train`` rows alone (a rig without any linked row works: that is
+the point) as draws of the end point at each target (:mod:`.draws`), fused by a rule
+(:mod:`.fusion`). Per target: the expected end point and distance from the target, and the
+areas (volumes in 3-D) of the 50% / 90% regions of the draws' KDE (:mod:`.regions`).
 """
 
 from __future__ import annotations
@@ -56,17 +49,13 @@ class AssemblyPrediction:
     hdr90: np.ndarray  # (T,)
     seconds: float
     draws: np.ndarray  # (S, T, dim): the draws the prediction is
-    # arm -> (T, c): how far each target's commands lie beyond the range of that arm's train
-    # commands, per column (0 inside; pulse us for planar arms, joint units for chains); set
-    # with the two fields after it by :func:`_with_command_ranges`
+    # arm -> (T, c): how far each target's commands lie beyond that arm's train range, per
+    # column (0 inside), set with the two fields after it by :func:`_with_command_ranges`
     beyond_train: dict[str, np.ndarray] = field(default_factory=dict)
     columns: dict[str, list[str]] = field(default_factory=dict)  # arm -> its command columns
     command_unit: str = " us"  # of the command columns in the note ("" for joint values)
-    # linked chain arms under equilibrium fusion: arm -> what the balance drew its joint
-    # stiffnesses from (chain_prediction.StiffnessPrior.record)
+    # linked chain arms under equilibrium fusion: arm -> StiffnessPrior.record()
     stiffness: dict[str, dict] = field(default_factory=dict)
-    # set where the prior gave linked chain arms their stiffnesses though their description
-    # weighs every link: how to read them from those masses instead
     stiffness_note: str | None = None
 
     @property
@@ -75,11 +64,6 @@ class AssemblyPrediction:
         return f"mm{self.targets.shape[1]}"
 
     def to_dict(self) -> dict:
-        """The ``bayesrob predict --json`` document (as :attr:`document`)."""
-        return self.document
-
-    @property
-    def document(self) -> dict:
         """The ``bayesrob predict --json`` document."""
         e = self.expected_error_mm
         u = self.size_key
@@ -104,6 +88,8 @@ class AssemblyPrediction:
             "seconds": self.seconds,
         }
 
+    document = property(to_dict)
+
     @property
     def extrapolated(self) -> np.ndarray:
         """(T,) True where some arm's commands leave the range of its train rows."""
@@ -113,13 +99,8 @@ class AssemblyPrediction:
         return out
 
     def extrapolation_note(self) -> str | None:
-        """One line on the targets whose commands leave an arm's calibrated range, or None.
-
-        There the calibration extrapolates and a misfit the train rows did not show can grow:
-        on the simulator's three-arm rigs an arm that fits its rows poorly erred two to four
-        times its train error at such targets, and the linked predictions came out too narrow
-        (docs/fusion.md).
-        """
+        """One line on the targets whose commands leave an arm's calibrated range, or None:
+        there a misfit the train rows did not show can grow (docs/fusion.md)."""
         n = int(self.extrapolated.sum())
         if not n:
             return None
@@ -166,8 +147,7 @@ class AssemblyPrediction:
 
 
 def grid_targets(rig: Rig, n: int) -> np.ndarray:
-    """An n x n grid of targets over the rig's workspace (n x n x n for a 3-D workspace; cell
-    centres, x fastest)."""
+    """n^dim targets over the rig's workspace (cell centres, x fastest)."""
     if rig.workspace is None:
         raise RigError(f"{rig.path}: no 'workspace' in rig.toml to lay a --grid over; give "
                        "--targets FILE instead")
@@ -177,8 +157,7 @@ def grid_targets(rig: Rig, n: int) -> np.ndarray:
 
 
 def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
-    """Targets (T, dim) from a CSV file with columns ``x,y`` (and ``z`` in 3-D; mm; other
-    columns ignored)."""
+    """Targets (T, dim) from a CSV file with columns ``x,y`` (and ``z`` in 3-D; mm)."""
     path = Path(path)
     if not path.is_file():
         raise RigError(f"{path}: file not found")
@@ -207,8 +186,7 @@ def read_targets(path: str | Path, dim: int = 2) -> np.ndarray:
 
 
 def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
-    """(T, c): how far each row of ``commands`` lies beyond the range of ``arm``'s train
-    commands, per column (0 inside), in the columns' own units."""
+    """(T, c): how far each row of ``commands`` lies beyond ``arm``'s train range, per column."""
     u = rig.rows(arm, "train")[0]
     lo, hi = u.min(axis=0), u.max(axis=0)
     c = np.asarray(commands, float)
@@ -216,8 +194,6 @@ def beyond_train_range(rig: Rig, arm: str, commands: np.ndarray) -> np.ndarray:
 
 
 def _with_command_ranges(pred: AssemblyPrediction, rig: Rig) -> AssemblyPrediction:
-    """``pred`` with how far its commands leave each arm's train range, and the columns' names
-    and unit for the note."""
     return replace(pred, beyond_train={a: beyond_train_range(rig, a, u)
                                        for a, u in pred.commands.items()},
                    columns={a: rig.robot.columns(a) for a in pred.commands},
@@ -232,16 +208,10 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
                      ) -> AssemblyPrediction:
     """Predict ``config`` (arms joined by '+') at ``targets`` (T, dim) from single-arm rows.
 
-    ``model``: a joint-error model (default ``cond`` where the rows observe the joint errors,
-    ``ind`` where they are latent and with ``groups``).
-    ``groups``: a chain rig's calibration groups (default ``kinematics.GROUPS``). Given for a
-    planar rig, its arms are predicted as the 2-joint chains they are (the chain path: latent
-    joint errors, aimed through the calibrated model with its gravity groups), so arms that
-    sag are aimed and predicted through their fitted physics instead of the eight-parameter
-    fit.
-    ``masses``: a chain rig's link masses, "fitted" or held at the URDF's ("description"),
-    when the groups make the arms sag: then the arms' stiffnesses come from their fitted
-    compliances instead of the prior.
+    ``model``: default ``cond`` where the rows observe the joint errors, else ``ind``.
+    ``groups``: the calibration groups (default ``GROUPS``); given for a planar rig, its arms
+    are predicted as 2-joint chains through their fitted physics. ``masses``: "fitted" or
+    "description" (then sagging arms' stiffnesses come from their fitted compliances).
     """
     t0 = time.perf_counter()
     if fusion not in FUSIONS:
@@ -297,11 +267,9 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
 
 
 def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
-    """``predict``'s note where linked arms (``sources``: arm -> where its stiffnesses came
-    from, one of ``chain_prediction.STIFFNESS_SOURCES``) took them from the prior although
-    every chain of the robot weighs its links (what ``masses="description"`` needs): how to
-    read them from those masses instead, each joint's own stiffness where the prior gives
-    only a profile."""
+    """``predict``'s note where linked arms took their stiffnesses from the prior (``sources``:
+    arm -> one of STIFFNESS_SOURCES) though every chain weighs its links: how to read them
+    from those masses instead."""
     guessed = [a for a, src in sources.items() if src in STIFFNESS_SOURCES[2:]]
     if not guessed or not all(c.weighed for c in robot.chains.values()):
         return None
@@ -313,9 +281,8 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
 
 
 def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
-    """The targets coloured by their expected error, seen from above and, in 3-D, from the
-    side (x-z) on the same scale, with each arm's base; then the least accurate target's draws
-    in and out of its 50% / 90% regions, on the same planes."""
+    """The targets coloured by expected error (from above and, in 3-D, the side, on one scale)
+    with each arm's base; then the least accurate target's draws by region, on those planes."""
     import matplotlib.pyplot as plt
 
     t = pred.targets

@@ -1,23 +1,12 @@
 """Draws of where an assembly's end point lands: one arm, or any number linked, 2-D or 3-D.
 
 Each arm is calibrated on its own ``train`` rows and its joint-error model fitted to their
-residuals: a Parzen density of the joint errors J^-1 r where the rows observe them (as many
-joints as measured coordinates, :func:`bayesrob.errors.noise_models.joint_errors_observed`),
-else the latent population (:mod:`bayesrob.errors.latent_errors`). At a target, each arm is
-aimed through its calibrated model (:mod:`.aiming`), and its *free* end point is the
-push-forward of its joint errors through the calibrated robot (the population's: draws of
-(Sigma, s), then of e ~ N(0, Sigma), plus N(0, s^2) for what no joint explains).
-
-Linked arms share one point (:mod:`.fusion`):
-
-- ``equilibrium`` (default): the point where the arms' elastic forces balance, linearised about
-  the free points (:func:`.fusion.equilibrium`), their joint stiffnesses drawn from
-  :mod:`.stiffness`. Forward draws, no sampler needed.
-- ``product`` (the paper's rule): the density of the shared point is the product of the arms'
-  end-point densities. Every arm's joint errors and the shared point are latent and sampled
-  together with NUTS: p ~ flat, e_a ~ N(0, Sigma_a), p ~ N(f_a(e_a), s_a^2) for each arm a.
-
-The draws' density and regions: :mod:`.regions`.
+residuals: a Parzen density of the joint errors J^-1 r where the rows observe them, else the
+latent population (:mod:`bayesrob.errors.latent_errors`). Aimed at a target (:mod:`.aiming`),
+an arm's *free* end point is the push-forward of its joint errors through the calibrated
+robot. Linked arms share one point (:mod:`.fusion`): ``equilibrium`` (default), where their
+elastic forces balance, by forward draws; ``product`` (the paper's rule), the product of the
+arms' densities, sampled with NUTS with every arm's joint errors latent.
 """
 
 from __future__ import annotations
@@ -60,17 +49,15 @@ __all__ = ["CalibratedModules", "PaperModules", "KernelJointErrors", "fit_module
            "fit_paper_modules", "fit_joint_errors", "check_module_arms", "assembly_draws",
            "free_draws", "parameter_draws", "product_draws_nuts"]
 
-# Draws x rows pushed through a chain in one compiled call, at most (one draw at least). A
-# call holds every draw's frames at once: Justin's 4000 draws at 200 validation poses, with
-# the sag's torques taken six times, took the process to 23 GB in one call; a rig's 16-24
-# targets stay one call.
+# Draws x rows pushed through a chain in one compiled call, at most: Justin's 4000 draws at 200
+# poses with six sag steps took the process to 23 GB in one call; 16-24 targets stay one.
 POINTS_PER_CALL = 100_000
 
 
 @dataclass
 class KernelJointErrors:
-    """An arm's Parzen joint-error density (IND / CORR / COND of ``models/``), fitted to the
-    joint errors its rows observe, drawn as :class:`LatentJointErrors` draws."""
+    """An arm's Parzen joint-error density fitted to the joint errors its rows observe, drawn
+    as :class:`LatentJointErrors` draws."""
 
     arm: str
     fitted: FittedNoiseModel
@@ -82,8 +69,7 @@ class KernelJointErrors:
 
     def draw(self, key: jax.Array, shape: tuple[int, int], u: np.ndarray
              ) -> tuple[jax.Array, jax.Array]:
-        """Joint errors (S, T, n) at commands u (T, c) (COND conditions on them) and the
-        noise sds (S,), all zero."""
+        """Joint errors (S, T, n) at commands u (T, c) and the noise sds (S,), all zero."""
         d = joint_error_distribution(self.fitted, jnp.atleast_2d(jnp.asarray(u)))
         if d.batch_shape != (shape[1],):
             d = d.expand((shape[1],))
@@ -96,7 +82,6 @@ class CalibratedModules:
 
     calibration: Calibration
     errors: dict[str, LatentJointErrors | KernelJointErrors]
-    # per arm: the log joint stiffnesses' prior
     stiffness: dict[str, StiffnessPrior]
     # (P, P) the fitted parameters' covariance (zero where fixed), or None: held at their values
     param_cov: np.ndarray | None
@@ -113,24 +98,21 @@ class CalibratedModules:
 
     def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
               fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
-        """:func:`assembly_draws` (S, T, dim) of ``arms`` at ``commands``."""
         return assembly_draws(self, arms, commands, fusion, num_samples, seed)
 
 
 @dataclass
 class PaperModules:
-    """The paper's planar arms: each calibrated by its eight parameters, with a kernel
-    joint-error model of :mod:`bayesrob.errors.noise_models` (the paper's or an improved one)."""
+    """The paper's planar arms, calibrated by their eight parameters, with kernel joint-error
+    models; ``stiffness`` per arm from the rig (N mm / rad), or None (the prior)."""
 
     arms: dict[str, kin.Arm]
     fitted: dict[str, FittedNoiseModel]
-    # per arm: its joint stiffnesses (N mm / rad) from the rig, or None (the prior)
     stiffness: list[np.ndarray | None]
     commands: dict[str, np.ndarray] = field(default_factory=dict)
 
     def draws(self, arms: Sequence[str], commands: Sequence[np.ndarray], targets: np.ndarray,
               fusion: str, num_samples: int = DRAWS, seed: int = 0) -> np.ndarray:
-        """:func:`bayesrob.predict.fusion.fused_draws` (S, T, 2) of ``arms`` at ``commands``."""
         given = [self.stiffness[list(self.arms).index(a)] for a in arms]
         return fused_draws([self.fitted[a] for a in arms], [self.arms[a] for a in arms],
                            commands, targets, fusion,
@@ -140,9 +122,8 @@ class PaperModules:
 
 def fit_paper_modules(rig: Rig, arms: Sequence[str], model: str, models_dir: Any = None,
                       targets: np.ndarray | None = None) -> PaperModules:
-    """Calibrate the rig's planar arms (eight parameters each), aim ``arms`` at ``targets``
-    (pulses from the closed-form inverse; a target out of reach or off the servos' range is
-    refused in one line before the joint-error models are fitted) and fit ``model`` to each."""
+    """Calibrate the rig's planar arms, aim ``arms`` at ``targets`` by the closed-form inverse
+    (refusing, before any model fit, a target out of reach) and fit ``model`` to each."""
     spec = discover_models(models_dir, [model])
     cal = calibrate_arms(rig)
     fitted_arms = {a: cal[a].arm for a in arms}
@@ -153,8 +134,6 @@ def fit_paper_modules(rig: Rig, arms: Sequence[str], model: str, models_dir: Any
 
 
 def _aim_arm(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
-    """Pulses aiming the calibrated planar arm at each target, from its closed-form inverse
-    (the specialisation of :func:`aim`); refuses targets it cannot be aimed at."""
     u = np.asarray(arm.command(jnp.asarray(targets)))
     for t, ut in zip(targets, u, strict=True):
         check_reach(arm, t, ut)
@@ -163,8 +142,7 @@ def _aim_arm(arm: kin.Arm, targets: np.ndarray) -> np.ndarray:
 
 def check_module_arms(rig: Rig, arms: Sequence[str], model: str, models_dir: Any = None,
                       latent: bool = False) -> None:
-    """Refuse, in one line, a joint-error model or an arm :func:`fit_modules` cannot fit
-    (not measured, or without train rows of its own)."""
+    """Refuse in one line a model or an arm :func:`fit_modules` cannot fit."""
     if not latent and joint_errors_observed(rig.robot, arms):
         discover_models(models_dir, [model])
     else:
@@ -183,9 +161,7 @@ def fit_joint_errors(rig: Rig, cal: Calibration, arm: str, model: str, seed: int
                      models_dir: Any = None, latent: bool = False
                      ) -> LatentJointErrors | KernelJointErrors:
     """``arm``'s joint-error model fitted to its train residuals under ``cal``: a Parzen
-    density of its joint errors where the rows observe them
-    (:func:`~bayesrob.errors.noise_models.joint_errors_observed`), else (or ``latent``) the
-    latent population."""
+    density where the rows observe its joint errors, else (or ``latent``) the population."""
     if latent or not joint_errors_observed(cal.robot, [arm]):
         return fit_latent_errors(rig, cal.robot, cal.x, arm, model, int(cal.ident.free.sum()),
                                  seed=seed)
@@ -200,20 +176,13 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                 parameter_uncertainty: bool = False, masses: str = "fitted",
                 sag_steps: int = 1, targets: np.ndarray | None = None,
                 models_dir: Any = None, latent: bool = False) -> CalibratedModules:
-    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors
-    (:func:`fit_joint_errors`, ``latent`` as its).
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
 
-    ``parameter_uncertainty``: also draw the calibrated parameters from their Gauss-Newton
-    covariance. Off by default: on the tuning rigs (arm6 seeds 11 and 12) it made the regions
-    too wide (predicted / observed error 1.17 and 1.03 with it, 1.07 and 0.96 without), the
-    residual scaling for the fit's degrees of freedom having already widened them.
-    ``masses`` ("fitted" or "description"): as :func:`calibrate`'s, for the calibration
-    made here (a ``calibration`` given carries its own); with the description's masses and a
-    compliance group, the arms' stiffnesses come from the fitted compliances instead of the
-    prior. ``sag_steps``: as :func:`calibrate`'s (the joint-error fits and predictions
-    use the calibration's robot, so its sag model too). ``targets``: aim ``arms`` at them
-    (:func:`aim`, kept in ``commands``) before the joint-error fits, which take most of the
-    time, so a target out of reach is refused after the calibration alone.
+    ``parameter_uncertainty``: also draw the parameters from their covariance. Off by default:
+    on the tuning rigs (arm6 seeds 11, 12) it made the regions too wide (error ratio 1.17 and
+    1.03 with it, 1.07 and 0.96 without). ``masses``, ``sag_steps``: :func:`calibrate`'s.
+    ``targets``: aimed at (kept in ``commands``) before the joint-error fits, so a target out
+    of reach is refused after the calibration alone.
     """
     check_module_arms(rig, arms, model, models_dir, latent)
     cal = (calibration if calibration is not None
@@ -228,7 +197,7 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
 
 
 def parameter_draws(mods: CalibratedModules, key: jax.Array, n: int) -> jax.Array:
-    """Parameter vectors (S, P) from the calibration's Gaussian approximation: one per draw,
+    """Parameter vectors (S, P) from the calibration's Gaussian approximation, one per draw
     shared by every arm (the arms of a tree share links and the instrument)."""
     if mods.param_cov is None:
         return jnp.broadcast_to(jnp.asarray(mods.x), (n, len(mods.x)))
@@ -245,9 +214,9 @@ def parameter_draws(mods: CalibratedModules, key: jax.Array, n: int) -> jax.Arra
 def free_draws(mods: CalibratedModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
                 side: dict[str, np.ndarray] | None = None, measured: bool = True
                 ) -> np.ndarray:
-    """Draws (S, T, dim) of the arm's free end point at columns u (T, c), one parameter
-    vector of xs (S, P) per draw (``side``: the rest of each pose, where it weighs), as the
-    tracker measures it (``measured``: with its noise) or as it is."""
+    """Draws (S, T, dim) of the arm's free end point at columns u (T, c), a parameter vector
+    of xs (S, P) per draw (``side``: the rest of each pose), with the tracker's noise if
+    ``measured``."""
     n = xs.shape[0]
     e, noise = mods.errors[arm].draw(key, (n, len(u)), u)
     # the rest of the pose weighs only where the model has gravity in it
@@ -283,17 +252,15 @@ def _points_with_errors_program(structure: kin.RobotStructure, arm: str, values:
 
 
 def _points_with_errors(robot: kin.Robot, arm: str) -> Callable:
-    """A jitted (xs (S, P), u (T, c), e (S, T, n), side or None) -> points (S, T, dim),
-    compiled once per process for all robots of ``robot``'s structure."""
+    """(xs (S, P), u (T, c), e (S, T, n), side) -> points (S, T, dim), one program per structure."""
     return partial(_points_with_errors_program, robot.structure, arm, robot.nominal_values)
 
 
 def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Sequence[np.ndarray],
                 fusion: str = "equilibrium", num_samples: int = DRAWS, seed: int = 0,
                 side: dict[str, np.ndarray] | None = None) -> np.ndarray:
-    """Draws (S, T, dim) of one arm's end point or of linked arms' shared point. ``side``
-    (one arm only): the other arms' path columns in the same rows, whose weight bends the
-    chains they share when the model has gravity in it."""
+    """Draws (S, T, dim) of one arm's end point or linked arms' shared point. ``side`` (one
+    arm only): the other arms' columns in the same rows, whose weight bends shared chains."""
     if fusion not in FUSIONS:
         raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
     key = jax.random.PRNGKey(seed)
@@ -343,8 +310,8 @@ def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
 def _product_nuts(key: jax.Array, structure: kin.RobotStructure, values: dict, x: jax.Array,
                   arms: tuple[str, ...], commands: list, covs: list, noises: jax.Array,
                   start: jax.Array, warmup: int, per_chain: int, chains: int) -> jax.Array:
-    # One compiled program per robot structure and shapes: an MCMC built per call, with the
-    # robot's numbers baked into its model, compiled anew for every rig and kept its code mapped.
+    # The robot's numbers are arguments: an MCMC built per call with them baked in compiled
+    # anew for every rig and kept its code mapped.
     from numpyro.infer import init_to_value
 
     init = {"p": start, **{f"z_{i}": jnp.zeros((start.shape[0], c.shape[0]))
@@ -360,11 +327,9 @@ def _product_nuts(key: jax.Array, structure: kin.RobotStructure, values: dict, x
 def product_draws_nuts(mods: CalibratedModules, arms: Sequence[str], commands: Sequence[np.ndarray],
                        seed: int = 0, num_samples: int = DRAWS, warmup: int = 500,
                        chains: int = 2) -> np.ndarray:
-    """NUTS draws (S, T, dim) of the shared point under the product of the arms' densities.
-
-    The population parameters are held at their posterior means (a mixture over them would
-    make the target multimodal in Sigma for nothing the draws could resolve).
-    """
+    """NUTS draws (S, T, dim) of the shared point under the product of the arms' densities,
+    the populations at their posterior means (a mixture over them would make the target
+    multimodal in Sigma for nothing the draws could resolve)."""
     commands = [jnp.asarray(np.atleast_2d(np.asarray(u, float))) for u in commands]
     covs = [jnp.asarray(mods.errors[a].covariance.mean(0)) for a in arms]
     noises = jnp.asarray([float(mods.errors[a].noise_sd.mean()) for a in arms])

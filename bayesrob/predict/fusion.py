@@ -1,38 +1,21 @@
 """How arms linked at their end points share it: two fusion rules.
 
-- ``product`` (the paper's rule, kept as the baseline): the linked end point's density is the
-  product of the arms' likelihoods (:mod:`bayesrob.predict.grid`,
-  :func:`bayesrob.predict.grid.grid_posterior`).
-- ``equilibrium``: linked arms are springs. Left alone, arm a would hold its end point at d_a,
-  its *free* end point, whose distribution is the arm's own single-arm prediction at its
-  commands. Linked, the end point settles where the arms' elastic forces balance. Linearised
-  about the free points, arm a resists a displacement x of its end point with the force
-  K_a x, K_a = J_a^-T diag(k_a) J_a^-1 (J_a = df/dtheta at its pose, k_a its joint stiffnesses
-  in N mm / rad), so
+- ``product`` (the paper's rule, the baseline): the product of the arms' likelihoods
+  (:func:`bayesrob.predict.grid.grid_posterior`).
+- ``equilibrium``: linked arms are springs. Arm a alone would hold its end point at its *free*
+  point d_a (its single-arm prediction); linked, the point settles where the elastic forces
+  balance. Linearised about the free points, arm a resists a displacement x with K_a x,
+  K_a = J_a^-T diag(k_a) J_a^-1 (k_a its joint stiffnesses, N mm / rad), so
+  d = (sum_a K_a)^-1 sum_a K_a d_a. On simulated rigs with sag and backlash this lands within
+  0.1 mm of the simulator's exact minimum of the summed energies (tests/test_fusion.py), a
+  tenth of the linked error. The product instead weights arms by how *sure* each model is,
+  which is not what decides where the metal settles.
 
-      d = (sum_a K_a)^-1 sum_a K_a d_a.
-
-  On simulated rigs with gravity sag and backlash this lands within 0.1 mm of the simulator's
-  exact minimum of the summed energies (``tests/test_fusion.py``), a tenth of the linked
-  error, so the Newton iteration is not needed. The product of likelihoods instead weights the
-  arms by how *sure* each model is, which is not what decides where the metal settles: a
-  narrow kernel conditional made the product over-confident about a point the arms never
-  reach.
-
-Stiffness: the rig's ``stiffness`` per arm when given; otherwise only ratios matter, and each
-joint's log stiffness is drawn from the planar servo arm's prior
-(:func:`bayesrob.predict.stiffness.given_or_servo_prior`: one value per arm and joint, shared by
-every target of a draw: an arm is as stiff at one target as at the next).
-
-:func:`equilibrium_program` is the generative program: joint errors from each arm's joint-error
-model (the KDE distributions of :mod:`bayesrob.errors.distributions`), pushed through the arm,
-then the stiffnesses, then d. Its draws (``numpyro.infer.Predictive``) are the prediction;
-their density is the Gaussian KDE of :mod:`.regions`, binned on a zoomed grid
-(:func:`draws_posterior`) where
-a grid posterior is asked for, and exact at the scored points. The paper's histogram COND has
-a density but no sampler: its free end points are drawn from its single-arm grid prediction
-instead, which for a model without the Jacobian is that model's own single-arm prediction as
-the paper defines it.
+Stiffness: the rig's when given, else drawn from the planar servo prior (only ratios matter;
+one value per arm and joint, shared by every target of a draw). :func:`equilibrium_program` is
+the generative program; its draws' density is the KDE of :mod:`.regions`, binned on a zoomed
+grid (:func:`draws_posterior`) where a grid posterior is asked for. The paper's histogram COND
+has no sampler: its free points are drawn from its single-arm grid prediction instead.
 """
 
 from __future__ import annotations
@@ -63,19 +46,9 @@ from bayesrob.predict.grid import COARSE_GRID, GridPosterior, grid_posterior
 from bayesrob.predict.regions import kernels
 from bayesrob.predict.stiffness import given_or_servo_prior
 
-__all__ = [
-    "FUSIONS",
-    "DEFAULT_FUSION",
-    "springs",
-    "balance",
-    "tracker_remainder",
-    "equilibrium",
-    "equilibrium_program",
-    "equilibrium_draws",
-    "draws_posterior",
-    "fused_draws",
-    "fused_posterior",
-]
+__all__ = ["FUSIONS", "DEFAULT_FUSION", "springs", "balance", "tracker_remainder", "equilibrium",
+           "equilibrium_program", "equilibrium_draws", "draws_posterior", "fused_draws",
+           "fused_posterior"]
 
 # Draws per target: the KDE's bandwidth is n^(-1/6) of the spread (0.25 at 4000), and the
 # HDR level of a point moves by about sqrt(p (1 - p) / n) < 0.008.
@@ -83,8 +56,8 @@ DRAWS = 4000
 
 
 def _inverse(m: jax.Array) -> jax.Array:
-    """Inverse of small matrices (..., d, d): in closed form for 2 x 2, whose draws hold tens
-    of thousands of them and XLA's batched LAPACK costs a call per matrix."""
+    """Inverse of small matrices (..., d, d), in closed form for 2 x 2: XLA's batched LAPACK
+    costs a call per matrix, and draws hold tens of thousands."""
     if m.shape[-1] != 2:
         return jnp.linalg.inv(m)
     a, b, c, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 0], m[..., 1, 1]
@@ -93,9 +66,8 @@ def _inverse(m: jax.Array) -> jax.Array:
 
 
 def springs(jac: jax.Array, log_k: jax.Array) -> jax.Array:
-    """K = (J diag(1 / k) J^T)^-1 (..., dim, dim): the force (N) per mm an arm's end point
-    resists with, from its joint Jacobian (..., dim, n) and log joint stiffnesses (..., n)
-    (broadcast against each other)."""
+    """K = (J diag(1 / k) J^T)^-1 (..., dim, dim), N per mm, from the joint Jacobian
+    (..., dim, n) and log joint stiffnesses (..., n)."""
     return _inverse(jnp.einsum("...ik,...k,...jk->...ij", jac, jnp.exp(-log_k), jac))
 
 
@@ -107,11 +79,9 @@ def balance(free: jax.Array, stiffness: jax.Array) -> jax.Array:
 
 def tracker_remainder(stiffness: jax.Array, tracker_noise_mm: float, z: jax.Array
                       ) -> jax.Array:
-    """The tracker's noise the balance averaged away, put back (..., dim) from standard normal
-    ``z`` (..., dim): each free point carries the noise (the joint-error densities were fitted
-    to measured points) and the balance averages it down to sum_a W_a W_a^T sigma^2 (W_a =
-    (sum K)^-1 K_a), but the linked point is measured once, with all of it, so
-    sigma^2 (I - sum_a W_a W_a^T) is missing."""
+    """The tracker's noise the balance averaged away (..., dim), from standard normal ``z``:
+    each free point carries it and the balance averages it to sum_a W_a W_a^T sigma^2
+    (W_a = (sum K)^-1 K_a), but the linked point is measured once, with all of it."""
     w = jnp.einsum("...ij,a...jk->a...ik", _inverse(stiffness.sum(axis=0)), stiffness)
     dim = z.shape[-1]
     cov = tracker_noise_mm**2 * (jnp.eye(dim) - jnp.einsum("a...ij,a...kj->...ik", w, w))
@@ -120,8 +90,7 @@ def tracker_remainder(stiffness: jax.Array, tracker_noise_mm: float, z: jax.Arra
 
 def _psd_sqrt(m: jax.Array) -> jax.Array:
     """Symmetric square root of symmetric matrices (..., d, d) whose least eigenvalue may poke
-    below zero by rounding (a sum of W W^T past I): in closed form for 2 x 2 (shifted up to a
-    zero least eigenvalue), by eigendecomposition (negative eigenvalues clipped) otherwise."""
+    below zero by rounding: closed form for 2 x 2 (shifted up to zero), else eigh (clipped)."""
     m = 0.5 * (m + jnp.swapaxes(m, -1, -2))
     if m.shape[-1] != 2:
         vals, vecs = jnp.linalg.eigh(m)
@@ -137,10 +106,8 @@ def _psd_sqrt(m: jax.Array) -> jax.Array:
 def equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
                 log_k: Sequence[jax.Array], tracker_noise_mm: float = 0.0,
                 key: jax.Array | None = None) -> jax.Array:
-    """The balance (S, T, dim) of free points (each (S, T, dim)) held by arms with joint
-    Jacobians (T, dim, n_a) and log joint stiffnesses (S, n_a); with ``tracker_noise_mm`` (and
-    ``key``) the tracker's noise the balance averaged away put back (:func:`tracker_remainder`).
-    """
+    """The balance (S, T, dim) of free points (S, T, dim) held by arms with joint Jacobians
+    (T, dim, n_a) and log stiffnesses (S, n_a), plus :func:`tracker_remainder` if asked."""
     k = jnp.stack([springs(jnp.asarray(j)[None], jnp.asarray(lk)[:, None, :])
                    for j, lk in zip(jacs, log_k, strict=True)])
     d = balance(jnp.stack([jnp.asarray(f) for f in free]), k)
@@ -152,8 +119,7 @@ def equilibrium(free: Sequence[jax.Array], jacs: Sequence[jax.Array],
 
 
 def _log_stiffness(n_arms: int, stiffness: Sequence[Any] | None) -> jax.Array:
-    """log k (A, 2): given, or drawn from the prior (only ratios matter): one site for every
-    arm's joints, a known arm's kept at its values."""
+    """log k (A, 2): given, or drawn from the prior in one site, a known arm's kept."""
     priors = [given_or_servo_prior(s) for s in (stiffness or [None] * n_arms)]
     loc = jnp.asarray(np.stack([p.centre for p in priors]))
     known = np.stack([p.sd == 0 for p in priors])
@@ -174,24 +140,13 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
                         densities_hold_tracker: bool = True) -> None:
     """Arms linked at their end point, settling where their stiffnesses balance.
 
-    For each arm k with commands (T, 2): theta_err_k ~ its joint-error model (``kinds`` and
-    ``arrays``: :func:`bayesrob.errors.distributions.error_arrays`, so a compiled caller such as the
-    configuration designer traces them rather than baking them in), theta_k = g(u) +
-    theta_err_k, free point d_k = f(theta_k); log stiffnesses from ``stiffness`` ((2,)
-    N mm/rad per arm, None for unknown) or the prior; then the linked point ``d`` =
-    :func:`balance` of the free points with K_k at theta_k (:func:`springs`).
-
-    ``param_cov``: each arm's calibrated-parameter covariance (8, 8); the arm that executes
-    the commands then differs from the calibrated one that aimed them by a draw from it (one
-    per draw, shared by the targets): what calibration error does at poses it never saw.
-
-    ``tracker_noise_mm``: the tracker's noise (sd per axis). The joint-error densities were
-    fitted to measured points, so each arm's carries the tracker's noise, and the balance
-    averages it down (to sum_a W_a W_a^T sigma^2, W_a = (sum K)^-1 K_a); but the linked point
-    is measured once, with all of it. The missing sigma^2 (I - sum_a W_a W_a^T) is added back.
-    ``densities_hold_tracker`` False: the densities were fitted with the tracker's noise taken
-    out (:func:`bayesrob.errors.noise_models.without_tracker_noise`), so all of it is added, to a
-    single arm's point as to a linked one.
+    Per arm k at commands (T, 2): theta_err_k ~ its joint-error model (``kinds``, ``arrays``:
+    traced, so a compiled caller does not bake them in), free point f(g(u) + theta_err_k);
+    log stiffnesses from ``stiffness`` (N mm/rad per arm, None unknown) or the prior; ``d`` =
+    :func:`balance` of the free points. ``param_cov``: each arm's parameter covariance (8, 8),
+    the executing arm a draw from it (what calibration error does at unseen poses).
+    ``tracker_noise_mm``: :func:`tracker_remainder` added back to a linked point; all of it,
+    to any point, when not ``densities_hold_tracker`` (densities fitted without it).
     """
     frees, held = [], []
     log_k = _log_stiffness(len(kinds), stiffness)
@@ -218,8 +173,7 @@ def equilibrium_program(commands: Sequence[jax.Array], *, kinds: tuple[str, ...]
 
 
 def static_stiffness(stiffness: Sequence[Any] | None) -> tuple | None:
-    """Known stiffnesses as the static argument of :func:`equilibrium_program_draws`: a tuple
-    per arm (None where unknown), or None where none is known."""
+    """Known stiffnesses as a static argument: a tuple per arm (None unknown), or None."""
     if stiffness is None or all(s is None for s in stiffness):
         return None
     return tuple(tuple(float(v) for v in s) if s is not None else None for s in stiffness)
@@ -234,11 +188,8 @@ def equilibrium_program_draws(key: jax.Array, commands: Sequence[jax.Array],
                               stiffness: tuple | None = None, num_samples: int = DRAWS,
                               tracker_noise_mm: float = 0.0,
                               densities_hold_tracker: bool = True) -> jax.Array:
-    """Draws (S, T, 2) of :func:`equilibrium_program`'s linked point ``d``.
-
-    One compiled program per kind of assembly (model kinds, known stiffnesses, shapes): which
-    modules and where they stand are traced arguments. Called eagerly, ``Predictive`` compiled
-    its loop anew on every call (about 200 memory maps each, never released)."""
+    """Draws (S, T, 2) of :func:`equilibrium_program`'s ``d``, one compiled program per kind
+    of assembly (called eagerly, ``Predictive`` compiled its loop anew on every call)."""
     names = names or tuple(f"arm{i}" for i in range(len(kinds)))
     out = Predictive(equilibrium_program, num_samples=num_samples, return_sites=["d"])(
         key, commands, kinds=kinds, arrays=arrays, params=params, names=names,
@@ -250,8 +201,7 @@ def equilibrium_program_draws(key: jax.Array, commands: Sequence[jax.Array],
 @partial(jax.jit, static_argnames=("n_arms", "stiffness", "num_samples"))
 def _log_stiffness_draws(key: jax.Array, *, n_arms: int, stiffness: tuple | None,
                          num_samples: int) -> jax.Array:
-    # compiled once per kind, as equilibrium_program_draws: called eagerly, Predictive
-    # compiled its loop anew on every call
+    # compiled once per kind, as equilibrium_program_draws
     return Predictive(lambda: numpyro.deterministic("log_k", _log_stiffness(n_arms, stiffness)),
                       num_samples=num_samples)(key)["log_k"]
 
@@ -260,12 +210,9 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
                       commands: Sequence[np.ndarray], targets: np.ndarray,
                       stiffness: Sequence[Any] | None = None, num_samples: int = DRAWS,
                       seed: int = 0) -> np.ndarray:
-    """Draws (S, T, 2) of the linked end point under equilibrium fusion.
-
-    ``Predictive`` of :func:`equilibrium_program` when every model can draw joint errors;
-    otherwise each arm's free end points come from its single-arm grid prediction and the
-    same stiffness prior and balance are applied.
-    """
+    """Draws (S, T, 2) of the linked end point under equilibrium fusion: of
+    :func:`equilibrium_program` when every model can draw joint errors, else each arm's free
+    points from its single-arm grid prediction, balanced alike."""
     commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
     key = jax.random.PRNGKey(seed)
     if all(is_sampleable(m) for m in models):
@@ -289,8 +236,8 @@ def equilibrium_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm
 
 
 def draws_posterior(draws: np.ndarray, targets: np.ndarray, n: int = 150) -> GridPosterior:
-    """The KDE of draws (S, T, 2) on a zoomed n x n grid per target, as a :class:`GridPosterior`
-    (normalised, so its log normaliser is 0): binned draws convolved with the kernel."""
+    """The KDE of draws (S, T, 2) on a zoomed n x n grid per target, as a normalised
+    :class:`GridPosterior`: binned draws convolved with the kernel."""
     t0 = time.perf_counter()
     draws = np.asarray(draws, float)
     targets = np.atleast_2d(np.asarray(targets, float))
@@ -325,12 +272,9 @@ def fused_draws(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                 commands: Sequence[np.ndarray], targets: np.ndarray,
                 fusion: str = DEFAULT_FUSION, stiffness: Sequence[Any] | None = None,
                 seed: int = 0, num_samples: int = DRAWS) -> np.ndarray:
-    """Draws (S, T, 2) of the end point of one planar arm or of linked ones, fused by
-    ``fusion``: the equilibrium's forward draws, or those of the product's exact grid (one
-    arm is its own prediction whichever the rule)."""
-    if fusion not in FUSIONS:
-        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
-    if fusion == "product" or len(arms) == 1:
+    """Draws (S, T, 2) of planar arms' end point fused by ``fusion``: the equilibrium's
+    forward draws, or the product's exact grid (one arm is its own prediction)."""
+    if _on_grid(fusion, arms):
         return grid_posterior(models, arms, commands, targets).sample(seed, num_samples)
     return equilibrium_draws(models, arms, commands, targets, stiffness, num_samples, seed)
 
@@ -340,15 +284,16 @@ def fused_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                     fusion: str = DEFAULT_FUSION, stiffness: Sequence[Any] | None = None,
                     seed: int = 0, num_samples: int = DRAWS
                     ) -> tuple[GridPosterior, np.ndarray | None]:
-    """The predicted end point of one arm or linked arms, fused by ``fusion``.
-
-    Returns the grid posterior and, for the equilibrium, the draws it was built from (the
-    exact density at a point is :func:`kde_log_density` of them). One arm is its own
-    prediction whichever the rule.
-    """
-    if fusion not in FUSIONS:
-        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
-    if fusion == "product" or len(arms) == 1:
+    """The grid posterior of planar arms' end point fused by ``fusion`` and, for the
+    equilibrium, the draws it was built from (their KDE is the exact density at a point)."""
+    if _on_grid(fusion, arms):
         return grid_posterior(models, arms, commands, targets), None
     draws = equilibrium_draws(models, arms, commands, targets, stiffness, num_samples, seed)
     return draws_posterior(draws, targets), draws
+
+
+def _on_grid(fusion: str, arms: Sequence[kin.Arm]) -> bool:
+    """Whether the product's exact grid is the prediction (one arm is its own, either rule)."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"unknown fusion {fusion!r}; choose from {', '.join(FUSIONS)}")
+    return fusion == "product" or len(arms) == 1

@@ -1,11 +1,9 @@
 """Grid predictions of where an end point lands, for one arm or several arms linked together.
 
-For an arm commanded with u (aimed at d_targ = f(g(u))), a test point d_tst on a grid around
-the target implies the joint error theta_err = f^-1(d_tst) - g(u) (NOTES item 2; g(u) is
-f^-1(d_targ) on the arm's branch). Its density under a joint-error model, times the Jacobian
-|det df^-1/dd| in the improved variants, is the arm's likelihood of d_tst. Arms linked at their
-end points share d_tst: the prediction is the product of their likelihoods (a sum of logs),
-normalised over the grid. Everything is vectorised over targets and grid points.
+A test point d_tst about the target implies the joint error theta_err = f^-1(d_tst) - g(u);
+its density under a joint-error model (times |det df^-1/dd| in the improved variants) is the
+arm's likelihood of d_tst. Linked arms share d_tst: the prediction is the product of their
+likelihoods, normalised over the grid.
 """
 
 from __future__ import annotations
@@ -48,8 +46,12 @@ class Grid:
     @property
     def offsets(self) -> np.ndarray:
         """(n*n, 2) offsets from the target, x fastest."""
-        gx, gy = np.meshgrid(self.axis, self.axis)
-        return np.column_stack([gx.ravel(), gy.ravel()])
+        return _mesh(self.axis, 2)
+
+
+def _mesh(axis: np.ndarray, dim: int) -> np.ndarray:
+    """The dim-fold product of ``axis`` (n^dim, dim), x fastest."""
+    return np.stack(np.meshgrid(*[axis] * dim, indexing="ij")[::-1], -1).reshape(-1, dim)
 
 
 @dataclass
@@ -68,11 +70,8 @@ class Prediction:
 
     @property
     def edge_mass(self) -> np.ndarray:
-        """(T,) probability in the grid's outermost cells: large means the grid cut the mass off.
-
-        It happens when the commands do not aim near the target, or the spread is wider than
-        the grid; the expected error is then an underestimate clipped by the grid.
-        """
+        """(T,) probability in the grid's outermost cells: large means the grid cut the mass
+        off, and the expected error is an underestimate."""
         n = self.grid.n
         p = self.prob.reshape(-1, n, n)
         inner = p[:, 1:-1, 1:-1].sum(axis=(1, 2))
@@ -102,10 +101,8 @@ def hdr_area(prob: np.ndarray, mass: float, cell_area: float | np.ndarray) -> np
 def predict(config: str, models: dict[str, FittedNoiseModel], arms: dict[str, kin.Arm],
             commands: dict[str, np.ndarray], targets: np.ndarray, grid: Grid = Grid(),
             model_name: str = "") -> Prediction:
-    """Predict the end point of a setup (one arm, or arms joined by '+') at each target.
-
-    ``commands``: pulses (T, 2) sent to each arm of the config; ``targets``: (T, 2).
-    """
+    """Predict the end point of a setup (arms joined by '+') at each target (T, 2), each arm
+    at its ``commands`` (T, 2)."""
     members = config.split("+")
     targets = np.asarray(targets, float)
     offsets = jnp.asarray(grid.offsets)
@@ -177,29 +174,19 @@ def accuracy_document(rig: Rig, arms: dict[str, kin.Arm],
 COARSE_GRID = Grid(30.0, 150)
 
 
-# --------------------------------------------------------------------------------------------
-# The grid reference
-# --------------------------------------------------------------------------------------------
-
-
 @dataclass
 class GridPosterior:
-    """The grid's end-point density, resolved on a zoomed grid fine enough for moments.
+    """A point's density on a zoomed grid (2-D or 3-D) fine enough for moments
+    (:func:`zoomed_grid`). ``loglik(d) - log_normaliser`` is the normalised log density at d
+    (per mm^dim)."""
 
-    A coarse grid (default +-30 mm, 150 x 150, the prediction's box) locates the mass; a
-    second ``n x n`` grid over the box that holds all but ``1e-9`` of it (plus a margin)
-    gives mean, covariance and normaliser by the midpoint rule. ``log_normaliser`` is
-    log of the integral of the unnormalised density over the box (per mm^2), so
-    ``loglik(d) - log_normaliser`` is the normalised log density at d.
-    """
-
-    targets: np.ndarray  # (T, 2)
-    lo: np.ndarray  # (T, 2) lower-left corner of each fine grid
-    cell_mm: np.ndarray  # (T, 2) fine cell size
+    targets: np.ndarray  # (T, dim) the coarse grids' centres
+    lo: np.ndarray  # (T, dim) lower corner of each fine grid
+    cell_mm: np.ndarray  # (T, dim) fine cell size
     n: int
-    prob: np.ndarray  # (T, n*n) mass per fine cell
-    mean: np.ndarray  # (T, 2)
-    cov: np.ndarray  # (T, 2, 2)
+    prob: np.ndarray  # (T, n^dim) mass per fine cell
+    mean: np.ndarray  # (T, dim)
+    cov: np.ndarray  # (T, dim, dim)
     log_normaliser: np.ndarray  # (T,)
     edge_mass: np.ndarray  # (T,) coarse-grid mass in its outermost ring of cells
     coarse: Grid
@@ -210,39 +197,32 @@ class GridPosterior:
         return _cell_centres(self.lo, self.cell_mm, self.n)
 
     def sample(self, seed: int, n: int) -> np.ndarray:
-        """n draws (n, T, 2): a cell by its mass, then uniform within the cell."""
+        """n draws (n, T, dim): a cell by its mass, then uniform within the cell."""
         rng = np.random.default_rng(seed)
         pts = self.points()
-        out = np.empty((n, len(self.targets), 2))
+        out = np.empty((n, *self.targets.shape))
         for t in range(len(self.targets)):
             # Systematic resampling: n draws spread over the CDF, so even 4 chains land in
             # the modes in proportion to their mass instead of by luck.
             cdf = np.cumsum(self.prob[t])
             pos = (rng.permutation(n) + rng.uniform()) / n
             idx = np.minimum(np.searchsorted(cdf, pos * cdf[-1]), cdf.size - 1)
-            jitter = rng.uniform(-0.5, 0.5, size=(n, 2)) * self.cell_mm[t]
+            jitter = rng.uniform(-0.5, 0.5, size=(n, pts.shape[-1])) * self.cell_mm[t]
             out[:, t] = pts[t, idx] + jitter
         return out
 
     def hdr_level(self, log_density: np.ndarray) -> np.ndarray:
-        """Mass of the highest-density region whose boundary passes through each point.
-
-        ``log_density`` (T,): the normalised log density (per mm^2) of one point per target
-        (:func:`point_log_density`). The result is the predicted mass denser than the point:
-        a point lies in the ``m`` HDR when its level is <= m, and for a calibrated model the
-        levels of real outcomes are uniform on (0, 1) (a 2-D probability integral transform).
-        """
-        log_area = np.log(self.cell_mm[:, 0] * self.cell_mm[:, 1])
+        """The HDR level (mass denser than it) of one point per target of normalised
+        ``log_density`` (T,) (:func:`point_log_density`): uniform on (0, 1) over real outcomes
+        for a calibrated model."""
+        log_area = np.log(np.prod(self.cell_mm, axis=1))
         with np.errstate(divide="ignore"):
             cell_ld = np.log(self.prob.T) - log_area
         return density_levels(cell_ld, log_density, self.prob.T)
 
 
 def _cell_centres(lo: np.ndarray, cell: np.ndarray, n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    gx, gy = np.meshgrid(i, i)
-    unit = np.column_stack([gx.ravel(), gy.ravel()])
-    return lo[:, None, :] + unit[None] * cell[:, None, :]
+    return lo[:, None, :] + _mesh(np.arange(n) + 0.5, lo.shape[1])[None] * cell[:, None, :]
 
 
 @functools.lru_cache(maxsize=64)
@@ -260,12 +240,8 @@ def _compiled_loglik(statics: tuple[ArmStatic, ...]) -> Callable:
 
 def points_log_likelihood(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
             commands: Sequence[np.ndarray], points: Any) -> np.ndarray:
-    """Summed (unnormalised) log-likelihood of points (T, M, 2): the grid's density.
-
-    The per-arm densities of the programs (:func:`bayesrob.errors.distributions.arm_log_density`),
-    compiled once per structure and shapes, so repeated grids (targets, LOO refits, rigs) pay
-    no compilation.
-    """
+    """Summed unnormalised log-likelihood of points (T, M, 2): the grid's density, compiled
+    once per structure and shapes."""
     statics, params = arm_structures(models, arms)
     cmds = tuple(jnp.asarray(np.atleast_2d(u), dtype=jnp.float64) for u in commands)
     return np.asarray(_compiled_loglik(statics)(jnp.asarray(points, dtype=jnp.float64), cmds,
@@ -276,24 +252,33 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                    commands: Sequence[np.ndarray], targets: np.ndarray,
                    coarse: Grid = COARSE_GRID, n: int = 150,
                    tail: float = 1e-9) -> GridPosterior:
-    """Mean, covariance and normaliser of the grid density of each target, on a zoomed grid.
+    """The planar arms' linked end-point density of each target on a zoomed grid.
 
     The paper's 100 x 100 grid has 0.6 mm cells, as wide as the posterior itself (sd ~0.4 to
     2 mm), so its moments carry discretisation error of the order of the 0.1 mm / 10%
-    tolerances of :func:`cross_check`. The zoom makes that error negligible: the box spans
-    about +-6 posterior sd, so a cell is ~0.08 sd (typically 0.02 to 0.08 mm) and the
-    midpoint rule's relative error in the variance is ~(cell / sd)^2 / 12 < 0.1%.
+    tolerances of ``cross_check``. The zoom spans about +-6 posterior sd, so a cell is ~0.08
+    sd and the midpoint rule's relative error in the variance is ~(cell / sd)^2 / 12 < 0.1%.
     """
+    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
+    return zoomed_grid(lambda pts: points_log_likelihood(models, arms, commands, pts), targets,
+                       coarse, n, tail)
+
+
+def zoomed_grid(loglik: Callable[[np.ndarray], np.ndarray], targets: np.ndarray,
+                coarse: Grid = COARSE_GRID, n: int = 150, tail: float = 1e-9) -> GridPosterior:
+    """Mean, covariance and normaliser of the density ``loglik`` (points (T, M, dim) -> (T, M)
+    unnormalised log densities) about each target (T, dim), by the midpoint rule: a coarse
+    grid locates the mass, a second n^dim grid over the box holding all but ``tail`` of it."""
     t0 = time.perf_counter()
     targets = np.atleast_2d(np.asarray(targets, float))
-    commands = [np.atleast_2d(np.asarray(u, float)) for u in commands]
-    offsets = coarse.offsets
+    offsets = _mesh(coarse.axis, targets.shape[1])
     pts = targets[:, None, :] + offsets[None]
-    ll = points_log_likelihood(models, arms, commands, pts)
+    ll = loglik(pts)
     if not np.all(np.isfinite(ll).any(axis=1)):
         t = int(np.flatnonzero(~np.isfinite(ll).any(axis=1))[0])
-        raise ValueError(f"target {t} ({targets[t, 0]:g}, {targets[t, 1]:g}): no point of the "
-                         f"+-{coarse.half_width_mm:g} mm box around it is reached by every arm")
+        raise ValueError(f"target {t} ({', '.join(f'{v:g}' for v in targets[t])}): no point of "
+                         f"the +-{coarse.half_width_mm:g} mm box around it is reached by every "
+                         "arm")
     p = softmax(ll, axis=-1)
     step = 2 * coarse.half_width_mm / coarse.n
     ring = np.any(np.abs(offsets) > coarse.half_width_mm - step, axis=1)
@@ -310,8 +295,8 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
         hi[t] = keep.max(axis=0) + 2 * step
     cell = (hi - lo) / n
     fine = _cell_centres(lo, cell, n)
-    llf = points_log_likelihood(models, arms, commands, fine)
-    log_normaliser = logsumexp(llf, axis=-1) + np.log(cell[:, 0] * cell[:, 1])
+    llf = loglik(fine)
+    log_normaliser = logsumexp(llf, axis=-1) + np.log(np.prod(cell, axis=1))
     prob = softmax(llf, axis=-1)
     mean = np.einsum("tm,tmk->tk", prob, fine)
     dev = fine - mean[:, None, :]
@@ -323,11 +308,8 @@ def grid_posterior(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
 def point_log_density(post: GridPosterior, models: Sequence[FittedNoiseModel],
                       arms: Sequence[kin.Arm], commands: Sequence[np.ndarray],
                       points: np.ndarray) -> np.ndarray:
-    """Normalised log density (per mm^2) of one point per target under the grid prediction.
-
-    The unnormalised log-likelihood at the exact point, minus the grid's log normaliser: no
-    discretisation of the point itself, and the same normalisation as every grid prediction.
-    """
+    """Normalised log density (per mm^2) of one point per target under the grid prediction:
+    the exact point's log-likelihood minus the grid's log normaliser."""
     pts = np.asarray(points, float)[:, None, :]
     ll = points_log_likelihood(models, arms, commands, pts)[:, 0]
     return ll - post.log_normaliser

@@ -1,19 +1,11 @@
-"""The density of a prediction's draws and its highest-density regions.
+"""The density of a prediction's draws (``scipy.stats.gaussian_kde``, Scott's rule) and its
+highest-density regions (HDRs).
 
-A prediction's draws at a target are smoothed by a Gaussian KDE with Scott's bandwidth
-(``scipy.stats.gaussian_kde``). Its 50% / 90% highest-density regions (HDRs) are read off
-points weighted by the mass they stand for, ranked by density: the region holding mass m is
-the densest points until their weights reach m, and its size (area in 2-D, volume in 3-D) the
-volume those points stand for. One routine serves both kinds of points:
-
-- draws from the KDE itself (:func:`hdr_sizes`, :func:`hdr_levels`): each stands for 1/K of
-  the mass and 1 / (K p) of the volume, so the size is the Monte Carlo estimate
-  vol{p > c} = E_p[1{p > c} / p];
-- the cells of a grid (:mod:`.grid`, :class:`bayesrob.predict.grid.GridPosterior`): each
-  stands for its own mass and its cell's area, which gives the paper's count of cells.
-
-The HDR *level* of a point is the mass denser than it: inside the m region when below m, and
-uniform on (0, 1) over real outcomes when the prediction is calibrated.
+The region holding mass m is the densest points until their weights reach m, its size the
+volume they stand for: draws from the KDE each stand for 1/K of the mass and 1 / (K p) of the
+volume (the Monte Carlo vol{p > c} = E_p[1{p > c} / p]); a grid's cells for their own mass
+and area (the paper's count). A point's HDR *level* is the mass denser than it: uniform on
+(0, 1) over real outcomes when the prediction is calibrated.
 """
 
 from __future__ import annotations
@@ -38,8 +30,7 @@ def kernels(draws: np.ndarray) -> list[gaussian_kde]:
 def kde_log_density(draws: np.ndarray | Sequence[gaussian_kde], points: np.ndarray
                     ) -> np.ndarray:
     """Log density (per mm^dim) of the KDE of draws (S, T, dim) (or their :func:`kernels`)
-    at points (T, dim), giving (T,), or at several points per target (K, T, dim), giving
-    (K, T)."""
+    at points (T, dim) -> (T,), or (K, T, dim) -> (K, T)."""
     kdes = draws if isinstance(draws, list) else kernels(draws)
     pts = np.asarray(points, float)
     if pts.ndim == 2:
@@ -83,8 +74,8 @@ def density_levels(ref_log_density: np.ndarray, log_density: np.ndarray,
 
 
 def _kde_draws(draws: np.ndarray, kdes: Sequence[gaussian_kde]) -> np.ndarray:
-    """VOLUME_POINTS draws (K, T, dim) from the KDE itself (a draw plus kernel noise): the
-    region estimators are expectations under the KDE, not under the draws it smooths."""
+    """VOLUME_POINTS draws from the KDE itself: the region estimators are expectations under
+    the KDE, not under the draws it smooths."""
     sub = np.asarray(draws, float)[:VOLUME_POINTS]
     chol = np.stack([np.linalg.cholesky(k.covariance) for k in kdes])  # (T, dim, dim)
     z = np.random.default_rng(0).standard_normal(sub.shape)

@@ -1,12 +1,10 @@
 """The joint stiffnesses linked arms balance with (equilibrium fusion, :mod:`.fusion`).
 
-One prior, :class:`StiffnessPrior`, of an arm's log joint stiffnesses along its path: the
-rig's ``stiffness`` when it gives them; else read from compliances fitted under the
-description's link masses; else log-normal: on chains centred on the joints' URDF torque
-limits, a term per arm and one per joint, each arm's term centred on its fitted sag against
-the other linked arms' (:func:`sag_scaled_priors`); on the paper's planar servo arms equal
-joints, no arm term (:func:`given_or_servo_prior`; widths chosen on each kind's own tuning
-rigs). Only the ratios of the arms' stiffnesses move the balance.
+:class:`StiffnessPrior` of an arm's log joint stiffnesses along its path: the rig's when given;
+else read from compliances fitted under the description's link masses; else log-normal, on
+chains centred on the URDF torque limits with an arm term centred on the arm's fitted sag
+(:func:`sag_scaled_priors`), on planar servo arms equal joints (:func:`given_or_servo_prior`).
+Only the ratios of the arms' stiffnesses move the balance.
 """
 
 from __future__ import annotations
@@ -63,31 +61,26 @@ DESCRIBED_MASS_LOG_SD = 0.1
 STIFFNESS_LOG_SD = 0.4
 
 class StiffnessPrior(NamedTuple):
-    """An arm's log joint stiffnesses along its path (mounts first): Normal(centre, sd) per
-    joint (sd 0: known), plus the prior's arm term where ``shared`` (an arm stiffer or softer
-    as a whole, where nothing fixes its scale). ``source`` says where it came from, in words
-    a report can print: one of ``STIFFNESS_SOURCES``."""
+    """An arm's log joint stiffnesses along its path: Normal(centre, sd) per joint (sd 0:
+    known), plus an arm term where ``shared`` (the arm stiffer or softer as a whole);
+    ``source`` is one of ``STIFFNESS_SOURCES``."""
 
     centre: np.ndarray
     sd: np.ndarray
     shared: np.ndarray
     source: str
-    # the arm term's mean (the arm's log stiffness scale against the other linked arms') and
-    # sd (None: CHAIN_STIFFNESS_ARM_LOG_SD)
+    # the arm term's mean (its log scale against the other linked arms') and sd (None: the
+    # module's CHAIN_STIFFNESS_ARM_LOG_SD as it stands when drawn: a sweep of priors sets it)
     arm_centre: float = 0.0
     arm_sd: float | None = None
 
     def arm_term_sd(self) -> float:
-        """The arm term's log sd: its own, else CHAIN_STIFFNESS_ARM_LOG_SD as it stands now
-        (a sweep of priors sets it between draws)."""
         return CHAIN_STIFFNESS_ARM_LOG_SD if self.arm_sd is None else self.arm_sd
 
     def record(self) -> dict[str, Any]:
-        """What the balance draws this arm's joint stiffnesses from, for a report (``predict``'s
-        JSON ``stiffness.<arm>``, ``design.json``'s ``stiffness[]``): ``from``, medians (N mm/rad;
-        ``relative`` to the arm's first joint under the prior, whose scale is arbitrary), log
-        sds, and ``arm_log_centre`` (the arm's log scale against the other linked arms', 0
-        unless their fitted sags set it); under the prior also the arm term's sd."""
+        """The prior for a report (``predict``'s ``stiffness.<arm>``): ``from``, medians (N mm/rad,
+        or ``relative`` to the first joint under the prior, whose scale is arbitrary), log
+        sds, ``arm_log_centre``, and under the prior the arm term's sd."""
         k = np.exp(self.centre)
         out: dict[str, Any] = {"from": self.source}
         if np.any(self.shared):
@@ -103,8 +96,8 @@ STIFFNESS_SOURCES = ("the rig", "compliances fitted under the URDF's masses", "t
 
 
 def given_or_servo_prior(k: Sequence[float] | None, n: int = 2) -> StiffnessPrior:
-    """A planar servo arm's prior: its ``n`` joint stiffnesses ``k`` (N mm/rad) where the rig
-    gives them, else equal joints, each with its own log sd STIFFNESS_LOG_SD."""
+    """A planar servo arm's prior: the rig's stiffnesses ``k`` (N mm/rad), else ``n`` equal
+    joints of log sd STIFFNESS_LOG_SD."""
     if k is not None:
         k = np.asarray(k, float)
         return StiffnessPrior(np.log(k), np.zeros_like(k), np.zeros(k.shape, bool),
@@ -115,10 +108,8 @@ def given_or_servo_prior(k: Sequence[float] | None, n: int = 2) -> StiffnessPrio
 
 def stiffness_prior(rig: Rig, arm: str, cal: Calibration | None = None
                      ) -> StiffnessPrior:
-    """The log joint stiffnesses along the path to ``arm``: the rig's ``stiffness`` when it
-    gives them; else, from a calibration whose compliances were fitted under the description's
-    masses (``masses="description"``), each seen joint's own and the rest scaled to them; else
-    the prior."""
+    """The log joint stiffnesses along the path to ``arm``: the rig's; else from compliances
+    fitted under the description's masses (the unseen joints scaled to them); else the prior."""
     parts = [getattr(rig.arms[c.name], "stiffness", None) for c in rig.robot.path(arm)]
     if all(p is not None for p in parts):
         return given_or_servo_prior(np.concatenate(parts))
@@ -160,11 +151,9 @@ def stiffness_prior(rig: Rig, arm: str, cal: Calibration | None = None
 
 
 def arm_sags(rig: Rig, cal: Calibration, arms: Sequence[str]) -> dict[str, float] | None:
-    """Each arm's mean fitted sag (mm): how far its marker moves when its own chains'
-    compliances are set to zero, over the train poses of all ``arms`` pooled, so every arm is
-    weighed at the same poses. None where that cannot be read: the arms' paths differ in
-    joints (no common poses), the calibration fitted no compliance or has no gravity, or an
-    arm shows no sag."""
+    """Each arm's mean fitted sag (mm): how far its marker moves with its own chains'
+    compliances zeroed, over all ``arms``' train poses pooled; None where that cannot be read
+    (paths of other joint counts, no compliance or gravity, or an arm without sag)."""
     robot = cal.robot
     if ("compliance" not in cal.groups or robot.gravity is None or len(arms) < 2
             or len({robot.n_path_joints(a) for a in arms}) > 1):
@@ -188,17 +177,12 @@ def arm_sags(rig: Rig, cal: Calibration, arms: Sequence[str]) -> dict[str, float
 def sag_scaled_priors(rig: Rig, cal: Calibration, priors: dict[str, StiffnessPrior]
                       ) -> dict[str, StiffnessPrior]:
     """``priors`` with each arm's term centred on its fitted sag against the others' (log k_a
-    = -log sag_a + the mean of log sag over the arms), where every arm took the prior and
-    CHAIN_STIFFNESS_ARM_CENTRE is "sags"; else as given.
+    = mean log sag - log sag_a), where every arm took the prior; else as given.
 
-    Only the ratios of the arms' stiffnesses move the balance, and the prior alone treats
-    the arms alike. A calibration that fits compliance without the masses identifies each
-    joint's compliance times the first moment it carries, not the stiffness; but arms of one
-    model carry alike moments, so an arm that sags further is the softer one. On the tuning
-    rigs (271-282, 201-206) the log ratio of two arms' sags followed their true log stiffness
-    ratio with slope -0.98 / -0.94 (Spearman -0.91 / -0.94), scattered by about 0.25
-    (docs/fusion.md). Its sds are SAG_SCALED_LOG_SD per joint and SAG_SCALED_ARM_LOG_SD per
-    arm.
+    A fit without the masses identifies compliance times first moment, not stiffness; but arms
+    of one model carry alike moments, so the arm that sags further is the softer one. On the
+    tuning rigs the log sag ratio followed the true log stiffness ratio with slope -0.98 /
+    -0.94, scattered by about 0.25 (docs/fusion.md).
     """
     if (CHAIN_STIFFNESS_ARM_CENTRE != "sags"
             or any(p.source != STIFFNESS_SOURCES[2] for p in priors.values())):
@@ -215,16 +199,11 @@ def sag_scaled_priors(rig: Rig, cal: Calibration, priors: dict[str, StiffnessPri
 
 def stiffness_priors(rig: Rig, arms: Sequence[str], cal: Calibration
                      ) -> dict[str, StiffnessPrior]:
-    """The log joint stiffnesses' prior of each of ``arms``, linked: each arm's own
-    (:func:`stiffness_prior`), their arm terms then centred on their fitted sags
-    (:func:`sag_scaled_priors`)."""
+    """Each of ``arms``' :func:`stiffness_prior`, linked: :func:`sag_scaled_priors`."""
     return sag_scaled_priors(rig, cal, {a: stiffness_prior(rig, a, cal) for a in arms})
 
 
 def _log_stiffness_prior(priors: Sequence[StiffnessPrior]) -> None:
-    """Each arm's joint log stiffnesses: Normal(centre, sd) per joint (sd 0: known), plus,
-    where the prior marks them ``shared``, a Normal(arm_centre, arm_term_sd()) term the arm's
-    joints share: an arm as a whole is stiffer or softer than another."""
     for i, p in enumerate(priors):
         z = numpyro.sample(f"log_stiffness_z_{i}",
                            dist.Normal(0.0, 1.0).expand([len(p.centre)]).to_event(1))
