@@ -492,13 +492,6 @@ def loo_loglik(data: Any, bandwidth: Any) -> float:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_range(h_range: Sequence[float]) -> tuple[float, float]:
-    lo, hi = (float(v) for v in h_range)
-    if not (0 < lo < hi < np.inf):
-        raise ValueError(f"h_range must satisfy 0 < lo < hi < inf, got {h_range}")
-    return lo, hi
-
-
 def _scalar_search(objective_grid, objective_one, lo: float, hi: float, n_grid: int) -> float:
     """Minimise a 1-D objective of h on [lo, hi]: a log grid (against the local minima a
     bounded Brent search alone could settle in), then Brent in log h between the best grid
@@ -573,8 +566,7 @@ _MULTISTART_MAX_N = 500
 
 
 def _select_log_bw(
-    joint: np.ndarray, dx: int, conditional: bool, multistart: bool | None,
-    floor: np.ndarray | None = None,
+    joint: np.ndarray, dx: int, conditional: bool, floor: np.ndarray | None = None
 ) -> tuple[np.ndarray, bool]:
     """Bandwidths (original units) maximising the (conditional) LOO log-likelihood, and
     whether one ended on its bound.
@@ -593,9 +585,9 @@ def _select_log_bw(
     if floor is not None:
         with np.errstate(divide="ignore"):
             search_lo = np.clip(np.log(np.asarray(floor, float) / sigma), lo, hi)
-    if multistart is None:
-        multistart = conditional and n <= _MULTISTART_MAX_N
-    starts = _start_points(x0, dx if conditional else q) if multistart else [x0]
+    # A survey of skewed, bimodal, clustered and heavy-tailed data never found a second
+    # local maximum of the unconditional objective; the conditional one often has several.
+    starts = _start_points(x0, dx) if conditional and n <= _MULTISTART_MAX_N else [x0]
     best_theta, best_val = None, np.inf
     # scipy's L-BFGS-B makes tiny BLAS calls that multi-threaded OpenBLAS slows tenfold
     with _threadpools().limit(limits=1, user_api="blas"):
@@ -639,10 +631,6 @@ class KDE:
     sigma: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
 
     @property
-    def n(self) -> int:
-        return int(self.data.shape[0])
-
-    @property
     def d(self) -> int:
         return int(self.data.shape[1])
 
@@ -655,7 +643,6 @@ class KDE:
         h_range: Sequence[float] = (0.05, 2.0),
         n_grid: int = 41,
         warn_on_bound: bool = True,
-        multistart: bool | None = None,
     ) -> KDE:
         """Fit a KDE to ``data`` ((N, d), or (N,) for d = 1).
 
@@ -663,9 +650,7 @@ class KDE:
         maximising the LOO log-likelihood), each on a log grid of ``n_grid`` widths over
         ``h_range`` refined by Brent; ``"loo-ml-diag"`` (one width per dimension, L-BFGS-B);
         or fixed widths in the data's units. A width on its bound sets ``on_bound`` and, if
-        ``warn_on_bound``, warns. ``multistart`` (``"loo-ml-diag"``): also start from 2d + 2
-        perturbed widths; off by default, as a survey of skewed, bimodal, clustered and
-        heavy-tailed data never found a second local maximum.
+        ``warn_on_bound``, warns.
         """
         arr = _as_data(data)
         n, d = arr.shape
@@ -673,7 +658,7 @@ class KDE:
         if not isinstance(bandwidth, str):
             return cls(arr, _fixed_bandwidth(bandwidth, d), "fixed", sigma=sigma)
         if bandwidth == "loo-ml-diag":
-            bw, on = _select_log_bw(arr, d, False, multistart)
+            bw, on = _select_log_bw(arr, d, False)
             if on and warn_on_bound:
                 _warn_bound("'loo-ml-diag'", np.round(bw / sigma, 6).tolist(), _DIAG_RANGE)
             return cls(arr, bw, bandwidth, None, on, _DIAG_RANGE, sigma)
@@ -681,7 +666,9 @@ class KDE:
             raise ValueError(
                 f"unknown bandwidth selector {bandwidth!r}; use one of {SELECTORS} or a number"
             )
-        lo, hi = _check_range(h_range)
+        lo, hi = (float(v) for v in h_range)
+        if not (0 < lo < hi < np.inf):
+            raise ValueError(f"h_range must satisfy 0 < lo < hi < inf, got {h_range}")
         # The paper divides by sigma without centring; the kernel only sees differences.
         y = (arr - arr.mean(axis=0)) / sigma
         if bandwidth == "paper":
@@ -801,17 +788,15 @@ class ConditionalKDE:
         h_range: Sequence[float] = (0.05, 2.0),
         n_grid: int = 41,
         warn_on_bound: bool = True,
-        multistart: bool | None = None,
         z_spacing_floor: float = 0.0,
     ) -> ConditionalKDE:
         """Fit p(x | z) to paired samples ``x`` (N, dx) and ``z`` (N, dz).
 
         Kernel method: ``bandwidth`` is ``"loo-ml-diag"`` (default; statsmodels'
         ``KDEMultivariateConditional(bw="cv_ml")`` objective, x widths then z) or fixed widths
-        (dx + dz values, or one). ``multistart``: also run L-BFGS-B from 2(dx + dz) + 4
-        perturbed starts, as the conditional likelihood has local maxima; None does so for
-        N <= 500, where it is cheap and they are common (statsmodels' single Nelder-Mead can
-        stop in a worse one). ``z_spacing_floor``: every z width is at least this multiple of
+        (dx + dz values, or one); for N <= 500 L-BFGS-B also runs from 2(dx + dz) + 4 perturbed
+        starts, as local maxima are common there (statsmodels' single Nelder-Mead can stop in
+        a worse one). ``z_spacing_floor``: every z width is at least this multiple of
         :func:`command_spacing`, as on a regular grid of z a width far below the spacing can
         still win leave-one-out (it conditions each point on its own grid line alone).
 
@@ -827,8 +812,7 @@ class ConditionalKDE:
         dx, dz = xa.shape[1], za.shape[1]
         if method == "histogram":
             joint = KDE.fit(np.hstack([xa, za]), "paper" if bandwidth is None else bandwidth,
-                            h_range=h_range, n_grid=n_grid, warn_on_bound=warn_on_bound,
-                            multistart=multistart)
+                            h_range=h_range, n_grid=n_grid, warn_on_bound=warn_on_bound)
             nb, widths, lo, table = _histogram_table(joint, dx, bins, bin_widths)
             return cls("histogram", xa, za, None, None, joint.selector, joint.on_bound,
                        joint.search_range, joint, nb, widths, lo, table, floor)
@@ -844,7 +828,7 @@ class ConditionalKDE:
         least = None
         if z_spacing_floor > 0:
             least = np.r_[np.zeros(dx), np.full(dz, z_spacing_floor * command_spacing(za))]
-        bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, multistart, least)
+        bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, least)
         if on and warn_on_bound:
             _warn_bound("kernel-conditional", bw.tolist(), _DIAG_RANGE)
         return cls("kernel", xa, za, bw[:dx], bw[dx:], "loo-ml-diag", on, _DIAG_RANGE)
