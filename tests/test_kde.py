@@ -58,6 +58,23 @@ class DiagGaussianKDE(gaussian_kde):
         self.log_det = 2 * np.log(np.diag(self.cho_cov * np.sqrt(2 * np.pi))).sum()
 
 
+def _loo_lse(groups) -> jnp.ndarray:
+    """Row-wise ``logsumexp_{j != i} sum_g -0.5 |(y_gi - y_gj) * inv_bw_g|^2``: the plain
+    N x N leave-one-out sums of (y (N, d_g), inv_bw (d_g,)) column groups' product kernel."""
+    logk = sum(-0.5 * jnp.sum(((y[:, None, :] - y[None, :, :]) * inv) ** 2, axis=-1)
+               for y, inv in groups)
+    return jax.scipy.special.logsumexp(jnp.where(jnp.eye(logk.shape[0], dtype=bool), -jnp.inf,
+                                                 logk), axis=1)
+
+
+def _neg_loo_loglik(log_bw: jnp.ndarray, y: jnp.ndarray) -> jnp.ndarray:
+    """Negative leave-one-out log-likelihood ``-sum_i log f_-i(y_i)``, plainly."""
+    n, d = y.shape
+    lse = _loo_lse([(y, jnp.exp(-log_bw))])
+    return -(jnp.sum(lse) - n * jnp.sum(log_bw) - n * jnp.log(n - 1.0)
+             - 0.5 * n * d * kde_mod._LOG_2PI)
+
+
 def _neg_cond_loo_loglik(log_bw: jnp.ndarray, y: jnp.ndarray, dx: int) -> jnp.ndarray:
     """Negative leave-one-out conditional log-likelihood ``-sum_i log f_-i(x_i | z_i)``, the
     plain reference the library's hand-written gradient is tested against. ``y`` holds [x, z]
@@ -67,7 +84,7 @@ def _neg_cond_loo_loglik(log_bw: jnp.ndarray, y: jnp.ndarray, dx: int) -> jnp.nd
     n = y.shape[0]
     inv = jnp.exp(-log_bw)
     gx, gz = (y[:, :dx], inv[:dx]), (y[:, dx:], inv[dx:])
-    ll = (jnp.sum(kde_mod._loo_lse([gx, gz]) - kde_mod._loo_lse([gz]))
+    ll = (jnp.sum(_loo_lse([gx, gz]) - _loo_lse([gz]))
           - n * jnp.sum(log_bw[:dx]) - 0.5 * n * dx * kde_mod._LOG_2PI)
     return -ll
 
@@ -105,12 +122,10 @@ def test_blocked_evaluation_equals_single_block(monkeypatch: pytest.MonkeyPatch)
     data = jnp.asarray(rng.normal(size=(300, 3)))
     pts = jnp.asarray(rng.normal(size=(1001, 3)))
     bw = jnp.asarray([0.3, 0.4, 0.5])
-    theta = jnp.log(bw)
 
     def everything():
         return [
             kde_logpdf(pts, data, bw),
-            *jax.value_and_grad(kde_mod._neg_loo_loglik_diag)(theta, data),
             kde_mod._j_loo_normalised(jnp.float64(0.4), data, jnp.float64(0.0)),
         ]
 
@@ -221,7 +236,7 @@ def test_hand_written_objective_equals_autodiff_of_the_plain_one(n, q, dx, condi
     y = (y - y.mean(axis=0)) / y.std(axis=0)
     theta = jnp.asarray(np.log(rng.uniform(0.1, 0.6, q)))
     plain = (partial(_neg_cond_loo_loglik, dx=dx) if conditional
-             else kde_mod._neg_loo_loglik_diag)
+             else _neg_loo_loglik)
     v0, g0 = jax.value_and_grad(plain)(theta, jnp.asarray(y))
     for cap in (kde_mod._capacity(n), 2 * kde_mod._capacity(n)):
         buf = jnp.asarray(np.pad(y, ((0, cap - n), (0, 0)), constant_values=7.0))
@@ -496,7 +511,7 @@ def test_histogram_conditional_with_paper_bin_widths_centres_on_mean() -> None:
     total = np.trapezoid(np.trapezoid(dens, gy, axis=1), gx)
     assert total == pytest.approx(1.0, abs=2e-2)
     with pytest.raises(NotImplementedError):
-        cond.sample(0, mean[2:], 3)
+        cond.weights(mean[2:])
 
 
 def test_guided_histogram_lookup_has_the_tables_value_and_a_guiding_gradient() -> None:
@@ -546,45 +561,8 @@ def test_conditional_input_errors() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Sampling and gradients
+# Gradients
 # --------------------------------------------------------------------------------------------
-
-
-def test_sample_moments_match_kde() -> None:
-    data = _skewed_bimodal(np.random.default_rng(12), 80)
-    kde = KDE.fit(data, [0.3, 0.8, 0.5, 0.4])
-    n = 200_000
-    s = np.asarray(kde.sample(0, n))
-    assert s.shape == (n, 4)
-    cov = kde.cov()
-    sd = np.sqrt(np.diag(cov))
-    # Standard error of each mean is sd / sqrt(n); 5 SE gives a ~1e-6 false-failure rate.
-    np.testing.assert_array_less(np.abs(s.mean(axis=0) - kde.mean()), 5 * sd / math.sqrt(n))
-    # Covariance entries: SE ~ sd_i sd_j sqrt((1 + rho^2 + excess kurtosis) / n) <= ~3e-3 of
-    # sd_i sd_j here; 2% of sd_i sd_j is a loose, safe bound.
-    np.testing.assert_array_less(np.abs(np.cov(s, rowvar=False) - cov), 0.02 * np.outer(sd, sd))
-    np.testing.assert_array_equal(np.asarray(kde.sample(7, 5)), np.asarray(kde.sample(7, 5)))
-    key = jax.random.PRNGKey(7)
-    np.testing.assert_array_equal(np.asarray(kde.sample(key, 5)), np.asarray(kde.sample(7, 5)))
-
-
-def test_conditional_sample_moments_match_mixture() -> None:
-    x, z = _cond_data(13, 80)
-    # Fixed widths: this tests the sampler, not the selector (which other tests cover).
-    cond = ConditionalKDE.fit(x, z, "kernel", bandwidth=[0.25, 0.4, 0.3, 0.2])
-    zq = np.array([0.5, -0.5])
-    n = 200_000
-    s = np.asarray(cond.sample(1, zq, n))
-    assert s.shape == (n, 2)
-    w = np.asarray(cond.weights(zq))
-    mean = w @ x
-    cov = (x - mean).T @ ((x - mean) * w[:, None]) + np.diag(cond.bw_x**2)
-    sd = np.sqrt(np.diag(cov))
-    # Same tolerances and reasons as test_sample_moments_match_kde.
-    np.testing.assert_array_less(np.abs(s.mean(axis=0) - mean), 5 * sd / math.sqrt(n))
-    np.testing.assert_array_less(np.abs(np.cov(s, rowvar=False) - cov), 0.02 * np.outer(sd, sd))
-    batch = np.asarray(cond.sample(2, np.stack([zq, zq]), 4))
-    assert batch.shape == (4, 2, 2)
 
 
 def test_logpdf_is_differentiable() -> None:
@@ -675,7 +653,7 @@ def test_command_floor_keeps_structure_sampled_densely() -> None:
     k = ConditionalKDE.fit(x, u, "kernel", warn_on_bound=False, z_spacing_floor=1.0)
     new = np.array([1300.0 + 5.5 * 40.0, 1300.0 + 3.5 * 40.0])
     truth = np.array([0.004 * np.sin(new[0] / 120.0), 0.003 * np.cos(new[1] / 90.0)])
-    mean = np.asarray(k.sample(0, new, 4000)).mean(axis=0)
+    mean = np.asarray(k.weights(new)) @ x
     assert np.all(np.abs(mean - truth) < 6e-4), (mean, truth)
     assert np.abs(x.mean(axis=0) - truth).max() > 2e-3
     assert not k.on_bound

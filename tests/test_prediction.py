@@ -8,6 +8,7 @@ import pytest
 from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arms
 from bayesrob.data.rig import default_rig_dir, load_rig
+from bayesrob.errors.distributions import joint_error_distribution
 from bayesrob.errors.noise_models import (
     ModelFileError,
     ModelSpec,
@@ -113,15 +114,7 @@ def test_improved_grid_density_is_the_push_forward_of_the_joint_error_density(de
     mean, cov = _grid_moments(pred, i)
     u = jnp.asarray(rows["commands"]["bottom"][i])
     f = fitted["bottom"]
-    key = jax.random.PRNGKey(0)
-    if spec.family == "IND":
-        k1, k2 = jax.random.split(key)
-        err = jnp.column_stack([f.parts[0].sample(k1, 40000)[:, 0],
-                                f.parts[1].sample(k2, 40000)[:, 0]])
-    elif spec.family == "CORR":
-        err = f.parts[0].sample(key, 40000)
-    else:
-        err = f.conditional.sample(key, u, 40000)
+    err = joint_error_distribution(f, u).sample(jax.random.PRNGKey(0), (40000,))
     arm = arms["bottom"]
     d = np.asarray(kin.forward(arm.params, kin.servo(arm.params, u) + err))
     # 40000 draws: the Monte Carlo standard error of the mean is ~0.01 mm for a ~1.5 mm

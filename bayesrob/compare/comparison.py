@@ -1,28 +1,21 @@
 """Model comparison: every joint-error model scored on end points it was not fitted on.
 
-The score of a point is its log predictive density: the log of the model's predicted density
-(per mm^2) of the observed end point, normalised over the grid box like every grid
-prediction (:func:`bayesrob.predict.grid.grid_posterior`). The points:
+A point's score is the log of the model's predicted density (per mm^2, normalised over the grid
+box like every grid prediction) at the observed end point, for:
 
-- held out: each arm's ``validation`` rows (the model fitted on the ``train`` rows) and the
-  linked ``test`` rows (predicted from both arms' models), the data no model has seen; when the
-  rig has ``holdout`` rows (single-arm rows at new poses, linked rows at new targets), those
-  are scored the same way and reported beside them, never pooled with them;
-- leave-one-out over the training rows: training row i scored with everything that was fitted
-  on it refitted without it: the arm's geometric calibration (a row's leverage on the 8
-  calibration parameters is about 0.25 with 16 rows, so keeping it would flatter every model),
-  the joint errors that calibration implies, and the density, the histogram COND's grid
-  included. The density keeps the bandwidths chosen on all rows (re-selecting them 16 times
-  per arm would cost minutes for COND), which flatters the LOO-ML variants a little: their
-  bandwidths maximise a leave-one-out likelihood in joint-error space. This is exact LOO, so
-  no Pareto-smoothed approximation is needed: a KDE has no posterior draws to
-  importance-weight, but dropping one of its points is cheap.
+- held-out rows: each arm's ``validation`` rows and the linked ``test`` rows, and, reported
+  beside them and never pooled, ``holdout`` rows (single-arm rows at new poses, linked rows at
+  new targets);
+- leave-one-out over the training rows, exact: row i scored with everything fitted on it
+  refitted without it, the arm's calibration included (a row's leverage on the 8 parameters
+  is about 0.25 with 16 rows, so keeping it would flatter every model), the bandwidths kept
+  from all rows (re-selecting them would cost minutes for COND; it flatters the LOO-ML
+  variants a little). A KDE has no posterior draws to importance-weight, but dropping one of
+  its points is cheap.
 
-Both go through ``arviz.compare`` (as ``ELPDData`` built from the exact pointwise values), which
-gives the elpd differences, their standard errors ``dse = sqrt(n) sd(pointwise differences)``
-and stacking weights; :func:`comparison_figure` plots them. Alongside, the calibration of each
-model's predictive regions: the HDR level of each held-out point (the predicted mass denser
-than the observation; uniform on (0, 1) for a calibrated model) and the 50% / 90% coverage.
+Both go through ``arviz.compare`` (``ELPDData`` built from the exact pointwise values): elpd
+differences, ``dse = sqrt(n) sd(pointwise differences)`` and stacking weights. Alongside, each
+model's HDR levels of the held-out points (uniform on (0, 1) when calibrated) and coverage.
 """
 
 from __future__ import annotations
@@ -42,8 +35,9 @@ import xarray as xr
 
 from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
+from bayesrob.calibrate.least_squares import calibrate, side_rows
 from bayesrob.data.rig import Rig
-from bayesrob.errors.kde import KDE, ConditionalKDE
+from bayesrob.errors.marker_density import fit_marker_model, loo_marker_scores, marker_model_kind
 from bayesrob.errors.noise_models import (
     FittedNoiseModel,
     ModelSpec,
@@ -60,6 +54,7 @@ from bayesrob.predict.grid import (
     setups,
 )
 from bayesrob.predict.regions import kde_log_density
+from bayesrob.progress import progress as progress_report
 from bayesrob.report.tables import format_table
 
 if TYPE_CHECKING:
@@ -91,15 +86,10 @@ class PointScores:
         return float(np.mean(self.hdr_level <= mass)) if self.lpd.size else float("nan")
 
     def ppc(self, draws: int = 4000, seed: int = 0) -> dict:
-        """Posterior predictive check of the points, jointly over the targets.
-
-        Two statistics: the HDR levels (a 2-D PIT; uniform for a calibrated model, tested
-        with Kolmogorov-Smirnov), and the paper's accuracy measure, the mean Euclidean
-        distance of the end points from their targets: its predictive distribution from
-        ``draws`` replicated sets of end points (one per target, from the grid prediction)
-        against the observed value. ``ppp`` = P(replicated mean error >= observed): near 1
-        when the model predicts larger errors than seen (conservative), near 0 when smaller.
-        """
+        """Posterior predictive check of the points, jointly over the targets: the HDR levels
+        (a 2-D PIT, Kolmogorov-Smirnov against uniform), and the paper's mean distance of the
+        end points from their targets against ``draws`` replicated sets from the grid
+        prediction; ``ppp`` = P(replicated >= observed), near 1 when conservative."""
         post = self.grid
         rep = post.sample(seed, draws)  # (draws, T, 2)
         pred = np.linalg.norm(rep - post.targets[None], axis=-1).mean(axis=1)
@@ -120,12 +110,9 @@ def score_points(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm],
                  commands: Sequence[np.ndarray], targets: np.ndarray, observed: np.ndarray,
                  fusion: str = "product", stiffness: Sequence[Any] | None = None,
                  **grid_kw: Any) -> tuple[PointScores, GridPosterior]:
-    """Log predictive density and HDR level of ``observed`` (T, 2), one point per target.
-
-    ``models``/``arms``/``commands`` describe the setup: one arm, or arms linked at their end
-    point, fused by ``fusion`` (:mod:`bayesrob.predict.fusion`); the prediction for row t is centred
-    at ``targets[t]``.
-    """
+    """Log predictive density and HDR level of ``observed`` (T, 2), one point per target
+    (row t's prediction centred at ``targets[t]``), for one arm or arms linked at their end
+    point, fused by ``fusion`` (:mod:`bayesrob.predict.fusion`)."""
     observed = np.asarray(observed, float)
     if fusion != "product" and len(arms) > 1:
         post, draws = fused_posterior(models, arms, commands, targets, fusion, stiffness)
@@ -165,29 +152,10 @@ def rig_stiffness(rig: Rig, members: Sequence[str]) -> list | None:
 
 def refit_at_bandwidths(model: FittedNoiseModel, theta_err: np.ndarray, u: np.ndarray
                         ) -> FittedNoiseModel:
-    """``model``'s density refitted to other joint errors and commands at its bandwidths.
-
-    Everything else is re-derived from the new rows exactly as :meth:`ModelSpec.fit` derives
-    it, the histogram COND's grid (its ``bin_margin`` or declared ``bin_widths``) included:
-    a grid carried over from other rows, or none at all, would put the scored row off the
-    histogram where only the floor density is.
-    """
-    x, u = np.asarray(theta_err, float), np.asarray(u, float)
-    spec = model.spec
-    if model.conditional is None:
-        if spec.family == "IND":
-            parts = [KDE.fit(x[:, j:j + 1], p.bandwidth) for j, p in enumerate(model.parts)]
-        else:
-            parts = [KDE.fit(x, model.parts[0].bandwidth)]
-        return FittedNoiseModel(spec, x, u, parts=parts)
-    c = model.conditional
-    if c.method == "kernel":
-        cond = ConditionalKDE.fit(x, u, "kernel", np.concatenate([c.bw_x, c.bw_z]))
-    else:
-        cond = ConditionalKDE.fit(x, u, "histogram", c.joint.bandwidth, bins=spec.bins,
-                                  bin_widths=spec._bin_widths(x, u), floor=c.floor,
-                                  warn_on_bound=False)
-    return FittedNoiseModel(spec, x, u, conditional=cond)
+    """``model``'s density refitted to other joint errors and commands at its bandwidths,
+    all else (the histogram COND's grid included) re-derived from the new rows: a grid
+    carried over would put the scored row off the histogram, where only the floor is."""
+    return model.spec.fit(theta_err, u, model.widths)
 
 
 def refit_without(model: FittedNoiseModel, keep: np.ndarray) -> FittedNoiseModel:
@@ -207,15 +175,9 @@ def loo_calibrations(rig: Rig, arm: str) -> list[kin.Arm]:
 def loo_training_scores(rig: Rig, arm: kin.Arm, model: FittedNoiseModel,
                         recalibrate: bool = True,
                         calibrations: Sequence[kin.Arm] | None = None) -> np.ndarray:
-    """Exact leave-one-out log predictive density of each of an arm's training rows.
-
-    Row i's observed end point is scored by the single-arm prediction for its command u_i,
-    with everything fitted on the training rows refitted without row i: the arm's geometric
-    calibration (``recalibrate``; with False the calibrated ``arm`` is kept), the joint errors
-    it implies and the density at the full fit's bandwidths (see the module docstring).
-    ``calibrations``: :func:`loo_calibrations` of the arm, when already computed (they do not
-    depend on the model).
-    """
+    """Exact leave-one-out log predictive density of each of an arm's training rows: row i
+    scored with the calibration (if ``recalibrate``; ``calibrations`` when already computed),
+    the joint errors and the density (at the full fit's bandwidths) refitted without it."""
     u, d = rig.rows(arm.name, "train")
     if recalibrate and calibrations is None:
         calibrations = loo_calibrations(rig, arm.name)
@@ -274,13 +236,10 @@ def _elpd_tables(specs: Sequence[ModelSpec], heldout: dict[str, dict[str, PointS
 
 
 def _table(compared: Any) -> list[dict]:
-    rows = []
-    for name, r in compared.iterrows():
-        rows.append({"model": str(name), "rank": int(r["rank"]), "elpd": float(r["elpd_loo"]),
-                     "se": float(r["se"]), "elpd_diff": float(r["elpd_diff"]),
-                     "dse": float(r["dse"]), "weight": float(r["weight"]),
-                     "p": float(r["p_loo"])})
-    return rows
+    return [{"model": str(name), "rank": int(r["rank"]), "elpd": float(r["elpd_loo"]),
+             "se": float(r["se"]), "elpd_diff": float(r["elpd_diff"]), "dse": float(r["dse"]),
+             "weight": float(r["weight"]), "p": float(r["p_loo"])}
+            for name, r in compared.iterrows()]
 
 
 def _score_summary(by_config: dict[str, PointScores]) -> dict:
@@ -293,10 +252,8 @@ def _score_summary(by_config: dict[str, PointScores]) -> dict:
             "coverage50": s.coverage(0.5), "coverage90": s.coverage(0.9),
             "mean_hdr_level": float(s.hdr_level.mean()),
         }
-    for config, s in by_config.items():
         if "+" in config:
-            ppc = s.ppc()
-            by_setup[config]["ppc"] = {k: v for k, v in ppc.items() if k != "hdr_levels"}
+            by_setup[config]["ppc"] = {k: v for k, v in s.ppc().items() if k != "hdr_levels"}
     pw = np.concatenate([s.lpd for s in by_config.values()])
     return {"n": int(pw.size), "elpd": float(pw.sum()),
             "se": float(np.sqrt(pw.size * np.var(pw))),
@@ -329,13 +286,6 @@ class ModelComparison:
 
     def heldout_pointwise(self, model: str) -> np.ndarray:
         return np.concatenate([s.lpd for s in self.heldout[model].values()])
-
-    def holdout_pointwise(self, model: str) -> np.ndarray:
-        return np.concatenate([s.lpd for s in self.holdout[model].values()])
-
-    def to_dict(self) -> dict:
-        """The ``bayesrob compare --json`` document (as :meth:`document`)."""
-        return self.document()
 
     def document(self) -> dict:
         """The ``bayesrob compare --json`` document."""
@@ -389,6 +339,8 @@ class ModelComparison:
             "seconds": self.seconds,
         }
 
+    to_dict = document  # the name every result's JSON goes by (bayesrob.__all__)
+
 
 def heldout_scores(rig: Rig, specs: Sequence[ModelSpec], arms: dict[str, kin.Arm] | None = None
                    ) -> dict[str, dict[str, PointScores]]:
@@ -405,17 +357,10 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
                    models_dir: str | Path | None = None, progress: bool = False,
                    recalibrate: bool = True, groups: tuple[str, ...] | None = None
                    ) -> ModelComparison:
-    """Fit every model on the training rows and score it on held-out and LOO points.
-
-    Held out are the validation/test rows and, when the rig has them, the ``holdout`` rows
-    (scored separately). ``recalibrate``: leave-one-out refits each arm's calibration without
-    the left-out row as well (see :func:`loo_training_scores`). A rig of URDF/DH arms is
-    calibrated over ``groups`` (default :data:`bayesrob.robot.GROUPS`) and scored by its
-    markers' densities (:func:`_compare_marker_models`); so is a planar rig given ``groups``,
-    its arms as the 2-joint chains they are.
-    """
-    from bayesrob.progress import progress as progress_report
-
+    """Fit every model on the training rows and score it on held-out and LOO points
+    (``recalibrate``: LOO refits the calibration too). A rig of URDF/DH arms, or a planar rig
+    given ``groups``, is calibrated over ``groups`` (default :data:`bayesrob.robot.GROUPS`)
+    and scored by its markers' densities (:func:`_compare_marker_models`)."""
     if rig.is_chain or groups is not None:
         return _compare_marker_models(rig, models, models_dir, progress, groups)
     t0 = time.perf_counter()
@@ -427,12 +372,9 @@ def compare_models(rig: Rig, models: Sequence[str] | None = None,
     hold_configs = holdout_setups(rig)
     bar.set_postfix("calibrating without each training row")
     loo_arms = {a: loo_calibrations(rig, a) for a in arms} if recalibrate else {}
-    heldout: dict[str, dict[str, PointScores]] = {}
-    loo: dict[str, np.ndarray] = {}
-    in_sample: dict[str, np.ndarray] = {}
-    holdout: dict[str, dict[str, PointScores]] = {}
-    fused: dict[str, dict[str, PointScores]] = {}
-    fused_holdout: dict[str, dict[str, PointScores]] = {}
+    # model -> setup -> scores, under the product and the equilibrium fusion
+    heldout, holdout, fused, fused_holdout = {}, {}, {}, {}
+    loo, in_sample = {}, {}  # model -> pointwise scores over every arm's training rows
     for spec in specs:
         bar.set_postfix_str(spec.name)
         fitted = fit_noise_models(rig, arms, [spec])[spec.name]
@@ -479,14 +421,6 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
     """:func:`compare_models` on a rig of URDF/DH arms: every measured arm's validation rows
     (and holdout rows) scored by :class:`bayesrob.errors.marker_density.MarkerDensity`, and
     leave-one-out over its train rows with the calibration kept."""
-    from bayesrob.calibrate.least_squares import calibrate, side_rows
-    from bayesrob.errors.marker_density import (
-        fit_marker_model,
-        loo_marker_scores,
-        marker_model_kind,
-    )
-    from bayesrob.progress import progress as progress_report
-
     t0 = time.perf_counter()
     if models:
         specs = discover_models(models_dir, models)
@@ -584,12 +518,9 @@ def format_comparison(doc: dict) -> str:
 
 
 def comparison_figure(comparison: ModelComparison) -> Figure:
-    """elpd difference to the best model, with its standard error, held out and LOO.
-
-    The style of ``arviz.plot_compare`` (ranked models, best on top), drawn by hand on a
-    symmetric-log axis: the histogram COND can trail by thousands where the others differ
-    by a few units, and a linear axis would flatten them into one point.
-    """
+    """elpd difference to the best model, with its standard error, held out and LOO, in the
+    style of ``arviz.plot_compare`` on a symmetric-log axis: the histogram COND can trail by
+    thousands where the others differ by a few units."""
     import matplotlib.pyplot as plt
 
     k = len(comparison.specs)

@@ -1,18 +1,12 @@
 """The joint-error models as numpyro distributions, and an arm's density of its end point.
 
-Every kernel joint-error model is a numpyro distribution whose density *is* the KDE: a Gaussian
-KDE is ``MixtureSameFamily(Categorical(w), Independent(Normal(data, bw), 1))`` with uniform
-``w`` (IND: one such 1-D mixture per joint; CORR: one joint mixture; COND: the mixing weights
-are the kernel-conditional weights at the command u). The paper's histogram COND has no
-sampler, only a density, so it enters programs as a ``numpyro.factor``; its value is the
-table's and its gradient a smooth guide's (:func:`bayesrob.errors.kde.guided_histogram_lookup`),
-which lets NUTS sample a density that is piecewise constant.
-
-A model's learned state is a dict of arrays (:func:`error_arrays`) and its kind a static string
-(:func:`error_kind`), so compiled programs trace the arrays rather than bake them in: one
-program serves every fit of one kind and shape. :func:`arm_log_density` is a planar arm's
-log-likelihood of an end point, the density the exact grid (:mod:`bayesrob.predict.grid`) and
-the samplers (:mod:`bayesrob.inference.sampling`) share.
+Every kernel model is a numpyro distribution whose density *is* the KDE. The paper's histogram
+COND has a density but no sampler, so it enters programs as a ``numpyro.factor`` whose gradient
+is a smooth guide's (:func:`bayesrob.errors.kde.guided_histogram_lookup`). A model's learned
+state is a dict of arrays (:func:`error_arrays`) and its kind a static string
+(:func:`error_kind`), so one compiled program serves every fit of one kind and shape.
+:func:`arm_log_density` is a planar arm's log-likelihood of an end point, shared by the exact
+grid (:mod:`bayesrob.predict.grid`) and the samplers (:mod:`bayesrob.inference.sampling`).
 """
 
 from __future__ import annotations
@@ -25,14 +19,13 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import numpyro.distributions as dist
 
 from bayesrob import robot as kin
 from bayesrob.errors.kde import guided_histogram_lookup, kernel_conditional_weights
 from bayesrob.errors.noise_models import FittedNoiseModel
 
-__all__ = ["HISTOGRAM_WALL", "ArmStatic", "kde_distribution", "error_kind", "is_sampleable",
+__all__ = ["HISTOGRAM_WALL", "ArmStatic", "error_kind", "is_sampleable",
            "error_arrays", "error_distribution", "joint_error_distribution",
            "joint_error_log_prob", "arm_structures", "arm_log_density"]
 
@@ -41,32 +34,6 @@ __all__ = ["HISTOGRAM_WALL", "ArmStatic", "kde_distribution", "error_kind", "is_
 # 2.6 s against 14 s at 0.5 and 77 s at 1 bin (all passing the cross-check), while 0.1 bin
 # began to cost ESS. It shapes trajectories only: the density sampled is the table's.
 HISTOGRAM_WALL = 0.25
-
-
-# --------------------------------------------------------------------------------------------
-# Joint-error models as numpyro distributions
-# --------------------------------------------------------------------------------------------
-
-
-def kde_distribution(data: Any, bandwidth: Any, weights: Any | None = None
-                     ) -> dist.MixtureSameFamily:
-    """A diagonal Gaussian KDE as a numpyro distribution over d-vectors.
-
-    ``data`` (N, d), ``bandwidth`` (d,) in the data's units, ``weights`` (..., N) mixing
-    weights (default uniform, 1/N: the plain KDE). Leading dimensions of ``weights`` become the
-    batch shape, so one call gives the conditional densities at a batch of commands.
-    """
-    data = jnp.asarray(data, dtype=jnp.float64)
-    bw = jnp.asarray(bandwidth, dtype=jnp.float64)
-    n = data.shape[0]
-    if weights is None:
-        weights = jnp.full((n,), 1.0 / n)
-    weights = jnp.asarray(weights, dtype=jnp.float64)
-    batch = weights.shape[:-1]
-    # Components must carry the mixing batch in front of their own mixture axis.
-    loc = jnp.broadcast_to(data, batch + data.shape)
-    comp = dist.Normal(loc, jnp.broadcast_to(bw, loc.shape)).to_event(1)
-    return dist.MixtureSameFamily(dist.Categorical(probs=weights), comp)
 
 
 def error_kind(model: FittedNoiseModel) -> str:
@@ -83,13 +50,8 @@ def is_sampleable(model: FittedNoiseModel) -> bool:
 def error_arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
     """The model's learned state as arrays: traced, not baked in, by the compiled samplers."""
     kind = error_kind(model)
-    if kind == "IND":
-        if len({p.n for p in model.parts}) > 1:
-            raise ValueError("IND parts were fitted to different numbers of points")
-        out = {"x": np.column_stack([p.data[:, 0] for p in model.parts]),
-               "bw_x": np.array([p.bandwidth[0] for p in model.parts])}
-    elif kind == "CORR":
-        out = {"x": model.parts[0].data, "bw_x": model.parts[0].bandwidth}
+    if kind in ("IND", "CORR"):
+        out = {"x": model.theta_err, "bw_x": model.bandwidth}
     elif kind == "COND":
         c = model.conditional
         out = {"x": c.x_data, "bw_x": c.bw_x, "z": c.z_data, "bw_z": c.bw_z}
@@ -101,6 +63,9 @@ def error_arrays(model: FittedNoiseModel) -> dict[str, jax.Array]:
 
 def error_distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | None
                   ) -> dist.Distribution:
+    """A kernel model's density over joint-error vectors: a Gaussian KDE is
+    ``MixtureSameFamily(Categorical(w), Independent(Normal(data, bw), 1))``, with uniform w,
+    or COND's kernel-conditional weights at u (batch shape u's leading dimensions)."""
     x, bw = arrays["x"], arrays["bw_x"]
     if kind == "IND":
         # 1-D mixtures side by side (a batch of n joints) made into one n-vector event: the
@@ -110,21 +75,21 @@ def error_distribution(kind: str, arrays: dict[str, jax.Array], u: jax.Array | N
         mix = dist.Categorical(probs=jnp.full(loc.shape, 1.0 / loc.shape[1]))
         return dist.MixtureSameFamily(mix, dist.Normal(loc, scale)).to_event(1)
     if kind == "CORR":
-        return kde_distribution(x, bw)
-    if u is None:
+        w = jnp.full((x.shape[0],), 1.0 / x.shape[0])
+    elif u is None:
         raise ValueError("COND needs the command u to condition on")
-    w = kernel_conditional_weights(jnp.asarray(u, dtype=jnp.float64), arrays["z"],
-                                   arrays["bw_z"])
-    return kde_distribution(x, bw, w)
+    else:
+        w = kernel_conditional_weights(jnp.asarray(u, dtype=jnp.float64), arrays["z"],
+                                       arrays["bw_z"])
+    # Components carry the mixing batch in front of their own mixture axis.
+    loc = jnp.broadcast_to(x, w.shape[:-1] + x.shape)
+    comp = dist.Normal(loc, jnp.broadcast_to(bw, loc.shape)).to_event(1)
+    return dist.MixtureSameFamily(dist.Categorical(probs=w), comp)
 
 
 def joint_error_distribution(model: FittedNoiseModel, u: Any | None = None) -> dist.Distribution:
-    """The joint-error density of a fitted model as a numpyro distribution over (2,) errors.
-
-    IND and CORR ignore ``u``; the kernel COND needs the command(s) ``u`` ((2,) or (T, 2), the
-    latter giving batch shape (T,)). The histogram COND (the paper's) has a density but no
-    sampler: it raises ``NotImplementedError``; score it with :func:`joint_error_log_prob`.
-    """
+    """A fitted model's joint-error density as a numpyro distribution (COND at the commands
+    ``u``, (2,) or (T, 2)); the histogram COND raises ``NotImplementedError`` (no sampler)."""
     kind = error_kind(model)
     if kind == "HIST":
         raise NotImplementedError(
@@ -182,11 +147,7 @@ def arm_structures(models: Sequence[FittedNoiseModel], arms: Sequence[kin.Arm]
 
 def joint_error_log_prob(model: FittedNoiseModel, theta_err: jax.Array, u: jax.Array
                          ) -> jax.Array:
-    """log p(theta_err | u) for errors (..., 2) and commands (..., 2) broadcast together.
-
-    The mixture distribution's ``log_prob`` for the kernel models, the histogram table for the
-    paper's COND; traceable either way.
-    """
+    """log p(theta_err | u) for errors (..., 2) and commands (..., 2) broadcast together."""
     return _error_log_prob_jit(_static(model, None), error_arrays(model), jnp.asarray(theta_err),
                                jnp.asarray(u, dtype=jnp.float64))
 
@@ -208,11 +169,8 @@ def compiled_arm_log_density(static: ArmStatic, arm_params: kin.ArmParams, array
 
 def arm_log_density(model: FittedNoiseModel, arm: kin.Arm, u: jax.Array, d: jax.Array
                     ) -> jax.Array:
-    """log-likelihood of end points d (..., T, 2) for one arm commanded with u (T, 2).
-
-    log p(theta_err(d) | u) (+ log|det df^-1/dd| when the model applies the Jacobian);
-    -inf where the arm cannot reach d.
-    """
+    """log-likelihood of end points d (..., T, 2) for one arm commanded with u (T, 2):
+    log p(theta_err(d) | u) (+ log|det df^-1/dd| if the model says), -inf out of reach."""
     (static,), ((arm_params, arrays),) = arm_structures([model], [arm])
     return compiled_arm_log_density(static, arm_params, arrays, jnp.asarray(u, dtype=jnp.float64),
                             jnp.asarray(d, dtype=jnp.float64))

@@ -1,40 +1,25 @@
 """Parzen (Gaussian-kernel) density estimation in JAX, with the paper's and improved selectors.
 
-The paper (Larkworthy & Hayes 2009, section III) estimates every density with a Parzen window:
-the data are divided by their componentwise (population) standard deviation, one spherical
-Gaussian of width ``h`` sits on each normalised point, and ``h`` minimises the leave-one-out
-criterion printed as
+The paper (Larkworthy & Hayes 2009, section III) divides the data by their componentwise
+(population) standard deviation, puts a spherical Gaussian of width ``h`` on each point and
+picks ``h`` by the leave-one-out criterion printed as
+``J_LOO(h) = sum_i sum_j (pdf(x_i | D, h) - pdf(x_i | D_-j, h))^2``. That criterion decreases
+monotonically in ``h``, so the "paper" selector searches an explicit range and reports landing
+on its bound: it is kept as the faithful baseline. The improved selectors maximise the
+leave-one-out log-likelihood (statsmodels' ``cv_ml``), with one width (``"loo-ml"``) or one
+per dimension (``"loo-ml-diag"``). Densities are normalised in the data's original units
+(NOTES item 3). Conditional densities p(x | z) are the paper's histogram of the joint KDE or
+the kernel conditional ``sum_i w_i(z) K_x(x - x_i)``, ``w_i ∝ K_z(z - z_i)``
+(:class:`ConditionalKDE`).
 
-    J_LOO(h) = sum_i sum_j (pdf(x_i | D, h) - pdf(x_i | D_-j, h))^2.
-
-That criterion decreases monotonically in ``h`` (see the reading notes on the paper), so the
-"paper" selector searches an explicit range and reports when its answer lies on the bound; it is
-kept as the faithful baseline. The improved selectors maximise the leave-one-out log-likelihood
-(statsmodels' ``cv_ml``), with one width (``"loo-ml"``) or one width per dimension
-(``"loo-ml-diag"``), optimised on log-bandwidths with exact gradients.
-
-Densities are always normalised in the data's original units (NOTES item 3):
-
-    pdf(x) = (1/N) sum_i prod_k N(x_k; x_ik, bw_k).
-
-Conditional densities p(x | z) come two ways (:class:`ConditionalKDE`): the paper's histogram
-of the joint KDE, and the kernel conditional ``sum_i w_i(z) K_x(x - x_i)`` with
-``w_i ∝ K_z(z - z_i)``, whose bandwidths follow statsmodels'
-``KDEMultivariateConditional(bw="cv_ml")`` objective.
-
-Everything that touches an M x N kernel matrix is jit-compiled and evaluated in blocks of rows
-(``jax.lax.map``), so memory stays bounded for e.g. 100,000 points against 10,000 data in 4-D.
-The pure functions :func:`kde_logpdf`, :func:`conditional_kde_logpdf` and
-:func:`kernel_conditional_weights` take and return ``jnp`` arrays so they can be used under
-``jax.grad`` / ``jax.jit`` / NUTS.
-
-Draws of a prediction are smoothed by scipy's ``gaussian_kde`` (Scott's rule), in
-:mod:`bayesrob.predict.regions`.
+Kernel matrices are evaluated in blocks of rows (``jax.lax.map``) so memory stays bounded;
+the pure functions take and return ``jnp`` arrays, usable under ``jax.grad`` / jit / NUTS.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import math
 import os
@@ -52,42 +37,25 @@ from jax.experimental import serialize_executable
 from jax.experimental.compilation_cache import compilation_cache
 from jax.scipy.special import logsumexp
 from scipy import optimize
+from scipy.spatial import cKDTree
+from threadpoolctl import ThreadpoolController
 
-try:  # optional: only used to keep L-BFGS-B's tiny BLAS calls single-threaded
-    from threadpoolctl import ThreadpoolController
-except ImportError:  # pragma: no cover
-    ThreadpoolController = None
-
-__all__ = [
-    "KDE",
-    "ConditionalKDE",
-    "KDEError",
-    "BandwidthOnBoundWarning",
-    "kde_logpdf",
-    "conditional_kde_logpdf",
-    "kernel_conditional_weights",
-    "command_spacing",
-    "histogram_lookup",
-    "histogram_guide",
-    "guided_histogram_lookup",
-    "j_loo",
-    "loo_loglik",
-    "SELECTORS",
-]
+__all__ = ["KDE", "ConditionalKDE", "KDEError", "BandwidthOnBoundWarning", "kde_logpdf",
+           "conditional_kde_logpdf", "kernel_conditional_weights", "command_spacing",
+           "histogram_lookup", "histogram_guide", "guided_histogram_lookup", "j_loo",
+           "loo_loglik", "SELECTORS"]
 
 SELECTORS = ("paper", "loo-ml", "loo-ml-diag")
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
-# Elements of one block of the kernel matrix (rows x data points). 2**22 float64 values are
-# 32 MB per intermediate; XLA keeps a few of them alive, so a block stays well under 1 GB
-# whatever M and N are.
+# Elements of one block of the kernel matrix (rows x data points): 32 MB per float64
+# intermediate, so a block stays well under 1 GB whatever M and N are.
 _BLOCK_ELEMENTS = 2**22
 
-# Per-dimension bandwidth bounds for the gradient-based selectors, in units of the data's
-# standard deviation. They only exist to keep L-BFGS-B away from bw -> 0 (duplicate points make
-# the leave-one-out likelihood unbounded there) and bw -> inf (an uninformative conditioning
-# variable); hitting one is reported through ``on_bound``.
+# Per-dimension bandwidth bounds of the gradient-based selectors, in data standard deviations:
+# they keep L-BFGS-B away from bw -> 0 (duplicate points make the LOO likelihood unbounded)
+# and bw -> inf (an uninformative conditioning variable).
 _DIAG_RANGE = (1e-3, 1e3)
 
 
@@ -96,20 +64,12 @@ class KDEError(ValueError):
 
 
 class BandwidthOnBoundWarning(UserWarning):
-    """The selected bandwidth lies on the bound of its search range.
-
-    For the paper's J_LOO criterion this is the expected outcome (the criterion is monotone in
-    h), so the estimate over-smooths by as much as the range allows.
-    """
-
-
-# --------------------------------------------------------------------------------------------
-# Validation helpers
-# --------------------------------------------------------------------------------------------
+    """The selected bandwidth lies on the bound of its search range (for the paper's J_LOO,
+    monotone in h, the expected outcome: the estimate over-smooths as far as the range allows)."""
 
 
 def _as_data(data: Any, name: str = "data") -> np.ndarray:
-    """Return ``data`` as a float64 (N, d) array, rejecting data no KDE can be fitted to."""
+    """``data`` as a float64 (N, d) array, rejecting data no KDE can be fitted to."""
     arr = np.asarray(data, dtype=np.float64)
     if arr.ndim == 1:
         arr = arr[:, None]
@@ -123,8 +83,7 @@ def _as_data(data: Any, name: str = "data") -> np.ndarray:
         raise KDEError(f"{name} needs at least 2 points for a density estimate, got {arr.shape[0]}")
     if np.all(arr == arr[0]):
         raise KDEError(f"all {arr.shape[0]} points in {name} are identical")
-    std = arr.std(axis=0)
-    bad = np.flatnonzero(~(std > 0))
+    bad = np.flatnonzero(~(arr.std(axis=0) > 0))
     if bad.size:
         raise KDEError(
             f"{name} has zero variance in dimension(s) {bad.tolist()}; a kernel width cannot "
@@ -146,10 +105,8 @@ def _fixed_bandwidth(bandwidth: Any, d: int, name: str = "bandwidth") -> np.ndar
 
 
 def _points_2d(points: Any, d: int) -> tuple[jnp.ndarray, bool]:
-    """(M, d) view of ``points``; the flag says the caller passed one point as a (d,) vector.
-
-    A 1-D array means M points when d == 1 and a single point when d > 1.
-    """
+    """(M, d) view of ``points``; the flag says the caller passed one point as a (d,) vector
+    (a 1-D array is M points when d == 1, one point when d > 1)."""
     p = jnp.asarray(points, dtype=jnp.float64)
     if p.ndim == 0:
         if d != 1:
@@ -166,29 +123,18 @@ def _points_2d(points: Any, d: int) -> tuple[jnp.ndarray, bool]:
     return p, False
 
 
-def _key(key_or_seed: Any) -> jax.Array:
-    if isinstance(key_or_seed, (int, np.integer)):
-        return jax.random.PRNGKey(int(key_or_seed))
-    return key_or_seed
-
-
 # --------------------------------------------------------------------------------------------
 # Core kernels (pure, jit-compiled, differentiable)
 # --------------------------------------------------------------------------------------------
 
 
-def _block_rows(m: int, n: int) -> int:
-    return max(1, min(m, _BLOCK_ELEMENTS // max(n, 1)))
-
-
 def _map_blocks(fn, m: int, n: int, *row_arrays: jnp.ndarray) -> jnp.ndarray:
-    """Apply ``fn`` to blocks of rows of ``row_arrays`` (each (m, ...)), concatenating results.
+    """``fn`` over blocks of rows of ``row_arrays`` (each (m, ...)), results concatenated.
 
-    Shapes are static under jit, so the block size is a Python int and the loop is a single
-    ``lax.map``. ``jax.checkpoint`` makes reverse-mode store only each block's inputs rather
-    than its (rows x N) kernel matrix, which is what keeps jax.grad over many points bounded.
+    ``jax.checkpoint`` makes reverse-mode store each block's inputs rather than its
+    (rows x N) kernel matrix, which keeps jax.grad over many points bounded.
     """
-    rows = _block_rows(m, n)
+    rows = max(1, min(m, _BLOCK_ELEMENTS // max(n, 1)))
     if rows >= m:
         return fn(*row_arrays)
     n_blocks = -(-m // rows)
@@ -204,39 +150,33 @@ def _map_blocks(fn, m: int, n: int, *row_arrays: jnp.ndarray) -> jnp.ndarray:
 def _sq_dist(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     """Pairwise squared distances between rows of already-scaled ``a`` (M, d) and ``b`` (N, d).
 
-    The |a|^2 + |b|^2 - 2 a.b form turns the M x N x d difference tensor into one matrix
-    product; callers centre the data first so the cancellation error stays ~1e-16 relative to
-    the spread of the data, and tiny negative results are clipped.
+    The |a|^2 + |b|^2 - 2 a.b form is one matrix product; callers centre the data first so
+    its cancellation error stays ~1e-16 of the data's spread, and tiny negatives are clipped.
     """
     if a.shape[1] == 1:
-        # A 1-D "matrix product" wastes the BLAS call; the direct difference is exact and cheap.
         return (a - b.T) ** 2
     sq = jnp.sum(a * a, axis=1)[:, None] + jnp.sum(b * b, axis=1)[None, :] - 2.0 * (a @ b.T)
     return jnp.maximum(sq, 0.0)
 
 
+def _centred(data: jnp.ndarray, bw: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """The data's mean (no gradient) and the data centred on it, in bandwidths."""
+    centre = jax.lax.stop_gradient(jnp.mean(data, axis=0))
+    return centre, (data - centre) / bw
+
+
 @jax.jit
 def kde_logpdf(points: jnp.ndarray, data: jnp.ndarray, bandwidth: jnp.ndarray) -> jnp.ndarray:
-    """Log density of the diagonal-bandwidth Gaussian KDE at ``points``.
-
-    ``log pdf(x) = log (1/N) sum_i prod_k N(x_k; data_ik, bandwidth_k)`` for each row of
-    ``points`` (M, d), with ``data`` (N, d) and ``bandwidth`` (d,) in the same units. Pure JAX:
-    differentiable w.r.t. all three arguments and usable inside jit / grad / NUTS. Points are
-    processed in row blocks so an M x N problem never materialises more than a few tens of MB.
-    """
-    points = jnp.asarray(points, dtype=jnp.float64)
-    data = jnp.asarray(data, dtype=jnp.float64)
-    bandwidth = jnp.asarray(bandwidth, dtype=jnp.float64)
+    """``log (1/N) sum_i prod_k N(x_k; data_ik, bandwidth_k)`` at each row of ``points``
+    (M, d), for ``data`` (N, d) and ``bandwidth`` (d,) in the same units."""
+    points, data, bandwidth = (jnp.asarray(a, jnp.float64) for a in (points, data, bandwidth))
     m, d = points.shape
     n = data.shape[0]
-    # Centring on the data mean keeps the matrix-product distance form accurate far from 0.
-    centre = jax.lax.stop_gradient(jnp.mean(data, axis=0))
-    y = (data - centre) / bandwidth
+    centre, y = _centred(data, bandwidth)
     const = -jnp.log(n) - jnp.sum(jnp.log(bandwidth)) - 0.5 * d * _LOG_2PI
 
     def block(p):
-        z = (p - centre) / bandwidth
-        return logsumexp(-0.5 * _sq_dist(z, y), axis=1)
+        return logsumexp(-0.5 * _sq_dist((p - centre) / bandwidth, y), axis=1)
 
     return _map_blocks(block, m, n, points) + const
 
@@ -245,27 +185,18 @@ def kde_logpdf(points: jnp.ndarray, data: jnp.ndarray, bandwidth: jnp.ndarray) -
 def kernel_conditional_weights(
     z: jnp.ndarray, z_data: jnp.ndarray, bw_z: jnp.ndarray
 ) -> jnp.ndarray:
-    """Mixture weights ``w_i(z) ∝ prod_k N(z_k; z_data_ik, bw_z_k)`` of the kernel conditional.
-
-    ``z`` has shape (..., dz) (or (dz,)); the result has shape (..., N) and sums to 1 over the
-    last axis. Computed as a softmax of log-kernels, so far-away ``z`` do not underflow to 0/0.
-    These weights plus per-component ``Normal(x_data_i, bw_x)`` form the conditional density as
-    a ``MixtureSameFamily`` distribution.
-    """
-    z = jnp.asarray(z, dtype=jnp.float64)
-    z_data = jnp.asarray(z_data, dtype=jnp.float64)
-    bw_z = jnp.asarray(bw_z, dtype=jnp.float64)
+    """Mixture weights ``w_i(z) ∝ prod_k N(z_k; z_data_ik, bw_z_k)`` of the kernel conditional,
+    shape (..., N) for ``z`` (..., dz); a softmax of log-kernels, so far-away z do not give 0/0."""
+    z, z_data, bw_z = (jnp.asarray(a, jnp.float64) for a in (z, z_data, bw_z))
     batch = z.shape[:-1]
     zz = z.reshape(-1, z.shape[-1])
-    centre = jax.lax.stop_gradient(jnp.mean(z_data, axis=0))
-    y = (z_data - centre) / bw_z
+    centre, y = _centred(z_data, bw_z)
     n = z_data.shape[0]
 
     def block(p):
         return jax.nn.softmax(-0.5 * _sq_dist((p - centre) / bw_z, y), axis=1)
 
-    w = _map_blocks(block, zz.shape[0], n, zz)
-    return w.reshape(batch + (n,))
+    return _map_blocks(block, zz.shape[0], n, zz).reshape(batch + (n,))
 
 
 @jax.jit
@@ -277,21 +208,13 @@ def conditional_kde_logpdf(
     bw_x: jnp.ndarray,
     bw_z: jnp.ndarray,
 ) -> jnp.ndarray:
-    """Log of the kernel conditional density ``p(x | z) = sum_i w_i(z) K_x(x - x_i)``.
-
-    ``x`` (M, dx) and ``z`` (M, dz) are row-wise pairs (broadcast them first). Equals
-    statsmodels' ``KDEMultivariateConditional.pdf`` ``f(x, z) / f(z)`` with the same bandwidths.
-    """
-    x = jnp.asarray(x, dtype=jnp.float64)
-    z = jnp.asarray(z, dtype=jnp.float64)
-    bw_x = jnp.asarray(bw_x, dtype=jnp.float64)
-    bw_z = jnp.asarray(bw_z, dtype=jnp.float64)
+    """``log p(x | z) = log sum_i w_i(z) K_x(x - x_i)`` for row-wise pairs ``x`` (M, dx), ``z``
+    (M, dz): statsmodels' ``KDEMultivariateConditional.pdf`` at the same bandwidths."""
+    x, z, bw_x, bw_z = (jnp.asarray(a, jnp.float64) for a in (x, z, bw_x, bw_z))
     m, dx = x.shape
     n = x_data.shape[0]
-    cx = jax.lax.stop_gradient(jnp.mean(x_data, axis=0))
-    cz = jax.lax.stop_gradient(jnp.mean(z_data, axis=0))
-    yx = (x_data - cx) / bw_x
-    yz = (z_data - cz) / bw_z
+    cx, yx = _centred(x_data, bw_x)
+    cz, yz = _centred(z_data, bw_z)
     const = -jnp.sum(jnp.log(bw_x)) - 0.5 * dx * _LOG_2PI
 
     def block(xb, zb):
@@ -302,80 +225,14 @@ def conditional_kde_logpdf(
     return _map_blocks(block, m, n, x, z) + const
 
 
-@partial(jax.jit, static_argnames=("n",))
-def _sample_kde(key: jax.Array, data: jnp.ndarray, bw: jnp.ndarray, n: int) -> jnp.ndarray:
-    k1, k2 = jax.random.split(key)
-    idx = jax.random.randint(k1, (n,), 0, data.shape[0])
-    return data[idx] + jax.random.normal(k2, (n, data.shape[1]), dtype=jnp.float64) * bw
-
-
-@partial(jax.jit, static_argnames=("n",))
-def _sample_conditional(
-    key: jax.Array,
-    z: jnp.ndarray,
-    x_data: jnp.ndarray,
-    z_data: jnp.ndarray,
-    bw_x: jnp.ndarray,
-    bw_z: jnp.ndarray,
-    n: int,
-) -> jnp.ndarray:
-    """(n, M, dx) draws: a component by inverse-CDF on the weights, then its kernel noise.
-
-    Inverse-CDF (a binary search per draw) rather than ``random.categorical``, whose Gumbel
-    trick draws n x M x N variates.
-    """
-    k1, k2 = jax.random.split(key)
-    cw = jnp.cumsum(kernel_conditional_weights(z, z_data, bw_z), axis=1)  # (M, N)
-    u = jax.random.uniform(k1, (n, z.shape[0]), dtype=jnp.float64) * cw[:, -1]
-    # side="right": component i is drawn when cw[i-1] <= u < cw[i], so zero weights never are.
-    idx = jax.vmap(partial(jnp.searchsorted, side="right"), in_axes=(0, 1), out_axes=1)(cw, u)
-    idx = jnp.minimum(idx, x_data.shape[0] - 1)
-    noise = jax.random.normal(k2, (n, z.shape[0], x_data.shape[1]), dtype=jnp.float64)
-    return x_data[idx] + noise * bw_x
-
-
 # --------------------------------------------------------------------------------------------
-# Bandwidth-selection objectives
+# The leave-one-out log-likelihood: one compiled objective for every selector
 # --------------------------------------------------------------------------------------------
 
 
-def _loo_lse(groups: Sequence[tuple[jnp.ndarray, jnp.ndarray]]) -> jnp.ndarray:
-    """Row-wise ``logsumexp_{j != i} sum_g -0.5 |(y_gi - y_gj) * inv_bw_g|^2`` for each i.
-
-    ``groups`` are (y (N, d_g), inv_bw (d_g,)) pairs whose log-kernels add (a product kernel
-    over blocks of columns). The diagonal, the point itself, is excluded with -inf: that is
-    what makes it leave-one-out. Rows are processed in blocks so memory stays bounded for
-    large N.
-    """
-    scaled = [y * inv for y, inv in groups]
-    n = scaled[0].shape[0]
-
-    def block(rows, *row_blocks):
-        logk = sum(-0.5 * _sq_dist(rb, s) for rb, s in zip(row_blocks, scaled, strict=True))
-        logk = jnp.where(rows[:, None] == jnp.arange(n)[None, :], -jnp.inf, logk)
-        return logsumexp(logk, axis=1)
-
-    return _map_blocks(block, n, n, jnp.arange(n), *scaled)
-
-
-@jax.jit
-def _neg_loo_loglik_diag(log_bw: jnp.ndarray, y: jnp.ndarray) -> jnp.ndarray:
-    """Negative leave-one-out log-likelihood, ``-sum_i log f_-i(y_i)``, for log-bandwidths.
-
-    Same objective (up to an additive constant) as statsmodels ``KDEMultivariate.loo_likelihood``
-    with ``func=np.log``, which drops the 1/(N-1) and 1/sqrt(2 pi) factors.
-    """
-    n, d = y.shape
-    lse = _loo_lse([(y, jnp.exp(-log_bw))])
-    return -(jnp.sum(lse) - n * jnp.sum(log_bw) - n * jnp.log(n - 1.0) - 0.5 * n * d * _LOG_2PI)
-
-
-# Rows per tile of the size-independent objective below (128: the last, partly empty tile
-# wastes less than with 256 and the loop overhead is still small; both timed at N = 700-1300),
-# and the smallest data buffer it is compiled for. One compiled program serves every N up to
-# the buffer (the loops over tiles run to the data's true size, a traced number), so fits at
-# new sizes do not recompile; the buffer only costs memory (4096 x q floats). Past it the
-# buffer doubles, one program each.
+# Rows per tile of the objective (128: timed best at N = 700-1300), and the smallest data
+# buffer it is compiled for: the loops over tiles run to the data's true size, a traced
+# number, so one program serves every N up to the buffer, which doubles past it.
 _TILE = 128
 _MIN_CAPACITY = 4096
 
@@ -395,13 +252,8 @@ def _padded(y: np.ndarray) -> jnp.ndarray:
 
 
 def _online_moments(state, logk: jnp.ndarray, ext: jnp.ndarray):
-    """Fold one column tile into each row's running max and ``sum_j e_ij [1, v_j, v_j^2]``.
-
-    e_ij = exp(logk_ij - max_i): the streaming form of a row softmax, rescaling what was
-    summed so far whenever the row maximum grows. Masked entries (-inf) add exactly zero.
-    ``ext`` holds the columns [1, v, v^2] of the tile's points, so the sum of weights and both
-    moments come from one matrix product.
-    """
+    """Fold one column tile into each row's running max and ``sum_j e_ij [1, v_j, v_j^2]``,
+    e_ij = exp(logk_ij - max_i) (a streaming row softmax; masked -inf entries add zero)."""
     m, acc = state
     m_new = jnp.maximum(m, jnp.max(logk, axis=1))
     e = jnp.exp(logk - m_new[:, None])
@@ -413,19 +265,12 @@ def _loo_value_and_grad_padded(
     log_bw: jnp.ndarray, y: jnp.ndarray, n: jnp.ndarray, dx: int, conditional: bool
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Negative LOO (conditional, or with all columns "x") log-likelihood of the first ``n``
-    rows of ``y`` (any traced ``n``) and its gradient w.r.t. log-bandwidths, hand-derived: one
-    exponential per kernel pair, half the cost of autodiff (which the tests check it against)
-    on a search that calls it tens of times. With s = y / bw, W the row-softmax of the (x, z)
-    log-kernels without the diagonal and V that of the z log-kernels alone,
-    d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2 and
-    d(-L)/d log bw_z,k = - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2.
-
-    ``y`` is a buffer of at least ``n`` rows (see :func:`_padded`); rows from ``n`` on have
-    zero weight: the loops over row and column tiles stop at ``n``, and the entries of the
-    last tiles beyond it are masked to -inf, so they contribute exactly nothing and the
-    result does not depend on the buffer's size. Each row's softmax is accumulated tile by
-    tile (:func:`_online_moments`) together with the first and second moments of the scaled
-    data under it, from which ``sum_j W_ij (s_ik - s_jk)^2 = s_ik^2 - 2 s_ik m1_ik + m2_ik``.
+    rows of ``y`` (a buffer, :func:`_padded`) and its gradient w.r.t. log-bandwidths,
+    hand-derived: one exponential per kernel pair, half the cost of autodiff. With s = y / bw,
+    W the row-softmax of the (x, z) log-kernels without the diagonal and V that of the z
+    log-kernels alone, d(-L)/d log bw_x,k = N - sum_ij W_ij (s_ik - s_jk)^2 and
+    d(-L)/d log bw_z,k = - sum_ij (W_ij - V_ij) (s_ik - s_jk)^2, where
+    ``sum_j W_ij (s_ik - s_jk)^2 = s_ik^2 - 2 s_ik m1_ik + m2_ik`` from the moments under W.
     """
     q = y.shape[1]
     t = _TILE
@@ -501,12 +346,8 @@ _OBJECTIVES: dict[tuple[int, int, bool, int], Any] = {}
 
 
 def _executable_path(key: tuple[int, int, bool, int]) -> Path | None:
-    """Where the executable for ``key`` is stored, or None when caching is off.
-
-    The name hashes everything the program depends on (this module's source, the JAX and
-    XLA versions, the device, the shapes), so a stale file is never loaded: it is simply
-    not looked up again.
-    """
+    """Where the executable for ``key`` is stored (None: caching off); the name hashes all the
+    program depends on (this source, JAX/XLA versions, device, shapes), so none is stale."""
     from bayesrob import cache_dir
 
     root = cache_dir()
@@ -522,11 +363,8 @@ def _executable_path(key: tuple[int, int, bool, int]) -> Path | None:
 
 
 def _loaded(blob: bytes, in_tree: Any, out_tree: Any, capacity: int, q: int) -> Any:
-    """The executable in ``blob``, or None if it does not load or cannot run.
-
-    One evaluation on two rows (about a millisecond) proves it runs: a file can load and
-    still lack kernels (see :func:`_objective`).
-    """
+    """The executable in ``blob``, or None if it does not load or run (one evaluation on two
+    rows proves it runs: a file can load and still lack kernels)."""
     try:
         fn = serialize_executable.deserialize_and_load(blob, in_tree, out_tree)
         two = np.zeros((capacity, q))
@@ -545,12 +383,8 @@ def _serialised(fn: Any, in_tree: Any, out_tree: Any, capacity: int, q: int) -> 
 
 @contextlib.contextmanager
 def _persistent_cache_off():
-    """Compilations inside the block are fresh: not read from (nor written to) any cache.
-
-    JAX decides once per process whether the cache is used; resetting that decision on both
-    sides (public ``reset_cache``) makes it take the flag into account, and then the
-    configured directory again.
-    """
+    """Compilations inside the block are fresh, past any cache (JAX decides once per process
+    whether the cache is used: ``reset_cache`` on both sides makes it see the flag)."""
     enabled = jax.config.jax_enable_compilation_cache
     compilation_cache.reset_cache()
     jax.config.update("jax_enable_compilation_cache", False)
@@ -565,11 +399,9 @@ def _persistent_cache_off():
 def _objective(q: int, dx: int, conditional: bool, capacity: int) -> Any:
     """The compiled (value, gradient) of the LOO objective for a buffer of ``capacity`` rows.
 
-    In-process it is compiled once; across processes it is stored with JAX's executable
-    serialisation next to JAX's compilation cache, because a persistent-cache hit still
-    traces and lowers the function (about 0.3 s of Python per new process), more than a
-    whole fit at N = 1000 takes. A file that fails to load or run is compiled again and
-    replaced; failing to write one only costs the next process the compilation.
+    Stored across processes with JAX's executable serialisation, because a persistent-cache
+    hit still traces and lowers the function (0.3 s per process, more than a fit at N = 1000).
+    A file that fails to load or run is compiled again and replaced.
     """
     key = (q, dx, bool(conditional), capacity)
     fn = _OBJECTIVES.get(key)
@@ -605,22 +437,24 @@ def _objective(q: int, dx: int, conditional: bool, capacity: int) -> Any:
     return fn
 
 
+def _loo_objective(y: np.ndarray, dx: int, conditional: bool) -> Any:
+    """theta -> (value, gradient) of the negative LOO log-likelihood of the rows ``y`` at
+    log-bandwidths theta, by the compiled objective."""
+    buf = _padded(y)
+    n = jax.device_put(np.int32(y.shape[0]))
+    fn = _objective(y.shape[1], dx, conditional, int(buf.shape[0]))
+    return lambda theta: fn(np.asarray(theta, dtype=np.float64), buf, n)
+
+
 @jax.jit
 def _j_loo_normalised(h: jnp.ndarray, y: jnp.ndarray, log_scale: jnp.ndarray) -> jnp.ndarray:
     """The paper's J_LOO for normalised data ``y`` and width ``h`` (pdfs in original units).
 
-    With K_il = SGF(y_i | y_l, h) and S_i = sum_l K_il, the full-data density at x_i is
-    S_i / N and the density with point j removed is (S_i - K_ij) / (N - 1); both carry the
-    1/prod(sigma) change of variables (NOTES item 3). Every (i, j) pair is summed, including
-    j = i, exactly as the formula is printed. Their difference simplifies to
-    (K_ij - S_i / N) / (N - 1), so
-
-        J_LOO = sum_i sum_j (K_ij - mean_l K_il)^2 / ((N - 1)^2 prod sigma^2):
-
-    the spread of each point's kernel values. That is why it falls monotonically as h grows
-    (all kernel values flatten towards the same small number) and has no interior minimum.
-    The spread is computed around the row mean (two passes), which is exact and, unlike
-    the expanded sum of squares, free of cancellation; rows are processed in blocks.
+    With K_il = SGF(y_i | y_l, h) and S_i = sum_l K_il, the density at x_i is S_i / N, and
+    (S_i - K_ij) / (N - 1) with point j removed (j = i included, as printed); their difference
+    is (K_ij - S_i / N) / (N - 1), so J_LOO = sum_i sum_j (K_ij - mean_l K_il)^2 /
+    ((N - 1)^2 prod sigma^2): the spread of each point's kernel values, which falls
+    monotonically as h grows. Computed around the row mean, free of cancellation.
     """
     n, d = y.shape
     s = y / h
@@ -637,15 +471,6 @@ def _j_loo_normalised(h: jnp.ndarray, y: jnp.ndarray, log_scale: jnp.ndarray) ->
 _j_loo_grid = jax.jit(jax.vmap(_j_loo_normalised, in_axes=(0, None, None)))
 
 
-@jax.jit
-def _loo_loglik_single(h: jnp.ndarray, y: jnp.ndarray) -> jnp.ndarray:
-    d = y.shape[1]
-    return -_neg_loo_loglik_diag(jnp.full(d, jnp.log(h)), y)
-
-
-_loo_loglik_grid = jax.jit(jax.vmap(_loo_loglik_single, in_axes=(0, None)))
-
-
 def j_loo(data: Any, h: float) -> float:
     """The paper's J_LOO(h) for ``data`` normalised by its componentwise population std."""
     arr = _as_data(data)
@@ -658,7 +483,8 @@ def loo_loglik(data: Any, bandwidth: Any) -> float:
     """Leave-one-out log-likelihood ``sum_i log pdf(x_i | D_-i)`` for a bandwidth in data units."""
     arr = _as_data(data)
     bw = _fixed_bandwidth(bandwidth, arr.shape[1])
-    return float(-_neg_loo_loglik_diag(jnp.log(jnp.asarray(bw)), jnp.asarray(arr)))
+    value, _ = _loo_objective(arr - arr.mean(axis=0), arr.shape[1], False)(np.log(bw))
+    return -float(value)
 
 
 # --------------------------------------------------------------------------------------------
@@ -666,19 +492,10 @@ def loo_loglik(data: Any, bandwidth: Any) -> float:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_range(h_range: Sequence[float]) -> tuple[float, float]:
-    lo, hi = (float(v) for v in h_range)
-    if not (0 < lo < hi < np.inf):
-        raise ValueError(f"h_range must satisfy 0 < lo < hi < inf, got {h_range}")
-    return lo, hi
-
-
 def _scalar_search(objective_grid, objective_one, lo: float, hi: float, n_grid: int) -> float:
-    """Minimise a 1-D objective of h on [lo, hi]: log grid, then bounded refinement.
-
-    The grid guards against the local minima a bounded Brent search alone could settle in; the
-    refinement runs in log h between the grid neighbours of the best grid point.
-    """
+    """Minimise a 1-D objective of h on [lo, hi]: a log grid (against the local minima a
+    bounded Brent search alone could settle in), then Brent in log h between the best grid
+    point's neighbours."""
     if n_grid < 3:
         raise ValueError(f"n_grid must be >= 3, got {n_grid}")
     grid = np.geomspace(lo, hi, n_grid)
@@ -699,39 +516,20 @@ def _scalar_search(objective_grid, objective_one, lo: float, hi: float, n_grid: 
     return float(min(max(math.exp(best_t), lo), hi))
 
 
-def _on_bound(value: float, lo: float, hi: float, rtol: float = 1e-3) -> bool:
-    return bool(abs(math.log(value / lo)) < rtol or abs(math.log(hi / value)) < rtol)
-
-
-_BLAS_CONTROLLER: Any = None
-
-
-def _single_threaded_blas() -> contextlib.AbstractContextManager:
-    """Limit BLAS to one thread while L-BFGS-B runs.
-
-    scipy's L-BFGS-B makes a few BLAS/LAPACK calls on (2m x 2m) matrices per iteration;
-    with multi-threaded OpenBLAS each costs ~1 ms of thread hand-off instead of ~0.1 ms (10x
-    measured on 2 busy cores), which at N <= 1000 is as much as the objective itself.
-    Without threadpoolctl installed this is a no-op.
-    """
-    global _BLAS_CONTROLLER
-    if ThreadpoolController is None:
-        return contextlib.nullcontext()
-    if _BLAS_CONTROLLER is None:
-        _BLAS_CONTROLLER = ThreadpoolController()
-    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+@functools.cache
+def _threadpools() -> ThreadpoolController:
+    return ThreadpoolController()
 
 
 def _lbfgs_log_bw(vg, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, float]:
-    """Minimise a jitted value-and-grad objective of log-bandwidths with bounded L-BFGS-B."""
+    """Minimise a value-and-grad objective of log-bandwidths with bounded L-BFGS-B."""
 
     def fun(theta):
-        v, g = vg(np.asarray(theta, dtype=np.float64))
+        v, g = vg(theta)
         return float(v), np.asarray(g, dtype=np.float64)
 
     # ftol 1e-11 / gtol 1e-7: bandwidths to 1e-6 relative or better (statsmodels stops at
-    # 1e-3 absolute). Tighter, the last iterations only chase rounding: at N = 700 a 2-D | 2-D
-    # conditional fit took 34 evaluations instead of 21 for the same widths to 8 digits.
+    # 1e-3 absolute); tighter, the last iterations only chase rounding.
     res = optimize.minimize(
         fun,
         x0,
@@ -746,13 +544,9 @@ def _lbfgs_log_bw(vg, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[n
 
 
 def _start_points(x0: np.ndarray, dx: int) -> list[np.ndarray]:
-    """Deterministic starts around the normal reference ``x0`` for a multi-start search.
-
-    The conditional likelihood often has several local maxima at small N (which z dimensions
-    get narrow kernels); shrinking / widening each width by 4, all by 3, and the z block by 3
-    found the best one in every case of a 60-problem survey, where the single normal-reference
-    start missed it in 4 of 60.
-    """
+    """Deterministic starts around the normal reference ``x0`` for a multi-start search:
+    shrinking / widening each width by 4, all by 3, and the z block by 3 found the best
+    optimum in every case of a 60-problem survey, where ``x0`` alone missed it in 4."""
     q = x0.size
     pts = [x0, x0 - math.log(3.0), x0 + math.log(3.0)]
     if dx < q:
@@ -766,32 +560,24 @@ def _start_points(x0: np.ndarray, dx: int) -> list[np.ndarray]:
     return pts
 
 
-# Multi-start costs ~2q+5 optimisations; below this N it is cheap (the N x N objective is small)
-# and local maxima are most common, above it the likelihood surface is smoother and one start
-# from the normal reference keeps large fits fast.
+# Multi-start costs ~2q+5 optimisations: cheap below this N, where local maxima are most
+# common; above it the surface is smoother and one start keeps large fits fast.
 _MULTISTART_MAX_N = 500
 
 
 def _select_log_bw(
-    joint: np.ndarray, dx: int, conditional: bool, multistart: bool | None,
-    floor: np.ndarray | None = None,
+    joint: np.ndarray, dx: int, conditional: bool, floor: np.ndarray | None = None
 ) -> tuple[np.ndarray, bool]:
-    """Bandwidths (original units) maximising the (conditional) LOO log-likelihood.
+    """Bandwidths (original units) maximising the (conditional) LOO log-likelihood, and
+    whether one ended on its bound.
 
-    Works in units of each column's standard deviation so one set of bounds and starts fits
-    every data set. The first start is statsmodels': the normal reference 1.06 sigma
-    N^(-1/(4+q)) over all q columns (for the conditional, q counts x and z, as statsmodels
-    computes it on the joint data).
-
-    ``floor``: least bandwidth per column (original units; 0 for none). A width that ends on
-    it is a choice the caller made, not a search that ran out of range, so it does not count
-    as ``on`` the bound.
+    Works in each column's standard deviations, from statsmodels' normal-reference start
+    1.06 sigma N^(-1/(4+q)) over all q columns. ``floor``: least bandwidth per column
+    (original units); a width ending on it is the caller's choice, not on the bound.
     """
     n, q = joint.shape
     sigma = joint.std(axis=0)
-    y = _padded((joint - joint.mean(axis=0)) / sigma)
-    n_traced = jax.device_put(np.int32(n))
-    objective = _objective(q, dx, conditional, int(y.shape[0]))
+    objective = _loo_objective((joint - joint.mean(axis=0)) / sigma, dx, conditional)
     x0 = np.full(q, math.log(1.06 * n ** (-1.0 / (4 + q))))
     lo = np.full(q, math.log(_DIAG_RANGE[0]))
     hi = np.full(q, math.log(_DIAG_RANGE[1]))
@@ -799,18 +585,14 @@ def _select_log_bw(
     if floor is not None:
         with np.errstate(divide="ignore"):
             search_lo = np.clip(np.log(np.asarray(floor, float) / sigma), lo, hi)
-    if multistart is None:
-        multistart = conditional and n <= _MULTISTART_MAX_N
-    starts = _start_points(x0, dx if conditional else q) if multistart else [x0]
+    # A survey of skewed, bimodal, clustered and heavy-tailed data never found a second
+    # local maximum of the unconditional objective; the conditional one often has several.
+    starts = _start_points(x0, dx) if conditional and n <= _MULTISTART_MAX_N else [x0]
     best_theta, best_val = None, np.inf
-    with _single_threaded_blas():
+    # scipy's L-BFGS-B makes tiny BLAS calls that multi-threaded OpenBLAS slows tenfold
+    with _threadpools().limit(limits=1, user_api="blas"):
         for x_start in starts:
-            theta, val = _lbfgs_log_bw(
-                lambda t: objective(t, y, n_traced),
-                np.clip(x_start, search_lo, hi),
-                search_lo,
-                hi,
-            )
+            theta, val = _lbfgs_log_bw(objective, np.clip(x_start, search_lo, hi), search_lo, hi)
             # Later starts must beat the first clearly, so ties keep statsmodels' start.
             if best_theta is None or val < best_val - 1e-9 * max(1.0, abs(best_val)):
                 best_theta, best_val = theta, val
@@ -834,11 +616,10 @@ def _warn_bound(what: str, value: Any, rng: tuple[float, float], extra: str = ""
 
 @dataclass(frozen=True, eq=False)
 class KDE:
-    """A fitted Gaussian-kernel density estimate with a diagonal bandwidth.
+    """A fitted Gaussian-kernel density estimate with a diagonal bandwidth (:meth:`fit`).
 
-    Build it with :meth:`KDE.fit`. ``bandwidth`` is in the data's original units (one value per
-    dimension); ``h`` is the single normalised width of the ``"paper"`` and ``"loo-ml"``
-    selectors (``bandwidth = h * sigma``), None otherwise.
+    ``bandwidth`` is in the data's units, one value per dimension; ``h`` is the single
+    normalised width of the ``"paper"`` and ``"loo-ml"`` selectors (``bandwidth = h * sigma``).
     """
 
     data: np.ndarray
@@ -848,10 +629,6 @@ class KDE:
     on_bound: bool = False
     search_range: tuple[float, float] | None = None
     sigma: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
-
-    @property
-    def n(self) -> int:
-        return int(self.data.shape[0])
 
     @property
     def d(self) -> int:
@@ -866,75 +643,61 @@ class KDE:
         h_range: Sequence[float] = (0.05, 2.0),
         n_grid: int = 41,
         warn_on_bound: bool = True,
-        multistart: bool | None = None,
     ) -> KDE:
         """Fit a KDE to ``data`` ((N, d), or (N,) for d = 1).
 
-        ``bandwidth`` is one of ``"paper"`` (J_LOO as printed, on a log grid of ``n_grid``
-        widths over ``h_range`` refined by a bounded scalar search), ``"loo-ml"`` (one
-        normalised width maximising the leave-one-out log-likelihood, same search),
-        ``"loo-ml-diag"`` (one width per dimension, statsmodels' cv_ml objective, L-BFGS-B on
-        log-bandwidths with exact gradients), or a fixed width: a number or one value per
-        dimension, in the data's units. A width on its search bound sets ``on_bound`` and, if
-        ``warn_on_bound``, emits :class:`BandwidthOnBoundWarning`.
-
-        ``multistart`` (``"loo-ml-diag"`` only): also start L-BFGS-B from 2d + 2 perturbed
-        widths and keep the best optimum. Off by default (None) because in a survey of skewed,
-        bimodal, clustered and heavy-tailed data the unconditional objective never had more
-        than one local maximum.
+        ``bandwidth``: ``"paper"`` (J_LOO as printed) or ``"loo-ml"`` (one normalised width
+        maximising the LOO log-likelihood), each on a log grid of ``n_grid`` widths over
+        ``h_range`` refined by Brent; ``"loo-ml-diag"`` (one width per dimension, L-BFGS-B);
+        or fixed widths in the data's units. A width on its bound sets ``on_bound`` and, if
+        ``warn_on_bound``, warns.
         """
         arr = _as_data(data)
         n, d = arr.shape
         sigma = arr.std(axis=0)
-        if isinstance(bandwidth, str):
-            if bandwidth in ("paper", "loo-ml"):
-                lo, hi = _check_range(h_range)
-                # Dividing by sigma without centring is the paper's normalisation; the kernel
-                # only sees differences, so centring (done for accuracy) changes nothing.
-                y = jnp.asarray((arr - arr.mean(axis=0)) / sigma)
-                if bandwidth == "paper":
-                    log_scale = jnp.float64(np.sum(np.log(sigma)))
-                    h = _scalar_search(
-                        lambda g: _j_loo_grid(g, y, log_scale),
-                        lambda v: _j_loo_normalised(jnp.float64(v), y, log_scale),
-                        lo,
-                        hi,
-                        n_grid,
-                    )
-                else:
-                    h = _scalar_search(
-                        lambda g: -_loo_loglik_grid(g, y),
-                        lambda v: -_loo_loglik_single(jnp.float64(v), y),
-                        lo,
-                        hi,
-                        n_grid,
-                    )
-                on = _on_bound(h, lo, hi)
-                if on and warn_on_bound:
-                    extra = (
-                        " (J_LOO decreases monotonically in h, so the paper's criterion "
-                        "has no interior minimum)"
-                        if bandwidth == "paper"
-                        else ""
-                    )
-                    _warn_bound(f"{bandwidth!r}", f"h={h:.4g}", (lo, hi), extra)
-                return cls(arr, h * sigma, bandwidth, h, on, (lo, hi), sigma)
-            if bandwidth == "loo-ml-diag":
-                bw, on = _select_log_bw(arr, d, False, multistart)
-                if on and warn_on_bound:
-                    _warn_bound("'loo-ml-diag'", np.round(bw / sigma, 6).tolist(), _DIAG_RANGE)
-                return cls(arr, bw, bandwidth, None, on, _DIAG_RANGE, sigma)
+        if not isinstance(bandwidth, str):
+            return cls(arr, _fixed_bandwidth(bandwidth, d), "fixed", sigma=sigma)
+        if bandwidth == "loo-ml-diag":
+            bw, on = _select_log_bw(arr, d, False)
+            if on and warn_on_bound:
+                _warn_bound("'loo-ml-diag'", np.round(bw / sigma, 6).tolist(), _DIAG_RANGE)
+            return cls(arr, bw, bandwidth, None, on, _DIAG_RANGE, sigma)
+        if bandwidth not in ("paper", "loo-ml"):
             raise ValueError(
                 f"unknown bandwidth selector {bandwidth!r}; use one of {SELECTORS} or a number"
             )
-        bw = _fixed_bandwidth(bandwidth, d)
-        return cls(arr, bw, "fixed", None, False, None, sigma)
+        lo, hi = (float(v) for v in h_range)
+        if not (0 < lo < hi < np.inf):
+            raise ValueError(f"h_range must satisfy 0 < lo < hi < inf, got {h_range}")
+        # The paper divides by sigma without centring; the kernel only sees differences.
+        y = (arr - arr.mean(axis=0)) / sigma
+        if bandwidth == "paper":
+            y = jnp.asarray(y)
+            log_scale = jnp.float64(np.sum(np.log(sigma)))
+            h = _scalar_search(
+                lambda g: _j_loo_grid(g, y, log_scale),
+                lambda v: _j_loo_normalised(jnp.float64(v), y, log_scale),
+                lo,
+                hi,
+                n_grid,
+            )
+        else:
+            objective = _loo_objective(y, d, False)
+
+            def one(v):
+                return objective(np.full(d, math.log(v)))[0]
+
+            h = _scalar_search(lambda g: [one(float(v)) for v in g], one, lo, hi, n_grid)
+        on = bool(abs(math.log(h / lo)) < 1e-3 or abs(math.log(hi / h)) < 1e-3)
+        if on and warn_on_bound:
+            extra = (" (J_LOO decreases monotonically in h, so the paper's criterion has no "
+                     "interior minimum)") if bandwidth == "paper" else ""
+            _warn_bound(f"{bandwidth!r}", f"h={h:.4g}", (lo, hi), extra)
+        return cls(arr, h * sigma, bandwidth, h, on, (lo, hi), sigma)
 
     def logpdf(self, points: Any) -> jnp.ndarray:
-        """Log density at (M, d) points (a (d,) vector is one point and gives a scalar).
-
-        Traceable: it wraps :func:`kde_logpdf`, so it works under jax.grad / jit.
-        """
+        """Log density at (M, d) points (a (d,) vector is one point and gives a scalar);
+        traceable under jax.grad / jit."""
         p, single = _points_2d(points, self.d)
         out = kde_logpdf(p, jnp.asarray(self.data), jnp.asarray(self.bandwidth))
         return out[0] if single else out
@@ -942,21 +705,6 @@ class KDE:
     def pdf(self, points: Any) -> jnp.ndarray:
         """Density at (M, d) points, in the data's original units."""
         return jnp.exp(self.logpdf(points))
-
-    def sample(self, key_or_seed: Any, n: int) -> jnp.ndarray:
-        """Draw ``n`` points, shape (n, d): a uniformly chosen data point plus kernel noise."""
-        return _sample_kde(
-            _key(key_or_seed), jnp.asarray(self.data), jnp.asarray(self.bandwidth), int(n)
-        )
-
-    def mean(self) -> np.ndarray:
-        """Mean of the KDE (the data mean)."""
-        return self.data.mean(axis=0)
-
-    def cov(self) -> np.ndarray:
-        """Covariance of the KDE: the population covariance of the data plus diag(bw^2)."""
-        c = np.atleast_2d(np.cov(self.data, rowvar=False, bias=True))
-        return c + np.diag(self.bandwidth**2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -971,9 +719,7 @@ def _broadcast_pairs(x: Any, z: Any, dx: int, dz: int) -> tuple[jnp.ndarray, jnp
     for name, a in (("x", xp), ("z", zp)):
         if a.shape[0] not in (1, m):
             raise KDEError(f"{name} has {a.shape[0]} rows, cannot pair with {m}")
-    xp = jnp.broadcast_to(xp, (m, dx))
-    zp = jnp.broadcast_to(zp, (m, dz))
-    return xp, zp, xs and zs
+    return jnp.broadcast_to(xp, (m, dx)), jnp.broadcast_to(zp, (m, dz)), xs and zs
 
 
 def command_spacing(z: Any) -> float:
@@ -982,25 +728,20 @@ def command_spacing(z: Any) -> float:
     u = np.unique(np.asarray(z, float), axis=0)
     if len(u) < 2:
         return 0.0
-    d = np.linalg.norm(u[:, None, :] - u[None, :, :], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
+    return float(np.median(cKDTree(u).query(u, k=2)[0][:, 1]))
 
 
 @dataclass(frozen=True, eq=False)
 class ConditionalKDE:
-    """A conditional density p(x | z) from paired samples, by the paper's histogram or kernels.
+    """A conditional density p(x | z) from paired samples, by kernels or the paper's histogram.
 
     ``method="kernel"``: ``p(x|z) = sum_i w_i(z) N(x; x_i, diag(bw_x^2))`` with
-    ``w_i ∝ N(z; z_i, diag(bw_z^2))`` — a proper, smooth mixture that can be sampled directly.
+    ``w_i ∝ N(z; z_i, diag(bw_z^2))``.
 
-    ``method="histogram"`` (the paper's COND): the joint KDE of (x, z) is evaluated at the
-    centres of a regular grid of bins and normalised over the x-bins of each z-bin, then divided
-    by the x-bin volume so the result is a (piecewise-constant) density in x. By default the
-    grid spans the data range [min, max] of every dimension (its top edge closed so the maxima
-    fall inside); with ``bin_widths`` it is centred on the data mean. Points outside the grid
-    (in x or z) get ``log(floor)``, a stand-in for "no support here" that keeps log-densities
-    finite (default floor 1e-300, i.e. about -690.8).
+    ``method="histogram"`` (the paper's COND): the joint KDE of (x, z) at the centres of a
+    regular grid of bins, normalised over the x-bins of each z-bin and divided by the x-bin
+    volume. The grid spans the data range (top edge closed), or with ``bin_widths`` is centred
+    on the data mean. Points outside it get ``log(floor)``, which keeps log-densities finite.
     """
 
     method: str
@@ -1047,115 +788,61 @@ class ConditionalKDE:
         h_range: Sequence[float] = (0.05, 2.0),
         n_grid: int = 41,
         warn_on_bound: bool = True,
-        multistart: bool | None = None,
         z_spacing_floor: float = 0.0,
     ) -> ConditionalKDE:
         """Fit p(x | z) to paired samples ``x`` (N, dx) and ``z`` (N, dz).
 
         Kernel method: ``bandwidth`` is ``"loo-ml-diag"`` (default; statsmodels'
-        ``KDEMultivariateConditional(bw="cv_ml")`` objective, one width per dimension of x then
-        z, optimised on log-bandwidths with L-BFGS-B and exact gradients from the normal
-        reference start) or fixed widths (a number, or dx + dz values: x dims first).
-        The conditional likelihood can have several local maxima, so with ``multistart``
-        L-BFGS-B also runs from 2(dx + dz) + 4 perturbed starts and the best optimum wins;
-        None (default) does so for N <= 500, where it is cheap and local maxima are common,
-        and uses the normal-reference start alone above that. Statsmodels' Nelder-Mead is a
-        single local search, so where it stops in a worse local maximum the widths differ
-        and ours have the higher likelihood.
-        ``z_spacing_floor``: every z width is at least this multiple of
-        :func:`command_spacing` (0: no floor). Leave-one-out scores each point by the others,
-        and on a regular grid of z a width far below the spacing can still win it: the
-        points of a grid line share a coordinate, so a tiny width along it conditions each
-        point on its line's neighbours alone, which do not exist at a z between the lines.
+        ``KDEMultivariateConditional(bw="cv_ml")`` objective, x widths then z) or fixed widths
+        (dx + dz values, or one); for N <= 500 L-BFGS-B also runs from 2(dx + dz) + 4 perturbed
+        starts, as local maxima are common there (statsmodels' single Nelder-Mead can stop in
+        a worse one). ``z_spacing_floor``: every z width is at least this multiple of
+        :func:`command_spacing`, as on a regular grid of z a width far below the spacing can
+        still win leave-one-out (it conditions each point on its own grid line alone).
 
-        Histogram method: ``bandwidth`` selects the joint KDE's bandwidth (default
-        ``"paper"``). The grid has ``bins`` bins per dimension (x dims first, then z). Without
-        ``bin_widths`` it spans the data range [min, max] of each dimension; with
-        ``bin_widths`` (e.g. the paper's .01 rad, .1 rad, 50 us, 50 us) it is centred on the
-        data mean with those widths. ``floor`` is the density given to points outside it.
+        Histogram method: ``bandwidth`` selects the joint KDE's (default ``"paper"``); the grid
+        has ``bins`` bins per dimension (x, then z), over the data range or with ``bin_widths``
+        (e.g. the paper's .01 rad, .1 rad, 50 us, 50 us) about the data mean; ``floor`` is the
+        density outside it.
         """
         xa = _as_data(x, "x")
         za = _as_data(z, "z")
         if xa.shape[0] != za.shape[0]:
             raise KDEError(f"x has {xa.shape[0]} rows but z has {za.shape[0]}")
         dx, dz = xa.shape[1], za.shape[1]
-        if method == "kernel":
-            if bandwidth is None or (isinstance(bandwidth, str) and bandwidth == "loo-ml-diag"):
-                floor = None
-                if z_spacing_floor > 0:
-                    floor = np.r_[np.zeros(dx),
-                                  np.full(dz, z_spacing_floor * command_spacing(za))]
-                bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, multistart, floor)
-                if on and warn_on_bound:
-                    _warn_bound("kernel-conditional", bw.tolist(), _DIAG_RANGE)
-                return cls(
-                    "kernel",
-                    xa,
-                    za,
-                    bw[:dx],
-                    bw[dx:],
-                    "loo-ml-diag",
-                    on,
-                    _DIAG_RANGE,
-                    floor=floor,
-                )
-            if isinstance(bandwidth, str):
-                raise ValueError(
-                    "kernel conditional bandwidth must be 'loo-ml-diag' or fixed, "
-                    f"got {bandwidth!r}"
-                )
+        if method == "histogram":
+            joint = KDE.fit(np.hstack([xa, za]), "paper" if bandwidth is None else bandwidth,
+                            h_range=h_range, n_grid=n_grid, warn_on_bound=warn_on_bound)
+            nb, widths, lo, table = _histogram_table(joint, dx, bins, bin_widths)
+            return cls("histogram", xa, za, None, None, joint.selector, joint.on_bound,
+                       joint.search_range, joint, nb, widths, lo, table, floor)
+        if method != "kernel":
+            raise ValueError(f"method must be 'kernel' or 'histogram', got {method!r}")
+        if bandwidth is not None and not isinstance(bandwidth, str):
             bw = _fixed_bandwidth(bandwidth, dx + dz)
             return cls("kernel", xa, za, bw[:dx], bw[dx:], "fixed", floor=floor)
-        if method == "histogram":
-            joint = KDE.fit(
-                np.hstack([xa, za]),
-                "paper" if bandwidth is None else bandwidth,
-                h_range=h_range,
-                n_grid=n_grid,
-                warn_on_bound=warn_on_bound,
-                multistart=multistart,
+        if bandwidth not in (None, "loo-ml-diag"):
+            raise ValueError(
+                f"kernel conditional bandwidth must be 'loo-ml-diag' or fixed, got {bandwidth!r}"
             )
-            nb, widths, lo, table = _histogram_table(joint, dx, bins, bin_widths)
-            return cls(
-                "histogram",
-                xa,
-                za,
-                None,
-                None,
-                joint.selector,
-                joint.on_bound,
-                joint.search_range,
-                joint,
-                nb,
-                widths,
-                lo,
-                table,
-                floor,
-            )
-        raise ValueError(f"method must be 'kernel' or 'histogram', got {method!r}")
+        least = None
+        if z_spacing_floor > 0:
+            least = np.r_[np.zeros(dx), np.full(dz, z_spacing_floor * command_spacing(za))]
+        bw, on = _select_log_bw(np.hstack([xa, za]), dx, True, least)
+        if on and warn_on_bound:
+            _warn_bound("kernel-conditional", bw.tolist(), _DIAG_RANGE)
+        return cls("kernel", xa, za, bw[:dx], bw[dx:], "loo-ml-diag", on, _DIAG_RANGE)
 
     def logpdf(self, x_points: Any, z_points: Any) -> jnp.ndarray:
         """log p(x | z) for row-wise pairs; either side may be a single point (broadcast)."""
         xp, zp, single = _broadcast_pairs(x_points, z_points, self.dx, self.dz)
         if self.method == "kernel":
-            out = conditional_kde_logpdf(
-                xp,
-                zp,
-                jnp.asarray(self.x_data),
-                jnp.asarray(self.z_data),
-                jnp.asarray(self.bw_x),
-                jnp.asarray(self.bw_z),
-            )
+            out = conditional_kde_logpdf(xp, zp, *(jnp.asarray(a) for a in (
+                self.x_data, self.z_data, self.bw_x, self.bw_z)))
         else:
-            out = histogram_lookup(
-                xp,
-                zp,
-                jnp.asarray(self.log_table),
-                jnp.asarray(self.grid_lo),
-                jnp.asarray(self.bin_widths),
-                tuple(int(b) for b in self.bins),
-                math.log(self.floor),
-            )
+            out = histogram_lookup(xp, zp, *(jnp.asarray(a) for a in (
+                self.log_table, self.grid_lo, self.bin_widths)),
+                tuple(int(b) for b in self.bins), math.log(self.floor))
         return out[0] if single else out
 
     def pdf(self, x_points: Any, z_points: Any) -> jnp.ndarray:
@@ -1164,29 +851,11 @@ class ConditionalKDE:
 
     def weights(self, z: Any) -> jnp.ndarray:
         """Kernel-conditional mixture weights over the N data points, shape (M, N) or (N,)."""
-        self._need_kernel("weights")
+        if self.method != "kernel":
+            raise NotImplementedError("weights is only available for method='kernel'")
         zp, single = _points_2d(z, self.dz)
         w = kernel_conditional_weights(zp, jnp.asarray(self.z_data), jnp.asarray(self.bw_z))
         return w[0] if single else w
-
-    def sample(self, key_or_seed: Any, z: Any, n: int) -> jnp.ndarray:
-        """Draw ``n`` x's from p(x | z): shape (n, dx) for one z, (n, M, dx) for M z's."""
-        self._need_kernel("sample")
-        zp, single = _points_2d(z, self.dz)
-        out = _sample_conditional(
-            _key(key_or_seed),
-            zp,
-            jnp.asarray(self.x_data),
-            jnp.asarray(self.z_data),
-            jnp.asarray(self.bw_x),
-            jnp.asarray(self.bw_z),
-            int(n),
-        )
-        return out[:, 0] if single else out
-
-    def _need_kernel(self, what: str) -> None:
-        if self.method != "kernel":
-            raise NotImplementedError(f"{what} is only available for method='kernel'")
 
 
 def _histogram_table(
@@ -1219,8 +888,7 @@ def _bin_index(p: jnp.ndarray, lo: jnp.ndarray, widths: jnp.ndarray, bins: tuple
                ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Row-major flat bin index of points (M, q) and whether each lies inside the grid."""
     nb = jnp.asarray(bins)
-    # The top edge is closed so that the data maximum (when the grid spans the data range)
-    # falls in the last bin rather than outside.
+    # The top edge is closed: the data maximum falls in the last bin of a data-range grid.
     rel = (p - lo) / widths
     inside = jnp.all((rel >= 0) & (rel <= nb), axis=1)
     idx = jnp.clip(jnp.floor(rel).astype(jnp.int32), 0, nb - 1)
@@ -1240,11 +908,9 @@ def histogram_lookup(
     bins: tuple[int, ...],
     log_floor: float,
 ) -> jnp.ndarray:
-    """log p(x | z) from a histogram table (the paper's COND), pure so it can be traced.
-
-    ``table`` holds the log conditional density per bin, ``lo`` the grid's lower corner and
-    ``widths`` the bin widths (x dimensions first, then z); points outside get ``log_floor``.
-    """
+    """log p(x | z) from a histogram table (the paper's COND): ``table`` the log density per
+    bin, ``lo`` the grid's lower corner, ``widths`` the bin widths (x dimensions, then z);
+    points outside get ``log_floor``."""
     dx = x.shape[1]
     ix, xin = _bin_index(x, lo[:dx], widths[:dx], bins[:dx])
     iz, zin = _bin_index(z, lo[dx:], widths[dx:], bins[dx:])
@@ -1260,14 +926,10 @@ def histogram_guide(
     bins: tuple[int, ...],
     wall: float,
 ) -> jnp.ndarray:
-    """A smooth stand-in for :func:`histogram_lookup` in x, whose gradient steers NUTS.
-
-    Inside the grid: the log table of z's bin, interpolated multilinearly between x-bin
-    centres (it departs from the table by at most half the jump between neighbouring bins).
-    Outside: that value at the nearest edge minus ``0.5 * (distance / (wall * bin width))^2``,
-    a wall that turns trajectories back into the support. Zero where z is outside its grid
-    (the table then says nothing about x).
-    """
+    """A smooth stand-in for :func:`histogram_lookup` in x, whose gradient steers NUTS: the
+    log table of z's bin interpolated multilinearly between x-bin centres, and outside the grid
+    its edge value minus ``0.5 * (distance / (wall * bin width))^2``, a wall turning
+    trajectories back. Zero where z is outside its grid (the table says nothing about x)."""
     dx = x.shape[1]
     bx = bins[:dx]
     iz, zin = _bin_index(z, lo[dx:], widths[dx:], bins[dx:])
@@ -1303,12 +965,10 @@ def guided_histogram_lookup(
 ) -> jnp.ndarray:
     """:func:`histogram_lookup`'s exact value, with :func:`histogram_guide`'s gradient in x.
 
-    The table is piecewise constant, so its true gradient is zero almost everywhere: HMC would
-    fly straight through the support and off its edge, where the density is the floor. NUTS
-    stays exact with any gradient field that is itself a gradient (leapfrog is then still
-    reversible and volume-preserving) because it weighs and accepts states by the exact
-    density; the guide only chooses where trajectories go. Derivatives with respect to z, the
-    table and the grid are not defined (they are data) and come out as zero.
+    The table's true gradient is zero almost everywhere, so HMC would fly off the support.
+    NUTS stays exact with any gradient field that is itself a gradient (leapfrog stays
+    reversible and volume-preserving) as it accepts states by the exact density; the guide
+    only steers. Derivatives in z, the table and the grid come out as zero.
     """
     return histogram_lookup(x, z, table, lo, widths, bins, log_floor)
 

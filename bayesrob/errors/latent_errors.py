@@ -1,24 +1,18 @@
 """Joint-error densities for chains with more joints than measured coordinates.
 
-On the paper's planar arms a row's joint errors are read off its residual: two joints, two
-coordinates, so theta_err = J^-1 r, and a KDE over those errors is the density
-(:mod:`bayesrob.errors.noise_models`). A 6- or 11-joint chain measured at a 3-D marker cannot be
-inverted that way: every residual is explained by a 3-D family of joint errors. So the joint
-errors of each row are latent, and what is fitted is their population density:
+On the paper's planar arms a row's joint errors are read off its residual, theta_err = J^-1 r,
+and a KDE over them is the density (:mod:`bayesrob.errors.noise_models`). A 6- or 11-joint
+chain measured at a 3-D marker explains every residual by a family of joint errors, so they
+are latent, and what is fitted is their population density:
 
     e_i ~ N(0, Sigma)                     (IND: Sigma diagonal; CORR: full, LKJ prior)
     r_i = J_i e_i + eps_i,  eps_i ~ N(0, s^2 I)
 
-with r_i the calibrated model's residual of train row i (scaled by sqrt(N / (N - p)), the
-degrees of freedom the calibration's p parameters took), J_i = d marker / d joints at that row,
-and s what no joint explains (measurement noise and model misfit). The row's e_i is integrated
-out exactly (the model is linear-Gaussian in it): r_i ~ N(0, J_i Sigma J_i^T + s^2 I), and NUTS
-samples Sigma and s. A zero mean, because the calibration has already fitted every joint's zero
-offset. A kernel density over per-row errors, the paper's construction, is not available: no
-row's errors are observed, only their projection.
-
-Predictions push draws of (Sigma, s), then of e, through the calibrated chain
-(:mod:`bayesrob.predict.draws`).
+with r_i train row i's residual (scaled by sqrt(N / (N - p)) for the calibration's p
+parameters), J_i = d marker / d joints there, and s what no joint explains. e_i is integrated
+out exactly, r_i ~ N(0, J_i Sigma J_i^T + s^2 I), and NUTS samples Sigma and s; the mean is
+zero as the calibration fitted every joint's zero offset. Predictions push draws of
+(Sigma, s), then of e, through the calibrated chain (:mod:`bayesrob.predict.draws`).
 """
 
 from __future__ import annotations
@@ -155,10 +149,8 @@ class LatentJointErrors:
 
 def scaled_train_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, n_free: int
                            ) -> tuple[np.ndarray, np.ndarray, float, dict | None]:
-    """``arm``'s train commands (N, c), its residuals under parameters x (N, dim) scaled by
-    sqrt(n / (n - p)) for the p = ``n_free`` parameters the calibration fitted on the n
-    coordinates of every arm's train rows, the scale, and the rest of each pose (or None):
-    the spread a row no fit has seen has, which every joint-error model is fitted to."""
+    """``arm``'s train commands, residuals under x scaled by sqrt(n / (n - p)) (p = ``n_free``
+    fitted on n train coordinates: the spread an unseen row has), the scale and the side rows."""
     u, d = rig.rows(arm, "train")
     side = side_rows(rig, robot, arm, "train")
     res = d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u), side))
@@ -171,15 +163,12 @@ def scaled_train_residuals(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, 
 def _posterior(key: jax.Array, jac: jax.Array, res: jax.Array, structure: str, warmup: int,
                samples: int, chains: int) -> tuple[dict[str, jax.Array], jax.Array]:
     """NUTS draws of the population's parameters, by chain, and the divergences: the whole
-    run one compiled program, shared by every arm of the same rows, joints and coordinates
-    (an MCMC object built per fit traced and lowered its programs again each time: about 4 s
-    of a fit's 7 on the linked arm6 pair, against 3 s of sampling).
+    run one compiled program, shared by every arm of the same shapes (an MCMC object per fit
+    traced its programs again: 4 s of a fit's 7 on the linked arm6 pair).
 
     A dense mass matrix: the arm's scale and a common shift of its joints' log sds trade off
-    along a straight ridge of the unconstrained space, which a diagonal mass matrix crosses
-    in 34 leapfrog steps per draw and a dense one in 10, with the same or larger effective
-    sample sizes (arm6 linked pair, seed 0: min bulk ESS 343-510 against 331-457, r_hat
-    below 1.014, no divergence)."""
+    along a straight ridge, which a diagonal one crosses in 34 leapfrog steps per draw and a
+    dense one in 10, at the same or larger ESS (arm6 linked pair, seed 0)."""
     mcmc = MCMC(NUTS(_model, target_accept_prob=0.9, dense_mass=True), num_warmup=warmup,
                 num_samples=samples, num_chains=chains, chain_method="sequential",
                 progress_bar=False)

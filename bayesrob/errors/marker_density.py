@@ -1,37 +1,32 @@
 """The predictive density of an arm's measured marker at given commands, for IND, CORR and COND
 on any robot: a Gaussian mixture per row, scored, sampled and multiplied the same way for all.
 
-IND and CORR (joint errors not observed: more joints than measured coordinates). The latent
-population of :mod:`bayesrob.errors.latent_errors` is the density: e ~ N(0, Sigma), the marker
-r = J e + eps. Integrated over e, row t's residual is N(0, J_t Sigma_s J_t^T + s_s^2 I) for each
-posterior draw s of (Sigma, s), and the predictive is their equal-weight mixture.
+IND and CORR (joint errors not observed: more joints than measured coordinates): the latent
+population of :mod:`bayesrob.errors.latent_errors`, e ~ N(0, Sigma), r = J e + eps, integrated
+over e: row t's residual is the equal-weight mixture over posterior draws s of
+N(0, J_t Sigma_s J_t^T + s_s^2 I).
 
-COND: the paper's COND conditions the error on the commands through a Parzen kernel in
-command space. On a chain the per-row quantity the rows observe is the marker residual (the
-joint errors are not), so COND is the kernel-conditional KDE of the train residuals given the
-path's commands, :class:`bayesrob.errors.kde.ConditionalKDE` (LOO-ML widths, the command widths at
-least ``command_bandwidth_floor`` nearest-neighbour spacings, as the planar COND's file
-says): row t's residual is sum_i w_i(u_t) N(r_i, diag(bw^2)).
+COND conditions on the commands through a Parzen kernel in command space, as the paper's does;
+on a chain the rows observe the marker residual (not the joint errors), so COND is the kernel
+conditional of the train residuals given the path's commands (:class:`ConditionalKDE`, the
+command widths at least ``command_bandwidth_floor`` spacings): sum_i w_i(u_t) N(r_i, diag(bw^2)).
 
-Both are fitted on the calibrated model's train residuals scaled by sqrt(N / (N - p)) for the
-p parameters the calibration took (:func:`bayesrob.errors.latent_errors.fit_latent_errors`), so a
-residual of a row no fit has seen is scored against the spread such rows have.
-
-The mixture is centred on the calibrated model's marker at each row's commands; its
-log-density is a JAX function (NUTS differentiates it) and its draws serve the HDR levels.
-Leave-one-out over the train rows keeps the calibration: exact for COND (row i's own
-component dropped from its mixture, the widths kept), Pareto-smoothed importance sampling
-(arviz ``loo``) over the population's posterior draws for IND and CORR.
+Both are fitted on train residuals scaled by sqrt(N / (N - p)) for the calibration's p
+parameters, so a row no fit has seen is scored against the spread such rows have. Leave-one-out
+keeps the calibration: exact for COND (row i's own component dropped, the widths kept),
+Pareto-smoothed importance sampling (arviz ``loo``) over the population's draws for IND and CORR.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpyro.distributions as dist
 import scipy.special
 from jax.scipy.special import logsumexp
 
@@ -125,7 +120,8 @@ def _logpdf_blocks(points, centre, log_w, means, chol):
                        batch_size=64)
 
 
-def _sample_impl(key, centre, log_w, means, chol, n):
+@partial(jax.jit, static_argnames=("n",))
+def _sample(key, centre, log_w, means, chol, n):
     t, k = log_w.shape
     dim = centre.shape[-1]
     k1, k2 = jax.random.split(key)
@@ -137,9 +133,6 @@ def _sample_impl(key, centre, log_w, means, chol, n):
     return centre[None] + mu + jnp.einsum("ntij,ntj->nti", lower, z)
 
 
-_sample = jax.jit(_sample_impl, static_argnames=("n",))
-
-
 def _cond_density(c: ConditionalKDE, u: np.ndarray, centre: np.ndarray) -> MarkerDensity:
     """The kernel conditional of the residuals at commands u (T, c), centred on ``centre``."""
     w = np.asarray(c.weights(u)).reshape(len(u), -1)
@@ -149,8 +142,7 @@ def _cond_density(c: ConditionalKDE, u: np.ndarray, centre: np.ndarray) -> Marke
 
 
 def _marker_covariances(jac: np.ndarray, cov_e: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """J Sigma_s J^T + s_s^2 I, (T, S, dim, dim), for Jacobians (T, dim, n) and population
-    draws Sigma (S, n, n), s (S,)."""
+    """J_t Sigma_s J_t^T + s_s^2 I, (T, S, dim, dim)."""
     dim = jac.shape[1]
     return (np.einsum("tij,sjk,tlk->tsil", jac, cov_e, jac)
             + noise[None, :, None, None] ** 2 * np.eye(dim))
@@ -235,11 +227,8 @@ def loo_marker_scores(rig: Rig, model: MarkerModel) -> tuple[np.ndarray, np.ndar
     side = side_rows(rig, model.calibration.robot, model.arm, "train")
     cov = np.swapaxes(_marker_covariances(model.jacobian(u, side), lat.covariance,
                                           lat.noise_sd), 0, 1)  # (S, N, dim, dim)
-    chol = np.linalg.cholesky(cov)
-    z = np.linalg.solve(chol, np.broadcast_to(r, cov.shape[:-1])[..., None])[..., 0]
-    log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), -1)
-    dim = r.shape[1]
-    loglik = -0.5 * np.sum(z**2, -1) - log_det - 0.5 * dim * math.log(2 * math.pi)  # (S, N)
+    loglik = np.asarray(dist.MultivariateNormal(covariance_matrix=jnp.asarray(cov)).log_prob(
+        jnp.broadcast_to(jnp.asarray(r), cov.shape[:-1])))  # (S, N)
     in_sample = scipy.special.logsumexp(loglik.T, axis=-1) - math.log(loglik.shape[0])
     chains = 2 if loglik.shape[0] % 2 == 0 else 1
     idata = az.from_dict(posterior={"noise_sd": lat.noise_sd.reshape(chains, -1)},

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
-from bayesrob.calibrate.least_squares import side_rows
 from bayesrob.data.rig import Rig
 from bayesrob.errors.kde import KDE, ConditionalKDE
-from bayesrob.errors.latent_errors import joint_jacobian
+from bayesrob.errors.latent_errors import joint_jacobian, scaled_train_residuals
 
 FAMILIES = ("IND", "CORR", "COND")
 
@@ -77,8 +76,7 @@ class ModelSpec:
             doc = tomllib.loads(path.read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise ModelFileError(f"{path}: cannot read model file: {exc}") from None
-        known = {"name", "family", "bandwidth", "conditioning", "jacobian", "h_range", "bins",
-                 "bin_widths", "bin_margin", "command_bandwidth_floor", "description"}
+        known = {f.name for f in fields(cls)} - {"path"}
         for key in doc:
             if key not in known:
                 raise ModelFileError(f"{path}: unknown key {key!r} (known: {sorted(known)})")
@@ -110,37 +108,30 @@ class ModelSpec:
             path=path,
         )
 
-    def fit(self, theta_err: np.ndarray, u: np.ndarray) -> FittedNoiseModel:
-        """Fit the density to one arm's joint errors (N, n) and commands (N, c)."""
+    def fit(self, theta_err: np.ndarray, u: np.ndarray,
+            widths: Sequence[np.ndarray] | None = None) -> FittedNoiseModel:
+        """Fit the density to one arm's joint errors (N, n) and commands (N, c); ``widths``:
+        each part's bandwidths fixed (:attr:`FittedNoiseModel.widths`) instead of selected."""
         theta_err = np.asarray(theta_err, float)
         u = np.asarray(u, float)
         kw: dict[str, Any] = {"warn_on_bound": False}
-        if self.bandwidth in ("paper", "loo-ml"):
+        if self.bandwidth in ("paper", "loo-ml") and widths is None:
             kw["h_range"] = self.h_range
-        if self.family == "IND":
-            parts = [KDE.fit(theta_err[:, j:j + 1], self.bandwidth, **kw)
-                     for j in range(theta_err.shape[1])]
+        if self.family != "COND":
+            cols = ([theta_err[:, j:j + 1] for j in range(theta_err.shape[1])]
+                    if self.family == "IND" else [theta_err])
+            parts = [KDE.fit(c, self.bandwidth if widths is None else widths[j], **kw)
+                     for j, c in enumerate(cols)]
             return FittedNoiseModel(self, theta_err, u, parts=parts)
-        if self.family == "CORR":
-            return FittedNoiseModel(self, theta_err, u, parts=[KDE.fit(theta_err, self.bandwidth,
-                                                                         **kw)])
-        if self.conditioning == "histogram":
-            cond = ConditionalKDE.fit(theta_err, u, "histogram", self.bandwidth, bins=self.bins,
-                                      bin_widths=self._bin_widths(theta_err, u), **kw)
-        else:
-            bw = None if self.bandwidth == "loo-ml-diag" else self.bandwidth
-            cond = ConditionalKDE.fit(theta_err, u, "kernel", bw, warn_on_bound=False,
-                                      z_spacing_floor=self.command_bandwidth_floor)
+        cond = ConditionalKDE.fit(theta_err, u, self.conditioning,
+                                  self.bandwidth if widths is None else widths[0],
+                                  bins=self.bins, bin_widths=self._bin_widths(theta_err, u),
+                                  z_spacing_floor=self.command_bandwidth_floor, **kw)
         return FittedNoiseModel(self, theta_err, u, conditional=cond)
 
-
     def _bin_widths(self, theta_err: np.ndarray, u: np.ndarray) -> tuple[float, ...] | None:
-        """Histogram bin widths: as declared, or the data's extent plus ``bin_margin``.
-
-        The histogram is centred on the data mean; each half-span covers the farthest data
-        point from the mean plus ``bin_margin`` times the data range, so no training point and
-        few test points fall outside, where the density is only a floor value.
-        """
+        """Histogram bin widths: as declared, or each half-span about the data mean the farthest
+        point plus ``bin_margin`` times the range, so few rows fall outside, on the floor."""
         if self.bin_widths is not None or self.bin_margin <= 0:
             return self.bin_widths
         x = np.hstack([theta_err, u])
@@ -161,33 +152,27 @@ class FittedNoiseModel:
     conditional: ConditionalKDE | None = None
 
     @property
+    def _estimates(self) -> list[KDE | ConditionalKDE]:
+        return self.parts if self.conditional is None else [self.conditional]
+
+    @property
     def on_bound(self) -> bool:
         """Whether any bandwidth search ended on its bound (the paper's J_LOO always does)."""
-        if self.conditional is not None:
-            return bool(self.conditional.on_bound)
-        return any(p.on_bound for p in self.parts)
+        return any(bool(k.on_bound) for k in self._estimates)
 
     @property
     def search_range(self) -> tuple[float, float] | None:
         """The range the bandwidth search covered (normalised units)."""
-        if self.conditional is not None:
-            return self.conditional.search_range
-        return self.parts[0].search_range
+        return self._estimates[0].search_range
+
+    @property
+    def widths(self) -> list[np.ndarray]:
+        """Each part's bandwidths (the histogram COND's: its joint KDE's)."""
+        return [np.asarray(k.bandwidth) for k in self._estimates]
 
     @property
     def bandwidth(self) -> np.ndarray:
-        if self.conditional is not None:
-            return np.asarray(self.conditional.bandwidth)
-        return np.concatenate([p.bandwidth for p in self.parts])
-
-    def logpdf(self, theta_err: jnp.ndarray, u: jnp.ndarray) -> jnp.ndarray:
-        """log p(theta_err | u) for (M, n) errors; u is (M, c) or one (c,) command."""
-        theta_err = jnp.atleast_2d(theta_err)
-        if self.spec.family == "IND":
-            return sum(p.logpdf(theta_err[:, j:j + 1]) for j, p in enumerate(self.parts))
-        if self.spec.family == "CORR":
-            return self.parts[0].logpdf(theta_err)
-        return self.conditional.logpdf(theta_err, jnp.atleast_2d(u))
+        return np.concatenate(self.widths)
 
 
 def joint_errors_observed(robot: kin.Robot, arms: Sequence[str]) -> bool:
@@ -202,9 +187,7 @@ def observed_joint_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str
     """``arm``'s train commands (N, c) and joint errors J_i^-1 r_i (N, n), r_i its residuals
     under parameters x and J_i the robot's joint Jacobian (:func:`joint_errors_observed`); on
     a planar arm the linearisation of :func:`joint_errors`."""
-    u, d = rig.rows(arm, "train")
-    side = side_rows(rig, robot, arm, "train")
-    res = d - np.asarray(robot.compiled_points(arm)(jnp.asarray(x), jnp.asarray(u), side))
+    u, res, _, side = scaled_train_residuals(rig, robot, x, arm, 0)  # unscaled
     jac = joint_jacobian(robot, jnp.asarray(x), arm, jnp.asarray(u), side)
     return u, np.linalg.solve(np.asarray(jac), res[..., None])[..., 0]
 
@@ -219,15 +202,12 @@ def without_tracker_noise(arm: kin.Arm, u: np.ndarray, theta_err: np.ndarray,
                           tracker_noise_mm: float) -> np.ndarray:
     """Joint errors (N, 2) with the tracker's noise taken out of them.
 
-    A row's joint error read off its measured point carries the tracker's noise eps through
-    the inverse Jacobian at that pose: theta_err_i = e_i + J_i^-1 eps_i, eps_i ~ N(0, s^2 I).
-    Near a stretched or folded pose J_i^-1 is large, so a density of these errors is wider than
-    the joints' own, and mapped through another pose's Jacobian it predicts errors the joints
-    never make (the tracker's noise belongs to the measured point, not to the joints). With
-    Sigma the joints' own covariance (the errors' covariance less the mean of the noise's,
-    C_i = s^2 J_i^-1 J_i^-T), each row is mapped by Sigma^1/2 (Sigma + C_i)^-1/2 about the
-    mean: rows whose noise is small barely move, and each mapped row has covariance Sigma
-    (for Gaussian errors). Predictions then add the tracker's noise to the measured point.
+    A row's joint error read off its measured point is theta_err_i = e_i + J_i^-1 eps_i, and
+    near a stretched or folded pose J_i^-1 is large: mapped through another pose's Jacobian
+    such errors predict what the joints never do. With Sigma the joints' own covariance (the
+    errors' less the mean of C_i = s^2 J_i^-1 J_i^-T), each row is mapped by
+    Sigma^1/2 (Sigma + C_i)^-1/2 about the mean, giving it covariance Sigma (Gaussian errors);
+    predictions add the tracker's noise to the measured point instead.
     """
     theta_err = np.asarray(theta_err, float)
     if tracker_noise_mm <= 0 or len(theta_err) < 3:
@@ -252,17 +232,12 @@ def without_tracker_noise(arm: kin.Arm, u: np.ndarray, theta_err: np.ndarray,
     return mean + np.einsum("nij,nj->ni", a, theta_err - mean)
 
 
-def _source_models_dir() -> Path | None:
-    # In a source checkout models/ sits beside the package; prefer it so edits show at once.
-    here = Path(__file__).resolve().parent.parent / "models"
-    return here if any(here.glob("*.toml")) else None
-
-
 def models_dir() -> Path:
     """Where the shipped model files are: the checkout's models/ or the installed copy."""
-    src = _source_models_dir()
-    if src is not None:
-        return src
+    # In a source checkout models/ sits beside the package; prefer it so edits show at once.
+    here = Path(__file__).resolve().parent.parent / "models"
+    if any(here.glob("*.toml")):
+        return here
     from importlib.resources import files
 
     return Path(str(files("bayesrob.models")))
@@ -294,10 +269,8 @@ def discover_models(directory: str | Path | None = None,
 def fit_noise_models(rig: Rig, arms: dict[str, kin.Arm], specs: Sequence[ModelSpec],
                      on_fit: Callable[[str, str], None] | None = None
                      ) -> dict[str, dict[str, FittedNoiseModel]]:
-    """Fit every model to every arm's training rows: {model name: {arm: fitted}}.
-
-    ``on_fit(model, arm)`` is called after each fit, for progress reporting.
-    """
+    """Fit every model to every arm's training rows: {model name: {arm: fitted}};
+    ``on_fit(model, arm)`` is called after each fit (progress)."""
     data = {}
     for name, arm in arms.items():
         u, d = rig.rows(name, "train")
