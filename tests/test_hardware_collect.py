@@ -739,6 +739,8 @@ def test_a_row_measured_while_the_servos_went_home_is_measured_again(plant, rig_
     if on_error == "home":
         assert watch.seen[2][0]["top"] == (1500.0, 1500.0)  # it read the arm at home
         assert not np.allclose(watch.seen[2][2], rows.observed[2], atol=1.0)
+    # measured again after the servos went home or limp: its approach sides are unknown
+    assert [(r["top_d1"], r["top_d2"]) for r in _rows(rig_dir)][2] == ("0", "0")
 
 
 def test_a_controller_that_keeps_dropping_its_targets_records_nothing_wrong(plant,

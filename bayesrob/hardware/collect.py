@@ -634,6 +634,9 @@ def collect(rig_dir: str | Path, controller: ServoController, tracker: Tracker, 
                                         "and the controller's serial line)")
                 redone.append(label)
                 log(f"{label}: {dropped}; measuring the row again")
+                # the servos went home or limp before the targets were sent again: the side
+                # each joint reached them from is no longer the previous command's
+                sides = {a: np.zeros_like(v) for a, v in sides.items()}
             fields = format_row(names, step.config, step.set, step.target, step.commands,
                                 observed, sides if mlog.approach else None)
             x = mlog.header.index("x")
