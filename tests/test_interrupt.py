@@ -46,7 +46,8 @@ def _interrupt(argv: list[str], cwd: Path) -> tuple[int, list[str]]:
     ["reproduce", "--out", "OUT"],
     ["diagnose", "--report", "OUT", "--json", "OUT/d.json"],
     ["compare", "--json", "OUT/compare.json"],
-    ["simulate", "OUT", "--robot", "arm6", "--linked"],
+    # enough poses that the work outlasts the first progress line by seconds on a busy machine
+    ["simulate", "OUT", "--robot", "arm6", "--linked", "--poses", "2000", "1000", "1000"],
     ["design", str(ROOT / "examples" / "design" / "design.toml"), "--out", "OUT"],
     ["predict", str(ROOT / "bayesrob" / "data" / "default_rig"), "--config", "top+bottom",
      "--grid", "30", "--json", "OUT/p.json", "--plot", "OUT/p.png"],
