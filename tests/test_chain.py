@@ -245,16 +245,18 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(later
         assert rel.max() < 0.01, lay.names[int(rel.argmax())]
 
 
-@pytest.mark.parametrize("sag_steps", [1, 3])
-def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_steps):
+@pytest.mark.parametrize("sag_steps,approach", [(1, False), (3, True)])
+def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_steps, approach):
     """The analytic Jacobian's sag part (how the masses, first moments, compliances, lateral
     compliances and play move the marker through the deflections and bending), written out
     from the torques' linearity, is ``jax.jacfwd`` of the sag in the same frames contracted
     with the marker's derivatives by the joint values and bends (random weights here): on
     the two-handed rig (the other arm hanging off the torso) and the planar default rig,
     every parameter non-zero (some deflections within the play's smooth step, so its slope
-    counts). Both are exact; the sums along the chain are taken in another order:
-    1e-10 of each column's largest entry (measured 6e-13)."""
+    counts). With recorded approach sides (random +1, -1, 0 per joint and row) the play's side
+    and each chain's stick deflection enter too. Both are exact; the sums along the chain are
+    taken in another order: 1e-10 of each column's largest entry (measured 6e-13), or of 1e-9
+    of the largest entry anywhere where that is larger."""
     from bayesrob.calibrate import least_squares
 
     rng = np.random.default_rng(21)
@@ -277,19 +279,27 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
             defl = np.asarray(robot._sag_at(x.at[np.flatnonzero(play)].set(0.0), arm,
                                             *frames)[0])
             assert ((np.abs(defl) > 0) & (np.abs(defl) < 2 * kin.PLAY_SIDE_RAD)).any()
-            d_defl, d_bend = jax.jacfwd(lambda v, r=robot, x=x, i=idx, a=arm, f=frames:
-                                        r._sag_at(x.at[i].set(v), a, *f))(x[idx])
             n_e, n = frames[0].shape[:2]
+            sides = (jnp.asarray(rng.choice([-1.0, 0.0, 1.0], size=(n_e, n))) if approach
+                     else None)
+            d_defl, d_bend = jax.jacfwd(lambda v, r=robot, x=x, i=idx, a=arm, f=frames,
+                                        s=sides: r._sag_at(x.at[i].set(v), a, *f, s))(x[idx])
             w_q = jnp.asarray(rng.normal(size=(n_e, n, 3)))
             w_phi = jnp.asarray(rng.normal(size=(n_e, n, 3, 3)))
             auto = np.asarray(jnp.einsum("eni,nec->nic", w_q, d_defl)
                               + jnp.einsum("enki,nekc->nic", w_phi, d_bend))
             mine = np.asarray(robot._sag_marker_jacobian(x, arm, *frames, idx, w_q, w_phi,
-                                                         robot._torques(x, arm, *frames)))
+                                                         robot._torques(x, arm, *frames),
+                                                         sides))
+            stick = np.array([lay.params[i].name.endswith(".stick") for i in idx])
+            assert stick.any()
+            assert (np.abs(auto[..., stick]).max() > 0) == approach
             assert mine.shape == auto.shape == (n, 3, len(idx))
             auto, mine = auto.reshape(-1, len(idx)), mine.reshape(-1, len(idx))
             assert np.abs(auto).max() > 0
-            scale = np.maximum(np.abs(auto).max(axis=0), 1e-12 * np.abs(auto).max())
+            # the play's slope 1 - tanh^2 rounds at 1e-16 where a joint sits deep on one side:
+            # a stick column (measured 1e-6 against 5e4) is judged against 1e-9 of the largest
+            scale = np.maximum(np.abs(auto).max(axis=0), 1e-9 * np.abs(auto).max())
             assert (np.abs(mine - auto).max(axis=0) / scale).max() < 1e-10
 
 
@@ -370,6 +380,41 @@ def test_play_is_taken_on_the_side_each_joint_gives_way_to():
     # a column zero by the geometry: judged against 1e-9 mm per typical step (test above)
     scale = np.maximum(np.abs(auto).max(axis=(0, 1)), 1e-9 / lay.scales)
     assert (np.abs(mine - auto).max(axis=(0, 1)) / scale)[cols].max() < 1e-6
+
+
+def test_recorded_approach_holds_a_joint_on_its_side_below_the_stick_deflection():
+    """Where the rows record each joint's approach side, friction holds the joint there
+    unless its gravity deflection is larger than its chain's stick deflection: the play's side
+    is tanh((deflection + stick * approach) / 0.1 mrad), so joints deflected less than the
+    stick (by 0.5 mrad, five smooth-step widths) rest on the approach side and joints
+    deflected more on the gravity side; rows with side 0 (unknown) are as without the record."""
+    robot = kin.Robot(load_rig_toml(JUSTIN_TOML)["chains"], gravity=np.array([0, 0, -1.0]))
+    lay = robot.layout
+    rng = np.random.default_rng(9)
+    u = rng.normal(0, 1, (40, 10))
+    play = np.array([p.name.endswith(".play") for p in lay.params])
+    stick = np.array([p.name.endswith(".stick") for p in lay.params])
+    x = lay.nominal.copy()
+    x[play] = 1e-3
+    x[stick] = 2e-3
+    joint = np.array([p.name.endswith(".compliance") for p in lay.params])
+    x[joint] = rng.uniform(0, 5e-7, joint.sum())  # deflections of 0-10 mrad
+    x0 = x.copy()
+    x0[play] = 0.0
+    without = np.asarray(robot.sag(jnp.asarray(x0), "right", u)[0])
+    unknown = np.asarray(robot.sag(jnp.asarray(x), "right", u)[0])
+    a = rng.choice([-1.0, 0.0, 1.0], size=(40, 10))
+    side = {kin.APPROACH: jnp.asarray(a)}
+    extra = np.asarray(robot.sag(jnp.asarray(x), "right", u, side)[0]) - without
+    el = robot._elements("right")
+    on = a[:, np.minimum(el["q_idx"], 9)] * (el["q_idx"] < 10)  # per element, tools 0
+    known = on != 0
+    held = known & (np.abs(without) < 1.5e-3)
+    pulled = known & (np.abs(without) > 2.5e-3)
+    assert held.sum() > 20 and pulled.sum() > 20
+    assert np.all(np.sign(extra[held]) == on[held])
+    assert np.all(np.sign(extra[pulled]) == np.sign(without[pulled]))
+    np.testing.assert_array_equal(extra[~known] + without[~known], unknown[~known])
 
 
 def test_a_shared_torso_bends_under_both_arms_whichever_hand_is_measured():

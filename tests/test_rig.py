@@ -899,6 +899,19 @@ def test_approach_columns_load_and_are_kept(rig_copy):
     assert meas.extra["top_d1"].count("+1") == 1
 
 
+def test_approach_sides_reach_the_calibration_with_each_arms_rows(rig_copy):
+    """The calibration's rows carry each arm's recorded sides (empty cells 0, unknown) under
+    ``kin.APPROACH``, in the rows' order; an arm without such columns carries none."""
+    from bayesrob import robot as kin
+
+    _with_sides(rig_copy, ["-1"])
+    rig = load_rig(rig_copy)
+    top = rig.side_rows("top", "train")[kin.APPROACH]
+    assert top.shape == (int(rig.measurements.mask("top", "train").sum()), 2)
+    assert (top[:, 1] == -1).all() and sorted(set(top[:, 0])) == [-1.0, 1.0]
+    assert rig.side_rows("bottom", "train") is None
+
+
 @pytest.mark.parametrize("value", ["2", "x", "0.5"])
 def test_bad_approach_sides_are_one_line_errors(rig_copy, value, capsys):
     from bayesrob.cli import main

@@ -24,6 +24,7 @@ import numpy as np
 
 from bayesrob.robot import Chain, KinematicsError, Robot, dh_chain, planar_chain, urdf_chain
 from bayesrob.robot import transforms as tf
+from bayesrob.robot.chain import APPROACH as APPROACH_KEY
 from bayesrob.robot.planar import ArmGeometry
 
 RIG_FILE = "rig.toml"
@@ -164,6 +165,19 @@ class Measurements:
             raise RigError(f"{path}: no measurement rows")
         return meas
 
+    def approach(self, chains: Sequence[tuple[str, int]], mask: np.ndarray) -> np.ndarray | None:
+        """The approach sides (+1, -1; 0: unknown) of ``chains``' joints ((name, joints) in
+        path order) in the rows of ``mask``, (rows, joints) side by side, or None where the
+        file records none of them."""
+        cols = [f"{c}_d{k + 1}" for c, n in chains for k in range(n)]
+        if not any(h in self.extra for h in cols):
+            return None
+        out = np.zeros((len(self), len(cols)))
+        for j, h in enumerate(cols):
+            if h in self.extra:  # checked +1, -1, 0 or empty when loaded
+                out[:, j] = [float(v) if v.strip() else 0.0 for v in self.extra[h]]
+        return out[mask]
+
     def mask(self, config: str | None = None, set: str | None = None) -> np.ndarray:
         m = np.ones(len(self), bool)
         if config is not None:
@@ -254,9 +268,12 @@ class Rig:
         m = meas.mask(arm, set)
         side = {b: np.concatenate([meas.commands[c.name][m] for c in self.robot.path(b)],
                                   axis=1) for b in self.robot.side_arms(arm)}
-        if not side or not m.any() or any(np.isnan(u).any() for u in side.values()):
-            return None
-        return side
+        if not m.any() or any(np.isnan(u).any() for u in side.values()):
+            side = {}
+        approach = meas.approach([(c.name, c.n_joints) for c in self.robot.path(arm)], m)
+        if approach is not None and m.any():
+            side[APPROACH_KEY] = approach
+        return side or None
 
     @property
     def configs(self) -> list[str]:

@@ -5,6 +5,7 @@ tested specialisation whose functions the grid, samplers and diagnosis use direc
 
 from bayesrob.robot.chain import (
     ALL_GROUPS,
+    APPROACH,
     GROUPS,
     MASS_SOURCES,
     OPTIONAL_GROUPS,
@@ -36,8 +37,8 @@ from bayesrob.robot.planar import (
 from bayesrob.robot.urdf import urdf_chain, write_urdf
 
 __all__ = [
-    "ALL_GROUPS", "GROUPS", "MASS_SOURCES", "OPTIONAL_GROUPS", "PARAM_NAMES", "PLAY_SIDE_RAD",
-    "SAG_GROUPS",
+    "ALL_GROUPS", "APPROACH", "GROUPS", "MASS_SOURCES", "OPTIONAL_GROUPS", "PARAM_NAMES",
+    "PLAY_SIDE_RAD", "SAG_GROUPS",
     "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout", "Robot", "RobotStructure",
     "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
     "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",

@@ -34,9 +34,16 @@ LINK_MASS_GUESS_KG = 1.0  # where a compliance fit starts: 1 kg at each link's m
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 # A joint's play is taken on the side its gravity deflection points to, as
 # tanh(deflection / PLAY_SIDE_RAD): 0.1 mrad, the joints' repeatability on the arms seen so
-# far, puts three quarters of it there; smaller deflections leave the joint mid-play (its side
-# then depends on the approach, which the rows do not record).
+# far, puts three quarters of it there; smaller deflections leave the joint mid-play. Where
+# the rows record the side each joint approached its command from (+1, -1), friction holds
+# the joint on that side unless its gravity deflection is larger than the arm's fitted stick
+# deflection (``<chain>.stick``): the side is tanh((deflection + stick * approach) /
+# PLAY_SIDE_RAD).
 PLAY_SIDE_RAD = 1e-4
+STICK_NOMINAL_RAD = 1e-3  # where a stick fit starts (mrad-scale friction over the stiffness)
+# the key under which a rows' context dict (``side``) carries the arm's approach sides
+# (N, path joints), beside the other arms' columns; not a valid arm name
+APPROACH = "@approach"
 # chains off a path, per chain: (path elements it weighs on, its first element, its links'
 # frames (E_c, N, 4, 4), its name), as Robot.side_frames gives them
 Hanging = tuple[tuple[int, int, jax.Array, str], ...]
@@ -265,8 +272,10 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
     for c in chains.values():
         # half the play of each joint (rad, mm if prismatic): how far gravity moves it to one
         # side of the middle (last in the vector, so earlier groups keep their indices)
-        add((c.name, "backlash"), [f"{c.name}.{j}.play" for j in c.joint_names], "backlash",
-            np.zeros(c.n_joints), [1e-3 if k == "revolute" else 1.0 for k in c.kinds])
+        add((c.name, "backlash"), [*(f"{c.name}.{j}.play" for j in c.joint_names),
+                                   f"{c.name}.stick"], "backlash",
+            [*np.zeros(c.n_joints), STICK_NOMINAL_RAD],
+            [*(1e-3 if k == "revolute" else 1.0 for k in c.kinds), 1e-3])
     return ParamLayout(tuple(params), slices)
 
 
@@ -458,7 +467,8 @@ class Robot(_ByValue):
         """The joints' deflections (N, E) of :meth:`deflections` and the bending (N, E, 3), lateral
         compliances times the torque about the two axes across each joint's own."""
         x = jnp.asarray(x)
-        return self._sag_at(x, arm, *self._sag_frames(x, arm, u, side))
+        return self._sag_at(x, arm, *self._sag_frames(x, arm, u, side),
+                            self._approach(arm, side))
 
     def _sag_frames(self, x: jax.Array, arm: str, u: jax.Array,
                     side: dict[str, jax.Array] | None) -> tuple:
@@ -466,14 +476,24 @@ class Robot(_ByValue):
         # (or, with sag_steps > 1, as the previous step sagged them), and what hangs off it.
         # What hangs off the path keeps its commanded frames: the path's sag turns it as a
         # whole, which moves its torque on the shared joints only at second order.
-        hanging = self.side_frames(x, arm, side) if side else ()
+        arms = {b: v for b, v in (side or {}).items() if b != APPROACH}
+        hanging = self.side_frames(x, arm, arms) if arms else ()
+        approach = self._approach(arm, side)
         frames = (*self.element_frames(x, arm, u), hanging)
         # a loop unrolled into the program (not a while loop), so that reverse mode (NUTS
         # through a chain with sag) still differentiates it
         for _ in range(self.sag_steps - 1):
-            frames = (*self.element_frames(x, arm, u, *self._sag_at(x, arm, *frames)),
-                      hanging)
+            frames = (*self.element_frames(x, arm, u,
+                                           *self._sag_at(x, arm, *frames, approach)), hanging)
         return frames
+
+    def _approach(self, arm: str, side: dict[str, jax.Array] | None) -> jax.Array | None:
+        # the rows' approach sides per element (E, N), tools 0, or None where not recorded
+        if not side or APPROACH not in side:
+            return None
+        a = jnp.asarray(side[APPROACH])
+        a = jnp.concatenate([a, jnp.zeros((a.shape[0], 1))], axis=1)
+        return a[:, self._elements(arm)["q_idx"]].T
 
     def _weights(self, xz: jax.Array, link_idx: np.ndarray, links: jax.Array
                  ) -> tuple[jax.Array, jax.Array]:
@@ -514,13 +534,24 @@ class Robot(_ByValue):
         return self.instrument_pose(x, arm)[:3, :3] @ jnp.asarray(self.gravity, float) * G_N_PER_KG
 
     def _sag_at(self, x: jax.Array, arm: str, joints: jax.Array, links: jax.Array,
-                hanging: Hanging = ()) -> tuple[jax.Array, jax.Array]:
+                hanging: Hanging = (), approach: jax.Array | None = None
+                ) -> tuple[jax.Array, jax.Array]:
         # the deflections and bending linear in the compliances (plus the play), from the
         # torques in frames already computed
-        return self._sag_from_torques(x, arm, *self._torques(x, arm, joints, links, hanging))
+        return self._sag_from_torques(x, arm, *self._torques(x, arm, joints, links, hanging),
+                                      approach)
 
-    def _sag_from_torques(self, x: jax.Array, arm: str, torque: jax.Array, tau: jax.Array
-                          ) -> tuple[jax.Array, jax.Array]:
+    def _play_side(self, x: jax.Array, arm: str, defl: jax.Array,
+                   approach: jax.Array | None) -> jax.Array:
+        # which side of its play each joint rests on, -1..1 (E, N): its deflection's, or
+        # the approach's where friction holds it against a weaker deflection
+        if approach is None:
+            return jnp.tanh(defl / PLAY_SIDE_RAD)
+        stick = jnp.concatenate([x, jnp.zeros(1)])[self._elements(arm)["stick_idx"]]
+        return jnp.tanh((defl + stick[:, None] * approach) / PLAY_SIDE_RAD)
+
+    def _sag_from_torques(self, x: jax.Array, arm: str, torque: jax.Array, tau: jax.Array,
+                          approach: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         # apart from _sag_at so that the marker Jacobian, which needs the torques for the
         # sag's derivative too, takes them once
         el = self._elements(arm)
@@ -532,7 +563,7 @@ class Robot(_ByValue):
         # play taken on the side the joint gives way to: the deflection's sign is identified
         # where the torque itself is not (only compliance x mass is), and it is zero, so is
         # the play's effect, until a compliance is fitted
-        taken = play[:, None] * jnp.tanh(defl / PLAY_SIDE_RAD)
+        taken = play[:, None] * self._play_side(x, arm, defl, approach)
         return (defl + taken).T, jnp.swapaxes(bend, 0, 1)
 
     def _sag_coefficients(self, x: jax.Array, arm: str
@@ -545,7 +576,8 @@ class Robot(_ByValue):
     def _sag_marker_jacobian(self, x: jax.Array, arm: str, joints: jax.Array,
                              links: jax.Array, hanging: Hanging, idx: np.ndarray,
                              w_q: jax.Array, w_phi: jax.Array,
-                             torques: tuple[jax.Array, jax.Array]) -> jax.Array:
+                             torques: tuple[jax.Array, jax.Array],
+                             approach: jax.Array | None = None) -> jax.Array:
         """The sag's part of the marker Jacobian, (N, 3, C) over x[idx], in the frames given
         held fixed (``w_q``, ``w_phi``: d marker / d joint value and / d bend; tested equal to
         ``jax.jacfwd``), written out since every torque is linear in the masses and moments: a
@@ -560,7 +592,7 @@ class Robot(_ByValue):
         rot = joints[:, :, :3, :3]
         g = self._gravity_force(x, arm)
         axes = jnp.asarray(el["axes"])
-        side = jnp.tanh(s[:, None] * tau / PLAY_SIDE_RAD)
+        side = self._play_side(x, arm, s[:, None] * tau, approach)
         # d (deflection + play) / d deflection: the play's smooth step turns with it
         gain = 1.0 + play * (1.0 - side ** 2) / PLAY_SIDE_RAD
         across = jnp.asarray(el["across"])  # (E, 2, 3)
@@ -604,7 +636,14 @@ class Robot(_ByValue):
             raise AssertionError("a sag parameter enters two elements")  # the gather's premise
         pos = np.full(zero + 1, len(keys))  # a parameter no source has: the zero column
         pos[keys[real]] = np.flatnonzero(real)
-        return jnp.concatenate([*sources, jnp.zeros((n, 3, 1))], axis=-1)[..., pos[np.asarray(idx)]]
+        out = jnp.concatenate([*sources, jnp.zeros((n, 3, 1))], axis=-1)[..., pos[np.asarray(idx)]]
+        if approach is None:
+            return out
+        # a chain's stick deflection enters each of its joints: summed over its elements
+        stick = np.asarray(el["stick_idx"])
+        onto = (stick[:, None] == np.asarray(idx)[None]) & (stick[:, None] != zero)  # (E, C)
+        coef = play * (1.0 - side ** 2) / PLAY_SIDE_RAD * approach  # (E, N)
+        return out + jnp.einsum("eni,en,ec->nic", w_q, coef, jnp.asarray(onto, float))
 
     def n_path_joints(self, arm: str) -> int:
         return sum(c.n_joints for c in self.path(arm))
@@ -644,7 +683,8 @@ class Robot(_ByValue):
         if self.gravity is not None:
             frames = self._sag_frames(x, arm, u, side)
             torques = self._torques(x, arm, *frames)
-            defl, bend = self._sag_from_torques(x, arm, *torques)
+            approach = self._approach(arm, side)
+            defl, bend = self._sag_from_torques(x, arm, *torques, approach)
             q = q + defl.T
         deltas = x[el["delta_idx"]]  # (E, 6)
         axes = jnp.asarray(el["axes"])
@@ -721,7 +761,7 @@ class Robot(_ByValue):
             before = jnp.einsum("enij,ejk->enik", prefix, factors)
             j_phi = jnp.einsum("enij,kjl,enl->enki", before, gens, inner)  # (E, N, 3, 4)
             jac = jac.at[:, :, idx].add(self._sag_marker_jacobian(
-                x, arm, *frames, idx, j_q[:, :, :3], j_phi[..., :3], torques))
+                x, arm, *frames, idx, j_q[:, :, :3], j_phi[..., :3], torques, approach))
         return jac[:, : self.dim, :]
 
     def marker_points(self, x: jax.Array, arm: str, u: jax.Array,
@@ -868,7 +908,7 @@ def _element_table(structure: RobotStructure, arm: str) -> dict[str, np.ndarray]
     sl = robot.layout.slices
     zero = len(robot.layout.params)  # index of a zero appended to x: tools have no mass
     delta_idx, axes, prismatic, q_idx = [], [], [], []
-    compliance_idx, link_idx, lateral_idx, across, play_idx = [], [], [], [], []
+    compliance_idx, link_idx, lateral_idx, across, play_idx, stick_idx = [], [], [], [], [], []
     n_q = 0
     for chain in robot.path(arm):
         start = sl[(chain.name, "origins")].start
@@ -883,6 +923,7 @@ def _element_table(structure: RobotStructure, arm: str) -> dict[str, np.ndarray]
             q_idx.append(-1 if last else n_q + i)
             compliance_idx.append(zero if last else c0 + i)
             play_idx.append(zero if last else p0 + i)
+            stick_idx.append(zero if last else p0 + chain.n_joints)
             link_idx.append([zero] * 4 if last else list(range(l0 + 4 * i, l0 + 4 * i + 4)))
             lateral_idx.append([zero] * 2 if last else [b0 + 2 * i, b0 + 2 * i + 1])
             across.append(np.zeros((2, 3)) if last else _across(chain.axes[i]))
@@ -892,7 +933,8 @@ def _element_table(structure: RobotStructure, arm: str) -> dict[str, np.ndarray]
             "axes": np.stack(axes), "prismatic": np.array(prismatic),
             "q_idx": np.array(q_idx), "compliance_idx": np.array(compliance_idx),
             "link_idx": np.array(link_idx), "lateral_idx": np.array(lateral_idx),
-            "across": np.stack(across), "play_idx": np.array(play_idx)}
+            "across": np.stack(across), "play_idx": np.array(play_idx),
+            "stick_idx": np.array(stick_idx)}
 
 
 @functools.partial(jax.jit, static_argnames=("structure", "arm"))
