@@ -275,8 +275,10 @@ def measure_plan_in_simulation(rig_dir: str | Path, path: str | Path, seed: int 
     # substring of "linked_chain_truth": match the tables, not the text)
     tables = tomllib.loads(truth.read_text())
     if "linked_chain_truth" in tables:
-        raise RigError("--poses FILE measures a single arm6 or a planar rig; linked arm6 "
-                       "rigs are not measured at planned poses")
+        # each planned row measures its config's arm alone, as bayesrob plan chose it
+        configs, sets, cmds = read_plan(path, {a: 6 for a in tables["linked_chain_truth"]["arms"]})
+        q = np.array([cmds[c][i] for i, c in enumerate(configs)])
+        return measure_arm6_poses(rig_dir, sets, q, seed=seed, configs=configs)
     if "chain_truth" in tables:
         _, sets, cmds = read_plan(path, {"arm": 6})
         return measure_arm6_poses(rig_dir, sets, cmds["arm"], seed=seed)

@@ -346,51 +346,85 @@ def approach_sides(q_cmd: np.ndarray, previous: np.ndarray | None) -> np.ndarray
 
 
 def measure_arm6_poses(rig_dir: str | Path, sets: Sequence[str], q_cmd: np.ndarray,
-                        seed: int = 0,
-                        plant: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
-                        ) -> int:
-    """Measure the joint commands ``q_cmd`` (N, 6), in order, on the simulated arm6 in
+                       seed: int = 0,
+                       plant: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                       configs: Sequence[str] | None = None) -> int:
+    """Measure the joint commands ``q_cmd`` (N, 6), in order, on the simulated arm6 rig in
     ``rig_dir`` and append them to its measurements.csv with their ``sets`` and approach
-    sides (``arm_d1..6``); ``plant(q_cmd, approach) -> points (N, 3)`` measures instead, for
-    an arm made by other physics (a validation study's). Returns the rows appended."""
-    import tomllib
-
+    sides (``<arm>_d1..6``: each arm's move from its own previous command in the file). On a
+    linked rig ``configs`` names each row's arm (the linked simulator has no play, so the sides
+    are recorded, not acted on). ``plant(q_cmd, approach) -> points (N, 3)`` measures a single
+    arm instead, for an arm made by other physics (a validation study's). Returns the rows
+    appended."""
     out = Path(rig_dir)
-    if plant is None:
-        table = dict(tomllib.loads((out / "truth.toml").read_text())["chain_truth"])
-        names = [f.name for f in Arm6Truth.__dataclass_fields__.values()]
-        truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
-                              for k, v in table.items() if k in names})
-        rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
-        arm6 = _Arm6Plant.build(truth, rng)
-
-        def plant(q: np.ndarray, approach: np.ndarray) -> np.ndarray:
-            return arm6.measure(q, rng, rng, approach)
+    configs = list(configs) if configs is not None else ["arm"] * len(q_cmd)
+    measure = ((lambda arm, q, approach: plant(q, approach)) if plant is not None
+               else _truth_plant(out, seed))
     path = out / "measurements.csv"
     with path.open(newline="") as fh:
         rows = list(csv.reader(fh))
     header, body = rows[0], rows[1:]
-    cmd_cols = [f"arm_u{k + 1}" for k in range(6)]
-    dir_cols = [f"arm_d{k + 1}" for k in range(6)]
-    if dir_cols[0] not in header:
-        header = [*header, *dir_cols]
-        body = [r + [""] * 6 for r in body]
+    arms = list(dict.fromkeys(configs))
+    for arm in arms:
+        if f"{arm}_d1" not in header:
+            header = [*header, *(f"{arm}_d{k + 1}" for k in range(6))]
+            body = [r + [""] * 6 for r in body]
     idx = {h: i for i, h in enumerate(header)}
-    previous = (np.array([float(body[-1][idx[c]]) for c in cmd_cols]) if body else None)
-    approach = approach_sides(np.asarray(q_cmd, float), previous)
-    p = plant(np.asarray(q_cmd, float), approach)
-    for s, qc, d, pc in zip(sets, q_cmd, approach, p, strict=True):
+    q_cmd = np.asarray(q_cmd, float)
+    approach, points = np.zeros_like(q_cmd), np.zeros((len(q_cmd), 3))
+    for arm in arms:
+        mine = np.flatnonzero(np.array(configs) == arm)
+        cols = [idx[f"{arm}_u{k + 1}"] for k in range(6)]
+        # the arm's last command in the file, a linked row's included: it moved there too
+        last = next((r for r in reversed(body) if r[cols[0]].strip()), None)
+        previous = None if last is None else np.array([float(last[c]) for c in cols])
+        approach[mine] = approach_sides(q_cmd[mine], previous)
+        points[mine] = measure(arm, q_cmd[mine], approach[mine])
+    for arm, s, qc, d, pc in zip(configs, sets, q_cmd, approach, points, strict=True):
         row = [""] * len(header)
-        row[idx["config"]], row[idx["set"]] = "arm", s
-        for c, v in zip(cmd_cols, qc, strict=True):
-            row[idx[c]] = f"{v:.10g}"
-        for c, v in zip(dir_cols, d, strict=True):
-            row[idx[c]] = f"{v:g}"
+        row[idx["config"]], row[idx["set"]] = arm, s
+        for k in range(6):
+            row[idx[f"{arm}_u{k + 1}"]] = f"{qc[k]:.10g}"
+            row[idx[f"{arm}_d{k + 1}"]] = f"{d[k]:g}"
         for a, v in zip("xyz", pc, strict=True):
             row[idx[a]] = f"{v:.4f}"
         body.append(row)
     _replace_csv(path, [header, *body], partial(csv.writer, lineterminator="\n"))
     return len(q_cmd)
+
+
+def _truth_plant(rig_dir: Path, seed: int) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
+    """``(arm, q_cmd, approach) -> points`` of the arm6 rig its truth.toml describes (one arm
+    or linked), with the noise of rows measured at given poses: a stream of their own."""
+    import tomllib
+
+    tables = tomllib.loads((rig_dir / TRUTH_FILE).read_text())
+    if "linked_chain_truth" not in tables:
+        table = dict(tables["chain_truth"])
+        names = [f.name for f in Arm6Truth.__dataclass_fields__.values()]
+        truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
+                              for k, v in table.items() if k in names})
+        rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
+        arm6 = _Arm6Plant.build(truth, rng)
+        return lambda arm, q, approach: arm6.measure(q, rng, rng, approach)
+    t = tables["linked_chain_truth"]
+    robot = Robot({a: urdf_chain(arm6_urdf_path(), "base_link", "tool0", a,
+                                 marker=t["marker_nominal_mm"],
+                                 instrument=t["instrument_nominal"][a]) for a in t["arms"]}, 3)
+    x_true = np.array([t["true_params"][n] for n in robot.layout.names])
+    rng = np.random.default_rng([seed, t["seed"], POSES_STREAM])
+
+    def plant(arm: str, q_cmd: np.ndarray, approach: np.ndarray) -> np.ndarray:
+        # as simulate_linked_arm6_rig measures its single-arm rows
+        q = q_cmd + rng.normal(0, t["joint_noise_rad"], q_cmd.shape)
+        if t["compliance"]:
+            q = q + physics.gravity_deflection(
+                robot, x_true, arm, q, np.asarray(t["drawn_masses_kg"][arm], float),
+                np.asarray(t["stiffness_nmm_per_rad"][arm], float), np.asarray(GRAVITY),
+                iterations=8)
+        p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
+        return p + rng.normal(0, t["measurement_noise_mm"], p.shape)
+    return plant
 
 
 def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],
