@@ -146,7 +146,9 @@ def test_backlash_takes_the_chain_plays_sides_on_the_planar_chain():
     robot, x, c = _compliant_planar_chain(params)
     play = np.array([0.004, 0.006])
     with_play = x.copy()
-    with_play[robot.layout.slices["arm", "backlash"]] = play
+    # the group's last entry is the chain's stick deflection, which acts on recorded
+    # approach sides only (none here)
+    with_play[[i for i, p in enumerate(robot.layout.params) if p.name.endswith(".play")]] = play
     u = np.stack(np.meshgrid(np.linspace(600, 2400, 13), np.linspace(600, 2400, 13)),
                  -1).reshape(-1, 2)
     chain_side = np.asarray(robot.deflections(jnp.asarray(with_play), "arm", jnp.asarray(u))
