@@ -415,16 +415,29 @@ def _truth_plant(rig_dir: Path, seed: int) -> Callable[[str, np.ndarray, np.ndar
     rng = np.random.default_rng([seed, t["seed"], POSES_STREAM])
 
     def plant(arm: str, q_cmd: np.ndarray, approach: np.ndarray) -> np.ndarray:
-        # as simulate_linked_arm6_rig measures its single-arm rows
-        q = q_cmd + rng.normal(0, t["joint_noise_rad"], q_cmd.shape)
-        if t["compliance"]:
-            q = q + physics.gravity_deflection(
-                robot, x_true, arm, q, np.asarray(t["drawn_masses_kg"][arm], float),
-                np.asarray(t["stiffness_nmm_per_rad"][arm], float), np.asarray(GRAVITY),
-                iterations=8)
-        p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
-        return p + rng.normal(0, t["measurement_noise_mm"], p.shape)
+        load = ((np.asarray(t["drawn_masses_kg"][arm], float),
+                 np.asarray(t["stiffness_nmm_per_rad"][arm], float)) if t["compliance"]
+                else None)
+        return _linked_arm_points(robot, x_true, arm, q_cmd, rng, t["joint_noise_rad"],
+                                  t["measurement_noise_mm"], load)
     return plant
+
+
+def _linked_arm_points(robot: Robot, x_true: np.ndarray, arm: str, q_cmd: np.ndarray,
+                       rng: np.random.Generator, joint_noise_rad: float,
+                       measurement_noise_mm: float,
+                       load: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """One arm of a linked arm6 rig measured alone at ``q_cmd`` (N, 6): its marker points
+    (N, 3) mm with joint noise, the gravity deflection of ``load`` (link masses, joint
+    stiffnesses; None: rigid) and measurement noise, drawn in that order from ``rng``."""
+    q = q_cmd + rng.normal(0, joint_noise_rad, q_cmd.shape)
+    if load is not None:
+        # Gravity is the instrument's -z; eight steps, as four leave the softer arm's fixed
+        # point up to 6e-6 rad off.
+        q = q + physics.gravity_deflection(robot, x_true, arm, q, *load, np.asarray(GRAVITY),
+                                           iterations=8)
+    p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
+    return p + rng.normal(0, measurement_noise_mm, p.shape)
 
 
 def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],
@@ -517,14 +530,9 @@ def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Pat
                                 ("holdout", truth.n_holdout)) if n]
     for arm in truth.arms:
         q_cmd = random_poses(rng, sum(n for _, n in sets))
-        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
-        if truth.compliance:
-            # Gravity is the instrument's -z; eight steps, as four leave the softer arm's fixed
-            # point up to 6e-6 rad off.
-            q = q + physics.gravity_deflection(robot, x_true, arm, q, masses[arm],
-                                               stiffness[arm], np.asarray(GRAVITY), iterations=8)
-        p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
-        p = p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+        p = _linked_arm_points(robot, x_true, arm, q_cmd, rng, truth.joint_noise_rad,
+                               truth.measurement_noise_mm,
+                               (masses[arm], stiffness[arm]) if truth.compliance else None)
         names = [s for s, n in sets for _ in range(n)]
         lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
                   for s, qc, pc in zip(names, q_cmd, p, strict=True)]
