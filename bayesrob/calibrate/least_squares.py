@@ -9,6 +9,7 @@ tell apart. A planar arm's eight parameters are one instance (:mod:`.arms`). The
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -413,11 +414,84 @@ def standard_errors(cov: np.ndarray, free: np.ndarray) -> np.ndarray:
     return se
 
 
+@partial(jax.jit, static_argnames=("structure", "arms"))
+def _misfits(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
+             xs: jax.Array, data: tuple, penalty: jax.Array) -> jax.Array:
+    """The train rows' sum of squares (penalty rows included) at each parameter vector of
+    xs (K, P)."""
+    robot = structure.robot(values)
+
+    def one(x: jax.Array) -> jax.Array:
+        r = jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
+                             for a, (u, d, side) in zip(arms, data, strict=True)])
+        return r @ r + jnp.sum((penalty * x) ** 2)
+    return jax.vmap(one)(xs)
+
+
+PROFILE_STEPS = 24  # bisection steps on log(width) in (1e-9, 1]: a width to 2e-6 of itself
+PROFILE_SLACK = 1.01
+
+
 def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
-    """The calibrated parameters' :func:`covariance` on the train rows."""
-    full_res, full_jac, *_ = residual_function(cal.robot, set_rows(rig, cal.robot, "train"))
-    return covariance(full_res, full_jac, cal.x, cal.ident.free,
-                      prior_penalty(cal.robot.layout, cal.groups))
+    """The calibrated parameters' :func:`covariance` on the train rows, checked against the
+    rows along each of its axes: where a standard deviation's move misfits the rows by more
+    than the linearisation says (s^2), the axis is narrowed to the move that misfits by s^2
+    (the profile likelihood's one-sigma point), never widened. Prediction draws use it; the
+    standard errors a calibration reports are :func:`covariance`'s."""
+    robot, x, free = cal.robot, np.asarray(cal.x, float), cal.ident.free
+    rows = set_rows(rig, robot, "train")
+    full_res, full_jac, *_ = residual_function(robot, rows)
+    penalty = prior_penalty(robot.layout, cal.groups)
+    cov = covariance(full_res, full_jac, x, free, penalty)
+    if not free.any() or not np.all(np.isfinite(cov)):
+        return cov
+    data = tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
+
+    def misfit(xs: np.ndarray) -> np.ndarray:
+        return np.asarray(_misfits(robot.structure, tuple(rows), robot.nominal_values,
+                                   jnp.asarray(xs), data, jnp.asarray(penalty)))
+
+    r = np.asarray(full_res(jnp.asarray(x)))
+    s2 = float(r @ r) / (r.size - int(free.sum()))
+    return profiled(cov, free, x, np.asarray(robot.layout.scales, float), s2, misfit)
+
+
+def profiled(cov: np.ndarray, free: np.ndarray, x: np.ndarray, scales: np.ndarray, s2: float,
+             misfit: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``cov`` with each axis narrowed to its profile's one-sigma point (see
+    :func:`parameter_covariance`). The axes are its eigenvectors in units of the parameters'
+    scales, each a standard deviation's move m_k with sum m_k m_k^T = cov, so the linearised
+    misfit of every m_k is s2 (``misfit``: sums of squares at parameter vectors (K, P)). A
+    weak combination of columns (an elbow offset against the next origin's z; a link's mass
+    against its joint's compliance, whose product alone is seen) keeps a linearised width
+    whose move misfits the rows by thousands of s2: draws along it landed metres away."""
+    f = np.flatnonzero(free)
+    s = scales[f]
+    w, u = np.linalg.eigh(cov[np.ix_(f, f)] / np.outer(s, s))
+    moves = np.zeros((len(w), len(x)))
+    moves[:, f] = (u * np.sqrt(np.clip(w, 0.0, None))).T * s
+    base = float(misfit(x[None])[0])
+
+    def excess(alpha: np.ndarray, k: np.ndarray) -> np.ndarray:
+        m = alpha[:, None] * moves[k]
+        return (misfit(np.concatenate([x + m, x - m])).reshape(2, -1).mean(axis=0)
+                - base) / s2
+
+    alpha = np.ones(len(w))
+    # 1% over s2 is kept: a width within half a percent of the linearised one
+    k = np.flatnonzero(excess(alpha, np.arange(len(w))) > PROFILE_SLACK)
+    if k.size:
+        lo, hi = np.full(k.size, np.log(1e-9)), np.zeros(k.size)
+        for _ in range(PROFILE_STEPS):
+            mid = (lo + hi) / 2
+            over = excess(np.exp(mid), k) > 1.0
+            hi = np.where(over, mid, hi)
+            lo = np.where(over, lo, mid)
+        alpha[k] = np.exp(lo)
+    out = np.zeros_like(cov)
+    narrowed = moves[:, f] * alpha[:, None]
+    out[np.ix_(f, f)] = narrowed.T @ narrowed
+    return out
 
 
 def marker_errors(rig: Rig, robot: kin.Robot, x: np.ndarray) -> dict:
