@@ -59,7 +59,7 @@ USER_ERRORS = (
     "bayesrob.diagnose.groups.DiagnosisError",
     "bayesrob.hardware.controller.ArgumentError",
     "bayesrob.hardware.controller.HardwareError",  # a port that cannot be opened, a mute device
-    "bayesrob.sim.equilibrium.LinkedSimulationError",  # e.g. too few poses to seed an aim
+    "bayesrob.sim.equilibrium.LinkedSimulationError",  # e.g. a linked row that did not settle
     "bayesrob.validation.study.StudyError",
 )
 

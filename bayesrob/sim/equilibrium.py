@@ -1,7 +1,6 @@
 """Where simulated arms settle: the least energy of their springs and weights (linked arms: a
 tug of war between their stiffnesses). :class:`PhysicalRig`: the paper's planar arms by BFGS
 (the dead band's kink needs no Hessian); :func:`linked_equilibrium`: 3-D arms by Newton.
-Linked rows are aimed through a calibrated model by :func:`position_ik`.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import scipy.optimize
 from bayesrob import robot as kin
 from bayesrob.robot import Robot, RobotStructure
 from bayesrob.sim.physics import G_N_PER_KG, STIFF_FACTOR, dead_band, link_weights, servo_ripple
-from bayesrob.sim.truth import GRAVITY, POSE_HI, POSE_LO, TRUTH_FILE, ArmTruth, Truth
+from bayesrob.sim.truth import GRAVITY, TRUTH_FILE, ArmTruth, Truth
 
 
 def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
@@ -353,55 +352,3 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
         free_points={a: s["point"] for a, s in zip(arms, free, strict=True)},
         free_joints=dict(zip(arms, free_joints, strict=True)),
         multipliers=lam, violation_mm=violation_mm, iterations=iterations)
-
-
-def position_ik(robot: Robot, x: np.ndarray, arm: str, targets: np.ndarray, seeds: np.ndarray,
-                lo: np.ndarray = POSE_LO, hi: np.ndarray = POSE_HI, tol_mm: float = 1e-8,
-                max_iter: int = 60, max_step_rad: float = 0.3) -> np.ndarray:
-    """Joint columns (N, n) that put ``arm``'s marker on each of ``targets`` (N, 3) (mm)
-    under parameters x, all rows at once.
-
-    Gauss-Newton on the 3-D marker point from ``seeds`` (N, S, n), best first, or (S, n) for
-    every row: a 6-joint arm is redundant for a point, so each step is the minimum-norm one
-    (the pseudo-inverse), which keeps near the seed's posture; steps longer than
-    ``max_step_rad`` are shortened while far from the target. A row takes the first solution
-    within ``tol_mm`` whose joints lie in [lo, hi], and moves on to its next seed when a
-    solution leaves the range or ``max_iter`` steps do not converge; LinkedSimulationError
-    when a row's seeds run out.
-    """
-    targets = np.atleast_2d(np.asarray(targets, float))
-    n_rows = len(targets)
-    seeds = np.asarray(seeds, float)
-    if seeds.ndim == 2:
-        seeds = np.broadcast_to(seeds, (n_rows, *seeds.shape))
-    program = _arm_program(robot, arm)
-    n = robot.chains[arm].n_joints
-    xj, k0, w0 = jnp.asarray(x, float), jnp.zeros(n), jnp.zeros((n, 3))
-    rows = np.arange(n_rows)
-    which = np.zeros(n_rows, int)
-    u = seeds[:, 0].copy()
-    steps = np.zeros(n_rows, int)
-    done = np.zeros(n_rows, bool)
-    while True:
-        state = program(xj, jnp.asarray(u), jnp.asarray(u), k0, w0, *_middles(robot, arm))
-        err = targets - np.asarray(state["point"])
-        close = np.linalg.norm(err, axis=1) < tol_mm
-        done |= close & np.all((u >= lo) & (u <= hi), axis=1)
-        if done.all():
-            return u
-        restart = ~done & (close | (steps >= max_iter))
-        which[restart] += 1
-        if np.any(which >= seeds.shape[1]):
-            r = int(np.flatnonzero(which >= seeds.shape[1])[0])
-            raise LinkedSimulationError(
-                f"arm {arm!r}: no joint solution in the working range reaches "
-                f"{targets[r].round(1).tolist()} mm from {seeds.shape[1]} seeds")
-        u[restart] = seeds[rows[restart], which[restart]]
-        steps[restart] = 0
-        move = ~done & ~restart
-        step = np.einsum("nij,nj->ni", np.linalg.pinv(np.asarray(state["jac"])), err)
-        size = np.linalg.norm(step, axis=1)
-        scale = np.minimum(1.0, max_step_rad / np.maximum(size, 1e-300))
-        u[move] += (step * scale[:, None])[move]
-        steps[move] += 1
-
