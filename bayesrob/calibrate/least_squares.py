@@ -117,7 +117,11 @@ def marker_distances(rig: Rig, robot: kin.Robot, x: np.ndarray, set: str
 @partial(jax.jit, static_argnames=("structure", "arms"))
 def _fit_residuals(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
                    x: jax.Array, data: tuple) -> jax.Array:
-    robot = structure.robot(values)
+    return _residuals(structure.robot(values), arms, x, data)
+
+
+def _residuals(robot: kin.Robot, arms: tuple[str, ...], x: jax.Array, data: tuple
+               ) -> jax.Array:
     return jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
                             for a, (u, d, side) in zip(arms, data, strict=True)])
 
@@ -416,15 +420,14 @@ def standard_errors(cov: np.ndarray, free: np.ndarray) -> np.ndarray:
 
 @partial(jax.jit, static_argnames=("structure", "arms"))
 def _misfits(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
-             xs: jax.Array, data: tuple, penalty: jax.Array) -> jax.Array:
-    """The train rows' sum of squares (penalty rows included) at each parameter vector of
-    xs (K, P)."""
+             xs: jax.Array, data: tuple, penalty: jax.Array, nominal: jax.Array) -> jax.Array:
+    """The train rows' sum of squares at each parameter vector of xs (K, P), with the penalty
+    rows :func:`fit` adds (``penalty`` times the distance from ``nominal``)."""
     robot = structure.robot(values)
 
     def one(x: jax.Array) -> jax.Array:
-        r = jnp.concatenate([(robot.marker_points(x, a, u, side=side) - d).ravel()
-                             for a, (u, d, side) in zip(arms, data, strict=True)])
-        return r @ r + jnp.sum((penalty * x) ** 2)
+        r = _residuals(robot, arms, x, data)
+        return r @ r + jnp.sum((penalty * (x - nominal)) ** 2)
     return jax.vmap(one)(xs)
 
 
@@ -449,7 +452,8 @@ def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
 
     def misfit(xs: np.ndarray) -> np.ndarray:
         return np.asarray(_misfits(robot.structure, tuple(rows), robot.nominal_values,
-                                   jnp.asarray(xs), data, jnp.asarray(penalty)))
+                                   jnp.asarray(xs), data, jnp.asarray(penalty),
+                                   jnp.asarray(robot.layout.nominal)))
 
     r = np.asarray(full_res(jnp.asarray(x)))
     s2 = float(r @ r) / (r.size - int(free.sum()))
