@@ -200,8 +200,9 @@ def test_prediction_covariance_of_a_linked_arm6_rig_moves_no_point_by_its_weak_a
     Gauss-Newton covariance keeps weak combinations (wrist_1's origin z against the elbow's
     and wrist_1's offsets, a link's mass against its compliance) whose one-sd moves misfit
     the train rows by far more than s^2; its draws move the left arm's validation points by
-    13.5 mm on average. The profiled covariance's draws move them 0.09 mm, the spread of a
-    calibration with 0.1 mm markers. Bounds: more than 2 mm and less than 0.5 mm."""
+    14.7 mm on average. The profiled covariance's draws move them 0.09 mm, the spread of a
+    calibration with 0.1 mm markers. Bounds: more than 2 mm and less than 0.5 mm (fitted
+    without the polish, to keep the test short: 13.5 and 0.09 mm with it)."""
     import jax.numpy as jnp
 
     from bayesrob.calibrate.least_squares import (
@@ -218,7 +219,7 @@ def test_prediction_covariance_of_a_linked_arm6_rig_moves_no_point_by_its_weak_a
     groups = ("frames", "offsets", "geometric", "compliance")
     rig = load_rig(simulate_linked_arm6_rig(tmp_path / "rig", LinkedArm6Truth(
         seed=205, calibration_groups=groups, n_linked=0)))
-    cal = calibrate(rig, groups)
+    cal = calibrate(rig, groups, polish=False)  # the polish moves no axis' width much
     res, jac, *_ = residual_function(cal.robot, set_rows(rig, cal.robot, "train"))
     gauss_newton = covariance(res, jac, cal.x, cal.ident.free,
                               prior_penalty(cal.robot.layout, groups))
