@@ -211,8 +211,8 @@ def test_ladder_with_torque_steps_is_at_equilibrium_or_says_why_not(tmp_path, ca
     noise floor here (the simulated sag is a few mrad, where one step is a fair model), so
     10% bounds a real regression without asking the equilibrium to beat noise. With a
     threshold no fit can meet, the step falls back to one step and a note says why, whether
-    the one-step selection fit's sag already fails to settle (no equilibrium fit is tried) or
-    the six-step fit ends off its equilibrium.
+    the one-step ladder fit's sag already fails to settle (no equilibrium fit is tried) or
+    the six-step fit ends off its equilibrium; either way the step is that one-step fit.
 
     The arm is the module's (``compliant_rig``) and each distinct fit is computed once
     (``shared_fits``): the one-step ladder, the command's run and the two fallbacks ask for
@@ -235,18 +235,25 @@ def test_ladder_with_torque_steps_is_at_equilibrium_or_says_why_not(tmp_path, ca
 
     groups = ("frames", "geometric", "compliance")
     first = shared_fits(load_rig(rig), groups)
-    # the selection fit's sag does not settle (a threshold none can meet): no equilibrium fit
+    # the one-step fit's sag does not settle (a threshold none can meet): no equilibrium fit
     monkeypatch.setattr(cd, "SAG_CONVERGED_MM", -1.0)
+    asked: list[int] = []
+    monkeypatch.setattr(cd, "calibrate", lambda *a, **k: asked.append(k.get("sag_steps", 1))
+                        or shared_fits(*a, **k))
     notes: list[str] = []
-    cal = cd._ladder_fit(load_rig(rig), groups, 6, notes, first.x)
+    cal = cd._ladder_fit(load_rig(rig), groups, 6, notes)
     assert cal.robot.sag_steps == 1 and "does not settle in 6 steps" in notes[0], notes
+    assert asked == [1]  # the six-step fit was not tried
+    np.testing.assert_array_equal(cal.x, first.x)
     assert cal.errors["validation"]["all"]["mean_mm"] == pytest.approx(
         one["steps"][0]["heldout_error_mm"], abs=1e-9)
     # it settles, but the six-step fit does not reach its equilibrium: back to one step
     monkeypatch.setattr(cd, "sag_convergence", lambda *a: {"sag_next_step_mm": -2.0})
     notes = []
-    cal = cd._ladder_fit(load_rig(rig), groups, 6, notes, first.x)
+    cal = cd._ladder_fit(load_rig(rig), groups, 6, notes)
     assert cal.robot.sag_steps == 1 and "not at equilibrium after 6 steps" in notes[0], notes
+    assert asked == [1, 1, 6]  # tried, and the step is the one-step fit
+    np.testing.assert_array_equal(cal.x, first.x)
 
 
 def test_torque_steps_are_refused_for_planar_rigs_in_one_line(capsys):
