@@ -431,16 +431,14 @@ def _misfits(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
     return jax.vmap(one)(xs)
 
 
-PROFILE_STEPS = 24  # bisection steps on log(width) in (1e-9, 1]: a width to 2e-6 of itself
-PROFILE_SLACK = 1.01
+CHECK_STEPS = 24  # bisection steps on log(width) in (1e-9, 1]: a width to 1.2e-6 of itself
+CHECK_SLACK = 1.01  # 1% over s2 is kept: a width within half a percent of the linearised one
 
 
 def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
     """The calibrated parameters' :func:`covariance` on the train rows, checked against the
-    rows along each of its axes: where a standard deviation's move misfits the rows by more
-    than the linearisation says (s^2), the axis is narrowed to the move that misfits by s^2
-    (the profile likelihood's one-sigma point), never widened. Prediction draws use it; the
-    standard errors a calibration reports are :func:`covariance`'s."""
+    rows along each of its axes (:func:`checked_covariance`). Prediction and design draws use
+    it; the standard errors a calibration reports are :func:`covariance`'s."""
     robot, x, free = cal.robot, np.asarray(cal.x, float), cal.ident.free
     rows = set_rows(rig, robot, "train")
     full_res, full_jac, *_ = residual_function(robot, rows)
@@ -448,50 +446,62 @@ def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
     cov = covariance(full_res, full_jac, x, free, penalty)
     if not free.any() or not np.all(np.isfinite(cov)):
         return cov
+    args = (robot.structure, tuple(rows), robot.nominal_values)
     data = tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
+    weights, nominal = jnp.asarray(penalty), jnp.asarray(robot.layout.nominal)
 
     def misfit(xs: np.ndarray) -> np.ndarray:
-        return np.asarray(_misfits(robot.structure, tuple(rows), robot.nominal_values,
-                                   jnp.asarray(xs), data, jnp.asarray(penalty),
-                                   jnp.asarray(robot.layout.nominal)))
+        return np.asarray(_misfits(*args, jnp.asarray(xs), data, weights, nominal))
 
     r = np.asarray(full_res(jnp.asarray(x)))
     s2 = float(r @ r) / (r.size - int(free.sum()))
-    return profiled(cov, free, x, np.asarray(robot.layout.scales, float), s2, misfit)
+    return checked_covariance(cov, free, x, np.asarray(robot.layout.scales, float), s2,
+                              misfit)
 
 
-def profiled(cov: np.ndarray, free: np.ndarray, x: np.ndarray, scales: np.ndarray, s2: float,
-             misfit: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """``cov`` with each axis narrowed to its profile's one-sigma point (see
-    :func:`parameter_covariance`). The axes are its eigenvectors in units of the parameters'
-    scales, each a standard deviation's move m_k with sum m_k m_k^T = cov, so the linearised
-    misfit of every m_k is s2 (``misfit``: sums of squares at parameter vectors (K, P)). A
-    weak combination of columns (an elbow offset against the next origin's z; a link's mass
-    against its joint's compliance, whose product alone is seen) keeps a linearised width
-    whose move misfits the rows by thousands of s2: draws along it landed metres away."""
+def checked_covariance(cov: np.ndarray, free: np.ndarray, x: np.ndarray, scales: np.ndarray,
+                       s2: float, misfit: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``cov`` with each axis narrowed where the rows say it is too wide, never widened.
+
+    The axes are its eigenvectors in units of the parameters' ``scales``, each a standard
+    deviation's move m_k with sum m_k m_k^T = cov, so by the linearisation each m_k misfits
+    the rows by s2 (``misfit``: sums of squares at parameter vectors (K, P), the first of
+    which is ``x``). Where the rows' own misfit of +-m_k (mean of the two) exceeds s2, or is
+    not finite, the axis is narrowed by bisection to a move that misfits by s2: the one-sigma
+    point of the likelihood along the axis, the other axes held (a slice, not a profile,
+    which would refit them). A weak combination of columns (an elbow offset against the next
+    origin's z; a link's mass against its joint's compliance, whose product alone is seen)
+    keeps a linearised width whose move misfits the rows by thousands of s2: draws along it
+    landed metres away. The linearisation is the covariance's Jacobian, which for a sagging
+    fit leaves out how the geometry moves the sag; the check is made with the exact rows."""
     f = np.flatnonzero(free)
     s = scales[f]
     w, u = np.linalg.eigh(cov[np.ix_(f, f)] / np.outer(s, s))
     moves = np.zeros((len(w), len(x)))
     moves[:, f] = (u * np.sqrt(np.clip(w, 0.0, None))).T * s
-    base = float(misfit(x[None])[0])
 
     def excess(alpha: np.ndarray, k: np.ndarray) -> np.ndarray:
-        m = alpha[:, None] * moves[k]
-        return (misfit(np.concatenate([x + m, x - m])).reshape(2, -1).mean(axis=0)
-                - base) / s2
+        # padded to a power of two, so few batch shapes are ever compiled per structure
+        pad = 1 << (len(k) - 1).bit_length()
+        kk = np.concatenate([k, np.full(pad - len(k), k[0])])
+        aa = np.concatenate([alpha, np.full(pad - len(k), alpha[0])])
+        m = aa[:, None] * moves[kk]
+        got = misfit(np.concatenate([x[None], x + m, x - m]))
+        e = (got[1:].reshape(2, -1).mean(axis=0) - got[0])[: len(k)] / s2
+        return np.where(np.isfinite(e), e, np.inf)  # a move the model cannot evaluate: too far
 
     alpha = np.ones(len(w))
-    # 1% over s2 is kept: a width within half a percent of the linearised one
-    k = np.flatnonzero(excess(alpha, np.arange(len(w))) > PROFILE_SLACK)
-    if k.size:
-        lo, hi = np.full(k.size, np.log(1e-9)), np.zeros(k.size)
-        for _ in range(PROFILE_STEPS):
-            mid = (lo + hi) / 2
-            over = excess(np.exp(mid), k) > 1.0
-            hi = np.where(over, mid, hi)
-            lo = np.where(over, lo, mid)
-        alpha[k] = np.exp(lo)
+    k = np.flatnonzero(excess(alpha, np.arange(len(w))) > CHECK_SLACK)
+    if not k.size:
+        return cov
+    # the bisection keeps lo where the misfit is within s2 (at 1e-9 sd it is, to rounding)
+    lo, hi = np.full(k.size, np.log(1e-9)), np.zeros(k.size)
+    for _ in range(CHECK_STEPS):
+        mid = (lo + hi) / 2
+        over = excess(np.exp(mid), k) > 1.0
+        hi = np.where(over, mid, hi)
+        lo = np.where(over, lo, mid)
+    alpha[k] = np.exp(lo)
     out = np.zeros_like(cov)
     narrowed = moves[:, f] * alpha[:, None]
     out[np.ix_(f, f)] = narrowed.T @ narrowed
