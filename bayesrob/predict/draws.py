@@ -178,9 +178,11 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                 models_dir: Any = None, latent: bool = False) -> CalibratedModules:
     """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
 
-    ``parameter_uncertainty``: also draw the parameters from their covariance. Off by default:
-    on the tuning rigs (arm6 seeds 11, 12) it made the regions too wide (error ratio 1.17 and
-    1.03 with it, 1.07 and 0.96 without). ``masses``, ``sag_steps``: :func:`calibrate`'s.
+    ``parameter_uncertainty``: also draw the parameters from their covariance
+    (:func:`parameter_covariance`). Off by default: on the tuning rigs (arm6 seeds 11, 12) it
+    made the regions too wide (error ratio 1.17 and 1.03 with it, 1.07 and 0.96 without;
+    measured before that covariance was checked against the rows, not since).
+    ``masses``, ``sag_steps``: :func:`calibrate`'s.
     ``targets``: aimed at (kept in ``commands``) before the joint-error fits, so a target out
     of reach is refused after the calibration alone.
     """
