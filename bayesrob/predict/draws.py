@@ -180,9 +180,10 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
 
     ``parameter_uncertainty``: also draw the parameters from their covariance
     (:func:`parameter_covariance`). Off by default: on the tuning rigs (arm6 seeds 11, 12) it
-    made the regions too wide (error ratio 1.17 and 1.03 with it, 1.07 and 0.96 without;
-    measured before that covariance was checked against the rows, not since).
-    ``masses``, ``sag_steps``: :func:`calibrate`'s.
+    once made the regions too wide (error ratio 1.17 and 1.03 with it, 1.07 and 0.96
+    without); since the covariance is checked against the rows it changes them little (0.965
+    and 1.031 with it, 0.964 and 1.030 without, linked within q50 0.27 against 0.23) and
+    costs the check's 3-5 s. ``masses``, ``sag_steps``: :func:`calibrate`'s.
     ``targets``: aimed at (kept in ``commands``) before the joint-error fits, so a target out
     of reach is refused after the calibration alone.
     """
