@@ -158,8 +158,7 @@ def residual_function(robot: kin.Robot, rows: Rows):
     """(residuals, Jacobian, number of residuals, exact columns) as functions of the
     parameters, compiled once per structure (rows and nominal values are arguments)."""
     structure, values = robot.structure, robot.nominal_values
-    arms = tuple(rows)
-    data = tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
+    arms, data = tuple(rows), _device_rows(rows)
     n_res = sum(int(d.size) for _, d, _ in data)
 
     def exact_columns(x, idx):
@@ -169,6 +168,21 @@ def residual_function(robot: kin.Robot, rows: Rows):
             :, np.asarray(idx)]
     return (lambda x: _fit_residuals(structure, arms, values, x, data)), (
         lambda x: _fit_jacobian(structure, arms, values, x, data)), n_res, exact_columns
+
+
+def misfit_function(robot: kin.Robot, rows: Rows, penalty: np.ndarray
+                    ) -> Callable[[np.ndarray], np.ndarray]:
+    """xs (K, P) -> the rows' sum of squares at each parameter vector, with the penalty rows
+    :func:`fit` adds; one compiled program per structure and batch size."""
+    structure, values = robot.structure, robot.nominal_values
+    arms, data = tuple(rows), _device_rows(rows)
+    weights, nominal = jnp.asarray(penalty), jnp.asarray(robot.layout.nominal)
+    return lambda xs: np.asarray(_misfits(structure, arms, values, jnp.asarray(xs), data,
+                                          weights, nominal))
+
+
+def _device_rows(rows: Rows) -> tuple:
+    return tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
 
 
 # A lateral compliance of one typical size (1e-7 rad per N mm) costs as much as a marker
@@ -446,17 +460,10 @@ def parameter_covariance(rig: Rig, cal: Calibration) -> np.ndarray:
     cov = covariance(full_res, full_jac, x, free, penalty)
     if not free.any() or not np.all(np.isfinite(cov)):
         return cov
-    args = (robot.structure, tuple(rows), robot.nominal_values)
-    data = tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
-    weights, nominal = jnp.asarray(penalty), jnp.asarray(robot.layout.nominal)
-
-    def misfit(xs: np.ndarray) -> np.ndarray:
-        return np.asarray(_misfits(*args, jnp.asarray(xs), data, weights, nominal))
-
     r = np.asarray(full_res(jnp.asarray(x)))
     s2 = float(r @ r) / (r.size - int(free.sum()))
     return checked_covariance(cov, free, x, np.asarray(robot.layout.scales, float), s2,
-                              misfit)
+                              misfit_function(robot, rows, penalty))
 
 
 def checked_covariance(cov: np.ndarray, free: np.ndarray, x: np.ndarray, scales: np.ndarray,
