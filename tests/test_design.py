@@ -136,6 +136,7 @@ def test_run_on_a_local_cluster_ranks_and_keeps_every_candidate(small, tmp_path)
     targets = task_targets(design.region, design.n_targets, design.seed)
     n = len(enumerate_candidates(design, reach_table(modules, design.mounts, targets)))
     assert len(res.candidates) == n and res.workers == 2
+    assert res.to_dict() == res.document and res.to_dict()["n_candidates"] == n  # design.json
     assert [c["rank"] for c in res.candidates] == list(range(1, n + 1))
     met = [c for c in res.candidates if c["meets"]]
     # ranking: every candidate that meets comes first, fewest modules first among them

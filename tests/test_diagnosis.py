@@ -440,6 +440,10 @@ def test_command_writes_json_and_figures(clean_rig_dir, tmp_path, capsys):
     pngs = sorted(p.name for p in report.glob("*.png"))
     assert pngs == ["gap_per_step.png", "residuals_bottom.png", "residuals_top.png"]
     assert all((report / p).stat().st_size > 10_000 for p in pngs)
+    # the library's result says what the command wrote (NaN included, hence compared as text)
+    lib = diagnose(load_rig(clean_rig_dir), ["gravity_sag", "backlash"]).to_dict()
+    assert (json.dumps(json.loads(json.dumps(lib)), sort_keys=True)
+            == json.dumps(doc, sort_keys=True))
 
 
 def test_command_rejects_an_unknown_effect(clean_rig_dir, capsys):

@@ -218,6 +218,10 @@ class DesignResult:
             "candidates": self.candidates,
         }
 
+    def to_dict(self) -> dict:
+        """``design.json``: the name every result's JSON goes by (bayesrob.__all__)."""
+        return self.document
+
     def format(self, top: int = 10) -> str:
         from bayesrob.report.tables import format_table
 

@@ -554,6 +554,8 @@ class Diagnosis:
             "residual_tests": {"before": self.tests_before, "after": self.tests_after},
         }
 
+    to_dict = to_json  # the name every result's JSON goes by (bayesrob.__all__)
+
 
 def _mean(x: list[np.ndarray]) -> float | None:
     x = np.concatenate(x) if x else np.zeros(0)
