@@ -4,6 +4,7 @@
     python benchmarks/bench_diagnose.py --confusion     # the report rigs -> markdown tables
     python benchmarks/bench_diagnose.py --tuning        # the tuning rigs, the same tables
     python benchmarks/bench_diagnose.py --sensitivity   # effect size x noise at 4x4
+    python benchmarks/bench_diagnose.py --tuning --engine groups   # the chain engine on them
 
 The default run times the command as a person runs it (a fresh process, so JAX compiles
 everything) on the embedded default rig (4x4 grid, two arms, gravity sag and backlash) and
@@ -77,16 +78,18 @@ def time_command(rig: str | None) -> dict:
                                  doc["final_heldout_error_mm"]]}
 
 
-def run_case(case) -> dict:
-    """One rig's sweep record, planar or chain (a Dask task)."""
+def run_case(case, engine: str = "refits") -> dict:
+    """One rig's sweep record, planar or chain (a Dask task); ``engine`` for planar rigs."""
     from bayesrob.validation.chain_generators import ChainCase, diagnose_chain_case
     from bayesrob.validation.planar_generators import diagnose_case
 
-    return (diagnose_chain_case if isinstance(case, ChainCase) else diagnose_case)(case)
+    if isinstance(case, ChainCase):
+        return diagnose_chain_case(case)
+    return diagnose_case(case, engine)
 
 
 def run_all(cases: list, workers: int, log: Path | None,
-            scheduler: str | None = None) -> list[dict]:
+            scheduler: str | None = None, engine: str = "refits") -> list[dict]:
     """Diagnose every case as a Dask task; results in the cases' order."""
     from distributed import as_completed
 
@@ -94,7 +97,7 @@ def run_all(cases: list, workers: int, log: Path | None,
 
     results: dict[int, dict] = {}
     with dask_client(scheduler, workers) as client:
-        futures = {client.submit(run_case, c, pure=False): i for i, c in enumerate(cases)}
+        futures = {client.submit(run_case, c, engine, pure=False): i for i, c in enumerate(cases)}
         for fut in as_completed(futures):
             res = fut.result()
             results[futures[fut]] = res
@@ -185,6 +188,10 @@ def main() -> int:
                    help="with --confusion / --tuning: the 6-joint 3-D arms instead "
                         "(report seeds 74-76, tuning seeds 61-62)")
     p.add_argument("--sensitivity", action="store_true", help="effect size x noise at 4x4")
+    p.add_argument("--engine", choices=("refits", "groups"), default="refits",
+                   help="planar sweeps: the planar engine (default) or the chain engine on "
+                        "the arms as 2-joint chains, candidates joint_compliance (gravity_sag), "
+                        "backlash and encoder_error: how far one engine for every robot is")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--scheduler", help="address of a running Dask scheduler")
     p.add_argument("--log", type=Path, help="append each rig's result as a JSON line")
@@ -199,7 +206,7 @@ def main() -> int:
     if sweeps:
         out = {}
         for name, make in sweeps:
-            res = run_all(make(), args.workers, args.log, args.scheduler)
+            res = run_all(make(), args.workers, args.log, args.scheduler, args.engine)
             print(f"## {name} rigs\n")
             print(sensitivity_table(res) if name == "sensitivity" else
                   sweep_report(res, CHAIN_TRUTHS if args.chain else None))

@@ -303,3 +303,20 @@ def test_a_candidate_with_nothing_identifiable_to_fit_never_passes():
     assert cand["parameters"] == 0
     assert abs(cand["selection_error_after_mm"] - cand["selection_error_before_mm"]) < 1e-6
     assert not cand["passes"] and doc["effects"] == []
+
+
+def test_the_chain_engine_on_a_planar_rig_reports_in_the_planar_words():
+    """``bench_diagnose.py --engine groups``'s measure of one engine for every robot: a planar
+    tuning rig (the simulator's paper arms, sag and backlash, seed 21) diagnosed by the chain
+    engine on its arms as 2-joint chains, its effects in the planar sweep's names. The pinned
+    names are that sweep's for this rig: joint compliance (gravity_sag), then the play that
+    its fitted deflection gives a side."""
+    from bayesrob.validation.planar_generators import Case, diagnose_case
+
+    res = diagnose_case(Case("simulator", "paper", ("gravity_sag", "backlash"), 4, 21),
+                        engine="groups")
+    assert res["named"] == "backlash+gravity_sag" and res["truth"] == "gravity_sag+backlash"
+    assert all(s["effect"] != "joint_compliance" for r in res["rounds"] for s in r)
+    # the strength is the planar base model's for either engine: the sag and play at least
+    # double the base error at new poses over the clean twin's
+    assert res["strength"] > 2 and res["final_holdout_error_mm"] < res["baseline_holdout_error_mm"]
