@@ -107,39 +107,58 @@ def test_equal_arms_meet_between_their_free_end_points():
     assert abs(linked[1] - target[1]) < 2.0
 
 
+def _closed_form_energy(theta, theta_cmd, params, masses, stiffness, backlash, gravity):
+    # the paper's arm written out: springs with a dead band on the wrapped angle, and four
+    # point masses (link 1's middle, the elbow servo, link 2's middle, the end)
+    from bayesrob.sim.physics import G_N_PER_KG, dead_band
+
+    elbow, end = kin.elbow_point(params, theta), kin.forward(params, theta)
+    points = jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
+    spring = 0.5 * jnp.sum(stiffness * dead_band(kin.wrap_angle(theta - theta_cmd),
+                                                 backlash) ** 2)
+    return spring - G_N_PER_KG * jnp.sum(masses * (points @ gravity))
+
+
 def test_the_planar_energy_is_the_general_energy_on_the_arms_2_joint_chain():
-    """The paper's arms are a configuration of the one physics: their closed-form energy
-    (springs with a dead band, four point masses) equals, with its gradient and Hessian, the
-    energy program every chain's equilibrium uses, on the arm's 2-joint chain with each link's
-    mass at its centre of mass. Joint angles within and beyond the dead bands (0.008 rad);
-    tolerance: rounding (energies of hundreds of N mm)."""
+    """The paper's arms are a configuration of the one physics: the energy the simulator
+    settles them by (the chains' program on the arm's 2-joint chain, each link's mass at its
+    centre of mass) equals, with its gradient and Hessian, the arm's energy written out by
+    hand. Joint angles within and beyond the dead bands (0.008 rad); tolerance: rounding
+    (energies of hundreds of N mm)."""
     import jax
 
-    from bayesrob.sim.equilibrium import _arm_arrays, _arm_program, _energy
-    from bayesrob.sim.physics import G_N_PER_KG
+    from bayesrob.sim.equilibrium import _arm_physics, _arm_program, _at_angles
 
     @jax.jit
-    @partial(jax.vmap, in_axes=(0, 0, None, None))
+    @partial(jax.vmap, in_axes=(0, 0, None, None, None, None, None))
     def closed_form(*args):
-        return _energy(*args), jax.grad(_energy)(*args), jax.hessian(_energy)(*args)
+        return (_closed_form_energy(*args), jax.grad(_closed_form_energy)(*args),
+                jax.hessian(_closed_form_energy)(*args))
 
     truth = three_arm_truth(("gravity_sag", "backlash"), stiffness_log_sd=0.3)
     g = jnp.asarray(truth.gravity)
     rng = np.random.default_rng(0)
     for name, arm in truth.arms.items():
-        a = _arm_arrays(arm, truth.effects)
+        phys = _arm_physics(arm, truth.effects, truth.gravity)
+        _, _, k, weight, centre, backlash = phys.arrays
+        masses = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1],
+                            arm.end_mass_kg])
         robot = arm.robot()
-        mass, centre = arm.link_masses
-        weight = mass[:, None] * (G_N_PER_KG * np.r_[truth.gravity, 0.0])[None]
         theta_cmd = rng.uniform(-2.5, 2.5, (6, 2))
         theta = theta_cmd + rng.uniform(-0.02, 0.02, (6, 2))
         s = _arm_program(robot, name)(jnp.asarray(robot.layout.nominal), theta, theta_cmd,
-                                      a.stiffness, weight, centre, a.backlash, periodic=True)
+                                      k, weight, centre, backlash, periodic=True)
         assert np.any(np.abs(theta - theta_cmd) < 0.008)  # some joints inside their band
-        energy, grad, hess = closed_form(jnp.asarray(theta), jnp.asarray(theta_cmd), a, g)
+        energy, grad, hess = closed_form(jnp.asarray(theta), jnp.asarray(theta_cmd),
+                                         arm.params, masses, k, backlash, g)
         np.testing.assert_allclose(s["energy"], energy, atol=1e-9)
         np.testing.assert_allclose(s["grad"], grad, atol=1e-8)
         np.testing.assert_allclose(s["hess"], hess, rtol=1e-9, atol=1e-6)
+        # what PhysicalRig minimises is that energy, row by row
+        for t, tc, e, gr in zip(theta, theta_cmd, energy, grad, strict=True):
+            out = np.asarray(_at_angles(phys.structure, name, phys.arrays, jnp.asarray(t),
+                                        jnp.asarray(tc)))
+            np.testing.assert_allclose(out, np.r_[e, gr], atol=1e-8)
 
 
 def test_simulated_rig_is_deterministic(tmp_path):

@@ -1,6 +1,7 @@
 """Where simulated arms settle: the least energy of their springs and weights (linked arms: a
-tug of war between their stiffnesses). :class:`PhysicalRig`: the paper's planar arms by BFGS
-(the dead band's kink needs no Hessian); :func:`linked_equilibrium`: 3-D arms by Newton.
+tug of war between their stiffnesses), under one physics: each arm's energy is
+:func:`_arm_program`'s. :class:`PhysicalRig`: the paper's planar arms, as 2-joint chains, by
+BFGS (the dead band's kink needs no Hessian); :func:`linked_equilibrium`: 3-D arms by Newton.
 """
 
 from __future__ import annotations
@@ -30,58 +31,61 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
     return theta
 
 
-# The planar arms' energy in closed form, tested equal to _arm_evaluate's on the 2-joint chain:
-# BFGS stops where the energy is flat to rounding (about 1e-6 mm off), so other arithmetic
-# would move every pinned planar rig by that much.
+class _ArmPhysics(NamedTuple):
+    """A planar arm as one configuration of the chains' physics: its 2-joint chain (columns
+    the joint angles) and the arrays :func:`_arm_evaluate`'s energy takes, so one compiled
+    program serves every arm and every rig."""
+
+    structure: RobotStructure
+    name: str
+    arrays: tuple  # the chain's nominal values and x; stiffness (2,) N mm / rad, already
+    # scaled for the effects in force; weight (2, 3) N of each link with what it carries
+    # (elbow servo, end mass); where along its link that acts (2,); backlash half-width (2,)
 
 
-class _ArmArrays(NamedTuple):
-    """An arm's physics as arrays, so one compiled energy serves every arm and every rig."""
-
-    params: kin.ArmParams
-    masses: jax.Array  # (4,) kg: link 1, elbow servo, link 2, end
-    stiffness: jax.Array  # (2,) N mm / rad, already scaled for the effects in force
-    backlash: jax.Array  # (2,) rad half-width, zero without the effect
-
-
-def _arm_arrays(arm: ArmTruth, effects: Sequence[str]) -> _ArmArrays:
-    k = jnp.asarray(arm.stiffness_nmm_per_rad, dtype=jnp.float64)
+def _arm_physics(arm: ArmTruth, effects: Sequence[str], gravity: Sequence[float]
+                 ) -> _ArmPhysics:
+    k = np.asarray(arm.stiffness_nmm_per_rad, float)
     if "gravity_sag" not in effects:
         k = k * STIFF_FACTOR
-    b = jnp.asarray(arm.backlash_rad, dtype=jnp.float64) if "backlash" in effects else jnp.zeros(2)
-    m = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1], arm.end_mass_kg])
-    return _ArmArrays(arm.params, m, k, b)
+    b = np.asarray(arm.backlash_rad, float) if "backlash" in effects else np.zeros(2)
+    mass, centre = arm.link_masses
+    weight = mass[:, None] * (G_N_PER_KG * np.r_[np.asarray(gravity, float), 0.0])[None]
+    robot = arm.robot()
+    _arm_program(robot, arm.name)  # its checks: revolute joints, standing on its own
+    return _ArmPhysics(robot.structure, arm.name, (
+        robot.nominal_values, jnp.asarray(robot.layout.nominal),
+        *(jnp.asarray(v) for v in (k, weight, centre, b))))
 
 
-def _mass_points(params: kin.ArmParams, theta: jax.Array) -> jax.Array:
-    elbow = kin.elbow_point(params, theta)
-    end = kin.forward(params, theta)
-    return jnp.stack([(params.base + elbow) / 2, elbow, (elbow + end) / 2, end])
+def _terms(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
+           theta_cmd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    values, x, *physics = arrays
+    s = _arm_evaluate(structure, arm, values, x, theta[None], theta_cmd[None], *physics,
+                      periodic=True)
+    return s["energy"][0], s["grad"][0], s["jac"][0, :2]
 
 
-def _energy(theta: jax.Array, theta_cmd: jax.Array, a: _ArmArrays, gravity: jax.Array
-            ) -> jax.Array:
-    spring = 0.5 * jnp.sum(a.stiffness * dead_band(kin.wrap_angle(theta - theta_cmd),
-                                                   a.backlash) ** 2)
-    # Potential of a mass in a field along unit vector g_dir is -m g (g_dir . r).
-    grav = -G_N_PER_KG * jnp.sum(a.masses * (_mass_points(a.params, theta) @ gravity))
-    return spring + grav
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _at_angles(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
+               theta_cmd: jax.Array) -> jax.Array:
+    # energy (N mm) and its gradient in the joint angles, in one array: one transfer
+    energy, grad, _ = _terms(structure, arm, arrays, theta, theta_cmd)
+    return jnp.concatenate([energy[None], grad])
 
 
-_arm_energy_vg = jax.jit(jax.value_and_grad(_energy))
-
-
-@partial(jax.jit, static_argnames="elbows")
-def _linked_energy_vg(d: jax.Array, theta_cmds: tuple, arms: tuple, gravity: jax.Array,
-                      elbows: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
-    def total(d):
-        out = 0.0
-        for a, tc, e in zip(arms, theta_cmds, elbows, strict=True):
-            theta, _ = kin.inverse(a.params, d, e)
-            out = out + _energy(theta, tc, a, gravity)
-        return out
-
-    return jax.value_and_grad(total)(d)
+@partial(jax.jit, static_argnames=("structures", "arms", "elbows"))
+def _at_point(structures: tuple, arms: tuple, elbows: tuple, arrays: tuple, params: tuple,
+              d: jax.Array, theta_cmds: tuple) -> jax.Array:
+    # the arms' total at their shared end point d, each arm's joints by its closed-form
+    # inverse: the gradient in d is J^-T times the gradient in the joints
+    out = jnp.zeros(3)
+    for structure, arm, elbow, a, p, tc in zip(structures, arms, elbows, arrays, params,
+                                               theta_cmds, strict=True):
+        theta, _ = kin.inverse(p, d, elbow)
+        energy, grad, jac = _terms(structure, arm, a, theta, tc)
+        out = out + jnp.concatenate([energy[None], jnp.linalg.solve(jac.T, grad)])
+    return out
 
 
 def _least_energy(value_and_grad: Callable, x0: np.ndarray, scale: float) -> np.ndarray:
@@ -102,8 +106,8 @@ class PhysicalRig:
     def __init__(self, truth: Truth, seed: int | None = None):
         self.truth = truth
         self.rng = np.random.default_rng(truth.seed if seed is None else seed)
-        self._gravity = jnp.asarray(truth.gravity, dtype=jnp.float64)
-        self._arrays = {n: _arm_arrays(a, truth.effects) for n, a in truth.arms.items()}
+        self._physics = {n: _arm_physics(a, truth.effects, truth.gravity)
+                         for n, a in truth.arms.items()}
 
     @classmethod
     def from_rig_dir(cls, directory: str | Path, seed: int | None = None) -> PhysicalRig:
@@ -111,22 +115,33 @@ class PhysicalRig:
 
     def _k_scale(self, name: str) -> float:
         # the softest spring: what an arm's energy is divided by (_least_energy)
-        return float(jnp.min(self._arrays[name].stiffness))
+        return float(jnp.min(self._physics[name].arrays[2]))
 
     def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
-        tc = jnp.asarray(theta_cmd, dtype=jnp.float64)
-        return _least_energy(lambda t: _arm_energy_vg(t, tc, self._arrays[name], self._gravity),
-                             np.asarray(theta_cmd, float), self._k_scale(name))
+        a, tc = self._physics[name], jnp.asarray(theta_cmd, float)
+
+        def value_and_grad(theta: jax.Array) -> tuple[float, np.ndarray]:
+            out = np.asarray(_at_angles(a.structure, a.name, a.arrays, theta, tc))
+            return out[0], out[1:]
+
+        return _least_energy(value_and_grad, np.asarray(theta_cmd, float), self._k_scale(name))
 
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
         names = tuple(theta_cmds)
-        arrays = tuple(self._arrays[n] for n in names)
-        elbows = tuple(int(self.truth.arms[n].elbow) for n in names)
-        tc = tuple(jnp.asarray(theta_cmds[n], dtype=jnp.float64) for n in names)
+        phys = [self._physics[n] for n in names]
+        static = {"structures": tuple(a.structure for a in phys), "arms": names,
+                  "elbows": tuple(int(self.truth.arms[n].elbow) for n in names)}
+        arrays = (tuple(a.arrays for a in phys), tuple(self.truth.arms[n].params for n in names))
+        tc = tuple(jnp.asarray(theta_cmds[n], float) for n in names)
+
+        def value_and_grad(d: jax.Array) -> tuple[float, np.ndarray]:
+            out = np.asarray(_at_point(arrays=arrays[0], params=arrays[1], d=d, theta_cmds=tc,
+                                       **static))
+            return out[0], out[1:]
+
         free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
                 for n in names]
-        return _least_energy(lambda d: _linked_energy_vg(d, tc, arrays, self._gravity, elbows),
-                             np.mean(np.asarray(free), axis=0),
+        return _least_energy(value_and_grad, np.mean(np.asarray(free), axis=0),
                              sum(self._k_scale(n) for n in names))
 
     def end_point(self, commands: dict[str, Sequence[float]], noise: bool = True) -> np.ndarray:
