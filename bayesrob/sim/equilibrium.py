@@ -19,7 +19,13 @@ import scipy.optimize
 
 from bayesrob import robot as kin
 from bayesrob.robot import Robot, RobotStructure
-from bayesrob.sim.physics import G_N_PER_KG, STIFF_FACTOR, dead_band, link_weights, servo_ripple
+from bayesrob.sim.physics import (
+    G_N_PER_KG,
+    STIFF_FACTOR,
+    arm_energy,
+    link_weights,
+    servo_ripple,
+)
 from bayesrob.sim.truth import GRAVITY, TRUTH_FILE, ArmTruth, Truth
 
 
@@ -33,7 +39,7 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
 
 class _ArmPhysics(NamedTuple):
     """A planar arm as one configuration of the chains' physics: its 2-joint chain (columns
-    the joint angles) and the arrays :func:`_arm_evaluate`'s energy takes, so one compiled
+    the joint angles) and the arrays :func:`arm_energy`'s energy takes, so one compiled
     program serves every arm and every rig."""
 
     structure: RobotStructure
@@ -61,7 +67,7 @@ def _arm_physics(arm: ArmTruth, effects: Sequence[str], gravity: Sequence[float]
 def _terms(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
            theta_cmd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     values, x, *physics = arrays
-    s = _arm_evaluate(structure, arm, values, x, theta[None], theta_cmd[None], *physics,
+    s = arm_energy(structure, arm, values, x, theta[None], theta_cmd[None], *physics,
                       periodic=True)
     return s["energy"][0], s["grad"][0], s["jac"][0, :2]
 
@@ -185,55 +191,13 @@ class LinkedEquilibrium:
 
 
 def _arm_program(robot: Robot, arm: str) -> Callable:
-    """A compiled ``(x, u, u0, k, weight, centre, backlash, periodic=False) -> dict`` of one
-    arm over rows u (N, n): spring and weight energy, its gradient and Hessian, the marker and
-    its two derivatives, in closed form on one forward pass (autodiff through the scan took
-    seconds to compile): d r / du_j = a_j x (r - o_j), d2 r / du_i du_j = a_i x (a_j x (r - o_j)).
-    """
+    """:func:`~bayesrob.sim.physics.arm_energy` of ``robot``'s ``arm``, as ``(x, u, u0, k,
+    weight, centre, backlash, periodic=False) -> dict``, once the arm is one it can take."""
     chain = robot.chains[arm]
     if len(robot.path(arm)) != 1 or any(k != "revolute" for k in chain.kinds):
         raise ValueError(f"arm {arm!r}: linked equilibria are computed for arms of revolute "
                          "joints standing on their own (not mounted on another arm)")
-    return partial(_arm_evaluate, robot.structure, arm, robot.nominal_values)
-
-
-@partial(jax.jit, static_argnames=("structure", "arm", "periodic"))
-def _arm_evaluate(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
-                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
-                  centre: jax.Array, backlash: jax.Array, periodic: bool = False
-                  ) -> dict[str, jax.Array]:
-    # _arm_program's function, for an arm it has checked
-    robot = structure.robot(values)
-    chain = robot.chains[arm]
-    n = chain.n_joints
-    half = jnp.concatenate([centre[:, None] * chain.origins[1:, :3], jnp.ones((n, 1))],
-                           axis=1)
-    axes = jnp.asarray(chain.axes)
-    marker = robot.layout.slices[(arm, "marker")]
-    upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
-    ordered = jnp.asarray(upper[:, :, None] & upper[None, :, :])  # [i, j, k]: i <= j <= k
-    joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
-    a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
-    o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
-    centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
-    tip = links[-1]
-    p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
-    jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
-    hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
-    hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
-    # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
-    s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
-    torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
-    t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
-                   weight, ordered)
-    hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
-    d = kin.wrap_angle(u - u0) if periodic else u - u0
-    spring = jnp.where(jnp.abs(d) >= backlash, k, 0.0)  # no spring inside the dead band
-    d = dead_band(d, backlash)
-    return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
-            - jnp.einsum("nkd,kd->n", centres, weight),
-            "grad": k * d - torque, "hess": jax.vmap(jnp.diag)(spring) + hv,
-            "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
+    return partial(arm_energy, robot.structure, arm, robot.nominal_values)
 
 
 def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np.ndarray],

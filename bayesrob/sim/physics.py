@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.robot import Robot, RobotStructure
+from bayesrob.robot import Robot, RobotStructure, wrap_angle
 from bayesrob.robot.chain import G_N_PER_KG
 
 # Without gravity_sag a planar arm's servos are this much stiffer: gravity still decides which
@@ -55,34 +55,62 @@ def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
     return 0.5 * play * side
 
 
-@partial(jax.jit, static_argnames=("structure", "arm"))
-def _torques(structure: RobotStructure, arm: str, values: dict, x: jax.Array, q: jax.Array,
-             masses_kg: jax.Array, gravity: jax.Array) -> jax.Array:
-    # gravity_torques' arithmetic, one program per robot structure
+@partial(jax.jit, static_argnames=("structure", "arm", "periodic"))
+def arm_energy(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
+                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
+                  centre: jax.Array, backlash: jax.Array, periodic: bool = False
+                  ) -> dict[str, jax.Array]:
+    """Spring and weight energy of an arm of revolute joints standing on its own, over rows of
+    joint columns u (N, n) held by springs k at u0 (a dead band of half-width ``backlash``
+    each; ``periodic``: angles wrapped), its links' ``weight`` (n, 3) N acting ``centre`` of
+    the way along each link: the energy, its gradient and Hessian in u, the marker and its
+    two derivatives, in closed form on one forward pass (autodiff through the scan took
+    seconds to compile): d r / du_j = a_j x (r - o_j), d2 r / du_i du_j = a_i x (a_j x (r - o_j)).
+    Every equilibrium of the simulator and its gravity torques are this one program's."""
     robot = structure.robot(values)
     chain = robot.chains[arm]
     n = chain.n_joints
-    half = jnp.concatenate([0.5 * chain.origins[1:, :3], jnp.ones((n, 1))], axis=1)  # (n, 4)
-    joints, links = robot.element_frames(x, arm, q)
-    centres = jnp.einsum("enij,ej->eni", links[:n], half)[..., :3]  # (n, N, 3)
-    forces = masses_kg[:, None, None] * (gravity * G_N_PER_KG)  # (n, 1, 3)
-    columns = []
-    for i in range(n):
-        axis = joints[i, :, :3, :3] @ chain.axes[i]
-        origin = joints[i, :, :3, 3]
-        moment = jnp.cross(centres[i:] - origin[None], jnp.broadcast_to(
-            forces[i:], centres[i:].shape)).sum(axis=0)
-        columns.append(jnp.sum(moment * axis, axis=1))
-    return jnp.stack(columns, axis=1)
+    half = jnp.concatenate([centre[:, None] * chain.origins[1:, :3], jnp.ones((n, 1))],
+                           axis=1)
+    axes = jnp.asarray(chain.axes)
+    marker = robot.layout.slices[(arm, "marker")]
+    upper = np.triu(np.ones((n, n), bool))  # [i, j]: i <= j
+    ordered = jnp.asarray(upper[:, :, None] & upper[None, :, :])  # [i, j, k]: i <= j <= k
+    joints, links = robot.element_frames(x, arm, u)  # (E, N, 4, 4)
+    a = jnp.einsum("enij,ej->nei", joints[:n, :, :3, :3], axes)  # (N, n, 3)
+    o = jnp.swapaxes(joints[:n, :, :3, 3], 0, 1)  # (N, n, 3)
+    centres = jnp.swapaxes(jnp.einsum("enij,ej->eni", links[:n], half)[..., :3], 0, 1)
+    tip = links[-1]
+    p = jnp.einsum("nij,j->ni", tip[:, :3, :3], x[marker]) + tip[:, :3, 3]
+    jp = jnp.cross(a, p[:, None] - o)  # (N, n, 3): row j = dp/du_j
+    hp = jnp.cross(a[:, :, None], jp[:, None, :])  # [i, j] = a_i x dp/du_j
+    hp = jnp.where(upper[None, :, :, None], hp, jnp.swapaxes(hp, 1, 2))
+    # s[:, j, k] = d centre_k / du_j where j <= k (joint j carries link k)
+    s = jnp.cross(a[:, :, None], centres[:, None, :] - o[:, :, None])
+    torque = jnp.einsum("njkd,kd,jk->nj", s, weight, upper)  # of the weights beyond j
+    t = jnp.einsum("nijkd,kd,ijk->nij", jnp.cross(a[:, :, None, None], s[:, None]),
+                   weight, ordered)
+    hv = -jnp.where(upper[None], t, jnp.swapaxes(t, 1, 2))  # Hessian of the potential
+    d = wrap_angle(u - u0) if periodic else u - u0
+    spring = jnp.where(jnp.abs(d) >= backlash, k, 0.0)  # no spring inside the dead band
+    d = dead_band(d, backlash)
+    return {"energy": 0.5 * jnp.sum(k * d * d, axis=1)
+            - jnp.einsum("nkd,kd->n", centres, weight),
+            "grad": k * d - torque, "hess": jax.vmap(jnp.diag)(spring) + hv,
+            "point": p, "jac": jnp.swapaxes(jp, 1, 2), "point_hess": hp}
 
 
 def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                     masses_kg: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """The gravity torque (N, n) about each joint's axis at joint values q (N mm), each link's
-    mass halfway along the next origin's translation."""
-    return np.asarray(_torques(robot.structure, arm, robot.nominal_values, jnp.asarray(x),
-                               jnp.asarray(q), jnp.asarray(masses_kg, float),
-                               jnp.asarray(gravity, float)))
+    mass halfway along the next origin's translation: minus :func:`arm_energy`'s gradient
+    with no spring."""
+    n = robot.chains[arm].n_joints
+    weight = np.asarray(masses_kg, float)[:, None] * (np.asarray(gravity, float) * G_N_PER_KG)
+    q = jnp.asarray(q, float)
+    s = arm_energy(robot.structure, arm, robot.nominal_values, jnp.asarray(x), q, q,
+                   jnp.zeros(n), jnp.asarray(weight), jnp.full(n, 0.5), jnp.zeros(n))
+    return -np.asarray(s["grad"])
 
 
 def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
