@@ -197,6 +197,10 @@ def main() -> int:
     p.add_argument("--log", type=Path, help="append each rig's result as a JSON line")
     p.add_argument("--json", type=Path, help="write the sweep's results and figures")
     args = p.parse_args()
+    if args.engine != "refits" and (args.chain or not (args.confusion or args.tuning
+                                                        or args.sensitivity)):
+        p.error("--engine groups is for the planar sweeps (--confusion, --tuning, "
+                "--sensitivity without --chain)")
     report, tuning = report_cases, tuning_cases
     if args.chain:
         report, tuning = (lambda: chain_cases(REPORT_SEEDS)), (lambda: chain_cases(TUNING_SEEDS))
@@ -211,7 +215,7 @@ def main() -> int:
             print(sensitivity_table(res) if name == "sensitivity" else
                   sweep_report(res, CHAIN_TRUTHS if args.chain else None))
             print()
-            out[name] = {"results": res, "targets": sweep_counts(res)}
+            out[name] = {"engine": args.engine, "results": res, "targets": sweep_counts(res)}
         if args.json:
             args.json.write_text(json.dumps(out, indent=1))
         return 0

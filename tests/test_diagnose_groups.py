@@ -315,8 +315,13 @@ def test_the_chain_engine_on_a_planar_rig_reports_in_the_planar_words():
 
     res = diagnose_case(Case("simulator", "paper", ("gravity_sag", "backlash"), 4, 21),
                         engine="groups")
-    assert res["named"] == "backlash+gravity_sag" and res["truth"] == "gravity_sag+backlash"
+    assert res["named"] == "backlash+gravity_sag"
     assert all(s["effect"] != "joint_compliance" for r in res["rounds"] for s in r)
-    # the strength is the planar base model's for either engine: the sag and play at least
-    # double the base error at new poses over the clean twin's
-    assert res["strength"] > 2 and res["final_holdout_error_mm"] < res["baseline_holdout_error_mm"]
+    assert res["rivals"] == {"gravity_sag": [], "backlash": []}
+    # the strength is the planar base model's for either engine (1.49 / 0.496 mm at new poses;
+    # the chain's geometric calibration would make it 2.92 / 0.506), so both engines count
+    # the same rigs as strong; the gap the effects opened is measured against the chain
+    # base's own clean twin
+    assert res["strength"] == pytest.approx(3.0, abs=0.05)
+    assert (res["clean_holdout_error_mm"] < res["final_holdout_error_mm"]
+            < res["baseline_holdout_error_mm"])

@@ -161,6 +161,48 @@ def test_the_planar_energy_is_the_general_energy_on_the_arms_2_joint_chain():
             np.testing.assert_allclose(out, np.r_[e, gr], atol=1e-8)
 
 
+def test_linked_arms_settle_by_the_energy_and_its_gradient_over_the_shared_end_point():
+    """What PhysicalRig.settle_linked minimises, from the chains' program (each arm's joints
+    by its closed-form inverse, the gradient in the end point J^-T times the joints'), equals
+    the sum of the arms' hand-written energies through the same inverse, with jax.grad's
+    gradient; commands a turn away (2 pi) from the reached angles too, which the wrap must
+    undo. Tolerance: rounding."""
+    import jax
+
+    from bayesrob.sim.equilibrium import _at_point
+
+    truth = three_arm_truth(("gravity_sag", "backlash"), stiffness_log_sd=0.3)
+    plant = PhysicalRig(truth)
+    names = tuple(truth.arms)[:2]
+    phys = [plant._physics[n] for n in names]
+    g = jnp.asarray(truth.gravity)
+
+    def total(d, commands):
+        out = 0.0
+        for n, p, tc in zip(names, phys, commands, strict=True):
+            a = truth.arms[n]
+            theta, _ = kin.inverse(a.params, d, a.elbow)
+            masses = jnp.array([a.link_mass_kg[0], a.elbow_mass_kg, a.link_mass_kg[1],
+                                a.end_mass_kg])
+            out = out + _closed_form_energy(theta, tc, a.params, masses, p.arrays[2],
+                                            p.arrays[5], g)
+        return out
+
+    rng = np.random.default_rng(1)
+    for d in ([170.0, 190.0], [150.0, 230.0], [210.0, 160.0]):
+        d = jnp.asarray(d)
+        commands = tuple(
+            kin.inverse(truth.arms[n].params, d + rng.normal(0, 2, 2), truth.arms[n].elbow)[0]
+            + 2 * np.pi * rng.integers(-1, 2, 2) for n in names)
+        out = np.asarray(_at_point(
+            structures=tuple(p.structure for p in phys), arms=names,
+            elbows=tuple(int(truth.arms[n].elbow) for n in names),
+            arrays=tuple(p.arrays for p in phys),
+            params=tuple(truth.arms[n].params for n in names), d=d, theta_cmds=commands))
+        np.testing.assert_allclose(out, np.r_[total(d, commands),
+                                              jax.grad(total)(d, commands)], atol=1e-8)
+
+
 def test_simulated_rig_is_deterministic(tmp_path):
     truth = paper_truth(("backlash", "servo_nonlinearity"), seed=7, grid=3)
     a = simulate_rig(tmp_path / "a", truth)

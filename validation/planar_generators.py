@@ -405,63 +405,81 @@ def base_holdout_error(rig) -> float:
     return float(np.mean(np.concatenate(errs)))
 
 
+# the rounds' figures a sweep keeps, per engine: what each decides by
+ROUND_KEYS = {
+    "refits": ("effect", "arms", "elpd_diff", "elpd_diff_se", "heldout_error_before_mm",
+               "heldout_error_after_mm", "cv_error_before_mm", "cv_error_after_mm", "passes"),
+    "groups": ("effect", "parameters", "selection_error_before_mm", "selection_error_after_mm",
+               "z", "drop_per_parameter_mm", "passes"),
+}
+# the chain engine's base groups and candidates on a planar rig's arms as 2-joint chains
+GROUPS_BASE = ("frames", "geometric")
+GROUPS_CANDIDATES = ("joint_compliance", "backlash", "encoder_error")
+
+
 def diagnose_case(case: Case, engine: str = "refits") -> dict:
     """Make the case's rig (and its clean twin), diagnose it from its files alone, and say
     what was named and how strong the hidden effects are.
 
     *Strength*: the base model's mean error at the holdout rows (new poses) over that of the
     clean twin (same geometry, seed and noise, no effect): 2 means the hidden effects double
-    the gap that noise alone leaves.
+    the gap that noise alone leaves. It is the planar base model's for either engine, so both
+    count the same rigs as strong.
 
     ``engine="groups"`` diagnoses the rig with the chain engine instead
-    (:func:`~bayesrob.diagnose.groups.diagnose_groups`, the arms as 2-joint chains): how far
-    one engine for every robot is from the planar one, on the same rigs and the same counts.
+    (:func:`~bayesrob.diagnose.groups.diagnose_groups`, the arms as 2-joint chains, effects
+    reported in the planar names): how far one engine for every robot is from the planar one,
+    on the same rigs and the same counts. Its errors at new poses, the clean twin's included
+    (which the gap ratio subtracts), are its own base model's and ladder's.
     """
     import tempfile
     import time
     from dataclasses import asdict
 
+    from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import load_rig
+    from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.diagnose.refits import diagnose
+    from bayesrob.robot.effects import ALIASES
 
+    if engine not in ROUND_KEYS:
+        raise ValueError(f"engine must be one of {', '.join(ROUND_KEYS)}, not {engine!r}")
     t0 = time.perf_counter()
+    rivals: dict[str, list[str]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         rig = load_rig(make_rig(case, Path(tmp) / "rig"))
-        doc = diagnose(rig).to_json() if engine == "refits" else _groups_document(rig)
-        base = doc.get("strength_base_mm", doc["baseline_holdout_error_mm"])
-        twin = (base if not case.effects else
-                base_holdout_error(load_rig(make_rig(clean_twin(case), Path(tmp) / "twin"))))
-    keys = ("effect", "arms", "elpd_diff", "elpd_diff_se", "heldout_error_before_mm",
-            "heldout_error_after_mm", "cv_error_before_mm", "cv_error_after_mm", "passes",
-            "z")
+        twin_rig = (load_rig(make_rig(clean_twin(case), Path(tmp) / "twin")) if case.effects
+                    else None)
+        if engine == "refits":
+            doc = diagnose(rig).to_json()
+            base = doc["baseline_holdout_error_mm"]  # the planar base model's
+            twin = clean = base if twin_rig is None else base_holdout_error(twin_rig)
+        else:
+            base = base_holdout_error(rig)
+            twin_rig = twin_rig or rig
+            twin = base_holdout_error(twin_rig)
+            diag = diagnose_groups(rig, list(GROUPS_CANDIDATES))
+            first, last = diag.baseline, (diag.steps[-1] if diag.steps else diag.baseline)
+            doc = {"effects": [ALIASES.get(e, e) for e in diag.effects],
+                   "rounds": [[{**s, "effect": ALIASES.get(s["effect"], s["effect"])}
+                               for s in r] for r in diag.rounds],
+                   "baseline_heldout_error_mm": first["heldout_error_mm"],
+                   "final_heldout_error_mm": last["heldout_error_mm"],
+                   "baseline_holdout_error_mm": first["holdout_error_mm"],
+                   "final_holdout_error_mm": last["holdout_error_mm"]}
+            rivals = {ALIASES.get(s["effect"], s["effect"]):
+                      [ALIASES.get(e, e) for e in s["rivals"]] for s in diag.steps}
+            clean = calibrate(twin_rig, GROUPS_BASE).errors["holdout"]["all"]["mean_mm"]
+    keys = ROUND_KEYS[engine]
     return {"case": asdict(case), "truth": case.label,
             "named": "+".join(sorted(doc["effects"])) or "none",
             "order": doc["effects"], "seconds": round(time.perf_counter() - t0, 1),
             **{k: doc[k] for k in ("baseline_heldout_error_mm", "final_heldout_error_mm",
                                    "baseline_holdout_error_mm", "final_holdout_error_mm")},
-            "clean_holdout_error_mm": twin,
+            "clean_holdout_error_mm": clean,
             "strength": base / twin,
-            "rounds": [[{k: s[k] for k in keys if k in s} for s in r] for r in doc["rounds"]]}
-
-
-def _groups_document(rig) -> dict:
-    """The chain engine's diagnosis of a planar rig under the planar sweep's keys: effects in
-    the planar names (joint_compliance is gravity_sag), errors at new poses from its ladder;
-    ``strength_base_mm``: the planar base model's, which the strength is measured by for
-    either engine (the chain's geometric calibration is another base model)."""
-    from bayesrob.diagnose.groups import diagnose_groups
-    from bayesrob.robot.effects import ALIASES
-
-    diag = diagnose_groups(rig, ["joint_compliance", "backlash", "encoder_error"])
-    first, last = diag.baseline, (diag.steps[-1] if diag.steps else diag.baseline)
-    return {"effects": [ALIASES.get(e, e) for e in diag.effects],
-            "rounds": [[{**s, "effect": ALIASES.get(s["effect"], s["effect"])} for s in r]
-                       for r in diag.rounds],
-            "baseline_heldout_error_mm": first["heldout_error_mm"],
-            "final_heldout_error_mm": last["heldout_error_mm"],
-            "baseline_holdout_error_mm": first["holdout_error_mm"],
-            "final_holdout_error_mm": last["holdout_error_mm"],
-            "strength_base_mm": base_holdout_error(rig)}
+            **({"rivals": rivals} if engine == "groups" else {}),
+            "rounds": [[{k: s[k] for k in keys} for s in r] for r in doc["rounds"]]}
 
 
 def cases_for_seeds(seeds) -> list[Case]:

@@ -1,7 +1,8 @@
 """Where simulated arms settle: the least energy of their springs and weights (linked arms: a
 tug of war between their stiffnesses), under one physics: each arm's energy is
-:func:`_arm_program`'s. :class:`PhysicalRig`: the paper's planar arms, as 2-joint chains, by
-BFGS (the dead band's kink needs no Hessian); :func:`linked_equilibrium`: 3-D arms by Newton.
+:func:`bayesrob.sim.physics.arm_energy`. :class:`PhysicalRig`: the paper's planar arms, as
+2-joint chains, by BFGS (the dead band's kink needs no Hessian); :func:`linked_equilibrium`:
+3-D arms by Newton.
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
 
 class _ArmPhysics(NamedTuple):
     """A planar arm as one configuration of the chains' physics: its 2-joint chain (columns
-    the joint angles) and the arrays :func:`arm_energy`'s energy takes, so one compiled
-    program serves every arm and every rig."""
+    the joint angles) and the arrays :func:`~bayesrob.sim.physics.arm_energy` takes, so
+    its programs are compiled once per arm name and shared by every rig."""
 
     structure: RobotStructure
     name: str
@@ -68,7 +69,7 @@ def _terms(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
            theta_cmd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     values, x, *physics = arrays
     s = arm_energy(structure, arm, values, x, theta[None], theta_cmd[None], *physics,
-                      periodic=True)
+                   periodic=True)
     return s["energy"][0], s["grad"][0], s["jac"][0, :2]
 
 
@@ -135,7 +136,8 @@ class PhysicalRig:
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
         names = tuple(theta_cmds)
         phys = [self._physics[n] for n in names]
-        static = {"structures": tuple(a.structure for a in phys), "arms": names,
+        static = {"structures": tuple(a.structure for a in phys),
+                  "arms": tuple(a.name for a in phys),
                   "elbows": tuple(int(self.truth.arms[n].elbow) for n in names)}
         arrays = (tuple(a.arrays for a in phys), tuple(self.truth.arms[n].params for n in names))
         tc = tuple(jnp.asarray(theta_cmds[n], float) for n in names)

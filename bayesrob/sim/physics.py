@@ -57,9 +57,9 @@ def play_offsets(tau: np.ndarray, play: float, stick_nmm: float,
 
 @partial(jax.jit, static_argnames=("structure", "arm", "periodic"))
 def arm_energy(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
-                  u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
-                  centre: jax.Array, backlash: jax.Array, periodic: bool = False
-                  ) -> dict[str, jax.Array]:
+               u: jax.Array, u0: jax.Array, k: jax.Array, weight: jax.Array,
+               centre: jax.Array, backlash: jax.Array, periodic: bool = False
+               ) -> dict[str, jax.Array]:
     """Spring and weight energy of an arm of revolute joints standing on its own, over rows of
     joint columns u (N, n) held by springs k at u0 (a dead band of half-width ``backlash``
     each; ``periodic``: angles wrapped), its links' ``weight`` (n, 3) N acting ``centre`` of
@@ -103,11 +103,11 @@ def arm_energy(structure: RobotStructure, arm: str, values: dict, x: jax.Array,
 def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
                     masses_kg: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """The gravity torque (N, n) about each joint's axis at joint values q (N mm), each link's
-    mass halfway along the next origin's translation: minus :func:`arm_energy`'s gradient
-    with no spring."""
+    mass halfway along the next origin's translation, ``gravity`` in the instrument frame (the
+    frames' own): minus :func:`arm_energy`'s gradient with no spring."""
     n = robot.chains[arm].n_joints
     weight = np.asarray(masses_kg, float)[:, None] * (np.asarray(gravity, float) * G_N_PER_KG)
-    q = jnp.asarray(q, float)
+    q = jnp.atleast_2d(jnp.asarray(q, float))
     s = arm_energy(robot.structure, arm, robot.nominal_values, jnp.asarray(x), q, q,
                    jnp.zeros(n), jnp.asarray(weight), jnp.full(n, 0.5), jnp.zeros(n))
     return -np.asarray(s["grad"])
