@@ -57,7 +57,7 @@ def main() -> None:
                                                       for s in doc["steps"]]
     target = TARGET_S if args.sag_steps == 1 else STEPS_TARGET_S
     print(json.dumps({"case": case, "sag_steps": args.sag_steps, "seconds": seconds,
-                      "target_s": target, "met": None if target is None else seconds < target,
+                      "target_s": target, "met": seconds < target,
                       "effects": doc["effects"], "validation_mean_mm": ladder,
                       "ladder_sag_steps": [s.get("sag_steps", 1) for s in doc["steps"]]}))
 

@@ -140,7 +140,8 @@ def test_the_planar_energy_is_the_general_energy_on_the_arms_2_joint_chain():
     rng = np.random.default_rng(0)
     for name, arm in truth.arms.items():
         phys = _arm_physics(arm, truth.effects, truth.gravity)
-        _, _, k, weight, centre, backlash = phys.arrays
+        a = phys.arrays
+        k, weight, centre, backlash = a.stiffness, a.weight, a.centre, a.backlash
         masses = jnp.array([arm.link_mass_kg[0], arm.elbow_mass_kg, arm.link_mass_kg[1],
                             arm.end_mass_kg])
         robot = arm.robot()
@@ -184,8 +185,8 @@ def test_linked_arms_settle_by_the_energy_and_its_gradient_over_the_shared_end_p
             theta, _ = kin.inverse(a.params, d, a.elbow)
             masses = jnp.array([a.link_mass_kg[0], a.elbow_mass_kg, a.link_mass_kg[1],
                                 a.end_mass_kg])
-            out = out + _closed_form_energy(theta, tc, a.params, masses, p.arrays[2],
-                                            p.arrays[5], g)
+            out = out + _closed_form_energy(theta, tc, a.params, masses, p.arrays.stiffness,
+                                            p.arrays.backlash, g)
         return out
 
     rng = np.random.default_rng(1)

@@ -412,8 +412,7 @@ ROUND_KEYS = {
     "groups": ("effect", "parameters", "selection_error_before_mm", "selection_error_after_mm",
                "z", "drop_per_parameter_mm", "passes"),
 }
-# the chain engine's base groups and candidates on a planar rig's arms as 2-joint chains
-GROUPS_BASE = ("frames", "geometric")
+# the chain engine's candidates on a planar rig's arms as 2-joint chains
 GROUPS_CANDIDATES = ("joint_compliance", "backlash", "encoder_error")
 
 
@@ -438,7 +437,7 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
 
     from bayesrob.calibrate.least_squares import calibrate
     from bayesrob.data.rig import load_rig
-    from bayesrob.diagnose.groups import diagnose_groups
+    from bayesrob.diagnose.groups import BASE_GROUPS, diagnose_groups
     from bayesrob.diagnose.refits import diagnose
     from bayesrob.robot.effects import ALIASES
 
@@ -456,8 +455,7 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
             twin = clean = base if twin_rig is None else base_holdout_error(twin_rig)
         else:
             base = base_holdout_error(rig)
-            twin_rig = twin_rig or rig
-            twin = base_holdout_error(twin_rig)
+            twin = base if twin_rig is None else base_holdout_error(twin_rig)
             diag = diagnose_groups(rig, list(GROUPS_CANDIDATES))
             first, last = diag.baseline, (diag.steps[-1] if diag.steps else diag.baseline)
             doc = {"effects": [ALIASES.get(e, e) for e in diag.effects],
@@ -469,7 +467,9 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
                    "final_holdout_error_mm": last["holdout_error_mm"]}
             rivals = {ALIASES.get(s["effect"], s["effect"]):
                       [ALIASES.get(e, e) for e in s["rivals"]] for s in diag.steps}
-            clean = calibrate(twin_rig, GROUPS_BASE).errors["holdout"]["all"]["mean_mm"]
+            # the chain base's clean twin: a clean rig is its own, its ladder's first step
+            clean = (first["holdout_error_mm"] if twin_rig is None else
+                     calibrate(twin_rig, BASE_GROUPS).errors["holdout"]["all"]["mean_mm"])
     keys = ROUND_KEYS[engine]
     return {"case": asdict(case), "truth": case.label,
             "named": "+".join(sorted(doc["effects"])) or "none",

@@ -38,16 +38,26 @@ def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax
     return theta
 
 
+class _ArmArrays(NamedTuple):
+    """What :func:`~bayesrob.sim.physics.arm_energy` takes of a planar arm besides its
+    structure, in its argument order (a pytree: traced, not compiled in)."""
+
+    values: dict  # the 2-joint chain's nominal values
+    x: jax.Array  # its parameters (nominal)
+    stiffness: jax.Array  # (2,) N mm / rad, already scaled for the effects in force
+    weight: jax.Array  # (2, 3) N: each link with what it carries (elbow servo, end mass)
+    centre: jax.Array  # (2,) where along its link that weight acts
+    backlash: jax.Array  # (2,) rad half-width, zero without the effect
+
+
 class _ArmPhysics(NamedTuple):
     """A planar arm as one configuration of the chains' physics: its 2-joint chain (columns
-    the joint angles) and the arrays :func:`~bayesrob.sim.physics.arm_energy` takes, so
-    its programs are compiled once per arm name and shared by every rig."""
+    the joint angles) and its arrays, so its programs are compiled once per arm name and
+    shared by every rig."""
 
     structure: RobotStructure
     name: str
-    arrays: tuple  # the chain's nominal values and x; stiffness (2,) N mm / rad, already
-    # scaled for the effects in force; weight (2, 3) N of each link with what it carries
-    # (elbow servo, end mass); where along its link that acts (2,); backlash half-width (2,)
+    arrays: _ArmArrays
 
 
 def _arm_physics(arm: ArmTruth, effects: Sequence[str], gravity: Sequence[float]
@@ -60,21 +70,20 @@ def _arm_physics(arm: ArmTruth, effects: Sequence[str], gravity: Sequence[float]
     weight = mass[:, None] * (G_N_PER_KG * np.r_[np.asarray(gravity, float), 0.0])[None]
     robot = arm.robot()
     _arm_program(robot, arm.name)  # its checks: revolute joints, standing on its own
-    return _ArmPhysics(robot.structure, arm.name, (
+    return _ArmPhysics(robot.structure, arm.name, _ArmArrays(
         robot.nominal_values, jnp.asarray(robot.layout.nominal),
         *(jnp.asarray(v) for v in (k, weight, centre, b))))
 
 
-def _terms(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
+def _terms(structure: RobotStructure, arm: str, a: _ArmArrays, theta: jax.Array,
            theta_cmd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    values, x, *physics = arrays
-    s = arm_energy(structure, arm, values, x, theta[None], theta_cmd[None], *physics,
-                   periodic=True)
+    s = arm_energy(structure, arm, a.values, a.x, theta[None], theta_cmd[None], a.stiffness,
+                   a.weight, a.centre, a.backlash, periodic=True)
     return s["energy"][0], s["grad"][0], s["jac"][0, :2]
 
 
 @partial(jax.jit, static_argnames=("structure", "arm"))
-def _at_angles(structure: RobotStructure, arm: str, arrays: tuple, theta: jax.Array,
+def _at_angles(structure: RobotStructure, arm: str, arrays: _ArmArrays, theta: jax.Array,
                theta_cmd: jax.Array) -> jax.Array:
     # energy (N mm) and its gradient in the joint angles, in one array: one transfer
     energy, grad, _ = _terms(structure, arm, arrays, theta, theta_cmd)
@@ -122,7 +131,7 @@ class PhysicalRig:
 
     def _k_scale(self, name: str) -> float:
         # the softest spring: what an arm's energy is divided by (_least_energy)
-        return float(jnp.min(self._physics[name].arrays[2]))
+        return float(jnp.min(self._physics[name].arrays.stiffness))
 
     def settle_arm(self, name: str, theta_cmd: np.ndarray) -> np.ndarray:
         a, tc = self._physics[name], jnp.asarray(theta_cmd, float)
@@ -136,15 +145,15 @@ class PhysicalRig:
     def settle_linked(self, theta_cmds: dict[str, np.ndarray]) -> np.ndarray:
         names = tuple(theta_cmds)
         phys = [self._physics[n] for n in names]
-        static = {"structures": tuple(a.structure for a in phys),
-                  "arms": tuple(a.name for a in phys),
-                  "elbows": tuple(int(self.truth.arms[n].elbow) for n in names)}
-        arrays = (tuple(a.arrays for a in phys), tuple(self.truth.arms[n].params for n in names))
-        tc = tuple(jnp.asarray(theta_cmds[n], float) for n in names)
+        arms = {"structures": tuple(a.structure for a in phys),
+                "arms": tuple(a.name for a in phys),
+                "elbows": tuple(int(self.truth.arms[n].elbow) for n in names),
+                "arrays": tuple(a.arrays for a in phys),
+                "params": tuple(self.truth.arms[n].params for n in names),
+                "theta_cmds": tuple(jnp.asarray(theta_cmds[n], float) for n in names)}
 
         def value_and_grad(d: jax.Array) -> tuple[float, np.ndarray]:
-            out = np.asarray(_at_point(arrays=arrays[0], params=arrays[1], d=d, theta_cmds=tc,
-                                       **static))
+            out = np.asarray(_at_point(d=d, **arms))
             return out[0], out[1:]
 
         free = [kin.forward(self.truth.arms[n].params, self.settle_arm(n, theta_cmds[n]))
