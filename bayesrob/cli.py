@@ -470,7 +470,8 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    "gravity; link masses fitted too), lateral (joints and links bending across "
                    "their axes under the same torques; link masses fitted too), encoder "
                    "(revolute joints read through an eccentric encoder), backlash (play in the "
-                   "joints, taken up on the side gravity pushes them to). Default for URDF/DH "
+                   "joints, taken up on the side gravity pushes them to), servo_curve (a "
+                   "curved command map: c2 q^2 + c3 q^3 on each joint). Default for URDF/DH "
                    "rigs: the first four; a planar rig without --params fits its eight "
                    "parameters per arm")
     _output(p.add_argument("--urdf-out", metavar="FILE",
@@ -829,11 +830,11 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
     """``diagnose --plan N``: poses that tell apart what the diagnosis could not. The named
     effects without a rival within noise join the base model; every other chain effect (the
     named ones with rivals, their rivals, the candidates not named) is to be told apart."""
+    from bayesrob.calibrate.least_squares import base_groups
     from bayesrob.plan import plan_poses, write_poses
-    from bayesrob.plan.planner import BASE_GROUPS
 
     settled = [s["effect"] for s in doc["steps"] if not s.get("rivals")]
-    base = (*BASE_GROUPS, *(CHAIN_EFFECTS[e] for e in settled))
+    base = (*base_groups(rig.robot), *(CHAIN_EFFECTS[e] for e in settled))
     plan = plan_poses(rig, args.plan, criterion="discriminate", groups=base, pool=args.pool,
                       seed=args.seed)
     out = args.plan_out or "poses.csv"

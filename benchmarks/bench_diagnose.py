@@ -190,8 +190,9 @@ def main() -> int:
     p.add_argument("--sensitivity", action="store_true", help="effect size x noise at 4x4")
     p.add_argument("--engine", choices=("refits", "groups"), default="refits",
                    help="planar sweeps: the planar engine (default) or the chain engine on "
-                        "the arms as 2-joint chains, candidates joint_compliance (gravity_sag), "
-                        "backlash and encoder_error: how far one engine for every robot is")
+                        "the arms as 2-joint chains with its own candidates for servo arms "
+                        "(gravity_sag is joint_compliance): how far one engine for every robot "
+                        "is")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--scheduler", help="address of a running Dask scheduler")
     p.add_argument("--log", type=Path, help="append each rig's result as a JSON line")

@@ -216,11 +216,11 @@ def test_compliant_marker_jacobian_is_autodiff_up_to_the_sags_second_order(later
     lay = robot.layout
     sags = lay.group_mask(("compliance", "lateral"))
     rng = np.random.default_rng(5)
-    # the encoder terms and the play stay zero (the encoder's columns are exact: the test
+    # the encoder and curve terms and the play stay zero (their columns are exact: the test
     # above; the play's: the test below) and take no draw, so the parameters drawn are those
     # this tolerance was measured on
     x = lay.nominal.copy()
-    drawn = ~lay.group_mask(("encoder", "backlash"))
+    drawn = ~lay.group_mask(("encoder", "backlash", "servo_curve"))
     x[drawn] += rng.normal(0, 3, drawn.sum()) * lay.scales[drawn] * ~sags[drawn]
     joint = np.array([p.name.endswith(".compliance") for p in lay.params])
     x[joint] = rng.uniform(0, 5e-8, joint.sum())  # rad per N mm
@@ -263,7 +263,11 @@ def test_sags_derivative_written_out_is_forward_mode_autodiff(tmp_path, sag_step
     for rig in (_two_handed_rig(tmp_path, rng), load_rig(default_rig_dir())):
         robot = least_squares.with_gravity(rig, sag_steps)
         lay = robot.layout
-        x = lay.nominal + rng.normal(0, 1, lay.nominal.size) * lay.scales
+        # the curve terms (last in the vector) stay zero: their columns are exact (the test
+        # above), and the draws are those this tolerance was measured on
+        x = lay.nominal.copy()
+        drawn = ~lay.group_mask(("servo_curve",))
+        x[drawn] += rng.normal(0, 1, drawn.sum()) * lay.scales[drawn]
         joint = np.array([p.name.endswith(".compliance") for p in lay.params])
         # compliances over four decades: some deflections within the play's step
         x[joint] = 10 ** rng.uniform(-11, -7, joint.sum())
@@ -518,10 +522,10 @@ def test_dh_tree_writes_a_urdf_that_loads_back(tmp_path):
     chains = load_rig_toml(JUSTIN_TOML)["chains"]
     robot = kin.Robot(chains)
     rng = np.random.default_rng(6)
-    # a URDF holds geometry: an encoder's eccentricity or a joint's play has no place in it
-    # (calibrate says so)
+    # a URDF holds geometry: an encoder's eccentricity, a curved command map or a joint's play
+    # has no place in it (calibrate says so)
     x = robot.layout.nominal + rng.normal(0, 2, len(robot.layout.params)) * robot.layout.scales \
-        * ~robot.layout.group_mask(("encoder", "backlash"))
+        * ~robot.layout.group_mask(("encoder", "backlash", "servo_curve"))
     calibrated = kin.write_urdf(robot, x, tmp_path / "j.urdf")
     keys = kin.urdf.generated_arm_keys(calibrated)
     rebuilt = {}

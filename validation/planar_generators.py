@@ -412,8 +412,6 @@ ROUND_KEYS = {
     "groups": ("effect", "parameters", "selection_error_before_mm", "selection_error_after_mm",
                "z", "drop_per_parameter_mm", "passes"),
 }
-# the chain engine's candidates on a planar rig's arms as 2-joint chains
-GROUPS_CANDIDATES = ("joint_compliance", "backlash", "encoder_error")
 
 
 def diagnose_case(case: Case, engine: str = "refits") -> dict:
@@ -435,9 +433,9 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
     import time
     from dataclasses import asdict
 
-    from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.calibrate.least_squares import base_groups, calibrate
     from bayesrob.data.rig import load_rig
-    from bayesrob.diagnose.groups import BASE_GROUPS, diagnose_groups
+    from bayesrob.diagnose.groups import diagnose_groups
     from bayesrob.diagnose.refits import diagnose
     from bayesrob.robot.effects import ALIASES
 
@@ -456,7 +454,7 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
         else:
             base = base_holdout_error(rig)
             twin = base if twin_rig is None else base_holdout_error(twin_rig)
-            diag = diagnose_groups(rig, list(GROUPS_CANDIDATES))
+            diag = diagnose_groups(rig)  # its own candidates for servo arms
             first, last = diag.baseline, (diag.steps[-1] if diag.steps else diag.baseline)
             doc = {"effects": [ALIASES.get(e, e) for e in diag.effects],
                    "rounds": [[{**s, "effect": ALIASES.get(s["effect"], s["effect"])}
@@ -469,7 +467,8 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
                       [ALIASES.get(e, e) for e in s["rivals"]] for s in diag.steps}
             # the chain base's clean twin: a clean rig is its own, its ladder's first step
             clean = (first["holdout_error_mm"] if twin_rig is None else
-                     calibrate(twin_rig, BASE_GROUPS).errors["holdout"]["all"]["mean_mm"])
+                     calibrate(twin_rig, base_groups(twin_rig.robot))
+                     .errors["holdout"]["all"]["mean_mm"])
     keys = ROUND_KEYS[engine]
     return {"case": asdict(case), "truth": case.label,
             "named": "+".join(sorted(doc["effects"])) or "none",

@@ -14,7 +14,7 @@ from bayesrob import robot as kin
 # parameters to keep: the simpler explanation (a frame, a joint offset, a gain) before a
 # general correction of a joint's origin.
 PRIORITY = ("frames", "offsets", "servo", "geometric", "compliance", "lateral", "encoder",
-            "backlash")
+            "backlash", "servo_curve")
 # A column is identifiable when the part of it no earlier column explains is at least this
 # fraction of its length (column-scaled to each parameter's typical size). Exact
 # redundancies sit at 1e-10 and below; 1e-4 also drops directions whose standard error would

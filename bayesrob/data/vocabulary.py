@@ -15,13 +15,14 @@ EFFECTS = ("gravity_sag", "backlash", "servo_nonlinearity")
 
 # Chain effects the diagnosis names -> the parameter group that fits each.
 CHAIN_EFFECTS = {"joint_compliance": "compliance", "lateral_compliance": "lateral",
-                 "encoder_error": "encoder", "backlash": "backlash"}
+                 "encoder_error": "encoder", "backlash": "backlash",
+                 "servo_nonlinearity": "servo_curve"}
 
 # Parameter groups of a chain calibration: always available, then fitted only when asked for
 # (joints that give way under gravity, bending across the joints' axes, eccentric encoders,
-# play that gravity takes up).
+# play that gravity takes up, a curved command map).
 GROUPS = ("frames", "offsets", "geometric", "servo")
-OPTIONAL_GROUPS = ("compliance", "lateral", "encoder", "backlash")
+OPTIONAL_GROUPS = ("compliance", "lateral", "encoder", "backlash", "servo_curve")
 ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 
 # Where a compliance fit takes the links' masses from: fitted with the compliances, or held at

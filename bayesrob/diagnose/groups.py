@@ -1,14 +1,17 @@
-"""Diagnosis of any robot (URDF/DH chains and trees): which physical effects does the
-geometric calibration (``frames,geometric``) miss?
+"""Diagnosis of any robot (URDF/DH chains and trees, the planar arms as 2-joint chains): which
+physical effects does the geometric calibration miss (``frames,geometric``, with ``servo``
+where the commands pass through a servo map: :func:`~bayesrob.calibrate.least_squares.base_groups`)?
 
 Each candidate effect is a calibration group (``joint_compliance``: ``compliance``;
-``lateral_compliance``: ``lateral``; ``encoder_error``: ``encoder``; ``backlash``, tried once
-compliance is named, since only a fitted deflection says which side a joint rests on).
-Effects are named greedily: each round fits every remaining candidate on most ``train`` poses
-and scores it on the *selection* poses (drawn once with the seed). A candidate passes when its
-paired per-row error drop there exceeds ``rule.Z`` standard errors; the one dropping the mean
-error most per added parameter is named (so compliance goes before an encoder sinusoid that
-mimics part of it). A passing candidate within ``rule.Z`` standard errors of the named one is
+``lateral_compliance``: ``lateral``; ``encoder_error``: ``encoder``; ``servo_nonlinearity``:
+``servo_curve``, where a servo map is; ``backlash``, tried once compliance is named, since only
+a fitted deflection says which side a joint rests on). Effects are named greedily: each round
+fits every remaining candidate on most ``train`` poses and scores it on the *selection* poses
+(drawn with the seed; a rig with few train poses is scored over several disjoint folds, each
+fitted without its own, until MIN_SCORED_POSES poses are). A candidate passes when its paired
+per-row error drop there exceeds ``rule.Z`` standard errors; the one dropping the mean error
+most per added parameter is named (so compliance goes before an encoder sinusoid that mimics
+part of it). A passing candidate within ``rule.Z`` standard errors of the named one is
 reported as its *rival*. The ``validation`` rows are never looked at while deciding: the
 ladder (errors after each named effect, refitted on every train row) is reported on them.
 """
@@ -24,6 +27,7 @@ import scipy.stats
 from bayesrob.calibrate.least_squares import (
     SAG_CONVERGED_MM,
     Calibration,
+    base_groups,
     calibrate,
     marker_residuals,
     sag_convergence,
@@ -44,8 +48,11 @@ NEEDS = {"backlash": "joint_compliance"}
 # mm on Justin's selection poses against 3.48).
 WARM_STARTED = ("encoder_error", "backlash")
 WARM_NFEV = 40
-BASE_GROUPS = ("frames", "geometric")
 SELECTION_SHARE = 0.25  # of the train poses, held back to decide on
+# Poses a decision is scored on at the least: the 20 a 6-joint arm's 80 train poses give at
+# SELECTION_SHARE, where the rule was chosen (tuning seeds 61-62). A rig with fewer train poses
+# (a planar arm's 16) is scored over several disjoint folds, each fitted without its poses.
+MIN_SCORED_POSES = 20
 # Least-squares evaluations per stage of a selection fit: on Justin 140 (of 320) left every
 # selection error as before to 0.01 mm (drops between candidates: 0.1-5 mm), in half the time.
 SELECTION_NFEV = 140
@@ -68,6 +75,7 @@ class GroupDiagnosis:
     selection_rows: int
     notes: list[str] = field(default_factory=list)
     sag_steps: int = 1  # torque steps asked of the ladder's fits with gravity
+    selection_folds: int = 1  # disjoint sets of selection poses, each fitted without its own
     # step label -> {arm: (observed markers, residuals)} on the validation rows, for the
     # geometric calibration and the final model (figures only; not in the JSON)
     residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(
@@ -80,7 +88,9 @@ class GroupDiagnosis:
             "rig": self.rig, "robot": "chain", "effects": self.effects,
             "rule_z": Z,
             "rule": (f"of the candidates whose paired error drop on the selection poses "
-                     f"({self.selection_rows} train rows held back) exceeds {Z:g} "
+                     f"({self.selection_rows} train rows held back over "
+                     f"{self.selection_folds} fold(s), each fitted without its own) exceeds "
+                     f"{Z:g} "
                      "standard errors, name the one with the largest drop per added "
                      "parameter (backlash is tried once joint_compliance is named; a "
                      "candidate left no identifiable parameter never passes); validation "
@@ -90,23 +100,32 @@ class GroupDiagnosis:
             "baseline_heldout_error_mm": self.baseline["heldout_error_mm"],
             "final_heldout_error_mm": last["heldout_error_mm"],
             "seconds": self.seconds, "notes": self.notes, "sag_steps": self.sag_steps,
+            "selection_folds": self.selection_folds,
         }
 
     to_dict = to_json
 
 
-def _split(rig: Rig, seed: int) -> Rig:
+def _folds(rig: Rig, seed: int) -> list[Rig]:
+    """The rig with a share of its train poses relabelled ``selection``, once per fold: the
+    first fold as drawn with the seed, then disjoint others until at least MIN_SCORED_POSES
+    poses are scored (at most every train pose once)."""
     meas = rig.measurements
     train = np.flatnonzero(meas.set == "train")
     pose = meas.extra.get("pose")
     keys = np.array([pose[i] for i in train]) if pose else train.astype(str)
     poses = np.unique(keys)
     rng = np.random.default_rng(seed)
-    chosen = set(rng.choice(poses, size=max(1, round(SELECTION_SHARE * len(poses))),
-                            replace=False))
-    sets = meas.set.copy()
-    sets[train[np.isin(keys, list(chosen))]] = "selection"
-    return replace(rig, measurements=replace(meas, set=sets))
+    size = max(1, round(SELECTION_SHARE * len(poses)))
+    first = rng.choice(poses, size=size, replace=False)
+    rest = rng.permutation(np.setdiff1d(poses, first))
+    n_folds = min(max(1, -(-MIN_SCORED_POSES // size)), 1 + len(rest) // size)
+    out = []
+    for chosen in [first, *(rest[k * size:(k + 1) * size] for k in range(n_folds - 1))]:
+        sets = meas.set.copy()
+        sets[train[np.isin(keys, chosen)]] = "selection"
+        out.append(replace(rig, measurements=replace(meas, set=sets)))
+    return out
 
 
 def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
@@ -125,6 +144,25 @@ def _selection_rows(rig: Rig, cal: Calibration) -> tuple[np.ndarray, np.ndarray]
     r = np.concatenate([sel[a][1] for a in sorted(sel)])
     return (np.linalg.norm(r, axis=1),
             scipy.stats.norm.logpdf(r, scale=np.sqrt(var)).sum(axis=1))
+
+
+def _fold_fits(folds: list[Rig], groups: tuple[str, ...], starts: list[np.ndarray] | None,
+               nfev: int, bar) -> tuple[tuple[np.ndarray, np.ndarray], list[np.ndarray],
+                                        Calibration]:
+    """Each fold fitted without its selection poses (from ``starts`` where given) and scored
+    on them: the per-row errors and log densities of every fold, end to end; each fold's
+    parameters; the first fold's calibration (its rank analysis counts the parameters)."""
+    rows, xs, first = [], [], None
+    for k, fold in enumerate(folds):
+        cal = calibrate(fold, groups, polish=False, max_nfev=nfev,
+                        **({"start": starts[k]} if starts is not None else {}))
+        rows.append(_selection_rows(fold, cal))
+        xs.append(cal.x)
+        if first is None:
+            first = cal
+        bar.update(1)
+    return ((np.concatenate([r[0] for r in rows]), np.concatenate([r[1] for r in rows])),
+            xs, first)
 
 
 def _ladder_fit(rig: Rig, groups: tuple[str, ...], sag_steps: int, notes: list[str]
@@ -169,39 +207,36 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     if sag_steps < 1:
         raise DiagnosisError(f"sag_steps must be at least 1, not {sag_steps}")
     try:
-        candidates = resolve_effects(effects, chain=True)
+        candidates = resolve_effects(effects, chain=True, robot=rig.robot)
     except ValueError as e:
         raise DiagnosisError(str(e)) from None
     if not len(rig.rows(rig.robot.measured_arms()[0], "validation")[0]):
         raise DiagnosisError(f"{rig.path or rig.name}: no validation rows to report the "
                                   "ladder on")
-    split = _split(rig, seed)
-    n_sel = int((split.measurements.set == "selection").sum())
-    groups = BASE_GROUPS
+    folds = _folds(rig, seed)
+    n_sel = sum(int((f.measurements.set == "selection").sum()) for f in folds)
+    base = groups = base_groups(rig.robot)
     named: list[str] = []
     rivals: list[list[str]] = []  # per named effect
     guarded: list[bool] = []  # per named effect: its step clears the parameter guard
     rounds: list[list[dict]] = []
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
-    total = sum(range(1, len(candidates) + 1)) + len(candidates) + 2
+    total = len(folds) * (sum(range(1, len(candidates) + 1)) + 1) + len(candidates) + 1
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
-        cal = calibrate(split, groups, polish=False, max_nfev=SELECTION_NFEV)
-        before, n_before = _selection_rows(split, cal), int(cal.ident.free.sum())
-        # each named effect's selection fit: the last one is the named model's, which the
-        # WARM_STARTED candidates start from
-        selected: dict[str, np.ndarray] = {}
-        bar.update(1)
+        before, _, cal = _fold_fits(folds, groups, None, SELECTION_NFEV, bar)
+        n_before = int(cal.ident.free.sum())
+        # each named effect's selection fits (one per fold): the last named model's are where
+        # the WARM_STARTED candidates start
+        selected: dict[str, list[np.ndarray]] = {}
         while len(named) < len(candidates):
             scores = []
             for eff in (c for c in candidates
                         if c not in named and NEEDS.get(c, c) in (*named, c)):
                 # compared with each other, not reported: the fast fit is enough to decide
-                cal = calibrate(split, (*groups, CHAIN_EFFECTS[eff]), polish=False,
-                                      **({"max_nfev": WARM_NFEV, "start": selected[named[-1]]}
-                                         if eff in WARM_STARTED and named
-                                         else {"max_nfev": SELECTION_NFEV}))
-                after = _selection_rows(split, cal)
-                bar.update(1)
+                warm = eff in WARM_STARTED and bool(named)
+                after, xs, cal = _fold_fits(folds, (*groups, CHAIN_EFFECTS[eff]),
+                                            selected[named[-1]] if warm else None,
+                                            WARM_NFEV if warm else SELECTION_NFEV, bar)
                 added = int(cal.ident.free.sum()) - n_before
                 # its own group, not the net count: freeing the links' masses may change
                 # that count by itself
@@ -224,7 +259,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                                # (lateral bending under gravity in a planar arm's plane)
                                # moves the errors by rounding alone: its z is noise
                                "passes": bool(own and z > Z),
-                               "_after": after, "_x": cal.x})
+                               "_after": after, "_x": xs})
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:
@@ -255,7 +290,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             bar.set_postfix(f"{planned - bar.total} planned fits not needed: the selection "
                             f"named {len(named)} of {len(candidates)} candidates")
         # the ladder: every step refitted on all train rows, reported on the validation rows
-        steps, ladder = [], [BASE_GROUPS]
+        steps, ladder = [], [base]
         for eff in named:
             ladder.append((*ladder[-1], CHAIN_EFFECTS[eff]))
         baseline: dict = {}
@@ -284,13 +319,15 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             else:
                 steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
                               "guard_passes": guarded[k - 1], **row})
-    notes = ["not modelled for chains, so not tried: servo_nonlinearity (a chain's "
-             "encoder_error takes its place)"]
+    notes = ([] if rig.robot.servo_mapped or effects is not None else
+             ["servo_nonlinearity not tried: the robot's columns are its joint values (no servo "
+              "map; encoder_error is their error)"])
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
     return GroupDiagnosis(rig.name, named, rounds, steps, baseline,
-                          time.perf_counter() - t0, n_sel, notes, sag_steps, residuals)
+                          time.perf_counter() - t0, n_sel, notes, sag_steps,
+                          selection_folds=len(folds), residuals=residuals)
 
 
 def parse_published(text: str) -> dict[str, float]:

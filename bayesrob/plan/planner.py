@@ -18,17 +18,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
-from bayesrob.calibrate.least_squares import link_mask, with_gravity
+from bayesrob.calibrate.least_squares import base_groups, link_mask, with_gravity
 from bayesrob.data.rig import Measurements, Rig, RigError, parse_number
 from bayesrob.data.vocabulary import CHAIN_EFFECTS, GROUPS
 from bayesrob.plan.criteria import PRIOR_SD, Accuracy, Discriminate, Identify
 from bayesrob.plan.greedy import Selection, greedy
 from bayesrob.plan.pool import Pool, command_limits, read_pool, read_text, sample_pool
 from bayesrob.predict.aiming import aim
+from bayesrob.robot.effects import resolve_effects
 
 DEFAULT_SAMPLES = 2000
 DEFAULT_NOISE_MM = 0.1
-BASE_GROUPS = ("frames", "geometric")  # the model whose rivals ``discriminate`` separates
 SOFT_GROUPS = ("compliance", "lateral")  # linearised at one typical size, not at zero
 # prior sd (typical sizes) of the sag groups a calibration leaves out, for ``accuracy``: none
 # by default (on the simulated arm6 tuning seeds, which do not sag, any bias term cost accuracy)
@@ -123,9 +123,11 @@ def resolve_groups(rig: Rig, groups: tuple[str, ...] | None, criterion: str
                    ) -> tuple[tuple[str, ...], list[str]]:
     """The groups the planned calibration fits (frames always) and, for ``discriminate``,
     the candidate effects beside them (every chain effect the base does not fit)."""
-    base = tuple(groups) if groups else (BASE_GROUPS if criterion == "discriminate" else GROUPS)
-    effects = ([e for e, g in CHAIN_EFFECTS.items() if g not in base]
-               if criterion == "discriminate" else [])
+    # without groups, discriminate separates the diagnosis's rivals beside its base model
+    base = (tuple(groups) if groups else
+            base_groups(rig.robot) if criterion == "discriminate" else GROUPS)
+    effects = ([e for e in resolve_effects(None, chain=True, robot=rig.robot)
+                if CHAIN_EFFECTS[e] not in base] if criterion == "discriminate" else [])
     fitted = {"frames", *base, *(CHAIN_EFFECTS[e] for e in effects)}
     return tuple(g for g in kin.ALL_GROUPS if g in fitted), effects
 

@@ -276,6 +276,12 @@ def _layout(chains: dict[str, Chain]) -> ParamLayout:
                                    f"{c.name}.stick"], "backlash",
             [*np.zeros(c.n_joints), STICK_NOMINAL_RAD],
             [*(1e-3 if k == "revolute" else 1.0 for k in c.kinds), 1e-3])
+    for c in chains.values():
+        # a curved command map: c2 q^2 + c3 q^3 added to each joint's commanded value (a
+        # servo's potentiometer track and gear train; the line is the gains' and offsets')
+        add((c.name, "curve"), [f"{c.name}.{j}.curve.{k}" for j in c.joint_names
+                                for k in (2, 3)],
+            "servo_curve", np.zeros(2 * c.n_joints), [1e-3] * (2 * c.n_joints))
     return ParamLayout(tuple(params), slices)
 
 
@@ -361,10 +367,12 @@ class Robot(_ByValue):
 
     def joint_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
         """Joint values (N, n) of ``chain`` for its columns u (N, m): q = C (gain u + offset) +
-        zero offset, then a revolute joint's encoder eccentricity, q + a sin q + b cos q."""
+        zero offset, then a revolute joint's encoder eccentricity and the command map's
+        curve, q + a sin q + b cos q + c2 q^2 + c3 q^3."""
         q = self._commanded_values(x, chain, u)
         a, b = self._encoder(x, chain)
-        return q + a * jnp.sin(q) + b * jnp.cos(q)
+        c2, c3 = self._curve(x, chain)
+        return q + a * jnp.sin(q) + b * jnp.cos(q) + (c2 + c3 * q) * q * q
 
     def _commanded_values(self, x: jax.Array, chain: Chain, u: jax.Array) -> jax.Array:
         sl = self.layout.slices
@@ -376,6 +384,10 @@ class Robot(_ByValue):
         ab = x[self.layout.slices[(chain.name, "encoder")]].reshape(chain.n_joints, 2)
         revolute = _revolute(chain)
         return ab[:, 0] * revolute, ab[:, 1] * revolute
+
+    def _curve(self, x: jax.Array, chain: Chain) -> tuple[jax.Array, jax.Array]:
+        c = x[self.layout.slices[(chain.name, "curve")]].reshape(chain.n_joints, 2)
+        return c[:, 0], c[:, 1]
 
     def _elements(self, arm: str) -> dict[str, np.ndarray]:
         """The path to ``arm`` as one sequence of elements (an origin, then a joint's motion;
@@ -732,8 +744,8 @@ class Robot(_ByValue):
                            jnp.einsum("ij,nj->ni", factors[0], inner[0]))
         jac = jac.at[:, :, sl[(path[0].name, "instrument")]].set(first[:, :3, :])
         jac = jac.at[:, :, sl[(arm, "marker")]].set(tip[:, :3, :3])
-        # joint values -> zero offsets, gains and encoder terms, chain by chain
-        # (q = C (gain u + offset) + off, then q + a sin q + b cos q)
+        # joint values -> zero offsets, gains, encoder and curve terms, chain by chain
+        # (q = C (gain u + offset) + off, then q + a sin q + b cos q + c2 q^2 + c3 q^3)
         start, col = 0, 0
         for chain in path:
             k = chain.n_joints
@@ -744,7 +756,12 @@ class Robot(_ByValue):
             ecc = jnp.stack([jnp.sin(q0), jnp.cos(q0)], axis=-1) * _revolute(chain)[:, None]
             jac = jac.at[:, :, sl[(chain.name, "encoder")]].set(
                 jnp.einsum("nik,nkj->nikj", dq, ecc).reshape(n_rows, 3, 2 * k))
-            dq = dq * (1.0 + a * jnp.cos(q0) - b * jnp.sin(q0))[:, None, :]  # d q / d q0
+            jac = jac.at[:, :, sl[(chain.name, "curve")]].set(
+                jnp.einsum("nik,nkj->nikj", dq, jnp.stack([q0 ** 2, q0 ** 3], axis=-1))
+                .reshape(n_rows, 3, 2 * k))
+            c2, c3 = self._curve(x, chain)
+            dq = dq * (1.0 + a * jnp.cos(q0) - b * jnp.sin(q0)
+                       + (2.0 * c2 + 3.0 * c3 * q0) * q0)[:, None, :]  # d q / d q0
             jac = jac.at[:, :, sl[(chain.name, "offset")]].set(dq)
             d_gain = jnp.einsum("nik,kc,nc->nic", dq, jnp.asarray(chain.coupling), uc)
             jac = jac.at[:, :, sl[(chain.name, "gain")]].set(d_gain)
@@ -841,6 +858,13 @@ class Robot(_ByValue):
         """Chains that carry a marker (the leaves of the tree)."""
         parents = {c.mount for c in self.chains.values()}
         return [c for c in self.chains if c not in parents]
+
+    @property
+    def servo_mapped(self) -> bool:
+        """Whether a chain's commands reach its joints through a servo map (a gain other than
+        1: a planar arm's pulse widths), whose gain and curve are the servo's; a robot whose
+        columns are its joint values (read by encoders) has none."""
+        return any(bool(np.any(c.gain != 1.0)) for c in self.chains.values())
 
 
 @dataclass(frozen=True, eq=False)

@@ -156,13 +156,22 @@ CHAIN_ONLY = {
 }
 
 
-def resolve_effects(names: Sequence[str] | None, *, chain: bool = False) -> list[str]:
-    """Candidate effect names (None: all) of a planar rig or, with ``chain``, a URDF/DH chain,
-    each once in that robot's words; a name it has no model for is a one-line ValueError."""
+# Chain effects of a servo's command map, candidates by default only where a robot has one
+# (:attr:`~bayesrob.robot.chain.Robot.servo_mapped`): an encoder-read joint's error is
+# encoder_error.
+SERVO_EFFECTS = ("servo_nonlinearity",)
+
+
+def resolve_effects(names: Sequence[str] | None, *, chain: bool = False,
+                    robot: kin.Robot | None = None) -> list[str]:
+    """Candidate effect names (None: all; of a chain ``robot`` given, those it can have) of a
+    planar rig or, with ``chain``, a URDF/DH chain, each once in that robot's words; a name
+    it has no model for is a one-line ValueError."""
     known = CHAIN_EFFECTS if chain else REGISTRY
     aliases = {p: c for c, p in ALIASES.items()} if chain else ALIASES
     if names is None:
-        return list(known)
+        servo = robot is None or robot.servo_mapped
+        return [n for n in known if servo or n not in SERVO_EFFECTS]
     out: list[str] = []
     for n in names:
         n = aliases.get(n, n)
