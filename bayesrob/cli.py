@@ -230,6 +230,10 @@ def _json_arg(p: argparse.ArgumentParser,
     _output(p.add_argument("--json", metavar="OUT", help=help), FILE)
 
 
+def _plot_arg(p: argparse.ArgumentParser, help: str) -> None:
+    _output(p.add_argument("--plot", metavar="PATH", help=help), FILE)
+
+
 def _seed_arg(p: argparse.ArgumentParser, help: str = "random seed (0)", default=0) -> None:
     p.add_argument("--seed", type=_seed_type, default=default, help=help)
 
@@ -928,9 +932,7 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
                         "ones, so the fitted compliances give each arm's stiffnesses")
     _seed_arg(p, "random seed of the draws (0)")
     _json_arg(p)
-    _output(p.add_argument("--plot", metavar="PATH",
-                           help="write the expected-error map and the least accurate target's "
-                                "regions (PNG)"), FILE)
+    _plot_arg(p, "write the expected-error map and the least accurate target's regions (PNG)")
 
 
 @command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
@@ -967,9 +969,8 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
     _models_args(p, "compare")
     _params_arg(p)
     _json_arg(p)
-    _output(p.add_argument("--plot", metavar="PATH",
-                           help="write the comparison plot (PNG) here (default: next to --json "
-                                "OUT, as OUT with .png)"), FILE)
+    _plot_arg(p, "write the comparison plot (PNG) here (default: next to --json OUT, as OUT "
+                 "with .png)")
 
 
 @command("compare", "score every joint-error model on held-out end points and by "

@@ -410,7 +410,7 @@ ROUND_KEYS = {
     "refits": ("effect", "arms", "elpd_diff", "elpd_diff_se", "heldout_error_before_mm",
                "heldout_error_after_mm", "cv_error_before_mm", "cv_error_after_mm", "passes"),
     "groups": ("effect", "parameters", "selection_error_before_mm", "selection_error_after_mm",
-               "z", "drop_per_parameter_mm", "passes"),
+               "z", "drop_per_parameter_mm", "passes", "z_vs_alone", "elpd_diff", "guard_nats"),
 }
 
 
@@ -457,7 +457,8 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
             diag = diagnose_groups(rig)  # its own candidates for servo arms
             first, last = diag.baseline, (diag.steps[-1] if diag.steps else diag.baseline)
             doc = {"effects": [ALIASES.get(e, e) for e in diag.effects],
-                   "rounds": [[{**s, "effect": ALIASES.get(s["effect"], s["effect"])}
+                   "rounds": [[{**s, "effect": "+".join(ALIASES.get(e, e)
+                                                        for e in s["effect"].split("+"))}
                                for s in r] for r in diag.rounds],
                    "baseline_heldout_error_mm": first["heldout_error_mm"],
                    "final_heldout_error_mm": last["heldout_error_mm"],
@@ -478,7 +479,7 @@ def diagnose_case(case: Case, engine: str = "refits") -> dict:
             "clean_holdout_error_mm": clean,
             "strength": base / twin,
             **({"rivals": rivals} if engine == "groups" else {}),
-            "rounds": [[{k: s[k] for k in keys} for s in r] for r in doc["rounds"]]}
+            "rounds": [[{k: s[k] for k in keys if k in s} for s in r] for r in doc["rounds"]]}
 
 
 def cases_for_seeds(seeds) -> list[Case]:

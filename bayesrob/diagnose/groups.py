@@ -5,15 +5,16 @@ where the commands pass through a servo map: :func:`~bayesrob.calibrate.least_sq
 Each candidate effect is a calibration group (``joint_compliance``: ``compliance``;
 ``lateral_compliance``: ``lateral``; ``encoder_error``: ``encoder``; ``servo_nonlinearity``:
 ``servo_curve``, where a servo map is; ``backlash``, tried once compliance is named, since only
-a fitted deflection says which side a joint rests on). Effects are named greedily: each round
-fits every remaining candidate on most ``train`` poses and scores it on the *selection* poses
-(drawn with the seed; a rig with few train poses is scored over several disjoint folds, each
-fitted without its own, until MIN_SCORED_POSES poses are). A candidate passes when its paired
-per-row error drop there exceeds ``rule.Z`` standard errors; the one dropping the mean error
-most per added parameter is named (so compliance goes before an encoder sinusoid that mimics
-part of it). A passing candidate within ``rule.Z`` standard errors of the named one is
-reported as its *rival*. The ``validation`` rows are never looked at while deciding: the
-ladder (errors after each named effect, refitted on every train row) is reported on them.
+a fitted deflection says which side a joint rests on, or with it where nothing passes alone).
+Effects are named greedily: each round fits every remaining candidate on most ``train`` poses
+and scores it on the *selection* poses (drawn with the seed; a rig with few train poses is
+scored over several disjoint folds, each fitted without its own, until MIN_SCORED_POSES poses
+are). A candidate passes when its paired per-row error drop there exceeds ``rule.Z`` standard
+errors; the one dropping the mean error most per added parameter is named (so compliance goes
+before an encoder sinusoid that mimics part of it). A passing candidate within ``rule.Z``
+standard errors of the named one is reported as its *rival*. The ``validation`` rows are never
+looked at while deciding: the ladder (errors after each named effect, refitted on every train
+row) is reported on them.
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ MIN_SCORED_POSES = 20
 # Least-squares evaluations per stage of a selection fit: on Justin 140 (of 320) left every
 # selection error as before to 0.01 mm (drops between candidates: 0.1-5 mm), in half the time.
 SELECTION_NFEV = 140
-# the parameter guard, reported beside each candidate and step (not deciding: rule.py)
+# the parameter guard, reported beside each candidate and step (not deciding: rule.py), but
+# deciding for a pair tried because nothing passed alone: unguarded, a 17-parameter pair
+# passed on the clean arm6 of tuning seed 11 (4.9 nats) and made its validation worse
 GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
 
 
@@ -90,11 +93,11 @@ class GroupDiagnosis:
             "rule": (f"of the candidates whose paired error drop on the selection poses "
                      f"({self.selection_rows} train rows held back over "
                      f"{self.selection_folds} fold(s), each fitted without its own) exceeds "
-                     f"{Z:g} "
-                     "standard errors, name the one with the largest drop per added "
-                     "parameter (backlash is tried once joint_compliance is named; a "
-                     "candidate left no identifiable parameter never passes); validation "
-                     "rows only report"),
+                     f"{Z:g} standard errors, name the one with the largest drop per added "
+                     "parameter (backlash is tried once joint_compliance is named, or where "
+                     "nothing passes alone with it, both named where the pair also beats "
+                     "joint_compliance alone and clears the parameter guard; a candidate left "
+                     "no identifiable parameter never passes); validation rows only report"),
             "steps": self.steps, "rounds": self.rounds,
             "baseline": self.baseline,
             "baseline_heldout_error_mm": self.baseline["heldout_error_mm"],
@@ -219,6 +222,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     named: list[str] = []
     rivals: list[list[str]] = []  # per named effect
     guarded: list[bool] = []  # per named effect: its step clears the parameter guard
+    named_in: list[int] = []  # per named effect: the round (from 1) that named it
     rounds: list[list[dict]] = []
     # at most: every candidate in every round, then the ladder (made exact once the rounds end)
     total = len(folds) * (sum(range(1, len(candidates) + 1)) + 1) + len(candidates) + 1
@@ -228,38 +232,58 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
         # each named effect's selection fits (one per fold): the last named model's are where
         # the WARM_STARTED candidates start
         selected: dict[str, list[np.ndarray]] = {}
+
+        def score(effects: tuple[str, ...], starts: list[np.ndarray] | None) -> dict:
+            """A candidate (an effect, or one with the effect it builds on) fitted on the
+            folds and scored against the current model's selection errors."""
+            added_groups = tuple(CHAIN_EFFECTS[e] for e in effects)
+            after, xs, cal = _fold_fits(folds, (*groups, *added_groups), starts,
+                                        WARM_NFEV if starts is not None else SELECTION_NFEV,
+                                        bar)
+            added = int(cal.ident.free.sum()) - n_before
+            # its own group, not the net count: freeing the links' masses may change that
+            # count by itself
+            own = bool(cal.ident.free[cal.robot.layout.group_mask(added_groups[-1:])].any())
+            gain, gain_se = elpd_diff(before[1], after[1])
+            err0, err1 = float(before[0].mean()), float(after[0].mean())
+            z = _paired_z(before[0], after[0])
+            return {"effect": "+".join(effects), "parameters": added,
+                    "selection_error_before_mm": err0,
+                    "selection_error_after_mm": err1, "z": z,
+                    "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
+                    # the selection rows' log density gain and the parameter guard's
+                    # verdict on it: reported, not deciding (docs/diagnose.md, "The
+                    # parameter guard")
+                    "elpd_diff": gain, "elpd_diff_se": gain_se,
+                    "guard_nats": GUARD.threshold(added),
+                    "guard_passes": bool(gain > GUARD.threshold(added)),
+                    # a candidate the rank analysis leaves nothing to fit (lateral bending
+                    # under gravity in a planar arm's plane) moves the errors by rounding
+                    # alone: its z is noise
+                    "passes": bool(own and z > Z),
+                    "_effects": effects, "_after": after, "_x": xs}
+
         while len(named) < len(candidates):
             scores = []
             for eff in (c for c in candidates
                         if c not in named and NEEDS.get(c, c) in (*named, c)):
                 # compared with each other, not reported: the fast fit is enough to decide
                 warm = eff in WARM_STARTED and bool(named)
-                after, xs, cal = _fold_fits(folds, (*groups, CHAIN_EFFECTS[eff]),
-                                            selected[named[-1]] if warm else None,
-                                            WARM_NFEV if warm else SELECTION_NFEV, bar)
-                added = int(cal.ident.free.sum()) - n_before
-                # its own group, not the net count: freeing the links' masses may change
-                # that count by itself
-                own = bool(cal.ident.free[cal.robot.layout.group_mask(
-                    (CHAIN_EFFECTS[eff],))].any())
-                gain, gain_se = elpd_diff(before[1], after[1])
-                err0, err1 = float(before[0].mean()), float(after[0].mean())
-                z = _paired_z(before[0], after[0])
-                scores.append({"effect": eff, "parameters": added,
-                               "selection_error_before_mm": err0,
-                               "selection_error_after_mm": err1, "z": z,
-                               "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
-                               # the selection rows' log density gain and the parameter
-                               # guard's verdict on it: reported, not deciding
-                               # (docs/diagnose.md, "The parameter guard")
-                               "elpd_diff": gain, "elpd_diff_se": gain_se,
-                               "guard_nats": GUARD.threshold(added),
-                               "guard_passes": bool(gain > GUARD.threshold(added)),
-                               # a candidate the rank analysis leaves nothing to fit
-                               # (lateral bending under gravity in a planar arm's plane)
-                               # moves the errors by rounding alone: its z is noise
-                               "passes": bool(own and z > Z),
-                               "_after": after, "_x": xs})
+                scores.append(score((eff,), selected[named[-1]] if warm else None))
+            if not any(s["passes"] for s in scores):
+                # nothing passes alone: an effect that builds on another not named (play,
+                # which takes its side from a fitted deflection) is tried with it, and
+                # passes where each is needed, beyond the current model and beyond the
+                # other alone (the planar engine's pairs), and it clears the guard
+                for eff, first in NEEDS.items():
+                    alone = [s for s in scores if s["effect"] == first]
+                    if eff not in candidates or eff in named or not alone:
+                        continue
+                    pair = score((first, eff), None)
+                    pair["z_vs_alone"] = _paired_z(alone[0]["_after"][0], pair["_after"][0])
+                    pair["passes"] = bool(pair["passes"] and pair["z_vs_alone"] > Z
+                                          and pair["guard_passes"])
+                    scores.append(pair)
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:
@@ -278,10 +302,13 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             # name is the rule's choice between fits the data hold equally good
             rivals.append([s["effect"] for s in passing
                            if abs(s.get("z_vs_named", np.inf)) <= Z])
-            guarded.append(best["guard_passes"])
-            named.append(best["effect"])
-            selected[best["effect"]] = best["_x"]
-            groups = (*groups, CHAIN_EFFECTS[best["effect"]])
+            for eff in best["_effects"]:  # a pair names both, the one built on first
+                guarded.append(best["guard_passes"])
+                named_in.append(len(rounds))
+                named.append(eff)
+                selected[eff] = best["_x"]
+                groups = (*groups, CHAIN_EFFECTS[eff])
+            rivals.extend([rivals[-1]] * (len(best["_effects"]) - 1))
             before, n_before = best["_after"], n_before + best["parameters"]
         # the selection is over: what is left is known, a ladder fit per step and the base
         planned = bar.total
@@ -318,7 +345,8 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                 baseline = row
             else:
                 steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
-                              "guard_passes": guarded[k - 1], **row})
+                              "guard_passes": guarded[k - 1], "round": named_in[k - 1],
+                              **row})
     notes = ([] if rig.robot.servo_mapped or effects is not None else
              ["servo_nonlinearity not tried: the robot's columns are its joint values (no servo "
               "map; encoder_error is their error)"])

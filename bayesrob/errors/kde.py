@@ -899,15 +899,9 @@ def _bin_index(p: jnp.ndarray, lo: jnp.ndarray, widths: jnp.ndarray, bins: tuple
 
 
 @partial(jax.jit, static_argnames=("bins", "log_floor"))
-def histogram_lookup(
-    x: jnp.ndarray,
-    z: jnp.ndarray,
-    table: jnp.ndarray,
-    lo: jnp.ndarray,
-    widths: jnp.ndarray,
-    bins: tuple[int, ...],
-    log_floor: float,
-) -> jnp.ndarray:
+def histogram_lookup(x: jnp.ndarray, z: jnp.ndarray, table: jnp.ndarray, lo: jnp.ndarray,
+                     widths: jnp.ndarray, bins: tuple[int, ...], log_floor: float
+                     ) -> jnp.ndarray:
     """log p(x | z) from a histogram table (the paper's COND): ``table`` the log density per
     bin, ``lo`` the grid's lower corner, ``widths`` the bin widths (x dimensions, then z);
     points outside get ``log_floor``."""
@@ -917,15 +911,8 @@ def histogram_lookup(
     return jnp.where(xin & zin, table[ix, iz], log_floor)
 
 
-def histogram_guide(
-    x: jnp.ndarray,
-    z: jnp.ndarray,
-    table: jnp.ndarray,
-    lo: jnp.ndarray,
-    widths: jnp.ndarray,
-    bins: tuple[int, ...],
-    wall: float,
-) -> jnp.ndarray:
+def histogram_guide(x: jnp.ndarray, z: jnp.ndarray, table: jnp.ndarray, lo: jnp.ndarray,
+                    widths: jnp.ndarray, bins: tuple[int, ...], wall: float) -> jnp.ndarray:
     """A smooth stand-in for :func:`histogram_lookup` in x, whose gradient steers NUTS: the
     log table of z's bin interpolated multilinearly between x-bin centres, and outside the grid
     its edge value minus ``0.5 * (distance / (wall * bin width))^2``, a wall turning
@@ -953,16 +940,9 @@ def histogram_guide(
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(5, 6, 7))
-def guided_histogram_lookup(
-    x: jnp.ndarray,
-    z: jnp.ndarray,
-    table: jnp.ndarray,
-    lo: jnp.ndarray,
-    widths: jnp.ndarray,
-    bins: tuple[int, ...],
-    log_floor: float,
-    wall: float,
-) -> jnp.ndarray:
+def guided_histogram_lookup(x: jnp.ndarray, z: jnp.ndarray, table: jnp.ndarray,
+                            lo: jnp.ndarray, widths: jnp.ndarray, bins: tuple[int, ...],
+                            log_floor: float, wall: float) -> jnp.ndarray:
     """:func:`histogram_lookup`'s exact value, with :func:`histogram_guide`'s gradient in x.
 
     The table's true gradient is zero almost everywhere, so HMC would fly off the support.

@@ -157,9 +157,11 @@ def format_group_diagnosis(doc: dict) -> str:
             [[s["effect"], str(s["parameters"]), f"{s['selection_error_before_mm']:.2f} -> "
               f"{s['selection_error_after_mm']:.2f}", f"{s['z']:.1f}",
               "yes" if s["passes"] else "no"] for s in scores]))
-        if r > len(doc["steps"]):
+        # the steps this round named: one effect, or a pair ("a+b", the first built on)
+        mine = [s for k, s in enumerate(doc["steps"], start=1) if s.get("round", k) == r]
+        if not mine:
             continue  # nothing named in this round: no comparison with a named effect
-        chosen, rivals = doc["steps"][r - 1]["effect"], doc["steps"][r - 1]["rivals"]
+        chosen, rivals = "+".join(s["effect"] for s in mine), mine[0]["rivals"]
         named = next(s for s in scores if s["effect"] == chosen)
         if not named.get("guard_passes", True):
             out.append(f"  {chosen} gains {named['elpd_diff']:+.1f} nats on the selection poses, "
