@@ -1250,6 +1250,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        if argv is None:
+            # none is taken from here on: the one raised again half a second after the first
+            # (above) could land in this block on a loaded machine and escape main, which
+            # then died by the signal (exit -2, seen once in a CI-like run of reproduce)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         caught.set()
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
         if argv is None:

@@ -224,8 +224,11 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
     guarded: list[bool] = []  # per named effect: its step clears the parameter guard
     named_in: list[int] = []  # per named effect: the round (from 1) that named it
     rounds: list[list[dict]] = []
-    # at most: every candidate in every round, then the ladder (made exact once the rounds end)
-    total = len(folds) * (sum(range(1, len(candidates) + 1)) + 1) + len(candidates) + 1
+    # at most: every candidate in every round and each pair once (a pair that fails ends the
+    # rounds), then the ladder (made exact once the rounds end)
+    pairs = sum(1 for e in NEEDS if e in candidates)
+    total = (len(folds) * (sum(range(1, len(candidates) + 1)) + 1 + pairs)
+             + len(candidates) + 1)
     with make_progress(total, "diagnose", "fits", enabled=progress) as bar:
         before, _, cal = _fold_fits(folds, groups, None, SELECTION_NFEV, bar)
         n_before = int(cal.ident.free.sum())
