@@ -37,7 +37,7 @@ from bayesrob.data.rig import Rig
 from bayesrob.data.vocabulary import CHAIN_EFFECTS
 from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
 from bayesrob.robot import SAG_GROUPS
-from bayesrob.robot.effects import ALIASES, resolve_effects
+from bayesrob.robot.effects import ALIASES, SERVO_EFFECTS, resolve_effects
 
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no
 # side; fitted with it in one candidate it only cost time (seed 11: less drop per parameter
@@ -303,15 +303,14 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                 break
             # a passing candidate the selection poses cannot tell from the named one: the
             # name is the rule's choice between fits the data hold equally good
-            rivals.append([s["effect"] for s in passing
-                           if abs(s.get("z_vs_named", np.inf)) <= Z])
+            close = [s["effect"] for s in passing if abs(s.get("z_vs_named", np.inf)) <= Z]
             for eff in best["_effects"]:  # a pair names both, the one built on first
+                rivals.append(close)
                 guarded.append(best["guard_passes"])
                 named_in.append(len(rounds))
                 named.append(eff)
                 selected[eff] = best["_x"]
                 groups = (*groups, CHAIN_EFFECTS[eff])
-            rivals.extend([rivals[-1]] * (len(best["_effects"]) - 1))
             before, n_before = best["_after"], n_before + best["parameters"]
         # the selection is over: what is left is known, a ladder fit per step and the base
         planned = bar.total
@@ -350,9 +349,10 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                 steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
                               "guard_passes": guarded[k - 1], "round": named_in[k - 1],
                               **row})
-    notes = ([] if rig.robot.servo_mapped or effects is not None else
-             ["servo_nonlinearity not tried: the robot's columns are its joint values (no servo "
-              "map; encoder_error is their error)"])
+    # the servo effects resolve_effects left out of the default candidates
+    notes = [f"{e} not tried: the robot's columns are its joint values (no servo map; "
+             "encoder_error is their error)" for e in SERVO_EFFECTS
+             if effects is None and e not in candidates]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
