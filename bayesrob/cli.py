@@ -1199,22 +1199,33 @@ def _user_errors() -> tuple[type[Exception], ...]:
     return (UsageError, OutputPathError, *found)
 
 
-def _deliver_ctrl_c_surely() -> threading.Event:
+class _CtrlC:
+    """Whether ``main`` has caught a Ctrl-C: a plain attribute, so that setting it is the
+    first thing main's handler does and no call (where a pending signal runs its handler)
+    comes before it."""
+
+    caught = False
+
+
+def _deliver_ctrl_c_surely() -> _CtrlC:
     """Ctrl-C as a KeyboardInterrupt that cannot be lost: one raised inside a garbage
     collector's callback (JAX has one) is printed and dropped by Python, and the command then
     ran on to its end. So each Ctrl-C is raised again after half a second until ``main`` has
-    caught one (the returned event)."""
-    caught = threading.Event()
+    caught one; from then on the handler raises nothing, since one raised again could land
+    inside main's own handler and escape it (exit -2 where 130 is the contract, seen in CI
+    on a loaded machine)."""
+    state = _CtrlC()
 
     def again() -> None:
-        if not caught.is_set():
+        if not state.caught:
             os.kill(os.getpid(), signal.SIGINT)
 
     def on_sigint(signum, frame):
-        if not caught.is_set():
-            timer = threading.Timer(0.5, again)
-            timer.daemon = True
-            timer.start()
+        if state.caught:
+            return
+        timer = threading.Timer(0.5, again)
+        timer.daemon = True
+        timer.start()
         raise KeyboardInterrupt
 
     def unraisable(info) -> None:
@@ -1225,7 +1236,7 @@ def _deliver_ctrl_c_surely() -> threading.Event:
     default_hook = sys.unraisablehook
     sys.unraisablehook = unraisable
     signal.signal(signal.SIGINT, on_sigint)
-    return caught
+    return state
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1235,7 +1246,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     caught = (_deliver_ctrl_c_surely() if argv is None and signal.getsignal(signal.SIGINT)
-              is signal.default_int_handler else threading.Event())
+              is signal.default_int_handler else _CtrlC())
     try:
         _check_outputs(parser, args)
         return COMMANDS[args.command].run(args)
@@ -1250,12 +1261,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        if argv is None:
-            # none is taken from here on: the one raised again half a second after the first
-            # (above) could land in this block on a loaded machine and escape main, which
-            # then died by the signal (exit -2, seen once in a CI-like run of reproduce)
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-        caught.set()
+        caught.caught = True
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
         if argv is None:
             # Run as a program: leave at once. The finally blocks on the way here have removed

@@ -64,3 +64,21 @@ def test_ctrl_c_is_one_line_and_exit_130_with_nothing_left(argv, tmp_path):
     assert not any("Traceback" in line for line in lines), lines
     left = sorted(p.name for p in out.rglob("*")) if out.exists() else []
     assert left == [], left
+
+
+def test_once_main_has_caught_a_ctrl_c_the_handler_raises_nothing():
+    # A Ctrl-C raised again (the handler does so half a second after each until main has
+    # caught one) must not land inside main's own handler: there it escaped, exit -2.
+    from bayesrob import cli
+
+    previous, hook = signal.getsignal(signal.SIGINT), sys.unraisablehook
+    try:
+        state = cli._deliver_ctrl_c_surely()
+        handler = signal.getsignal(signal.SIGINT)
+        with pytest.raises(KeyboardInterrupt):
+            handler(signal.SIGINT, None)
+        state.caught = True
+        handler(signal.SIGINT, None)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        sys.unraisablehook = hook
