@@ -134,7 +134,10 @@ def _folds(rig: Rig, seed: int) -> list[Rig]:
 def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
     """How many standard errors the per-row error drop ``before - after`` is above zero."""
     d = before - after
-    return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))) if len(d) > 1 else 0.0
+    sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
+    # no spread: a candidate that moved no row (nothing identifiable to fit) is no drop, not
+    # the NaN of 0/0 that a JSON document cannot hold
+    return float(d.mean() / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
 
 
 def _selection_rows(rig: Rig, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
