@@ -74,13 +74,6 @@ if (_checkout / "pyproject.toml").exists() and (_checkout / "validation" / "suit
 
 # Programs compiling faster than this are cheaper to rebuild than to read back from disk.
 _CACHE_MIN_COMPILE_SECS = 0.05
-# A size cap turns on JAX's least-recently-used eviction, and with it a file lock around every
-# read and write of the cache: without one JAX writes entries in place, and a process reading
-# a program another is still writing gets half of it. With the lock, every process on a machine
-# (test workers, Dask workers, a command beside them) can share one directory. 1 GiB is about
-# five times what the test and validation suites compile; every write scans the directory,
-# so a larger cap would make each new program dearer.
-_CACHE_MAX_BYTES = 1024 ** 3
 
 
 def cache_dir() -> Path | None:
@@ -97,10 +90,7 @@ def cache_dir() -> Path | None:
 def compilation_cache_dir() -> Path | None:
     """Where JAX's persistent compilation cache goes, or None when it is turned off."""
     root = cache_dir()
-    # "jax-lru", not the "jax" of versions before the size cap: JAX's eviction needs a
-    # last-use stamp beside every entry, and an entry written without one makes every later
-    # write fail
-    return None if root is None else root / "jax-lru"
+    return None if root is None else root / "jax"
 
 
 # JAX reads its options from JAX_* variables when it is first imported. Setting them here,
@@ -136,8 +126,7 @@ def _configure_jax() -> None:
     if directory is not None:
         options |= {"jax_compilation_cache_dir": str(directory),
                     "jax_persistent_cache_min_compile_time_secs": _CACHE_MIN_COMPILE_SECS,
-                    "jax_persistent_cache_min_entry_size_bytes": 0,
-                    "jax_compilation_cache_max_size": _CACHE_MAX_BYTES}
+                    "jax_persistent_cache_min_entry_size_bytes": 0}
     if jax is not None:  # imported before this package: set its options directly
         for name, value in options.items():
             jax.config.update(name, value)

@@ -15,10 +15,11 @@ import pytest
 if "BAYESROB_CACHE_DIR" not in os.environ:
     os.environ["BAYESROB_CACHE_DIR"] = tempfile.mkdtemp(prefix="bayesrob-test-cache-")
     atexit.register(shutil.rmtree, os.environ["BAYESROB_CACHE_DIR"], ignore_errors=True)
-# Every xdist worker (and the processes it starts: Dask workers, the command run as a
-# subprocess) shares it: the cache locks each entry it reads or writes (bayesrob's
-# _CACHE_MAX_BYTES), so a program one worker compiled is read back by the other, and a run
-# given BAYESROB_CACHE_DIR (CI's, after the validation suite) starts from what is in it.
+# Each xdist worker (and the processes it starts: Dask workers, the command run as a
+# subprocess) has a directory of its own in it, so no entry is written by two processes at once.
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _worker and not os.environ.get("BAYESROB_CACHE_DIR", "").endswith(_worker):
+    os.environ["BAYESROB_CACHE_DIR"] = os.path.join(os.environ["BAYESROB_CACHE_DIR"], _worker)
 
 
 @pytest.fixture(autouse=True)
