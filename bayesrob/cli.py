@@ -1245,7 +1245,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MPLBACKEND", "Agg")
     parser = build_parser()
     args = parser.parse_args(argv)
-    caught = (_deliver_ctrl_c_surely() if argv is None and signal.getsignal(signal.SIGINT)
+    ctrl_c = (_deliver_ctrl_c_surely() if argv is None and signal.getsignal(signal.SIGINT)
               is signal.default_int_handler else _CtrlC())
     try:
         _check_outputs(parser, args)
@@ -1261,7 +1261,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        caught.caught = True
+        ctrl_c.caught = True
         print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
         if argv is None:
             # Run as a program: leave at once. The finally blocks on the way here have removed
