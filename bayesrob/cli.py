@@ -55,6 +55,7 @@ COMMANDS: dict[str, Command] = {}
 USER_ERRORS = (
     "bayesrob.data.rig.RigError",
     "bayesrob.errors.noise_models.ModelFileError",
+    "bayesrob.cluster.ClusterError",  # a --scheduler that cannot be reached
     "bayesrob.design.file.DesignError",
     "bayesrob.diagnose.groups.DiagnosisError",
     "bayesrob.hardware.controller.ArgumentError",

@@ -118,9 +118,10 @@ def scale() -> dict:
 
 
 def tuning() -> dict:
+    from bayesrob.cluster import dask_client
     from bayesrob.design.file import load_design
     from bayesrob.design.modules import load_modules
-    from bayesrob.design.search import dask_client, run_design
+    from bayesrob.design.search import run_design
 
     counts: dict[int, list[int]] = {}  # arms -> [built, below optimistic, above assured]
     with tempfile.TemporaryDirectory() as tmp, dask_client(None, 2) as client:

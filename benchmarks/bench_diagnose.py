@@ -93,7 +93,7 @@ def run_all(cases: list, workers: int, log: Path | None,
     """Diagnose every case as a Dask task; results in the cases' order."""
     from distributed import as_completed
 
-    from bayesrob.design.search import dask_client
+    from bayesrob.cluster import dask_client
 
     results: dict[int, dict] = {}
     with dask_client(scheduler, workers) as client:

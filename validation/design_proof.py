@@ -126,9 +126,10 @@ def proof(seeds: Sequence[int] = REPORT_SEEDS, say: Callable[[str], None] = prin
     summary; ``met`` is the second report set's criterion, written down before it ran: the
     best holds in at least 90% of designs, and of the designs with a candidate predicted to
     miss, the best-ranked one misses in at least 80%."""
+    from bayesrob.cluster import dask_client
     from bayesrob.design.file import load_design
     from bayesrob.design.modules import load_modules
-    from bayesrob.design.search import dask_client, run_design
+    from bayesrob.design.search import run_design
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="bayesrob-design-proof-") as tmp, \

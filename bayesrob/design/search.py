@@ -18,33 +18,25 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
-import os
-import signal
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from distributed import WorkerPlugin
 
 from bayesrob import release_compiled_programs
+from bayesrob.cluster import dask_client
 from bayesrob.design.file import DesignError, DesignSpec
 from bayesrob.design.modules import Module, load_modules
 
 __all__ = ["Candidate", "Job", "DesignResult", "task_targets", "reach_table",
-           "enumerate_candidates", "score", "evaluate", "evaluate_batch", "dask_client",
+           "enumerate_candidates", "score", "evaluate", "evaluate_batch",
            "run_design", "write_candidate_rig"]
 
 BATCH = 25  # candidates per Dask task: enough to hide a task's overhead, small to spread well
 MAX_CANDIDATES = 200_000
-# One XLA thread per worker process: two workers on two cores share nothing, and one worker
-# does not secretly use both cores (the speed-up benchmark would lie).
-WORKER_ENV = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
-              "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
 
 def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """``n`` targets inside the polygon (or 3-D box) ``region``: a scrambled Halton sequence
@@ -262,69 +254,6 @@ def _rank_key(c: dict) -> tuple:
     o = c["overall"]
     return ((False, len(c["arms"]), o["error_quantile_mm"]) if c["meets"]
             else (True, o["assured_error_mm"], len(c["arms"])))
-
-
-class OneCorePerWorker(WorkerPlugin):
-    """Pins each local worker process, every thread of it, to a core its name picks: XLA
-    sizes its pool to the cores it may use, and two unpinned workers on two cores ran at half
-    speed (0.20 s per candidate instead of 0.115)."""
-
-    def __init__(self, cores: Sequence[int]):
-        self.cores = tuple(cores)
-
-    def setup(self, worker: Any) -> None:
-        try:
-            core = self.cores[int(worker.name) % len(self.cores)]
-        except (TypeError, ValueError):
-            return  # a worker not named by a LocalCluster: leave it as it is
-        for tid in os.listdir("/proc/self/task"):
-            with contextlib.suppress(OSError):  # a thread that ended meanwhile
-                os.sched_setaffinity(int(tid), {core})
-
-
-@contextlib.contextmanager
-def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
-    """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
-    ``workers`` single-threaded worker processes (closed on exit)."""
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError) as e:
-            raise DesignError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
-                              f"({type(e).__name__}: {e})") from None
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    saved = {k: os.environ.get(k) for k in WORKER_ENV}
-    os.environ.update(WORKER_ENV)  # the nanny's worker processes inherit them at start
-    # Ctrl-C reaches every process of the terminal's group: workers that took it would each
-    # print a traceback. Started with SIGINT ignored (kept across exec, and Python leaves an
-    # ignored SIGINT alone), they leave it to this process, which closes the cluster.
-    main_thread = threading.current_thread() is threading.main_thread()
-    sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-    try:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=40)
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGINT, sigint)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    client = Client(cluster)
-    if hasattr(os, "sched_setaffinity"):  # Linux; elsewhere the workers stay unpinned
-        client.register_plugin(OneCorePerWorker(sorted(os.sched_getaffinity(0))))
-    try:
-        yield client
-    finally:
-        client.close()
-        cluster.close()
 
 
 def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
