@@ -1105,6 +1105,11 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
                    help="each study on its one or two quick seeds: checks that every study "
                         "runs and gives finite figures (targets need the report seeds)")
     p.add_argument("--list", action="store_true", help="list the studies and their seeds")
+    p.add_argument("--workers", type=_at_least_one, default=2,
+                   help="studies run side by side, each in a LocalCluster worker process "
+                        "(2; 1 runs them in this process, in order)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://host:8786) to run the studies on")
 
 
 @command("validate", "run the validation studies (report seeds, targets fixed before they "
@@ -1121,8 +1126,16 @@ def _validate(args: argparse.Namespace) -> int:
                   f"{list(s.quick_seeds)}: {s.title}")
         return 0
     out = Path(args.out)
-    report = run_suite(studies, quick=args.quick,
-                       after_each=lambda so_far: write_report(so_far, out))
+    workers = min(args.workers, len(studies))
+    if args.scheduler or workers > 1:
+        from bayesrob.cluster import dask_client
+
+        with dask_client(args.scheduler, workers) as client:
+            report = run_suite(studies, quick=args.quick, client=client,
+                               after_each=lambda so_far: write_report(so_far, out))
+    else:
+        report = run_suite(studies, quick=args.quick,
+                           after_each=lambda so_far: write_report(so_far, out))
     json_path, md_path = write_report(report, out)
     passed = sum(s["status"] == "pass" for s in report["studies"].values())
     print(f"validation {report['status']}: {passed}/{len(studies)} studies passed in "

@@ -81,8 +81,14 @@ def run_study(study: Study, quick: bool, say: Callable[[str], None]) -> dict[str
         from bayesrob import release_compiled_programs
 
         release_compiled_programs()
+    return _entry(study, quick, figures, details, error, time.monotonic() - t0)
+
+
+def _entry(study: Study, quick: bool, figures: dict[str, Any], details: Any, error: str,
+           seconds: float) -> dict[str, Any]:
     checks = study.check(figures, quick) if not error else {t.name: FAIL for t in study.targets}
     status = "fail" if error or FAIL in checks.values() else "pass"
+    seeds = study.seeds(quick)
     return {
         "title": study.title,
         "fixed": study.fixed,
@@ -97,36 +103,37 @@ def run_study(study: Study, quick: bool, say: Callable[[str], None]) -> dict[str
         "checks": checks,
         "status": status,
         "error": error,
-        "seconds": round(time.monotonic() - t0, 1),
+        "seconds": round(seconds, 1),
         "details": _clean(details),
     }
 
 
 def run_suite(studies: list[Study], quick: bool = False, stream: TextIO | None = None,
-              after_each: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
-    """Run ``studies`` in order, a line on ``stream`` (stderr) as each starts and ends.
-    ``after_each(report)`` is called with the report so far (``status`` "running") after
-    each study, so an hour's run that is stopped keeps what it measured."""
+              after_each: Callable[[dict[str, Any]], None] | None = None,
+              client: Any = None) -> dict[str, Any]:
+    """Run ``studies``, a line on ``stream`` (stderr) as each starts and ends; in this process
+    in order, or, given a Dask ``client``, each study a task on its cluster (the longest first,
+    by the committed report's seconds), side by side. ``after_each(report)`` is called with the
+    report so far (``status`` "running") after each study, so an hour's run that is stopped
+    keeps what it measured. The report lists the studies in the order given either way."""
     stream = stream if stream is not None else sys.stderr
-
-    def say(text: str) -> None:
-        print(f"  {text}", file=stream, flush=True)
-
     report: dict[str, Any] = {
         "commit": _commit(),
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "machine": machine(),
         "quick": quick,
+        "workers": 1 if client is None else len(client.scheduler_info().get("workers", {})),
         "studies": {},
     }
+    order = {s.name: i for i, s in enumerate(studies, 1)}
+    done: dict[str, dict[str, Any]] = {}
     t0 = time.monotonic()
-    for i, study in enumerate(studies, 1):
-        print(f"validate: [{i}/{len(studies)}] {study.name}: {study.title} "
-              f"(seeds {_seed_text(study.seeds(quick))})", file=stream, flush=True)
-        entry = run_study(study, quick, say)
-        report["studies"][study.name] = entry
+
+    def finished(name: str, entry: dict[str, Any]) -> None:
+        done[name] = entry
+        report["studies"] = {s.name: done[s.name] for s in studies if s.name in done}
         misses = [n for n, c in entry["checks"].items() if c == FAIL]
-        print(f"validate: [{i}/{len(studies)}] {study.name}: {entry['status']} in "
+        print(f"validate: [{order[name]}/{len(studies)}] {name}: {entry['status']} in "
               f"{_duration(entry['seconds'])}"
               + (f" ({entry['error']})" if entry["error"] else "")
               + (f"; missed: {', '.join(misses)}" if misses and not entry["error"] else ""),
@@ -134,10 +141,57 @@ def run_suite(studies: list[Study], quick: bool = False, stream: TextIO | None =
         if after_each is not None:
             after_each({**report, "seconds": round(time.monotonic() - t0, 1),
                         "status": "running"})
+
+    if client is None:
+        for study in studies:
+            finished(study.name, _start_study(study, quick, order[study.name], len(studies),
+                                              stream))
+    else:
+        from distributed import as_completed
+
+        seconds = _committed_seconds()
+        # submitted longest first: a free worker takes a task the moment it is submitted
+        longest_first = sorted(studies, key=lambda s: -seconds.get(s.name, 0.0))
+        futures = {client.submit(_study_task, study, quick, order[study.name],
+                                 len(studies), pure=False,
+                                 priority=round(seconds.get(study.name, 0.0))): study
+                   for study in longest_first}
+        for fut in as_completed(futures):
+            study = futures[fut]
+            try:
+                entry = fut.result()
+            except Exception as exc:  # the worker died under the study (memory, a crash)
+                entry = _entry(study, quick, {}, None, f"{type(exc).__name__}: {exc}", 0.0)
+            finished(study.name, entry)
     report["seconds"] = round(time.monotonic() - t0, 1)
     report["status"] = ("fail" if any(s["status"] == "fail" for s in report["studies"].values())
                         else "pass")
     return report
+
+
+def _start_study(study: Study, quick: bool, i: int, n: int, stream: TextIO) -> dict[str, Any]:
+    def say(text: str) -> None:
+        print(f"  {text}", file=stream, flush=True)
+
+    print(f"validate: [{i}/{n}] {study.name}: {study.title} "
+          f"(seeds {_seed_text(study.seeds(quick))})", file=stream, flush=True)
+    return run_study(study, quick, say)
+
+
+def _study_task(study: Study, quick: bool, i: int, n: int) -> dict[str, Any]:
+    """One study as a Dask task: its lines go to the worker's stderr, which the terminal
+    shows."""
+    return _start_study(study, quick, i, n, sys.stderr)
+
+
+def _committed_seconds() -> dict[str, float]:
+    """Each study's seconds in the committed full run: the order that finishes soonest on a
+    cluster starts the longest first."""
+    try:
+        studies = json.loads(COMMITTED.read_text())["studies"]
+        return {name: float(s.get("seconds") or 0.0) for name, s in studies.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 def _seed_text(seeds: tuple[int, ...] | list[int]) -> str:
@@ -166,7 +220,9 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         f"{kind.capitalize()} on commit `{report['commit']}`, {report['date']}, "
         f"{report['machine']['cores']} cores ({report['machine']['platform']}): "
-        f"**{report['status']}** in {_duration(report['seconds'])}.",
+        f"**{report['status']}** in {_duration(report['seconds'])}"
+        + (f", {report['workers']} studies at a time" if report.get("workers", 1) > 1 else "")
+        + ".",
         "",
         *([report["note"] + ".", ""] if report.get("note") else []),
         "| study | seeds | status | time |",
