@@ -124,9 +124,14 @@ def _configure_jax() -> None:
     directory = None if user_set else _cache_directory()
     options = {"jax_enable_x64": True}
     if directory is not None:
+        # "none" of XLA's GPU caches: JAX puts their directory under the cache's and hashes
+        # that path into every program's key, even on the CPU, so that a cache copied, linked
+        # or moved elsewhere (the test workers' scratch caches, seeded from this machine's)
+        # would never be read.
         options |= {"jax_compilation_cache_dir": str(directory),
                     "jax_persistent_cache_min_compile_time_secs": _CACHE_MIN_COMPILE_SECS,
-                    "jax_persistent_cache_min_entry_size_bytes": 0}
+                    "jax_persistent_cache_min_entry_size_bytes": 0,
+                    "jax_persistent_cache_enable_xla_caches": "none"}
     if jax is not None:  # imported before this package: set its options directly
         for name, value in options.items():
             jax.config.update(name, value)

@@ -4,6 +4,7 @@ process reuses what an earlier one compiled."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -70,6 +71,20 @@ def test_a_second_process_reuses_the_first_ones_compilations(tmp_path):
         return {e for e in entries if "loo" in e or "kde_logpdf" in e}
 
     assert ours(_entries(cache)) == ours(written)
+    assert second[1:] == first[1:]
+
+
+def test_a_cache_copied_to_another_directory_is_read_there(tmp_path):
+    """A program's key does not hold the cache's path (JAX hashes its GPU caches' directory,
+    under the cache's, into every key unless they are off): the test workers' scratch caches,
+    seeded by links from this machine's, depend on it."""
+    first = _run({"BAYESROB_CACHE_DIR": str(tmp_path / "a")})
+    (tmp_path / "b").mkdir()
+    shutil.copytree(tmp_path / "a" / "jax", tmp_path / "b" / "jax")
+    copied = {e for e in _entries(tmp_path / "b" / "jax") if "kde_logpdf" in e}
+    assert copied
+    second = _run({"BAYESROB_CACHE_DIR": str(tmp_path / "b")})
+    assert {e for e in _entries(tmp_path / "b" / "jax") if "kde_logpdf" in e} == copied
     assert second[1:] == first[1:]
 
 
