@@ -3,8 +3,7 @@ validation suite's studies, the diagnosis benchmark's rigs.
 
 A ``LocalCluster`` of single-threaded worker processes, one per core, by default; a running
 scheduler's address for a real cluster. Work that is already running as a Dask task (a
-validation study that runs a design search) submits its tasks to the cluster it is on rather
-than starting one inside a worker.
+validation study that runs a design search) runs its tasks in its own process.
 """
 
 from __future__ import annotations
@@ -63,10 +62,12 @@ def dask_client(scheduler: str | None = None, workers: int = 2,
                 env: Mapping[str, str] = WORKER_ENV) -> Iterator[Any]:
     """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
     ``workers`` worker processes, each pinned to a core, started with ``env`` (by default one
-    XLA thread each), closed on exit. Called from a Dask task, the client of the cluster that
-    task runs on: a worker's processes are daemons and may start none of their own, and the
-    task's core is free while it waits (``worker_client``)."""
-    from distributed import Client, LocalCluster, worker_client
+    XLA thread each), closed on exit. Called from a Dask task (a validation study that runs a
+    design search), a cluster of one worker thread in that task's process: a worker's
+    processes are daemons and may start none of their own, and the cluster's other workers
+    are busy with tasks of their own (sent there, the search's tasks waited minutes behind
+    them), so the task keeps to its own core."""
+    from distributed import Client, LocalCluster
 
     if scheduler:
         try:
@@ -80,7 +81,9 @@ def dask_client(scheduler: str | None = None, workers: int = 2,
             client.close()
         return
     if _inside_a_task():
-        with worker_client() as client:
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                          dashboard_address=":0", silence_logs=40) as cluster, \
+                Client(cluster) as client:
             yield client
         return
     saved = {k: os.environ.get(k) for k in env}
@@ -92,7 +95,7 @@ def dask_client(scheduler: str | None = None, workers: int = 2,
     sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
     try:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=40)
+                               dashboard_address=":0", silence_logs=40)
     finally:
         if main_thread:
             signal.signal(signal.SIGINT, sigint)

@@ -55,7 +55,7 @@ def test_studies_side_by_side_report_what_in_order_reports(fake_studies, capsys)
     in_order, seen_in_order, _ = _run(fake_studies)
     # threads, not processes: the test's module of studies exists in this process only
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+                      dashboard_address=":0") as cluster, Client(cluster) as client:
         side, seen_side, lines = _run(fake_studies, client)
     assert list(side["studies"]) == ["slow", "broken", "missing"]  # the order named
     for name in ("slow", "broken", "missing"):
