@@ -17,7 +17,7 @@ from typing import Any
 
 from distributed import WorkerPlugin
 
-__all__ = ["ClusterError", "WORKER_ENV", "OneCorePerWorker", "dask_client"]
+__all__ = ["ClusterError", "WORKER_ENV", "OneCorePerWorker", "dask_client", "share"]
 
 # One XLA thread per worker process: two workers on two cores share nothing, and one worker
 # does not secretly use both cores (the speed-up benchmark would lie).
@@ -55,6 +55,14 @@ def _inside_a_task() -> bool:
     except ValueError:
         return False
     return True
+
+
+def share(client: Any, value: Any) -> Any:
+    """``value`` on every worker of ``client``'s cluster, once (``scatter(broadcast=True)``),
+    for tasks to take as an argument. Inside a Dask task it is passed as it is: there
+    ``scatter`` stores it on the task's own worker, which a cluster started in the task
+    (:func:`dask_client`) does not know (the scheduler failed with a KeyError naming it)."""
+    return value if _inside_a_task() else client.scatter(value, broadcast=True)
 
 
 @contextlib.contextmanager

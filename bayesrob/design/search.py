@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from bayesrob import release_compiled_programs
-from bayesrob.cluster import dask_client
+from bayesrob.cluster import dask_client, share
 from bayesrob.design.file import DesignError, DesignSpec
 from bayesrob.design.modules import Module, load_modules
 
@@ -289,7 +289,7 @@ def run_design(design: DesignSpec, modules: dict[str, Module] | None = None, *,
                                                                                workers)
     with ctx as cl, make_progress(len(cands), "design", "candidate", enabled=progress) as bar:
         n_workers = len(cl.scheduler_info().get("workers", {})) or workers
-        shared = cl.scatter(job, broadcast=True)
+        shared = share(cl, job)
         futures = [cl.submit(evaluate, shared, b, pure=False, retries=3) for b in batches]
         for fut in as_completed(futures):
             done = fut.result()
