@@ -9,7 +9,6 @@ import time
 import types
 
 import pytest
-
 from bayesrob.validation.study import FAIL, PASS, Study, Target
 from bayesrob.validation.suite import markdown, run_suite
 
