@@ -1130,11 +1130,11 @@ def _validate(args: argparse.Namespace) -> int:
     if args.scheduler or workers > 1:
         from bayesrob.cluster import dask_client
 
-        with dask_client(args.scheduler, workers) as client:
-            report = run_suite(studies, quick=args.quick, client=client,
-                               after_each=lambda so_far: write_report(so_far, out))
+        cluster = dask_client(args.scheduler, workers)
     else:
-        report = run_suite(studies, quick=args.quick,
+        cluster = contextlib.nullcontext(None)  # in this process, in order
+    with cluster as client:
+        report = run_suite(studies, quick=args.quick, client=client,
                            after_each=lambda so_far: write_report(so_far, out))
     json_path, md_path = write_report(report, out)
     passed = sum(s["status"] == "pass" for s in report["studies"].values())

@@ -12,7 +12,7 @@ import contextlib
 import os
 import signal
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from distributed import WorkerPlugin
@@ -66,11 +66,10 @@ def share(client: Any, value: Any) -> Any:
 
 
 @contextlib.contextmanager
-def dask_client(scheduler: str | None = None, workers: int = 2,
-                env: Mapping[str, str] = WORKER_ENV) -> Iterator[Any]:
+def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
     """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
-    ``workers`` worker processes, each pinned to a core, started with ``env`` (by default one
-    XLA thread each), closed on exit. Called from a Dask task (a validation study that runs a
+    ``workers`` worker processes, each pinned to a core with one XLA thread (``WORKER_ENV``),
+    closed on exit. Called from a Dask task (a validation study that runs a
     design search), a cluster of one worker thread in that task's process: a worker's
     processes are daemons and may start none of their own, and the cluster's other workers
     are busy with tasks of their own (sent there, the search's tasks waited minutes behind
@@ -94,8 +93,8 @@ def dask_client(scheduler: str | None = None, workers: int = 2,
                 Client(cluster) as client:
             yield client
         return
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)  # the nanny's worker processes inherit them at start
+    saved = {k: os.environ.get(k) for k in WORKER_ENV}
+    os.environ.update(WORKER_ENV)  # the nanny's worker processes inherit them at start
     # Ctrl-C reaches every process of the terminal's group: workers that took it would each
     # print a traceback. Started with SIGINT ignored (kept across exec, and Python leaves an
     # ignored SIGINT alone), they leave it to this process, which closes the cluster.

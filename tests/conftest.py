@@ -22,9 +22,9 @@ if _worker and not os.environ.get("BAYESROB_CACHE_DIR", "").endswith(_worker):
     os.environ["BAYESROB_CACHE_DIR"] = os.path.join(os.environ["BAYESROB_CACHE_DIR"], _worker)
 
 
-def _seed_from_the_users_cache(scratch: Path) -> int:
+def _seed_from_the_users_cache(scratch: Path) -> None:
     """Hard-link the programs this machine's own cache holds (the one a command run here
-    used, e.g. CI's validation suite) into the scratch cache; the number linked.
+    used, e.g. CI's validation suite) into the scratch cache.
 
     Most of the tests' time is compilation (three of the slowest took 192 s in an empty cache,
     67 s in a warm one). Links leave the user's cache as it was: JAX writes an entry only
@@ -38,18 +38,15 @@ def _seed_from_the_users_cache(scratch: Path) -> int:
     finally:
         os.environ["BAYESROB_CACHE_DIR"] = saved
     if users is None or not users.is_dir() or users.resolve() == scratch.resolve():
-        return 0
+        return
     scratch.mkdir(parents=True, exist_ok=True)
-    linked = 0
     for entry in users.iterdir():
         try:
             os.link(entry, scratch / entry.name)
-            linked += 1
         except FileExistsError:
             continue
         except OSError:
             break  # another file system, or links not allowed: run with an empty cache
-    return linked
 
 
 def _one_xla_thread() -> None:

@@ -150,11 +150,11 @@ def run_suite(studies: list[Study], quick: bool = False, stream: TextIO | None =
         from distributed import as_completed
 
         seconds = _committed_seconds()
-        # submitted longest first: a free worker takes a task the moment it is submitted
+        # submitted longest first: a free worker takes a task the moment it is submitted,
+        # and the rest wait in the order they came
         longest_first = sorted(studies, key=lambda s: -seconds.get(s.name, 0.0))
         futures = {client.submit(_study_task, study, quick, order[study.name],
-                                 len(studies), pure=False,
-                                 priority=round(seconds.get(study.name, 0.0))): study
+                                 len(studies), pure=False): study
                    for study in longest_first}
         for fut in as_completed(futures):
             study = futures[fut]
