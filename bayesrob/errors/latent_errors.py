@@ -61,8 +61,21 @@ def joint_names(robot: kin.Robot, arm: str) -> list[str]:
 def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array,
                    side: dict[str, jax.Array] | None = None) -> jax.Array:
     """d marker / d joint errors at zero error, (N, dim, n) (``side``: the rest of each
-    pose, as :meth:`Robot.tip_transforms`)."""
-    u = jnp.atleast_2d(jnp.asarray(u))
+    pose, as :meth:`Robot.tip_transforms`); one compiled program per structure and shape.
+
+    Run eagerly, the vmapped forward-mode derivative dispatched and compiled each of its
+    primitives alone: 5-6 s for a 6-joint arm's 80 rows in a fresh process, against 0.8 s
+    compiled as one program (which the persistent cache then keeps)."""
+    return jnp.asarray(kin.on_row_buckets(
+        partial(_joint_jacobian_program, robot.structure, arm, robot.nominal_values),
+        jnp.asarray(x), u, side))
+
+
+@partial(jax.jit, static_argnames=("structure", "arm"))
+def _joint_jacobian_program(structure: kin.RobotStructure, arm: str, values: dict,
+                            x: jax.Array, u: jax.Array,
+                            side: dict[str, jax.Array] | None) -> jax.Array:
+    robot = structure.robot(values)
     n = robot.n_path_joints(arm)
 
     def per_row(row, srow):

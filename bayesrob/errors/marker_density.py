@@ -210,6 +210,13 @@ def fit_marker_model(rig: Rig, cal: Calibration, arm: str, spec: ModelSpec,
     return model
 
 
+@jax.jit
+def _gaussian_rows(cov: jax.Array, r: jax.Array) -> jax.Array:
+    # one program: eagerly, numpyro's Cholesky and solves compiled a hundred small ones
+    return dist.MultivariateNormal(covariance_matrix=cov).log_prob(
+        jnp.broadcast_to(r, cov.shape[:-1]))
+
+
 def loo_marker_scores(rig: Rig, model: MarkerModel) -> tuple[np.ndarray, np.ndarray]:
     """(leave-one-out, in-sample) log density (N,) of each train row's scaled residual,
     the calibration kept (see the module docstring)."""
@@ -227,8 +234,7 @@ def loo_marker_scores(rig: Rig, model: MarkerModel) -> tuple[np.ndarray, np.ndar
     side = side_rows(rig, model.calibration.robot, model.arm, "train")
     cov = np.swapaxes(_marker_covariances(model.jacobian(u, side), lat.covariance,
                                           lat.noise_sd), 0, 1)  # (S, N, dim, dim)
-    loglik = np.asarray(dist.MultivariateNormal(covariance_matrix=jnp.asarray(cov)).log_prob(
-        jnp.broadcast_to(jnp.asarray(r), cov.shape[:-1])))  # (S, N)
+    loglik = np.asarray(_gaussian_rows(jnp.asarray(cov), jnp.asarray(r)))  # (S, N)
     in_sample = scipy.special.logsumexp(loglik.T, axis=-1) - math.log(loglik.shape[0])
     chains = 2 if loglik.shape[0] % 2 == 0 else 1
     idata = az.from_dict(posterior={"noise_sd": lat.noise_sd.reshape(chains, -1)},

@@ -37,8 +37,9 @@ def _column_jacobian_program(structure: kin.RobotStructure, arm: str, values: di
 
 def _column_jacobian(robot: kin.Robot, arm: str) -> Callable:
     """(x, u) -> (points (T, dim), d points / d columns (T, dim, c)), one program per
-    structure."""
-    return partial(_column_jacobian_program, robot.structure, arm, robot.nominal_values)
+    structure and row bucket."""
+    program = partial(_column_jacobian_program, robot.structure, arm, robot.nominal_values)
+    return partial(kin.on_row_buckets, lambda x, u, side: program(x, u))
 
 
 def aim(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray

@@ -16,6 +16,7 @@ from bayesrob.robot.chain import (
     ParamLayout,
     Robot,
     RobotStructure,
+    on_row_buckets,
 )
 from bayesrob.robot.dh import dh_chain
 from bayesrob.robot.planar import (
@@ -41,6 +42,7 @@ __all__ = [
     "PLAY_SIDE_RAD", "SAG_GROUPS",
     "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout", "Robot", "RobotStructure",
     "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
-    "jacobian", "log_abs_det_inverse_jacobian", "planar_chain", "servo", "servo_inverse",
+    "jacobian", "log_abs_det_inverse_jacobian", "on_row_buckets", "planar_chain", "servo",
+    "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",
 ]
