@@ -128,6 +128,39 @@ def test_robots_of_one_structure_share_one_program_and_compute_their_own_points(
     assert len(traced) == 2 + len(points)
 
 
+def test_row_counts_of_one_bucket_share_one_program(monkeypatch):
+    """The compiled points and joint Jacobian pad their rows to a bucket (64 rows, else the
+    next quarter octave): 1, 5 and 64 rows run one traced program, 65 rows a second, and every
+    row comes back as it is computed alone (the padding is cut off, no row sees another)."""
+    import jax
+    import jax.numpy as jnp
+
+    from bayesrob.errors.latent_errors import joint_jacobian
+
+    traced = []
+    marker_points = kin.Robot.marker_points
+    monkeypatch.setattr(kin.Robot, "marker_points", lambda self, *a, **k: (
+        traced.append(1), marker_points(self, *a, **k))[1])
+    robot = _robot()
+    name = next(iter(robot.chains))
+    x = jnp.asarray(robot.layout.nominal)
+    u = 1500.0 + 300.0 * np.random.default_rng(0).uniform(
+        -1, 1, (65, robot.chains[name].n_columns))
+    jax.clear_caches()  # programs an earlier test traced for this structure would serve here
+    points = robot.compiled_points(name)
+    full = np.asarray(points(x, u[:64]))
+    for n in (1, 5):
+        np.testing.assert_array_equal(np.asarray(points(x, u[:n])), full[:n])
+    np.testing.assert_array_equal(np.asarray(points(x, u[63:64]))[0], full[63])
+    assert len(traced) == 1
+    assert np.asarray(points(x, u)).shape == (65, robot.dim) and len(traced) == 2
+    traced.clear()
+    jac = np.asarray(joint_jacobian(robot, x, name, u[:50]))
+    assert jac.shape == (50, robot.dim, robot.n_path_joints(name))
+    np.testing.assert_array_equal(np.asarray(joint_jacobian(robot, x, name, u[49:50]))[0],
+                                  jac[49])
+    assert len(traced) == 1
+
 def test_a_changed_nominal_value_changes_what_the_compiled_program_computes():
     """A robot one origin apart runs the program of the first (one structure) with its own
     nominal values, not the first's."""

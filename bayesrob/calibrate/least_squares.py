@@ -156,33 +156,52 @@ def _fit_exact_jacobian(structure: kin.RobotStructure, arms: tuple[str, ...], va
 
 def residual_function(robot: kin.Robot, rows: Rows):
     """(residuals, Jacobian, number of residuals, exact columns) as functions of the
-    parameters, compiled once per structure (rows and nominal values are arguments)."""
+    parameters, compiled once per structure and row buckets (rows and nominal values are
+    arguments; the rows padded as :func:`bayesrob.robot.on_row_buckets` pads them, the
+    padding's residuals cut off)."""
     structure, values = robot.structure, robot.nominal_values
-    arms, data = tuple(rows), _device_rows(rows)
-    n_res = sum(int(d.size) for _, d, _ in data)
+    arms, (data, keep) = tuple(rows), _device_rows(rows)
 
     def exact_columns(x, idx):
         # the columns picked on the host: indexing the device array would compile a gather
         # for every count of fitted columns
         return np.asarray(_fit_exact_jacobian(structure, arms, values, x, data))[
-            :, np.asarray(idx)]
-    return (lambda x: _fit_residuals(structure, arms, values, x, data)), (
-        lambda x: _fit_jacobian(structure, arms, values, x, data)), n_res, exact_columns
+            np.ix_(keep, np.asarray(idx))]
+    return (lambda x: _kept(_fit_residuals(structure, arms, values, x, data), keep)), (
+        lambda x: _kept(_fit_jacobian(structure, arms, values, x, data), keep)), keep.size, \
+        exact_columns
 
 
 def misfit_function(robot: kin.Robot, rows: Rows, penalty: np.ndarray
                     ) -> Callable[[np.ndarray], np.ndarray]:
     """xs (K, P) -> the rows' sum of squares at each parameter vector, with the penalty rows
-    :func:`fit` adds; one compiled program per structure and batch size."""
+    :func:`fit` adds; one compiled program per structure, row buckets and batch size."""
     structure, values = robot.structure, robot.nominal_values
-    arms, data = tuple(rows), _device_rows(rows)
+    arms, (data, keep) = tuple(rows), _device_rows(rows)
+    real = np.zeros(sum(d.size for _, d, _ in data))
+    real[keep] = 1.0
     weights, nominal = jnp.asarray(penalty), jnp.asarray(robot.layout.nominal)
     return lambda xs: np.asarray(_misfits(structure, arms, values, jnp.asarray(xs), data,
-                                          weights, nominal))
+                                          jnp.asarray(real), weights, nominal))
 
 
-def _device_rows(rows: Rows) -> tuple:
-    return tuple((jnp.asarray(u), jnp.asarray(d), side) for u, d, side in rows.values())
+def _device_rows(rows: Rows) -> tuple[tuple, np.ndarray]:
+    """Each arm's rows padded to their bucket, on the device, and where the real rows'
+    residuals stand in the padded residual vector."""
+    data, keep, start = [], [], 0
+    for u, d, side in rows.values():
+        size = kin.row_bucket(len(u))
+        data.append((jnp.asarray(kin.pad_rows(u, size)), jnp.asarray(kin.pad_rows(d, size)),
+                     None if side is None else
+                     {k: jnp.asarray(kin.pad_rows(v, size)) for k, v in side.items()}))
+        keep.append(start + np.arange(np.asarray(d).size))
+        start += size * np.asarray(d).shape[1]
+    return tuple(data), np.concatenate(keep)
+
+
+def _kept(a: jax.Array, keep: np.ndarray) -> jax.Array | np.ndarray:
+    # on the host, unless traced (a derivative taken through the residuals)
+    return a[keep] if isinstance(a, jax.core.Tracer) else np.asarray(a)[keep]
 
 
 # A lateral compliance of one typical size (1e-7 rad per N mm) costs as much as a marker
@@ -446,13 +465,15 @@ def standard_errors(cov: np.ndarray, free: np.ndarray) -> np.ndarray:
 
 @partial(jax.jit, static_argnames=("structure", "arms"))
 def _misfits(structure: kin.RobotStructure, arms: tuple[str, ...], values: dict,
-             xs: jax.Array, data: tuple, penalty: jax.Array, nominal: jax.Array) -> jax.Array:
+             xs: jax.Array, data: tuple, real: jax.Array, penalty: jax.Array,
+             nominal: jax.Array) -> jax.Array:
     """The train rows' sum of squares at each parameter vector of xs (K, P), with the penalty
-    rows :func:`fit` adds (``penalty`` times the distance from ``nominal``)."""
+    rows :func:`fit` adds (``penalty`` times the distance from ``nominal``); ``real``: 1 at
+    the real rows' residuals, 0 at their padding's."""
     robot = structure.robot(values)
 
     def one(x: jax.Array) -> jax.Array:
-        r = _residuals(robot, arms, x, data)
+        r = _residuals(robot, arms, x, data) * real
         return r @ r + jnp.sum((penalty * (x - nominal)) ** 2)
     return jax.vmap(one)(xs)
 

@@ -61,7 +61,7 @@ def joint_names(robot: kin.Robot, arm: str) -> list[str]:
 def joint_jacobian(robot: kin.Robot, x: jax.Array, arm: str, u: jax.Array,
                    side: dict[str, jax.Array] | None = None) -> jax.Array:
     """d marker / d joint errors at zero error, (N, dim, n) (``side``: the rest of each
-    pose, as :meth:`Robot.tip_transforms`); one compiled program per structure and shape.
+    pose, as :meth:`Robot.tip_transforms`); one compiled program per structure and row bucket.
 
     Run eagerly, the vmapped forward-mode derivative dispatched and compiled each of its
     primitives alone: 5-6 s for a 6-joint arm's 80 rows in a fresh process, against 0.8 s

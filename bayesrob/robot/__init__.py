@@ -17,6 +17,8 @@ from bayesrob.robot.chain import (
     Robot,
     RobotStructure,
     on_row_buckets,
+    pad_rows,
+    row_bucket,
 )
 from bayesrob.robot.dh import dh_chain
 from bayesrob.robot.planar import (
@@ -42,7 +44,7 @@ __all__ = [
     "PLAY_SIDE_RAD", "SAG_GROUPS",
     "Arm", "ArmParams", "Chain", "KinematicsError", "ParamLayout", "Robot", "RobotStructure",
     "choose_elbow", "dh_chain", "elbow_point", "forward", "forward_u", "inverse",
-    "jacobian", "log_abs_det_inverse_jacobian", "on_row_buckets", "planar_chain", "servo",
-    "servo_inverse",
+    "jacobian", "log_abs_det_inverse_jacobian", "on_row_buckets", "pad_rows", "planar_chain",
+    "row_bucket", "servo", "servo_inverse",
     "urdf_chain", "wrap_angle", "write_urdf",
 ]

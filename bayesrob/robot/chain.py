@@ -44,10 +44,11 @@ STICK_NOMINAL_RAD = 1e-3  # where a stick fit starts (mrad-scale friction over t
 # the key under which a rows' context dict (``side``) carries the arm's approach sides
 # (N, path joints), beside the other arms' columns; not a valid arm name
 APPROACH = "@approach"
-# A compiled program of rows is built for at least this many, else the next power of two:
-# XLA compiles a program per shape, so three arms' train, validation and holdout rows, a
-# prediction's targets and a test's few rows took a program each (six of the _compiled_points
-# compiles of the linked_chain_three quick study, 5 s); the padded rows cost microseconds.
+# A compiled program of rows is built for at least this many, else for the next quarter
+# octave (80, 96, 112, 128, 160, ...; at most a quarter more rows): XLA compiles a program per
+# shape, so three arms' train, validation and holdout rows, a prediction's targets and a
+# test's few rows took a program each (six of the _compiled_points compiles of the
+# linked_chain_three quick study, 5 s); the padded rows cost microseconds.
 MIN_ROW_BUCKET = 64
 # chains off a path, per chain: (path elements it weighs on, its first element, its links'
 # frames (E_c, N, 4, 4), its name), as Robot.side_frames gives them
@@ -968,26 +969,35 @@ def _element_table(structure: RobotStructure, arm: str) -> dict[str, np.ndarray]
             "stick_idx": np.array(stick_idx)}
 
 
+def row_bucket(n: int) -> int:
+    """The number of rows a compiled program for n rows is built for (:data:`MIN_ROW_BUCKET`)."""
+    if n <= MIN_ROW_BUCKET:
+        return MIN_ROW_BUCKET
+    step = 1 << ((n - 1).bit_length() - 3)
+    return -(-n // step) * step
+
+
+def pad_rows(a: object, size: int) -> np.ndarray:
+    """``a`` (N, ...) with its last row repeated to ``size`` rows (a real pose: no row of
+    zeros that a servo map or a sag would take somewhere odd)."""
+    a = np.asarray(a)
+    return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)]) if len(a) else a
+
+
 def on_row_buckets(program: Callable, x: jax.Array, u: jax.Array,
                    side: dict[str, jax.Array] | None = None) -> object:
     """``program(x, u, side)``, a compiled function of rows u (N, c) and their ``side``
-    arrays (N, ...) whose outputs are per row, run on the rows padded (the last repeated) to
-    :data:`MIN_ROW_BUCKET` or the next power of two and cut back to N, so that a program
-    serves every row count of its bucket. Outputs come back as numpy arrays; traced
-    arguments (inside another transformation) run unpadded."""
+    arrays (N, ...) whose outputs are per row, run on the rows padded to their
+    :func:`row_bucket` and cut back to N, so that a program serves every row count of its
+    bucket. Outputs come back as numpy arrays; traced arguments (inside another
+    transformation) run unpadded."""
     leaves = [x, u, *jax.tree_util.tree_leaves(side)]
     if any(isinstance(a, jax.core.Tracer) for a in leaves):
         return program(x, u, side)
     u = np.atleast_2d(np.asarray(u))
-    n = len(u)
-    size = max(MIN_ROW_BUCKET, 1 << max(n - 1, 0).bit_length())
-
-    def padded(a: object) -> np.ndarray:
-        a = np.asarray(a)
-        return np.concatenate([a, np.repeat(a[-1:], size - n, axis=0)]) if n else a
-
-    out = program(x, padded(u), None if side is None else
-                  {k: padded(v) for k, v in side.items()})
+    n, size = len(u), row_bucket(len(u))
+    out = program(x, pad_rows(u, size), None if side is None else
+                  {k: pad_rows(v, size) for k, v in side.items()})
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
