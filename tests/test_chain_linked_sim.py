@@ -148,17 +148,22 @@ def test_free_equilibria_agree_with_gravity_deflection(world):
         np.testing.assert_allclose(eq.free_joints[a], world["u0"][a] + dq, rtol=0, atol=1e-10)
 
 
-def _onto(robot, x, arm: str, targets: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Minimum-norm Newton steps from ``u`` (N, 6) putting ``arm``'s marker on ``targets``:
-    the nearest posture, to rounding (predict's aim stops at 1e-3 mm)."""
+def _points_and_jacobian(robot, x, arm: str):
+    """u (N, 6) -> (``arm``'s markers (N, 3), their Jacobians (N, 3, 6)), compiled once (run
+    eagerly, each Newton step dispatched every op of the sag on its own)."""
     xj = jnp.asarray(x)
 
     def point(row):
         return robot.marker_points(xj, arm, row[None])[0]
 
+    return jax.jit(lambda u: (jax.vmap(point)(u), jax.vmap(jax.jacfwd(point))(u)))
+
+
+def _onto(points_and_jacobian, targets: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Minimum-norm Newton steps from ``u`` (N, 6) putting the arm's marker on ``targets``:
+    the nearest posture, to rounding (predict's aim stops at 1e-3 mm)."""
     for _ in range(20):
-        p = np.asarray(robot.marker_points(xj, arm, jnp.asarray(u)))
-        jac = np.asarray(jax.vmap(jax.jacfwd(point))(jnp.asarray(u)))
+        p, jac = (np.asarray(v) for v in points_and_jacobian(jnp.asarray(u)))
         u = u + np.einsum("nij,nj->ni", np.linalg.pinv(jac), targets - p)
     return u
 
@@ -175,15 +180,15 @@ def test_the_linked_point_is_a_constrained_energy_minimum(world):
     assert eq.violation_mm.max() < 1e-9
     best = linked_energy(robot, x, eq.joints, world["u0"], world["k"], world["masses"])
     rng = np.random.default_rng(5)
+    newton = {a: _points_and_jacobian(robot, x, a) for a in LINKED_ARMS}
     for trial in range(6):
         moved, follows = LINKED_ARMS if trial % 2 == 0 else LINKED_ARMS[::-1]
         u = {a: eq.joints[a].copy() for a in LINKED_ARMS}
         u[moved] = u[moved] + rng.normal(0, 1e-3, u[moved].shape)
         start = u[follows] + (rng.normal(0, 1e-3, u[follows].shape) if trial >= 3 else 0.0)
-        target = np.asarray(robot.marker_points(jnp.asarray(x), moved, jnp.asarray(u[moved])))
-        u[follows] = _onto(robot, x, follows, target, start)
-        gap = target - np.asarray(robot.marker_points(jnp.asarray(x), follows,
-                                                      jnp.asarray(u[follows])))
+        target = np.asarray(newton[moved](jnp.asarray(u[moved]))[0])
+        u[follows] = _onto(newton[follows], target, start)
+        gap = target - np.asarray(newton[follows](jnp.asarray(u[follows]))[0])
         assert np.abs(gap).max() < 1e-9
         energy = linked_energy(robot, x, u, world["u0"], world["k"], world["masses"])
         assert np.all(energy - best > 1e-4), (trial, (energy - best).min())

@@ -166,8 +166,8 @@ def _task_pool(path: str | Path, rig: Rig, pool: Pool, robot: kin.Robot, x: np.n
     config = np.array([(r.get("config") or measured[0]).strip() for r in rows])
     # the pool as a rig whose train rows are the pool's poses at their nominal end points:
     # the aim starts from the nearest and stays inside the pool's range of commands
-    seen = np.concatenate([np.asarray(robot.marker_points(
-        jnp.asarray(x), a, jnp.asarray(pool.columns(robot, a, pool.config == a))))
+    seen = np.concatenate([np.asarray(robot.compiled_points(a)(
+        jnp.asarray(x), pool.columns(robot, a, pool.config == a)))
         if (pool.config == a).any() else np.zeros((0, robot.dim)) for a in measured])
     cfg = np.concatenate([pool.config[pool.config == a] for a in measured])
     cmds = {c: np.concatenate([pool.commands[c][pool.config == a] for a in measured])

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bayesrob.robot import Robot, RobotStructure, wrap_angle
+from bayesrob.robot import Robot, RobotStructure, on_row_buckets, wrap_angle
 from bayesrob.robot.chain import G_N_PER_KG
 
 # Without gravity_sag a planar arm's servos are this much stiffer: gravity still decides which
@@ -107,10 +107,14 @@ def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
     frames' own): minus :func:`arm_energy`'s gradient with no spring."""
     n = robot.chains[arm].n_joints
     weight = np.asarray(masses_kg, float)[:, None] * (np.asarray(gravity, float) * G_N_PER_KG)
-    q = jnp.atleast_2d(jnp.asarray(q, float))
-    s = arm_energy(robot.structure, arm, robot.nominal_values, jnp.asarray(x), q, q,
-                   jnp.zeros(n), jnp.asarray(weight), jnp.full(n, 0.5), jnp.zeros(n))
-    return -np.asarray(s["grad"])
+    structure, values = robot.structure, robot.nominal_values
+    springs, centre = np.zeros(n), np.full(n, 0.5)
+
+    def gradient(x: jax.Array, q: jax.Array, side: None) -> jax.Array:
+        return arm_energy(structure, arm, values, x, q, q, springs, weight, centre,
+                          springs)["grad"]
+    return -np.asarray(on_row_buckets(gradient, jnp.asarray(x), np.atleast_2d(
+        np.asarray(q, float))))
 
 
 def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
