@@ -191,9 +191,7 @@ def _device_rows(rows: Rows) -> tuple[tuple, np.ndarray]:
     data, keep, start = [], [], 0
     for u, d, side in rows.values():
         size = kin.row_bucket(len(u))
-        data.append((jnp.asarray(kin.pad_rows(u, size)), jnp.asarray(kin.pad_rows(d, size)),
-                     None if side is None else
-                     {k: jnp.asarray(kin.pad_rows(v, size)) for k, v in side.items()}))
+        data.append(jax.tree_util.tree_map(jnp.asarray, kin.pad_rows((u, d, side), size)))
         keep.append(start + np.arange(np.asarray(d).size))
         start += size * np.asarray(d).shape[1]
     return tuple(data), np.concatenate(keep)

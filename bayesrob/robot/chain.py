@@ -977,11 +977,14 @@ def row_bucket(n: int) -> int:
     return -(-n // step) * step
 
 
-def pad_rows(a: object, size: int) -> np.ndarray:
-    """``a`` (N, ...) with its last row repeated to ``size`` rows (a real pose: no row of
-    zeros that a servo map or a sag would take somewhere odd)."""
-    a = np.asarray(a)
-    return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)]) if len(a) else a
+def pad_rows(rows: object, size: int) -> object:
+    """Every array of ``rows`` (a pytree of (N, ...) arrays: the commands, their side
+    arrays, None) with its last row repeated to ``size`` rows, as numpy arrays (a real pose:
+    no row of zeros that a servo map or a sag would take somewhere odd)."""
+    def padded(a: object) -> np.ndarray:
+        a = np.asarray(a)
+        return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)]) if len(a) else a
+    return jax.tree_util.tree_map(padded, rows)
 
 
 def on_row_buckets(program: Callable, x: jax.Array, u: jax.Array,
@@ -996,8 +999,7 @@ def on_row_buckets(program: Callable, x: jax.Array, u: jax.Array,
         return program(x, u, side)
     u = np.atleast_2d(np.asarray(u))
     n, size = len(u), row_bucket(len(u))
-    out = program(x, pad_rows(u, size), None if side is None else
-                  {k: pad_rows(v, size) for k, v in side.items()})
+    out = program(x, *pad_rows((u, side), size))
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
