@@ -94,6 +94,16 @@ def test_only_a_change_of_structure_changes_the_structure(what):
         assert hash(other.structure) == hash(base.structure)
 
 
+def _count_traces(monkeypatch) -> list:
+    """A list that grows by one at each call of ``Robot.marker_points``: each trace of a
+    compiled program, and each eager call."""
+    traced = []
+    marker_points = kin.Robot.marker_points
+    monkeypatch.setattr(kin.Robot, "marker_points", lambda self, *a, **k: (
+        traced.append(1), marker_points(self, *a, **k))[1])
+    return traced
+
+
 def test_robots_of_one_structure_share_one_program_and_compute_their_own_points(monkeypatch):
     """Robots of one structure, whatever their nominal values (a URDF at another path, a
     calibrated robot), run one compiled program; a robot of another structure traces its
@@ -101,10 +111,7 @@ def test_robots_of_one_structure_share_one_program_and_compute_their_own_points(
     import jax
     import jax.numpy as jnp
 
-    traced = []
-    marker_points = kin.Robot.marker_points
-    monkeypatch.setattr(kin.Robot, "marker_points", lambda self, *a, **k: (
-        traced.append(1), marker_points(self, *a, **k))[1])
+    traced = _count_traces(monkeypatch)
     base = _robot()
     name = next(iter(base.chains))
     x = jnp.asarray(base.layout.nominal)
@@ -137,10 +144,7 @@ def test_row_counts_of_one_bucket_share_one_program(monkeypatch):
 
     from bayesrob.errors.latent_errors import joint_jacobian
 
-    traced = []
-    marker_points = kin.Robot.marker_points
-    monkeypatch.setattr(kin.Robot, "marker_points", lambda self, *a, **k: (
-        traced.append(1), marker_points(self, *a, **k))[1])
+    traced = _count_traces(monkeypatch)
     robot = _robot()
     name = next(iter(robot.chains))
     x = jnp.asarray(robot.layout.nominal)
