@@ -1214,10 +1214,11 @@ def _user_errors() -> tuple[type[Exception], ...]:
 
 
 class _CtrlC:
-    """Whether ``main`` has caught a Ctrl-C: a plain attribute, so that setting it is the
-    first thing main's handler does and no call (where a pending signal runs its handler)
-    comes before it."""
+    """Whether a Ctrl-C came and whether ``main`` has caught it: plain attributes, so that
+    setting them is the first thing a handler does and no call (where a pending signal runs
+    its handler) comes before it."""
 
+    requested = False
     caught = False
 
 
@@ -1237,6 +1238,7 @@ def _deliver_ctrl_c_surely() -> _CtrlC:
     def on_sigint(signum, frame):
         if state.caught:
             return
+        state.requested = True
         timer = threading.Timer(0.5, again)
         timer.daemon = True
         timer.start()
@@ -1270,21 +1272,31 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except Exception as exc:
+        if ctrl_c.requested:
+            # Python turns a KeyboardInterrupt raised in some places into another error
+            # (in a descriptor's __set_name__ while a class is built, as an import runs, it
+            # becomes a RuntimeError): after a Ctrl-C any error is the interruption.
+            ctrl_c.caught = True
+            return _interrupted(args.command, argv)
         if not isinstance(exc, _user_errors()):
             raise
         print(f"bayesrob {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         ctrl_c.caught = True
-        print(f"bayesrob {args.command}: interrupted", file=sys.stderr)
-        if argv is None:
-            # Run as a program: leave at once. The finally blocks on the way here have removed
-            # any partial output; tearing the interpreter down under JAX's compiler threads
-            # could still crash it (seen once in four interrupts of a compiling simulate).
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(130)
-        return 130
+        return _interrupted(args.command, argv)
+
+
+def _interrupted(command: str, argv: list[str] | None) -> int:
+    print(f"bayesrob {command}: interrupted", file=sys.stderr)
+    if argv is None:
+        # Run as a program: leave at once. The finally blocks on the way here have removed
+        # any partial output; tearing the interpreter down under JAX's compiler threads
+        # could still crash it (seen once in four interrupts of a compiling simulate).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    return 130
 
 
 if __name__ == "__main__":

@@ -82,3 +82,36 @@ def test_once_main_has_caught_a_ctrl_c_the_handler_raises_nothing():
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = hook
+
+
+_WRAPPED_CTRL_C = """
+import os, signal, sys
+from bayesrob import cli
+
+class Descriptor:
+    def __set_name__(self, owner, name):
+        # the Ctrl-C's handler runs here, and Python wraps what it raises in a RuntimeError
+        os.kill(os.getpid(), signal.SIGINT)
+
+def build_a_class(args):
+    class Holder:
+        field = Descriptor()
+    return 0
+
+cli.COMMANDS["sample"] = cli.COMMANDS["sample"]._replace(run=build_a_class)
+sys.argv = ["bayesrob", "sample", "--target", "140", "220"]
+sys.exit(cli.main())
+"""
+
+
+def test_a_ctrl_c_that_python_wraps_in_another_error_is_still_an_interruption():
+    # seen when the Ctrl-C landed in pandas' import (a dataclass field's __set_name__):
+    # exit 1 and a traceback where one line and 130 are the contract
+    env = {**os.environ,
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.run([sys.executable, "-c", _WRAPPED_CTRL_C], env=env, text=True,
+                          capture_output=True, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 130, lines
+    assert lines == ["bayesrob sample: interrupted"], lines
