@@ -10,7 +10,7 @@ reported separately (``compile_s``), and each method runs once untimed before th
   +-30 mm grid, then a zoomed grid over the mass) and, for comparison, the paper's plain
   100 x 100 grid (:func:`bayesrob.predict.grid.predict`).
 - ``nuts``: numpyro's NUTS with the package defaults (4 chains x (300 warm-up + 4000 draws)
-  per target, acceptance target 0.65), all targets and chains in one vectorised, compiled run.
+  per target, acceptance target 0.8), all targets and chains in one vectorised, compiled run.
 - ``emcee``: 32 walkers x 2500 steps (500 burned) per target, one ensemble per target.
 
 ``ess_bulk_min`` is the smallest bulk ESS over every coordinate of every target (arviz), and
