@@ -20,15 +20,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _interrupt(argv: list[str], cwd: Path) -> tuple[int, list[str]]:
-    # the checkout's code, as the other tests run it, whatever copy is installed
+def _as_a_user_starts_it() -> dict:
+    """Keyword arguments that start a subprocess as a person's shell would: the checkout's
+    code (as the other tests run it, whatever copy is installed) and SIGINT at its default (an
+    xdist worker may ignore it, and an ignored signal stays ignored across exec)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1",
            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    # an xdist worker may ignore SIGINT, and an ignored signal stays ignored across exec:
-    # the command starts with it as a person's shell would give it
-    proc = subprocess.Popen([sys.executable, "-m", "bayesrob", *argv], cwd=cwd, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return {"env": env, "text": True,
+            "preexec_fn": lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)}
+
+
+def _interrupt(argv: list[str], cwd: Path) -> tuple[int, list[str]]:
+    proc = subprocess.Popen([sys.executable, "-m", "bayesrob", *argv], cwd=cwd,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            **_as_a_user_starts_it())
     lines = []
     deadline = time.monotonic() + 240
     assert proc.stderr is not None
@@ -107,11 +112,8 @@ sys.exit(cli.main())
 def test_a_ctrl_c_that_python_wraps_in_another_error_is_still_an_interruption():
     # seen when the Ctrl-C landed in pandas' import (a dataclass field's __set_name__):
     # exit 1 and a traceback where one line and 130 are the contract
-    env = {**os.environ,
-           "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.run([sys.executable, "-c", _WRAPPED_CTRL_C], env=env, text=True,
-                          capture_output=True, timeout=120,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.run([sys.executable, "-c", _WRAPPED_CTRL_C], capture_output=True,
+                          timeout=120, **_as_a_user_starts_it())
     lines = proc.stderr.splitlines()
     assert proc.returncode == 130, lines
     assert lines == ["bayesrob sample: interrupted"], lines
