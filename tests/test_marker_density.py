@@ -42,6 +42,21 @@ def test_a_marker_density_is_its_gaussian_mixture():
     assert dens.hdr_level(np.array([dens.centre[0] + 8.0]))[0] > 0.99
 
 
+def test_draws_pick_each_rows_components_by_that_rows_weights():
+    # components 100 mm apart with 1 um kernels, so each draw names the component it came from;
+    # rows with different weights, a zero weight and a shared kernel (T | 1 broadcasting)
+    w = np.array([[0.1, 0.2, 0.3, 0.4], [0.97, 0.01, 0.01, 0.01], [0.0, 0.0, 0.5, 0.5]])
+    means = np.zeros((3, 4, 1))
+    means[..., 0] = 100.0 * np.arange(4)
+    with np.errstate(divide="ignore"):
+        dens = MarkerDensity(np.zeros((3, 1)), np.log(w), means, np.full((1, 1, 1, 1), 1e-3))
+    which = np.rint(dens.sample(5, 40000)[..., 0] / 100.0).astype(int)  # (n, T)
+    freq = np.stack([np.bincount(which[:, t], minlength=4) / 40000 for t in range(3)])
+    # 40000 draws: a frequency's sd is at most 0.0025, 0.0125 is 5 sd
+    np.testing.assert_allclose(freq, w, atol=0.0125)
+    assert np.all(freq[2, :2] == 0.0)
+
+
 def test_cond_leave_one_out_is_the_density_fitted_without_the_row():
     rng = np.random.default_rng(1)
     u = rng.uniform(-1, 1, (25, 4))

@@ -125,7 +125,12 @@ def _sample(key, centre, log_w, means, chol, n):
     t, k = log_w.shape
     dim = centre.shape[-1]
     k1, k2 = jax.random.split(key)
-    pick = jax.random.categorical(k1, log_w, shape=(n, t))  # (n, T)
+    # inverse CDF, one uniform per draw: categorical's Gumbel trick draws n*T*K variates,
+    # 240 million (17 s) for Justin's 4000 draws x 200 rows x 300 kernels
+    cdf = jnp.cumsum(jnp.exp(log_w - logsumexp(log_w, axis=-1, keepdims=True)), axis=-1)
+    u = jax.random.uniform(k1, (t, n)) * cdf[:, -1:]
+    pick = jax.vmap(lambda c, v: jnp.searchsorted(c, v, side="right"))(cdf, u)
+    pick = jnp.minimum(pick, k - 1).T  # (n, T)
     rows = jnp.arange(t)[None, :]
     mu = jnp.broadcast_to(means, (t, k, dim))[rows, pick]
     lower = jnp.broadcast_to(chol, (t, k, dim, dim))[rows, pick]
