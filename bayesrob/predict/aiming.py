@@ -91,11 +91,15 @@ def aim(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, targets: np.ndarray
 
 
 def _radians_per_unit(robot: kin.Robot, arm: str) -> np.ndarray:
-    """Joint units per command unit of ``arm``'s columns, from the nominal gains (so steps do
-    not depend on the fit): a planar arm's pulse columns are limited in radians, not read as
-    0.3 us a step, which never reaches a target. Couplings (usually +-1) are left out."""
-    return np.concatenate([np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
-                           for c in robot.path(arm)])
+    """Radians per command unit of ``arm``'s columns, from the nominal gains (so steps do not
+    depend on the fit): a planar arm's pulse columns are limited in radians, not read as
+    0.3 us a step, which never reaches a target. Couplings (usually +-1) are left out. A column
+    that turns no revolute joint counts 0: the marker moves linearly with a slide, so its step
+    needs no limit, and 0.3 mm a step left a gantry 30 mm short of targets 100 mm away."""
+    return np.concatenate([
+        np.abs(robot.layout.nominal[robot.layout.slices[(c.name, "gain")]])
+        * ((np.abs(c.coupling) > 0).T @ (np.asarray(c.kinds) == "revolute") > 0)
+        for c in robot.path(arm)])
 
 
 def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.ndarray
@@ -107,7 +111,8 @@ def _aim_from(f, xj: jax.Array, targets: np.ndarray, u: np.ndarray, per_rad: np.
         err = np.linalg.norm(r, axis=1)
         if np.all(err < IK_TOL_MM):
             break
-        # the step is limited to 0.3 rad per column, so far targets are approached, not jumped
+        # the step is limited to 0.3 rad per revolute column, so far targets are approached,
+        # not jumped
         jjt = np.einsum("tic,tjc->tij", jac, jac) + 1e-6 * np.eye(jac.shape[1])
         step = np.einsum("tic,ti->tc", jac, np.linalg.solve(jjt, r[..., None])[..., 0])
         big = np.abs(step * per_rad).max(axis=1, keepdims=True)
