@@ -141,18 +141,19 @@ def test_fig7_has_colour_bars_named_model_and_panels_that_hold_the_density(built
             assert any("(mm)" in label(a) for a in shared.get_siblings(ax))
 
 
-def _fake_comparison():
-    """A comparison of two models with fixed pointwise scores: enough to draw the figure."""
+def _fake_comparison(dim: int = 2, other: str = "cond_paper"):
+    """A comparison of two models with fixed pointwise scores on a rig of ``dim`` coordinates:
+    enough to draw the figure."""
     from bayesrob.compare.comparison import ModelComparison, elpd_data
     from bayesrob.errors.noise_models import discover_models
 
-    specs = discover_models(names=["ind", "cond_paper"])
+    specs = discover_models(names=["ind", other])
     rng = np.random.default_rng(0)
-    held = {"ind": rng.normal(-2.5, 0.5, 48), "cond_paper": rng.normal(-30.0, 20.0, 48)}
-    loo = {"ind": rng.normal(-2.6, 0.4, 32), "cond_paper": rng.normal(-150.0, 50.0, 32)}
+    held = {"ind": rng.normal(-2.5, 0.5, 48), other: rng.normal(-30.0, 20.0, 48)}
+    loo = {"ind": rng.normal(-2.6, 0.4, 32), other: rng.normal(-150.0, 50.0, 32)}
     tables = [az.compare({k: elpd_data(v, 1.0) for k, v in d.items()}, method="stacking")
               for d in (held, loo)]
-    return ModelComparison(SimpleNamespace(name="rig"), specs,
+    return ModelComparison(SimpleNamespace(name="rig", robot=SimpleNamespace(dim=dim)), specs,
                            {k: {"top": SimpleNamespace(lpd=v)} for k, v in held.items()},
                            loo, loo, *tables, 0.0)
 
@@ -166,6 +167,7 @@ def test_comparison_figure_has_units_and_labels():
         assert _unlabelled(fig) == []
         title = fig.get_suptitle()
         assert "nats" in title and "mm^2, summed" not in title
+        assert "mm$^2$" in title and "squares paper-faithful" in title
         for ax in fig.axes:
             assert "nats" in ax.get_xlabel()
             # Nothing cut off: every error bar's ends lie inside the panel.
@@ -173,6 +175,18 @@ def test_comparison_figure_has_units_and_labels():
             for line in ax.lines:
                 xs = np.asarray(line.get_xdata(), float)
                 assert np.all((xs >= x0) & (xs <= x1)), (ax.get_title(), xs, (x0, x1))
+    finally:
+        plt.close(fig)
+
+
+def test_comparison_figure_of_a_3d_rig_without_paper_models_says_so():
+    from bayesrob.compare.comparison import comparison_figure
+
+    fig = comparison_figure(_fake_comparison(dim=3, other="cond"))
+    try:
+        title = fig.get_suptitle()
+        # a 3-D marker's density is per mm^3; no paper model is drawn, so no key to one
+        assert "mm$^3$" in title and "paper-faithful" not in title
     finally:
         plt.close(fig)
 

@@ -546,8 +546,11 @@ def comparison_figure(comparison: ModelComparison) -> Figure:
         n = int(comparison.heldout_pointwise(rows[0]["model"]).size) if title.startswith(
             "held") else int(comparison.loo[rows[0]["model"]].size)
         ax.set_title(f"{title}, n = {n}")
+    # a 3-D rig's densities are per mm^3; the marker key only where a paper model is drawn
+    key = ("circles improved, squares paper-faithful; " if any(s.paper for s in comparison.specs)
+           else "")
     fig.suptitle(f"{comparison.rig.name}: elpd, the summed log predictive density of the "
-                 "observed end points (nats; density per mm$^2$)\ncircles improved, squares "
-                 "paper-faithful; higher is better")
+                 f"observed end points (nats; density per mm$^{comparison.rig.robot.dim}$)\n"
+                 f"{key}higher is better")
     fig.tight_layout()
     return fig
