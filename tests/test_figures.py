@@ -267,6 +267,27 @@ def test_the_marker_residual_figure_fits_its_content():
     assert labels == ["left", "right"]
 
 
+@pytest.mark.parametrize("steps", [0, 2])
+def test_the_ladder_figures_key_covers_no_bar(steps):
+    """On a one-bar ladder the key, drawn inside the panel, sat on the bar's error cap."""
+    from bayesrob.report.plots.diagnosis import ladder_figure
+
+    def step(mean):
+        return {"heldout_error_mm": mean, "heldout_error_sd_mm": 0.6 * mean,
+                "heldout_error_max_mm": 3.0 * mean}
+
+    doc = {"rig": "rig", "baseline": step(0.9),
+           "steps": [{"effect": f"effect_{k}", **step(0.5 - 0.1 * k)} for k in range(steps)]}
+    fig = ladder_figure(doc, published={"geometric": 1.0})
+    try:
+        assert _clipped_texts(fig) == []
+        (key,) = fig.legends
+        assert not key.get_window_extent().overlaps(fig.axes[0].get_window_extent())
+        assert len(key.get_texts()) == 3  # mean and sd, largest error, published
+    finally:
+        plt.close(fig)
+
+
 def test_fig8_has_a_colour_scale_for_each_model(built):
     """Colour is density: each model's row says on what scale."""
     bars = [ax for ax in built["fig8"].axes if _is_colorbar(ax)]
