@@ -405,9 +405,9 @@ def test_the_report_shows_a_pair_named_in_one_round():
 
 
 def test_paired_z_of_rows_that_did_not_move_is_zero_not_nan():
-    from bayesrob.diagnose.groups import _paired_z
+    from bayesrob.diagnose.rule import paired_z
 
     rows = np.array([0.4, 0.7, 1.1, 0.2])
-    assert _paired_z(rows, rows) == 0.0
-    assert _paired_z(rows, rows - 0.1 * np.arange(4)) > 0
-    assert _paired_z(rows[:1], rows[:1] - 1.0) == 0.0
+    assert paired_z(rows, rows) == 0.0
+    assert paired_z(rows, rows - 0.1 * np.arange(4)) > 0
+    assert paired_z(rows[:1], rows[:1] - 1.0) == 0.0

@@ -2,7 +2,7 @@
 
 Validation rows repeat the training commands, so their error measures repeatability; the
 holdout rows are poses the training grid does not have. They are scored and reported, and
-they decide nothing: the decision rule still reads validation and cross-validation only.
+they decide nothing, as the validation rows do: the decision rule reads cross-validation only.
 """
 
 from __future__ import annotations

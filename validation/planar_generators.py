@@ -408,7 +408,8 @@ def base_holdout_error(rig) -> float:
 # the rounds' figures a sweep keeps, per engine: what each decides by
 ROUND_KEYS = {
     "refits": ("effect", "arms", "elpd_diff", "elpd_diff_se", "heldout_error_before_mm",
-               "heldout_error_after_mm", "cv_error_before_mm", "cv_error_after_mm", "passes"),
+               "heldout_error_after_mm", "cv_error_before_mm", "cv_error_after_mm", "passes",
+               "z", "parameters", "drop_per_parameter_mm"),
     "groups": ("effect", "parameters", "selection_error_before_mm", "selection_error_after_mm",
                "z", "drop_per_parameter_mm", "passes", "z_vs_alone", "elpd_diff", "guard_nats"),
 }

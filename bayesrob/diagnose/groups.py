@@ -9,12 +9,13 @@ a fitted deflection says which side a joint rests on, or with it where nothing p
 Effects are named greedily: each round fits every remaining candidate on most ``train`` poses
 and scores it on the *selection* poses (drawn with the seed; a rig with few train poses is
 scored over several disjoint folds, each fitted without its own, until MIN_SCORED_POSES poses
-are). A candidate passes when its paired per-row error drop there exceeds ``rule.Z`` standard
-errors; the one dropping the mean error most per added parameter is named (so compliance goes
-before an encoder sinusoid that mimics part of it). A passing candidate within ``rule.Z``
-standard errors of the named one is reported as its *rival*. The ``validation`` rows are never
-looked at while deciding: the ladder (errors after each named effect, refitted on every train
-row) is reported on them.
+are). The decision is the one rule of every robot (:class:`~bayesrob.diagnose.rule.DecisionRule`,
+the planar refits' too): a candidate passes when its paired per-row error drop there exceeds
+``rule.Z`` standard errors; the one dropping the mean error most per added parameter is named
+(so compliance goes before an encoder sinusoid that mimics part of it). A passing candidate
+within ``rule.Z`` standard errors of the named one is reported as its *rival*. The
+``validation`` rows are never looked at while deciding: the ladder (errors after each named
+effect, refitted on every train row) is reported on them.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from bayesrob.calibrate.least_squares import (
 )
 from bayesrob.data.rig import Rig
 from bayesrob.data.vocabulary import CHAIN_EFFECTS
-from bayesrob.diagnose.rule import NATS_PER_PARAMETER, DecisionRule, Z, elpd_diff
+from bayesrob.diagnose.rule import DecisionRule, Z, elpd_diff, paired_z
 from bayesrob.robot import SAG_GROUPS
 from bayesrob.robot.effects import ALIASES, SERVO_EFFECTS, resolve_effects
 
@@ -57,10 +58,10 @@ MIN_SCORED_POSES = 20
 # Least-squares evaluations per stage of a selection fit: on Justin 140 (of 320) left every
 # selection error as before to 0.01 mm (drops between candidates: 0.1-5 mm), in half the time.
 SELECTION_NFEV = 140
-# the parameter guard, reported beside each candidate and step (not deciding: rule.py), but
-# deciding for a pair tried because nothing passed alone: unguarded, a 17-parameter pair
-# passed on the clean arm6 of tuning seed 11 (4.9 nats) and made its validation worse
-GUARD = DecisionRule(nats_per_parameter=NATS_PER_PARAMETER)
+# The parameter guard is reported beside each candidate and step and decides for a pair tried
+# because nothing passed alone: unguarded, a 17-parameter pair passed on the clean arm6 of
+# tuning seed 11 (4.9 nats) and made its validation worse.
+RULE = DecisionRule()
 
 
 class DiagnosisError(ValueError):
@@ -129,15 +130,6 @@ def _folds(rig: Rig, seed: int) -> list[Rig]:
         sets[train[np.isin(keys, chosen)]] = "selection"
         out.append(replace(rig, measurements=replace(meas, set=sets)))
     return out
-
-
-def _paired_z(before: np.ndarray, after: np.ndarray) -> float:
-    """How many standard errors the per-row error drop ``before - after`` is above zero."""
-    d = before - after
-    sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
-    # no spread: a candidate that moved no row (nothing identifiable to fit) is no drop, not
-    # the NaN of 0/0 that a JSON document cannot hold
-    return float(d.mean() / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
 
 
 def _selection_rows(rig: Rig, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
@@ -252,8 +244,8 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             own = bool(cal.ident.free[cal.robot.layout.group_mask(added_groups[-1:])].any())
             gain, gain_se = elpd_diff(before[1], after[1])
             err0, err1 = float(before[0].mean()), float(after[0].mean())
-            z = _paired_z(before[0], after[0])
-            return {"effect": "+".join(effects), "parameters": added,
+            z = paired_z(before[0], after[0])
+            s = {"effect": "+".join(effects), "parameters": added,
                     "selection_error_before_mm": err0,
                     "selection_error_after_mm": err1, "z": z,
                     "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
@@ -261,13 +253,14 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                     # verdict on it: reported, not deciding (docs/diagnose.md, "The
                     # parameter guard")
                     "elpd_diff": gain, "elpd_diff_se": gain_se,
-                    "guard_nats": GUARD.threshold(added),
-                    "guard_passes": bool(gain > GUARD.threshold(added)),
-                    # a candidate the rank analysis leaves nothing to fit (lateral bending
-                    # under gravity in a planar arm's plane) moves the errors by rounding
-                    # alone: its z is noise
-                    "passes": bool(own and z > Z),
+                    "guard_nats": RULE.threshold(added),
                     "_effects": effects, "_after": after, "_x": xs}
+            s["guard_passes"] = RULE.guard_passes(s)
+            # a candidate the rank analysis leaves nothing to fit (lateral bending under
+            # gravity in a planar arm's plane) moves the errors by rounding alone: its z is
+            # noise
+            s["passes"] = bool(own and RULE.passes(s))
+            return s
 
         while len(named) < len(candidates):
             scores = []
@@ -286,20 +279,20 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                     if eff not in candidates or eff in named or not alone:
                         continue
                     pair = score((first, eff), None)
-                    pair["z_vs_alone"] = _paired_z(alone[0]["_after"][0], pair["_after"][0])
-                    pair["passes"] = bool(pair["passes"] and pair["z_vs_alone"] > Z
-                                          and pair["guard_passes"])
+                    pair["z_vs_alone"] = paired_z(alone[0]["_after"][0], pair["_after"][0])
+                    pair["passes"] = bool(pair["passes"]
+                                          and RULE.pair_passes(pair, [pair["z_vs_alone"]]))
                     scores.append(pair)
             passing = [s for s in scores if s["passes"]]
             best = None
             if passing:
                 # of the candidates that pass, the one that explains the most per parameter
                 # it adds: the largest drop of the mean selection error per added parameter
-                best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
+                best = RULE.best(passing)
                 for s in passing:
                     if s is not best:
                         # positive where the named effect leaves the smaller errors
-                        s["z_vs_named"] = _paired_z(s["_after"][0], best["_after"][0])
+                        s["z_vs_named"] = paired_z(s["_after"][0], best["_after"][0])
             rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
                            for s in scores])
             if best is None:

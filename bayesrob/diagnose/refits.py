@@ -7,9 +7,10 @@ shrink (the paper could only say its model "was too constrained"), from the rig 
    score it on data it was not fitted on: cross-validated refits over ``train`` (exact LOO up
    to 40 points, structural settings profiled again) under a Gaussian measurement model;
    ``holdout`` rows are reported beside, deciding nothing.
-3. Name the best candidate passing :class:`bayesrob.diagnose.rule.DecisionRule`, repeat; if
-   none passes at first, try pairs (each member needed). The arms an effect goes to are
-   chosen on one half of the train rows and scored on the other (cross-fitting).
+3. Name the best candidate passing :class:`bayesrob.diagnose.rule.DecisionRule` (the chains'
+   rule, on the refits' errors), repeat; if none passes at first, try pairs (each member
+   needed). The arms an effect goes to are chosen on one half of the train rows and scored on
+   the other (cross-fitting).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import scipy.stats
 
 from bayesrob import robot as kin
 from bayesrob.data.rig import ArmSpec, Rig
-from bayesrob.diagnose.rule import DecisionRule, elpd_diff
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff, paired_z
 from bayesrob.robot import effects as fx
 
 N_BASE = len(kin.PARAM_NAMES)
@@ -585,6 +586,10 @@ def _pooled_lpd(model: dict[str, ArmEval]) -> np.ndarray:
     return np.concatenate([model[a].cv_lpd for a in model])
 
 
+def _pooled_cv_errors(model: dict[str, ArmEval]) -> np.ndarray:
+    return np.concatenate([model[a].cv_errors for a in model])
+
+
 def halves(n: int, seed: int) -> np.ndarray:
     """Which half (0 or 1) of an arm's ``n`` train rows each row is in, drawn with the seed:
     the arms an effect is added to are chosen on one half and scored on the other."""
@@ -633,6 +638,13 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
                                            for a in current}, cv, float(np.mean(cv_err)))
     # the parameters the candidate adds to the arms that take it
     s["parameters"] = int(sum(cand[x].v.size - current[x].v.size for x in arms))
+    before = _pooled_cv_errors(current)
+    s["z"] = paired_z(before, cv_err)
+    s["drop_per_parameter_mm"] = (float(np.mean(before)) - s["cv_error_after_mm"]) / max(
+        s["parameters"], 1)
+    s["guard_nats"] = rule.threshold(s["parameters"])
+    s["guard_passes"] = rule.guard_passes(s)
+    s["_cv_errors"] = cv_err
     s["elpd_gain_per_arm"] = {x: float(np.sum(cand[x].cv_lpd - current[x].cv_lpd))
                               for x in cand}
     s["passes"] = rule.passes(s)
@@ -673,14 +685,20 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
             s["pair"] = [first, second]
             if s["passes"]:
                 cv, _ = _crossfit(current, full, seed)
+                over = []
                 for member in (first, second):
                     alone = {**current, **fitted[member]}
-                    diff, dse = elpd_diff(_pooled_lpd(alone), cv)
-                    s[f"elpd_diff_over_{member}"] = [diff, dse]
-                    s["passes"] &= bool(diff > rule.z * dse
-                                        and diff > rule.threshold(s["parameters"]))
+                    s[f"elpd_diff_over_{member}"] = list(elpd_diff(_pooled_lpd(alone), cv))
+                    over.append(paired_z(_pooled_cv_errors(alone), s["_cv_errors"]))
+                    s[f"z_over_{member}"] = over[-1]
+                s["passes"] = rule.pair_passes(s, over)
             out.append(s)
     return out
+
+
+def _public(scores: list[dict]) -> list[dict]:
+    """A round's scores as the JSON has them: the arrays kept for pairs left out."""
+    return [{k: v for k, v in s.items() if not k.startswith("_")} for s in scores]
 
 
 def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRule | None = None,
@@ -748,7 +766,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             # judged against): before concluding that nothing is missing, try the pairs.
             pairs = _pair_scores(candidates, current, fitted, add, rule, seed)
             scores += pairs
-            rounds.append(scores)
+            rounds.append(_public(scores))
             joint = [s for s in pairs if s["passes"]]
             if not joint:
                 break
@@ -761,7 +779,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             take(second, arms2, add(current, second, arms2), joint_with=first,
                  joint_elpd_diff=best["elpd_diff"], joint_elpd_diff_se=best["elpd_diff_se"])
             continue
-        rounds.append(scores)
+        rounds.append(_public(scores))
         if not passing:
             break
         best = rule.best(passing)

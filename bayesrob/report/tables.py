@@ -113,10 +113,10 @@ def format_diagnosis(doc: dict) -> str:
         rows = [[s["effect"], ",".join(s["arms"]) or "-",
                  f"{_fmt(s['heldout_error_before_mm'])} -> {_fmt(s['heldout_error_after_mm'])}",
                  f"{_fmt(s['cv_error_before_mm'])} -> {_fmt(s['cv_error_after_mm'])}",
-                 f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
+                 f"{s['z']:.2f}", f"{s['elpd_diff']:+.1f} +- {s['elpd_diff_se']:.1f}",
                  "yes" if s["passes"] else "no"] for s in scores]
         out.append(format_table(["candidate", "arms", "held-out mm", "cross-val mm",
-                                 "elpd diff", "passes"], rows))
+                                 "z (cross-val)", "elpd diff", "passes"], rows))
     out += ["", f"named effects: {', '.join(doc['effects']) or 'none'}"]
     gap = [f"base {_fmt(doc['baseline_heldout_error_mm'])} mm"]
     gap += [f"+{s['effect']} ({','.join(s['arms'])}) {_fmt(s['heldout_error_after_mm'])} mm"
