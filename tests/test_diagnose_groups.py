@@ -133,7 +133,8 @@ def test_diagnose_names_what_the_arm_has_and_nothing_else(tmp_path, capsys, phys
 def test_effects_are_resolved_per_robot_and_unknown_ones_refused_in_one_line(compliant_rig):
     """Every effect has a chain model; a servo's curve is a default candidate only where the
     robot has a servo map (the arm6's columns are its joint values; the planar arms' are
-    pulse widths), and is tried there when asked for."""
+    pulse widths), an encoder's error only where it has none, and each is tried when asked
+    for."""
     from bayesrob.data.rig import default_rig_dir
 
     rig = load_rig(compliant_rig)
@@ -146,6 +147,11 @@ def test_effects_are_resolved_per_robot_and_unknown_ones_refused_in_one_line(com
     assert "servo_nonlinearity" in resolve_effects(None, chain=True, robot=planar.robot)
     assert resolve_effects(["servo_nonlinearity"], chain=True, robot=rig.robot) == [
         "servo_nonlinearity"]
+    assert "encoder_error" in resolve_effects(None, chain=True, robot=rig.robot)
+    assert "encoder_error" not in resolve_effects(None, chain=True, robot=planar.robot)
+    assert resolve_effects(["encoder_error"], chain=True, robot=planar.robot) == [
+        "encoder_error"]
+    assert "encoder_error" in resolve_effects(None, chain=True)  # no robot: every one
     with pytest.raises(DiagnosisError, match="'wobble' is not modelled for URDF/DH chains"):
         diagnose_groups(rig, ["wobble"])
 

@@ -38,7 +38,7 @@ from bayesrob.data.rig import Rig
 from bayesrob.data.vocabulary import CHAIN_EFFECTS
 from bayesrob.diagnose.rule import DecisionRule, Z, elpd_diff, paired_z
 from bayesrob.robot import SAG_GROUPS
-from bayesrob.robot.effects import ALIASES, SERVO_EFFECTS, resolve_effects
+from bayesrob.robot.effects import ALIASES, ENCODER_EFFECTS, SERVO_EFFECTS, resolve_effects
 
 # effect -> the effect it builds on, named first. Backlash without a fitted compliance has no
 # side; fitted with it in one candidate it only cost time (seed 11: less drop per parameter
@@ -345,10 +345,13 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                 steps.append({"effect": named[k - 1], "rivals": rivals[k - 1],
                               "guard_passes": guarded[k - 1], "round": named_in[k - 1],
                               **row})
-    # the servo effects resolve_effects left out of the default candidates
+    # the servo or encoder effects resolve_effects left out of the default candidates
     notes = [f"{e} not tried: the robot's columns are its joint values (no servo map; "
              "encoder_error is their error)" for e in SERVO_EFFECTS
              if effects is None and e not in candidates]
+    notes += [f"{e} not tried: the commands pass through a servo map, whose curve "
+              "servo_nonlinearity fits (no joint encoder is read)" for e in ENCODER_EFFECTS
+              if effects is None and e not in candidates]
     notes += [f"{c} not tried: it builds on {NEEDS[c]}, which was not named"
               for c in candidates if c in NEEDS and NEEDS[c] not in named]
     notes += ladder_notes
