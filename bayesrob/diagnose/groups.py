@@ -246,15 +246,15 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
             err0, err1 = float(before[0].mean()), float(after[0].mean())
             z = paired_z(before[0], after[0])
             s = {"effect": "+".join(effects), "parameters": added,
-                    "selection_error_before_mm": err0,
-                    "selection_error_after_mm": err1, "z": z,
-                    "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
-                    # the selection rows' log density gain and the parameter guard's
-                    # verdict on it: reported, not deciding (docs/diagnose.md, "The
-                    # parameter guard")
-                    "elpd_diff": gain, "elpd_diff_se": gain_se,
-                    "guard_nats": RULE.threshold(added),
-                    "_effects": effects, "_after": after, "_x": xs}
+                 "selection_error_before_mm": err0,
+                 "selection_error_after_mm": err1, "z": z,
+                 "drop_per_parameter_mm": (err0 - err1) / max(added, 1),
+                 # the selection rows' log density gain and the parameter guard's
+                 # verdict on it: reported, not deciding (docs/diagnose.md, "The
+                 # parameter guard")
+                 "elpd_diff": gain, "elpd_diff_se": gain_se,
+                 "guard_nats": RULE.threshold(added),
+                 "_effects": effects, "_after": after, "_x": xs}
             s["guard_passes"] = RULE.guard_passes(s)
             # a candidate the rank analysis leaves nothing to fit (lateral bending under
             # gravity in a planar arm's plane) moves the errors by rounding alone: its z is
