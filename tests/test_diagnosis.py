@@ -29,7 +29,7 @@ from bayesrob.diagnose.refits import (
     neighbour_pairs,
     workspace_regions,
 )
-from bayesrob.diagnose.rule import DecisionRule, elpd_diff, paired_z
+from bayesrob.diagnose.rule import DecisionRule, Z, elpd_diff, paired_z
 from bayesrob.robot import effects as fx
 from bayesrob.robot.chain import G_N_PER_KG
 
@@ -377,6 +377,27 @@ def test_naming_the_effects_wins_back_a_clear_part_of_the_held_out_gap(diagnoses
     back a clear part of that (20%, far beyond the 2-3% run-to-run wobble of held-out noise)."""
     doc = diagnoses[name].to_json()
     assert doc["final_heldout_error_mm"] < 0.8 * doc["baseline_heldout_error_mm"]
+
+
+def test_the_planar_rounds_decide_by_the_one_rule(diagnoses):
+    """Every single candidate of every round passes exactly when its cross-validated errors'
+    paired z exceeds the rule's (and it goes to some arm), and the effect a round names is
+    the passing one with the largest drop per added parameter: the planar refits decide as
+    the chain engine does, whatever the elpd gain says."""
+    checked = 0
+    for diag in diagnoses.values():
+        doc = diag.to_json()
+        for k, scores in enumerate(doc["rounds"]):
+            if any("pair" in s for s in scores):
+                break  # a round of pairs names two steps at once
+            for s in scores:
+                assert s["passes"] == (bool(s["arms"]) and s["z"] > Z), s
+                checked += 1
+            passing = [s for s in scores if s["passes"]]
+            if passing:  # the k-th round named the k-th step
+                best = max(passing, key=lambda s: s["drop_per_parameter_mm"])
+                assert doc["steps"][k]["effect"] == best["effect"]
+    assert checked >= 10  # the five rigs' rounds hold this many single candidates at least
 
 
 def test_json_contract(diagnoses):
