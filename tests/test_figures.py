@@ -267,6 +267,19 @@ def test_the_marker_residual_figure_fits_its_content():
     assert labels == ["left", "right"]
 
 
+def test_the_marker_residual_figure_of_a_planar_chain_rig_has_its_one_plane():
+    """A 2-D chain rig's markers have no z: its figure is the x-y plane alone (it raised an
+    IndexError, so `diagnose --report` wrote nothing on such a rig)."""
+    from bayesrob.report.plots.diagnosis import marker_residual_figure
+
+    rng = np.random.default_rng(1)
+    pts = {"arm": (rng.normal(0, 100, (30, 2)), rng.normal(0, 1, (30, 2)))}
+    fig = marker_residual_figure({"geometric": pts, "+ servo_nonlinearity": pts}, "planar")
+    assert len(fig.axes) == 2  # one plane per model
+    assert [ax.get_xlabel() + ax.get_ylabel() for ax in fig.axes] == ["x (mm)y (mm)"] * 2
+    assert _clipped_texts(fig) == []
+
+
 @pytest.mark.parametrize("steps", [0, 2])
 def test_the_ladder_figures_key_covers_no_bar(steps):
     """On a one-bar ladder the key, drawn inside the panel, sat on the bar's error cap."""

@@ -124,15 +124,16 @@ def _noise_floor(diag: Diagnosis) -> float | None:
     return float(np.sqrt(np.mean(np.square(sig))) * math.sqrt(math.pi / 2))
 
 
-PLANES = ((0, 1), (0, 2))  # the x-y and x-z planes of a 3-D rig
+PLANES = ((0, 1), (0, 2))  # the x-y and x-z planes of a 3-D rig; a 2-D rig has the first
 
 
 def marker_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
                           rig: str) -> Figure:
-    """Residual arrows of a chain rig's markers, projected on the x-y and x-z planes: a row
-    per model (the geometric calibration, then the final one), a colour per marker arm.
+    """Residual arrows of a chain rig's markers, projected on the x-y and x-z planes (a 2-D
+    rig's lie in the x-y plane): a row per model (the geometric calibration, then the final
+    one), a colour per marker arm.
 
-    ``residuals``: label -> {arm: (observed markers (n, 3), observed - model (n, 3))}. One
+    ``residuals``: label -> {arm: (observed markers (n, dim), observed - model (n, dim))}. One
     magnification serves every panel, so the shrinking gap is seen, not read.
     """
     from matplotlib.figure import Figure
@@ -145,13 +146,14 @@ def marker_residual_figure(residuals: dict[str, dict[str, tuple[np.ndarray, np.n
     # the longest arrow is a tenth of the markers' spread
     mag = 0.1 * span / max(longest, 1e-9)
     key = _nice(longest / 2)
-    fig = Figure(figsize=(10, 4.4 * len(residuals)), layout="constrained")
-    axes = fig.subplots(len(residuals), len(PLANES), squeeze=False)
+    planes = PLANES if pts.shape[1] == 3 else PLANES[:1]
+    fig = Figure(figsize=(5 * len(planes), 4.4 * len(residuals)), layout="constrained")
+    axes = fig.subplots(len(residuals), len(planes), squeeze=False)
     arms = sorted({a for by_arm in residuals.values() for a in by_arm})
     for row, (label, by_arm) in zip(axes, residuals.items(), strict=True):
         mean = float(np.mean(np.concatenate([np.linalg.norm(r, axis=1)
                                              for _, r in by_arm.values()])))
-        for ax, (i, j) in zip(row, PLANES, strict=True):
+        for ax, (i, j) in zip(row, planes, strict=True):
             for a, (o, r) in sorted(by_arm.items()):
                 c = f"C{arms.index(a)}"
                 ax.plot(o[:, i], o[:, j], ".", color=c, ms=2)
