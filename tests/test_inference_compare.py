@@ -212,3 +212,28 @@ def test_compare_reports_holdout_rows_beside_the_held_out_ones(clean_rig_dir, tm
     assert plain["holdout_rows"] == {} and plain["holdout_compare"] == []
     assert plain["models"]["ind"]["holdout"] is None
     assert "holdout points" not in format_comparison(plain)
+
+
+def test_corr_on_a_one_joint_chain_is_ind():
+    """A single joint has no correlation to fit (numpyro's LKJ needs two; `bayesrob compare`
+    raised on a one-joint arm): CORR's covariance draws are then IND's, joint sd squared."""
+    from bayesrob import Measurements, Rig, dh_chain
+    from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.errors.latent_errors import fit_latent_errors
+
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-1.5, 1.5, 24)
+    r = 120.0 + 0.5
+    pts = np.column_stack([r * np.cos(q + 0.02), r * np.sin(q + 0.02)])
+    pts += rng.normal(0, 0.2, pts.shape)
+    rows = Measurements.from_arrays(config=["arm"] * 24, set=["train"] * 24, observed=pts,
+                                    commands={"arm": q[:, None]})
+    rig = Rig.from_arrays({"arm": dh_chain("arm", [[0.0, 0.0, 120.0, 0.0]], "standard")},
+                          rows)
+    cal = calibrate(rig, ("frames", "geometric"))
+    fit = fit_latent_errors(rig, cal.robot, cal.x, "arm", "corr",
+                            n_free=int(cal.ident.free.sum()), warmup=100, samples=100,
+                            chains=1)
+    assert fit.corr_chol is not None and np.all(fit.corr_chol == 1.0)
+    assert np.allclose(fit.covariance[:, 0, 0], fit.joint_sd[:, 0] ** 2)
+    assert np.all(np.isfinite(fit.noise_sd))

@@ -94,7 +94,8 @@ def _model(jac: jax.Array, res: jax.Array, structure: str) -> None:
                             dist.Normal(0.0, JOINT_SD_SPREAD).expand([n]).to_event(1))
     sd = numpyro.deterministic("joint_sd", scale * jnp.exp(log_sd))
     noise = numpyro.sample("noise_sd", dist.HalfNormal(NOISE_SD_PRIOR_MM))
-    if structure == "corr":
+    # one joint has no correlation to fit (LKJ needs two): CORR is IND there
+    if structure == "corr" and n > 1:
         chol = numpyro.sample("joint_corr_chol", dist.LKJCholesky(n, LKJ_CONCENTRATION))
         scale = sd[:, None] * chol
         cov = scale @ scale.T
@@ -208,6 +209,8 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
                                      warmup, samples, chains)
     by_chain = {k: np.asarray(v) for k, v in by_chain.items()}
     draws = {k: v.reshape(-1, *v.shape[2:]) for k, v in by_chain.items()}
+    if model == "corr" and "joint_corr_chol" not in draws:  # one joint: its correlation is 1
+        draws["joint_corr_chol"] = np.ones((len(draws["noise_sd"]), 1, 1))
     summ = az.summary(az.from_dict(posterior=by_chain), var_names=["joint_sd", "noise_sd"],
                       kind="diagnostics", round_to="none")
     diagnostics = {"max_r_hat": float(summ["r_hat"].max()),
