@@ -36,7 +36,7 @@ from bayesrob.calibrate.least_squares import (
 )
 from bayesrob.data.rig import Rig
 from bayesrob.data.vocabulary import CHAIN_EFFECTS
-from bayesrob.diagnose.rule import DecisionRule, Z, elpd_diff, paired_z
+from bayesrob.diagnose.rule import DecisionRule, Z, elpd_diff, paired_z, public_scores
 from bayesrob.robot import SAG_GROUPS
 from bayesrob.robot.effects import ALIASES, ENCODER_EFFECTS, SERVO_EFFECTS, resolve_effects
 
@@ -293,8 +293,7 @@ def diagnose_groups(rig: Rig, effects: Sequence[str] | None = None, *, seed: int
                     if s is not best:
                         # positive where the named effect leaves the smaller errors
                         s["z_vs_named"] = paired_z(s["_after"][0], best["_after"][0])
-            rounds.append([{k: v for k, v in s.items() if not k.startswith("_")}
-                           for s in scores])
+            rounds.append(public_scores(scores))
             if best is None:
                 break
             # a passing candidate the selection poses cannot tell from the named one: the

@@ -30,7 +30,7 @@ import scipy.stats
 
 from bayesrob import robot as kin
 from bayesrob.data.rig import ArmSpec, Rig
-from bayesrob.diagnose.rule import DecisionRule, elpd_diff, paired_z
+from bayesrob.diagnose.rule import DecisionRule, elpd_diff, paired_z, public_scores
 from bayesrob.robot import effects as fx
 
 N_BASE = len(kin.PARAM_NAMES)
@@ -638,9 +638,8 @@ def _score_candidate(name: str, current: dict[str, ArmEval], cand: dict[str, Arm
                                            for a in current}, cv, float(np.mean(cv_err)))
     # the parameters the candidate adds to the arms that take it
     s["parameters"] = int(sum(cand[x].v.size - current[x].v.size for x in arms))
-    before = _pooled_cv_errors(current)
-    s["z"] = paired_z(before, cv_err)
-    s["drop_per_parameter_mm"] = (float(np.mean(before)) - s["cv_error_after_mm"]) / max(
+    s["z"] = paired_z(_pooled_cv_errors(current), cv_err)
+    s["drop_per_parameter_mm"] = (s["cv_error_before_mm"] - s["cv_error_after_mm"]) / max(
         s["parameters"], 1)
     s["guard_nats"] = rule.threshold(s["parameters"])
     s["guard_passes"] = rule.guard_passes(s)
@@ -694,11 +693,6 @@ def _pair_scores(candidates: Sequence[str], current: dict[str, ArmEval],
                 s["passes"] = rule.pair_passes(s, over)
             out.append(s)
     return out
-
-
-def _public(scores: list[dict]) -> list[dict]:
-    """A round's scores as the JSON has them: the arrays kept for pairs left out."""
-    return [{k: v for k, v in s.items() if not k.startswith("_")} for s in scores]
 
 
 def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRule | None = None,
@@ -766,7 +760,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             # judged against): before concluding that nothing is missing, try the pairs.
             pairs = _pair_scores(candidates, current, fitted, add, rule, seed)
             scores += pairs
-            rounds.append(_public(scores))
+            rounds.append(public_scores(scores))
             joint = [s for s in pairs if s["passes"]]
             if not joint:
                 break
@@ -779,7 +773,7 @@ def diagnose(rig: Rig, candidates: Sequence[str] | None = None, rule: DecisionRu
             take(second, arms2, add(current, second, arms2), joint_with=first,
                  joint_elpd_diff=best["elpd_diff"], joint_elpd_diff_se=best["elpd_diff_se"])
             continue
-        rounds.append(_public(scores))
+        rounds.append(public_scores(scores))
         if not passing:
             break
         best = rule.best(passing)

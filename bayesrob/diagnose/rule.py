@@ -36,6 +36,12 @@ def paired_z(before: np.ndarray, after: np.ndarray) -> float:
     return float(d.mean() / (sd / np.sqrt(len(d)))) if sd > 0 else 0.0
 
 
+def public_scores(scores: Sequence[dict]) -> list[dict]:
+    """A round's candidate scores as the JSON has them: the engines' own ``_`` entries (arrays
+    kept for later comparisons) left out."""
+    return [{k: v for k, v in s.items() if not k.startswith("_")} for s in scores]
+
+
 @dataclass(frozen=True)
 class DecisionRule:
     """When a candidate counts as missing (module docstring), read off its score: ``z`` (its
