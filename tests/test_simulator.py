@@ -332,3 +332,38 @@ def test_simulate_command_draws_stiffness_and_refuses_it_where_it_cannot_apply(t
         err = capsys.readouterr().err.strip().splitlines()
         assert words in err[-1], (argv, err)
     assert not (tmp_path / "c").exists()
+
+
+def test_a_chain_arm_rests_in_its_play_as_gravity_or_its_approach_decides():
+    """The chain plant (single arm6 rigs, linked rigs' arms, planned poses): where a joint's
+    gravity torque exceeds the friction it rests on the torque's side of its play, elsewhere on
+    the side it was approached from. Noise off, no compliance: the points are the true arm's
+    at the commands moved by half the play, to rounding (1e-9 mm)."""
+    from dataclasses import replace as copy
+
+    from bayesrob.sim import physics
+    from bayesrob.sim.rigs import arm6_plant, random_poses
+    from bayesrob.sim.truth import Arm6Truth
+
+    play = 4e-3
+    plant = arm6_plant(Arm6Truth(seed=3, joint_play_rad=play, joint_noise_rad=0.0,
+                                 measurement_noise_mm=0.0), np.random.default_rng(3))
+    q = random_poses(np.random.default_rng(1), 12)
+    approach = np.where(np.random.default_rng(2).random(q.shape) < 0.5, -1.0, 1.0)
+    tau = physics.gravity_torques(plant.torque_robot, plant.torque_x, "arm", q,
+                                  plant.masses_kg["arm"], np.asarray(plant.gravity))
+
+    def measured(stick: float) -> np.ndarray:
+        return copy(plant, stick_nmm=stick).measure("arm", q, np.random.default_rng(0),
+                                                    approach=approach)
+
+    def at(offset: np.ndarray) -> np.ndarray:
+        return np.asarray(plant.robot.marker_points(plant.x_true, "arm", q + offset))
+
+    held = np.abs(tau) < 2000.0
+    assert 0 < held.sum() < held.size  # both cases occur at these poses
+    side = np.where(held, approach, np.sign(tau))
+    np.testing.assert_allclose(measured(2000.0), at(0.5 * play * side), rtol=0, atol=1e-9)
+    # no friction: gravity alone decides, whatever the approach
+    np.testing.assert_allclose(measured(0.0), at(0.5 * play * np.sign(tau)), rtol=0, atol=1e-9)
+    assert np.abs(measured(2000.0) - measured(0.0)).max() > 0.1  # the sides move the marker

@@ -1,8 +1,8 @@
 """Where simulated arms settle: the least energy of their springs and weights (linked arms: a
 tug of war between their stiffnesses), under one physics: each arm's energy is
 :func:`bayesrob.sim.physics.arm_energy`. :class:`PhysicalRig`: the paper's planar arms, as
-2-joint chains, by BFGS (the dead band's kink needs no Hessian); :func:`linked_equilibrium`:
-3-D arms by Newton.
+2-joint chains, by BFGS (the dead band's kink needs no Hessian); :class:`ChainPlant`: a chain
+arm alone, by fixed-point steps; :func:`linked_equilibrium`: 3-D arms joined, by Newton.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import scipy.optimize
 
 from bayesrob import robot as kin
 from bayesrob.robot import Robot, RobotStructure
+from bayesrob.sim import physics
 from bayesrob.sim.physics import (
     G_N_PER_KG,
     STIFF_FACTOR,
@@ -180,6 +181,56 @@ class PhysicalRig:
             d = d + self.rng.normal(0.0, self.truth.measurement_noise_mm, 2)
         return d
 
+
+
+@dataclass(frozen=True, eq=False)
+class ChainPlant:
+    """A simulated chain robot as it really is, measured one arm at a time: joint commands in,
+    marker points out (for ``bayesrob simulate --robot arm6``, its linked rigs' single-arm rows
+    and planned poses alike). A row's draws, in order: the joint noise; the encoders'
+    eccentricity (no draw); the side of each joint's play (``approach_rng``, where neither its
+    gravity torque nor a recorded approach decides it); gravity's deflection, by fixed-point
+    steps on :func:`~bayesrob.sim.physics.arm_energy`'s torques; the tracker's noise. Gravity
+    acts along ``gravity`` in the frames of ``torque_robot`` at ``torque_x``: a single arm6's
+    base at the identity, so gravity is its -z; a linked rig's instrument frame."""
+
+    robot: Robot  # the robot the rows are written for, instrument pose included
+    x_true: np.ndarray
+    joint_noise_rad: float
+    measurement_noise_mm: float
+    torque_robot: Robot
+    torque_x: np.ndarray
+    masses_kg: Mapping[str, np.ndarray]  # per arm: each link's mass, halfway along it
+    stiffness: Mapping[str, np.ndarray] | None = None  # per arm, N mm / rad; None: rigid
+    gravity: Sequence[float] = GRAVITY
+    deflection_steps: int = 4
+    encoder_eccentricity: float = 0.0
+    encoder_phase: np.ndarray | None = None  # (n,) rad, where eccentric
+    play_rad: float = 0.0  # each joint's play, whole width
+    stick_nmm: float = 0.0  # the gravity torque below which friction holds a joint's side
+
+    def measure(self, arm: str, q_cmd: np.ndarray, rng: np.random.Generator,
+                approach_rng: np.random.Generator | None = None,
+                approach: np.ndarray | None = None) -> np.ndarray:
+        """Marker points (N, 3) mm of ``arm`` at the commanded joint values ``q_cmd`` (N, n);
+        each joint's ``approach`` side (N, n; +1, -1, 0: unknown) where the rows record it."""
+        q = q_cmd + rng.normal(0, self.joint_noise_rad, q_cmd.shape)
+        if self.encoder_eccentricity:
+            q = q + physics.encoder_error(q_cmd, self.encoder_eccentricity, self.encoder_phase)
+        on_torques = (self.torque_robot, self.torque_x, arm)
+        gravity = np.asarray(self.gravity, float)
+        if self.play_rad:
+            tau = physics.gravity_torques(*on_torques, q, self.masses_kg[arm], gravity)
+            q = q + physics.play_offsets(tau, self.play_rad, self.stick_nmm,
+                                         approach_rng if approach_rng is not None else rng,
+                                         approach)
+        if self.stiffness is not None:
+            q = q + physics.gravity_deflection(*on_torques, q, self.masses_kg[arm],
+                                               self.stiffness[arm], gravity,
+                                               iterations=self.deflection_steps)
+        p = np.asarray(self.robot.compiled_points(arm)(jnp.asarray(self.x_true),
+                                                       jnp.asarray(q)))
+        return p + rng.normal(0, self.measurement_noise_mm, p.shape)
 
 
 class LinkedSimulationError(RuntimeError):

@@ -11,9 +11,10 @@ import io
 import os
 import shutil
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -35,7 +36,7 @@ from bayesrob.data.rig import (
 from bayesrob.progress import progress as progress_bar
 from bayesrob.robot import Robot, urdf_chain
 from bayesrob.sim import physics
-from bayesrob.sim.equilibrium import PhysicalRig, linked_equilibrium
+from bayesrob.sim.equilibrium import ChainPlant, PhysicalRig, linked_equilibrium
 from bayesrob.sim.truth import (
     ARM6_URDF,
     GRAVITY,
@@ -258,56 +259,42 @@ def true_parameters(robot: Robot, truth: _ArmErrors, rng: np.random.Generator) -
 
 
 
-@dataclass
-class _Arm6Plant:
-    """A simulated arm6 as it really is: the robots and true parameters its rows come from."""
+def arm6_plant(truth: Arm6Truth, rng: np.random.Generator) -> ChainPlant:
+    """A simulated arm6 as it really is: its true parameters as ``truth.true_params`` has
+    them, or, before that, drawn from ``rng``."""
+    nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
+                         marker=truth.marker_nominal_mm, instrument=truth.instrument_nominal)
+    robot = Robot({"arm": nominal}, 3)
+    x_true = (np.array([truth.true_params[n] for n in robot.layout.names])
+              if truth.true_params else true_parameters(robot, truth, rng))
+    # The instrument sees gravity along -z of the robot base; frames for torques are taken
+    # with the base at the identity so that direction holds.
+    base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm")}, 3)
+    x_base = np.array(x_true, float)
+    x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
+    phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(
+        -np.pi, np.pi, 6)
+    return ChainPlant(
+        robot, np.asarray(x_true, float), truth.joint_noise_rad, truth.measurement_noise_mm,
+        base_robot, x_base, {"arm": np.asarray(truth.masses_kg, float)},
+        {"arm": np.asarray(truth.stiffness_nmm_per_rad, float)} if truth.compliance else None,
+        encoder_eccentricity=truth.encoder_eccentricity, encoder_phase=phase,
+        play_rad=truth.joint_play_rad, stick_nmm=truth.play_stick_nmm)
 
-    truth: Arm6Truth
-    robot: Robot
-    x_true: np.ndarray
-    base_robot: Robot
-    x_base: np.ndarray
-    phase: np.ndarray
 
-    @classmethod
-    def build(cls, truth: Arm6Truth, rng: np.random.Generator) -> _Arm6Plant:
-        # the true parameters as ``truth.true_params`` has them, or, before that, drawn
-        nominal = urdf_chain(arm6_urdf_path(), "base_link", "tool0", "arm",
-                             marker=truth.marker_nominal_mm,
-                             instrument=truth.instrument_nominal)
-        robot = Robot({"arm": nominal}, 3)
-        x_true = (np.array([truth.true_params[n] for n in robot.layout.names])
-                  if truth.true_params else true_parameters(robot, truth, rng))
-        # The instrument sees gravity along -z of the robot base; frames for torques are
-        # taken with the base at the identity so that direction holds.
-        base_robot = Robot({"arm": urdf_chain(arm6_urdf_path(), "base_link", "tool0",
-                                              "arm")}, 3)
-        x_base = np.array(x_true, float)
-        x_base[base_robot.layout.slices[("arm", "instrument")]] = 0.0
-        phase = np.random.default_rng([truth.seed, physics.ENCODER_STREAM]).uniform(
-            -np.pi, np.pi, 6)
-        return cls(truth, robot, np.asarray(x_true, float), base_robot, x_base, phase)
-
-    def measure(self, q_cmd: np.ndarray, rng: np.random.Generator,
-                approach_rng: np.random.Generator, approach: np.ndarray | None = None
-                ) -> np.ndarray:
-        """Marker points (N, 3) mm at the commanded joint angles ``q_cmd`` (N, 6); each
-        joint's ``approach`` side (N, 6; +1, -1, 0: unknown) where the rows record it."""
-        truth, masses = self.truth, np.asarray(self.truth.masses_kg)
-        down = np.array([0.0, 0.0, -1.0])
-        q = q_cmd + rng.normal(0, truth.joint_noise_rad, q_cmd.shape)
-        if truth.encoder_eccentricity:
-            q = q + physics.encoder_error(q_cmd, truth.encoder_eccentricity, self.phase)
-        if truth.joint_play_rad:
-            tau = physics.gravity_torques(self.base_robot, self.x_base, "arm", q, masses, down)
-            q = q + physics.play_offsets(tau, truth.joint_play_rad, truth.play_stick_nmm,
-                                         approach_rng, approach)
-        if truth.compliance:
-            q = q + physics.gravity_deflection(self.base_robot, self.x_base, "arm", q, masses,
-                                               np.asarray(truth.stiffness_nmm_per_rad), down)
-        p = np.asarray(self.robot.compiled_points("arm")(jnp.asarray(self.x_true),
-                                                         jnp.asarray(q)))
-        return p + rng.normal(0, truth.measurement_noise_mm, p.shape)
+def linked_plant(robot: Robot, x_true: np.ndarray, truth: Mapping[str, Any]) -> ChainPlant:
+    """The arms of a linked arm6 rig as they really are, each measured alone: ``truth`` as its
+    truth.toml table has it (the drawn masses and stiffnesses recorded). Gravity is the
+    instrument's -z; eight deflection steps, as four leave the softer arm's fixed point up to
+    6e-6 rad off."""
+    compliant = bool(truth["compliance"])
+    return ChainPlant(
+        robot, np.asarray(x_true, float), truth["joint_noise_rad"],
+        truth["measurement_noise_mm"], robot, np.asarray(x_true, float),
+        {a: np.asarray(truth["drawn_masses_kg"][a], float) for a in truth["arms"]}
+        if compliant else {},
+        {a: np.asarray(truth["stiffness_nmm_per_rad"][a], float) for a in truth["arms"]}
+        if compliant else None, deflection_steps=8)
 
 
 def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
@@ -315,9 +302,9 @@ def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(truth.seed)
-    plant = _Arm6Plant.build(truth, rng)
+    plant = arm6_plant(truth, rng)
     if truth.encoder_eccentricity:
-        truth.encoder_phase_rad = tuple(float(v) for v in plant.phase)
+        truth.encoder_phase_rad = tuple(float(v) for v in plant.encoder_phase)
     approach = np.random.default_rng([truth.seed, physics.PLAY_STREAM])
     rows = []
     for set_name, n in (("train", truth.n_train), ("validation", truth.n_validation),
@@ -325,7 +312,7 @@ def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
         if n == 0:
             continue
         q_cmd = random_poses(rng, n)
-        p = plant.measure(q_cmd, rng, approach)
+        p = plant.measure("arm", q_cmd, rng, approach)
         rows += [(set_name, qc, pc) for qc, pc in zip(q_cmd, p, strict=True)]
     write_arm6_rig(out, f"arm6-seed{truth.seed}", rows, truth)
     truth.true_params = {name: float(v) for name, v in zip(plant.robot.layout.names,
@@ -405,39 +392,17 @@ def _truth_plant(rig_dir: Path, seed: int) -> Callable[[str, np.ndarray, np.ndar
         truth = Arm6Truth(**{k: (tuple(v) if isinstance(v, list) else v)
                               for k, v in table.items() if k in names})
         rng = np.random.default_rng([seed, truth.seed, POSES_STREAM])
-        arm6 = _Arm6Plant.build(truth, rng)
-        return lambda arm, q, approach: arm6.measure(q, rng, rng, approach)
+        measure = arm6_plant(truth, rng).measure
+        return lambda arm, q_cmd, approach: measure(arm, q_cmd, rng, approach=approach)
     t = tables["linked_chain_truth"]
     robot = Robot({a: urdf_chain(arm6_urdf_path(), "base_link", "tool0", a,
                                  marker=t["marker_nominal_mm"],
                                  instrument=t["instrument_nominal"][a]) for a in t["arms"]}, 3)
     x_true = np.array([t["true_params"][n] for n in robot.layout.names])
     rng = np.random.default_rng([seed, t["seed"], POSES_STREAM])
-
-    def plant(arm: str, q_cmd: np.ndarray, approach: np.ndarray) -> np.ndarray:
-        load = ((np.asarray(t["drawn_masses_kg"][arm], float),
-                 np.asarray(t["stiffness_nmm_per_rad"][arm], float)) if t["compliance"]
-                else None)
-        return _linked_arm_points(robot, x_true, arm, q_cmd, rng, t["joint_noise_rad"],
-                                  t["measurement_noise_mm"], load)
-    return plant
-
-
-def _linked_arm_points(robot: Robot, x_true: np.ndarray, arm: str, q_cmd: np.ndarray,
-                       rng: np.random.Generator, joint_noise_rad: float,
-                       measurement_noise_mm: float,
-                       load: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """One arm of a linked arm6 rig measured alone at ``q_cmd`` (N, 6): its marker points
-    (N, 3) mm with joint noise, the gravity deflection of ``load`` (link masses, joint
-    stiffnesses; None: rigid) and measurement noise, drawn in that order from ``rng``."""
-    q = q_cmd + rng.normal(0, joint_noise_rad, q_cmd.shape)
-    if load is not None:
-        # Gravity is the instrument's -z; eight steps, as four leave the softer arm's fixed
-        # point up to 6e-6 rad off.
-        q = q + physics.gravity_deflection(robot, x_true, arm, q, *load, np.asarray(GRAVITY),
-                                           iterations=8)
-    p = np.asarray(robot.compiled_points(arm)(jnp.asarray(x_true), jnp.asarray(q)))
-    return p + rng.normal(0, measurement_noise_mm, p.shape)
+    # the linked simulator has no play: the sides are recorded, not acted on
+    measure = linked_plant(robot, x_true, t).measure
+    return lambda arm, q_cmd, approach: measure(arm, q_cmd, rng)
 
 
 def write_arm6_rig(out: Path, name: str, rows: Sequence[tuple[str, np.ndarray, np.ndarray]],
@@ -520,11 +485,10 @@ def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Pat
                             instrument=truth.instrument_nominal[a]) for a in truth.arms}
     robot = Robot(chains, 3)
     x_true = true_parameters(robot, truth, rng)
-    masses = drawn_masses(truth)
     # a copy: the caller's truth stays the profile, so simulating it again draws the same
     truth = replace(truth, stiffness_nmm_per_rad=drawn_stiffness(truth),
-                    drawn_masses_kg={a: m.tolist() for a, m in masses.items()})
-    stiffness = {a: np.asarray(truth.stiffness_nmm_per_rad[a], float) for a in truth.arms}
+                    drawn_masses_kg={a: m.tolist() for a, m in drawn_masses(truth).items()})
+    plant = linked_plant(robot, x_true, asdict(truth))
     lines = [",".join(["config", "set", "target_x", "target_y", "target_z",
                        *[f"{a}_u{k + 1}" for a in truth.arms for k in range(6)],
                        "x", "y", "z"])]
@@ -532,9 +496,7 @@ def simulate_linked_arm6_rig(out_dir: str | Path, truth: LinkedArm6Truth) -> Pat
                                 ("holdout", truth.n_holdout)) if n]
     for arm in truth.arms:
         q_cmd = random_poses(rng, sum(n for _, n in sets))
-        p = _linked_arm_points(robot, x_true, arm, q_cmd, rng, truth.joint_noise_rad,
-                               truth.measurement_noise_mm,
-                               (masses[arm], stiffness[arm]) if truth.compliance else None)
+        p = plant.measure(arm, q_cmd, rng)
         names = [s for s, n in sets for _ in range(n)]
         lines += [_fmt_row(arm, s, None, {arm: qc}, pc, truth.arms)
                   for s, qc, pc in zip(names, q_cmd, p, strict=True)]
