@@ -571,15 +571,10 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
 @command("reproduce", "run the paper end to end: calibrate, fit IND/CORR/COND, predict, "
                       "write Figures 3-8 and accuracy.json", _reproduce_args)
 def _reproduce(args: argparse.Namespace) -> int:
-    from bayesrob.paper.reproduction import (
-        bound_notes,
-        format_accuracy,
-        grid_warnings,
-        run_reproduction,
-    )
+    from bayesrob.paper.reproduction import bound_notes, grid_warnings, run_reproduction
     from bayesrob.predict.grid import Grid
     from bayesrob.report.outputs import write_reproduction
-    from bayesrob.report.tables import grouped_notes
+    from bayesrob.report.tables import format_accuracy, grouped_notes
 
     rig = _load_rig_arg(args.rig, chains=False)
     rep = run_reproduction(rig, args.models, args.models_dir,
@@ -837,6 +832,7 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
     named ones with rivals, their rivals, the candidates not named) is to be told apart."""
     from bayesrob.calibrate.least_squares import base_groups
     from bayesrob.plan import plan_poses, write_poses
+    from bayesrob.report.tables import format_plan
 
     settled = [s["effect"] for s in doc["steps"] if not s.get("rivals")]
     base = (*base_groups(rig.robot), *(CHAIN_EFFECTS[e] for e in settled))
@@ -846,7 +842,7 @@ def _diagnose_plan(rig, doc: dict, args: argparse.Namespace) -> None:
     write_poses(plan, out)
     say = sys.stderr if args.json == "-" else sys.stdout
     print(f"plan: {', '.join(plan.effects)} to tell apart beside "
-          f"{', '.join(base)}: {plan.summary()}", file=say)
+          f"{', '.join(base)}: {format_plan(plan)}", file=say)
     _wrote(out, args.json)
 
 
@@ -879,7 +875,8 @@ def _sample_args(p: argparse.ArgumentParser) -> None:
 def _sample(args: argparse.Namespace) -> int:
     # the samplers' libraries take a second or two to import: a clock until sample_linked's own
     with _clock(args, "loading") as loading:
-        from bayesrob.inference.sampling import format_sample, sample_linked
+        from bayesrob.inference.sampling import sample_linked
+        from bayesrob.report.tables import format_sample
 
         rig = _load_rig_arg(args.rig)
         loading.close(done=False)
@@ -939,12 +936,9 @@ def _predict_args(p: argparse.ArgumentParser) -> None:
 @command("predict", "predict the accuracy of an assembly (one arm or linked arms) at targets "
                     "before it is built, from its modules' single-arm rows", _predict_args)
 def _predict(args: argparse.Namespace) -> int:
-    from bayesrob.predict.assembly import (
-        assembly_figure,
-        grid_targets,
-        predict_assembly,
-        read_targets,
-    )
+    from bayesrob.predict.assembly import grid_targets, predict_assembly, read_targets
+    from bayesrob.report.plots.prediction import assembly_figure
+    from bayesrob.report.tables import format_prediction
 
     rig = _load_rig_arg(args.rig)
     targets = (read_targets(args.targets, rig.robot.dim) if args.targets
@@ -954,7 +948,7 @@ def _predict(args: argparse.Namespace) -> int:
         pred = predict_assembly(rig, args.config, targets, args.model, args.fusion,
                                 args.models_dir, args.seed, groups=args.params,
                                 masses=args.masses)
-    _report(pred.document, lambda _: pred.format(), args.json)
+    _report(pred.document, lambda _: format_prediction(pred), args.json)
     if args.plot:
         save_figure(assembly_figure(pred, rig), args.plot, dpi=120)
         if args.json != "-":
@@ -977,7 +971,9 @@ def _compare_args(p: argparse.ArgumentParser) -> None:
 @command("compare", "score every joint-error model on held-out end points and by "
                     "leave-one-out, with arviz's comparison table", _compare_args)
 def _compare(args: argparse.Namespace) -> int:
-    from bayesrob.compare.comparison import compare_models, comparison_figure, format_comparison
+    from bayesrob.compare.comparison import compare_models
+    from bayesrob.report.plots.comparison import comparison_figure
+    from bayesrob.report.tables import format_comparison
 
     rig = _load_rig_arg(args.rig)
     comp = compare_models(rig, args.models, args.models_dir, progress=_progress(args),
@@ -1023,11 +1019,12 @@ def _design(args: argparse.Namespace) -> int:
         from bayesrob.design.modules import load_modules
         from bayesrob.design.search import run_design
         from bayesrob.report.outputs import write_design
+        from bayesrob.report.tables import format_design
 
         modules = load_modules(design)
     result = run_design(design, modules, scheduler=args.scheduler, workers=args.workers,
                         progress=_progress(args))
-    print(result.format(args.top))
+    print(format_design(result, args.top))
     written = _staged(args.out, lambda scratch: write_design(result, modules, args.top, scratch))
     print(f"wrote {', '.join(str(w) for w in written)}")
     # exit 1: the search ran and nothing met the requirement (the closest is shown above)
@@ -1077,6 +1074,7 @@ def _plan_args(p: argparse.ArgumentParser) -> None:
          progress=False)
 def _plan(args: argparse.Namespace) -> int:
     from bayesrob.plan import load_plan_rig, plan_poses, write_poses
+    from bayesrob.report.tables import format_plan
 
     if args.noise_mm <= 0:
         raise UsageError(f"--noise-mm must be positive, not {args.noise_mm:g}")
@@ -1085,7 +1083,7 @@ def _plan(args: argparse.Namespace) -> int:
                       pool=args.pool, samples=args.samples, task=args.task, seed=args.seed,
                       noise_mm=args.noise_mm, **{k: v for k in ("omitted_sd", "prior_sd")
                                                  if (v := getattr(args, k)) is not None})
-    print(plan.summary())
+    print(format_plan(plan))
     write_poses(plan, args.out)
     print(f"wrote {args.out}")
     _write_json(plan.to_dict(), args.json)

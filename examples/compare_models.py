@@ -21,14 +21,11 @@ import sys
 from pathlib import Path
 
 import bayesrob  # noqa: F401  (64-bit JAX)
-from bayesrob.compare.comparison import (
-    ModelComparison,
-    compare_models,
-    comparison_figure,
-    format_comparison,
-)
+from bayesrob.compare.comparison import ModelComparison, compare_models
 from bayesrob.data.rig import default_rig_dir, load_rig
-from bayesrob.inference.sampling import format_sample, sample_linked
+from bayesrob.inference.sampling import sample_linked
+from bayesrob.report.plots.comparison import comparison_figure
+from bayesrob.report.tables import format_comparison, format_sample
 
 
 def main(rig_dir: str | None = None, out_dir: str | Path = "compare-default") -> ModelComparison:

@@ -136,7 +136,8 @@ def test_reproduce_groups_its_notes_and_reports_progress(clean_rig_dir, tmp_path
 
 
 def test_sample_notes_are_under_the_notes_heading():
-    from bayesrob.inference.sampling import SampleReport, format_sample
+    from bayesrob.inference.sampling import SampleReport
+    from bayesrob.report.tables import format_sample
 
     grid = {"mean": [140.0, 220.0], "cov": [[0.2, 0.0], [0.0, 0.3]], "seconds": 0.5,
             "n": 150, "cell_mm": [0.05, 0.05], "edge_mass": 0.0}

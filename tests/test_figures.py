@@ -159,7 +159,7 @@ def _fake_comparison(dim: int = 2, other: str = "cond_paper"):
 
 
 def test_comparison_figure_has_units_and_labels():
-    from bayesrob.compare.comparison import comparison_figure
+    from bayesrob.report.plots.comparison import comparison_figure
 
     fig = comparison_figure(_fake_comparison())
     try:
@@ -180,7 +180,7 @@ def test_comparison_figure_has_units_and_labels():
 
 
 def test_comparison_figure_of_a_3d_rig_without_paper_models_says_so():
-    from bayesrob.compare.comparison import comparison_figure
+    from bayesrob.report.plots.comparison import comparison_figure
 
     fig = comparison_figure(_fake_comparison(dim=3, other="cond"))
     try:
@@ -232,7 +232,8 @@ def test_the_predict_figure_fits_its_content(config):
     """Every text inside the figure, every target and arm base inside the map's axes, and a
     title that names a fusion only for linked arms (planar arms drawn as every robot is)."""
     from bayesrob.data.rig import default_rig_dir, load_rig
-    from bayesrob.predict.assembly import assembly_figure, grid_targets, predict_assembly
+    from bayesrob.predict.assembly import grid_targets, predict_assembly
+    from bayesrob.report.plots.prediction import assembly_figure
 
     rig = load_rig(default_rig_dir())
     pred = predict_assembly(rig, config, grid_targets(rig, 3), "ind")
@@ -347,7 +348,7 @@ def _fake_3d_prediction(config: str = "left+right"):
 def test_the_3d_predict_figure_shows_the_targets_in_views_of_equal_scale(config):
     """Seen from above and from the side on one scale, every target and arm base inside
     its view, every panel titled, nothing cut off at the figure's edge."""
-    from bayesrob.predict.assembly import assembly_figure
+    from bayesrob.report.plots.prediction import assembly_figure
 
     pred, rig = _fake_3d_prediction(config)
     fig = assembly_figure(pred, rig)

@@ -32,6 +32,7 @@ from bayesrob.errors.kde import ConditionalKDE
 from bayesrob.errors.noise_models import FittedNoiseModel, ModelSpec, discover_models, joint_errors
 from bayesrob.inference import sampling as inf
 from bayesrob.predict.grid import Grid, GridPosterior, grid_posterior, predict
+from bayesrob.report import tables
 
 # Fixed bandwidths (rad; us for the commands) so the small-model tests need no selection.
 FIXED = {
@@ -446,7 +447,7 @@ def test_sample_command_exits_1_when_the_check_fails(monkeypatch, capsys):
         return inf.SampleReport(doc, None, {})
 
     monkeypatch.setattr(inf, "sample_linked", failing)
-    monkeypatch.setattr(inf, "format_sample", lambda r: "check FAILED")
+    monkeypatch.setattr(tables, "format_sample", lambda r: "check FAILED")
     assert main(["sample", "--target", "140", "220", "--json", "-"]) == 1
 
 

@@ -16,7 +16,6 @@ from bayesrob.cli import main
 from bayesrob.compare.comparison import (
     compare_models,
     elpd_data,
-    format_comparison,
     loo_calibrations,
     loo_training_scores,
     refit_at_bandwidths,
@@ -25,6 +24,7 @@ from bayesrob.compare.comparison import (
 )
 from bayesrob.data.rig import default_rig_dir, load_rig
 from bayesrob.errors.noise_models import discover_models, fit_noise_models, joint_errors, models_dir
+from bayesrob.report.tables import format_comparison
 
 
 @pytest.mark.filterwarnings("ignore:The inplace keyword")  # arviz's own pandas call

@@ -25,7 +25,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import arviz as az
 import jax.numpy as jnp
@@ -37,6 +37,7 @@ from bayesrob import robot as kin
 from bayesrob.calibrate.arms import calibrate_arm, calibrate_arms, predicted_points
 from bayesrob.calibrate.least_squares import calibrate, side_rows
 from bayesrob.data.rig import Rig
+from bayesrob.data.vocabulary import EQUILIBRIUM
 from bayesrob.errors.marker_density import fit_marker_model, loo_marker_scores, marker_model_kind
 from bayesrob.errors.noise_models import (
     FittedNoiseModel,
@@ -55,17 +56,12 @@ from bayesrob.predict.grid import (
 )
 from bayesrob.predict.regions import kde_log_density
 from bayesrob.progress import progress as progress_report
-from bayesrob.report.tables import format_table
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
 
 __all__ = ["PointScores", "ModelComparison", "score_points", "score_setup", "holdout_setups",
            "refit_at_bandwidths", "loo_training_scores", "loo_calibrations", "compare_models",
-           "comparison_figure", "format_comparison"]
+           "elpd_rows"]
 
 MASSES = (0.5, 0.9)
-EQUILIBRIUM = "equilibrium"  # the fusion rule scored beside the product (bayesrob.predict.fusion)
 
 # Rows taken where no training, validation or test row was: single-arm rows at new poses and
 # linked rows at new targets. Scored beside the validation/test rows, never fitted on.
@@ -235,7 +231,8 @@ def _elpd_tables(specs: Sequence[ModelSpec], heldout: dict[str, dict[str, PointS
                 table(pooled(holdout)) if holdout else None)
 
 
-def _table(compared: Any) -> list[dict]:
+def elpd_rows(compared: Any) -> list[dict]:
+    """An ``arviz.compare`` table as the JSON's rows, best first."""
     return [{"model": str(name), "rank": int(r["rank"]), "elpd": float(r["elpd_loo"]),
              "se": float(r["se"]), "elpd_diff": float(r["elpd_diff"]), "dse": float(r["dse"]),
              "weight": float(r["weight"]), "p": float(r["p_loo"])}
@@ -312,8 +309,8 @@ class ModelComparison:
                     "holdout": (_score_summary(self.fused_holdout[name])
                                 if self.fused_holdout else None),
                 }
-        held = _table(self.heldout_compare)
-        loo = _table(self.loo_compare)
+        held = elpd_rows(self.heldout_compare)
+        loo = elpd_rows(self.loo_compare)
         winner = held[0]
         runner_up = held[1] if len(held) > 1 else None
         return {
@@ -326,7 +323,7 @@ class ModelComparison:
             "loo_compare": loo,
             "holdout_rows": ({c: int(s.lpd.size) for c, s in
                               self.holdout[self.specs[0].name].items()} if self.holdout else {}),
-            "holdout_compare": (_table(self.holdout_compare)
+            "holdout_compare": (elpd_rows(self.holdout_compare)
                                 if self.holdout_compare is not None else []),
             "loo_recalibrated": self.loo_recalibrated,
             "winner": {
@@ -475,82 +472,3 @@ def _compare_marker_models(rig: Rig, models: Sequence[str] | None,
                            kinds=kinds, score=(
                                f"log predictive density per mm^{dim} of the observed marker "
                                "under the arm's marker density; elpd = sum over points"))
-
-
-def format_comparison(doc: dict) -> str:
-    """Terminal tables of a comparison document."""
-    parts = []
-    unit = "mm^3" if "mm^3" in doc["score"] else "mm^2"
-    tables = [("heldout_compare", "heldout", "held-out points"),
-              ("loo_compare", "loo_train", "leave-one-out over training rows")]
-    if doc.get("holdout_compare"):
-        tables.append(("holdout_compare", "holdout", "holdout points (new poses and targets)"))
-    for key, summary, title in tables:
-        rows = [[r["model"], str(r["rank"]), f"{r['elpd']:.1f}", f"{r['se']:.1f}",
-                 f"{r['elpd_diff']:.1f}", f"{r['dse']:.1f}", f"{r['weight']:.2f}"]
-                for r in doc[key]]
-        n = next(iter(doc["models"].values()))[summary]["n"]
-        parts.append(f"{title} (n = {n}; elpd = sum of log density per {unit})")
-        parts.append(format_table(["model", "rank", "elpd", "se", "elpd_diff", "dse", "weight"],
-                                  rows))
-        parts.append("")
-    rows = []
-    for name, m in doc["models"].items():
-        sets = [("heldout", "")]
-        if m.get("holdout"):
-            sets.append(("holdout", " (holdout)"))
-        for key, label in sets:
-            for config, s in m[key]["by_setup"].items():
-                if m.get("fusion") == EQUILIBRIUM and "+" not in config:
-                    continue  # one arm: the same prediction as the product's row
-                rows.append([name, config + label, str(s["n"]), f"{s['mean_lpd']:.2f}",
-                             f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
-                             f"{s['mean_hdr_level']:.2f}"])
-    parts.append("held-out points by setup (coverage of the 50% / 90% regions; a calibrated "
-                 "model has mean HDR level 0.5)")
-    parts.append(format_table(["model", "setup", "n", "mean lpd", "cov50", "cov90",
-                               "HDR level"], rows))
-    w = doc["winner"]
-    if w["over"] is not None:
-        parts.append(f"\nwinner on held-out points: {w['model']}, ahead of {w['over']} by "
-                     f"{w['elpd_diff']:.1f} elpd (dse {w['dse']:.1f})")
-    return "\n".join(parts)
-
-
-def comparison_figure(comparison: ModelComparison) -> Figure:
-    """elpd difference to the best model, with its standard error, held out and LOO, in the
-    style of ``arviz.plot_compare`` on a symmetric-log axis: the histogram COND can trail by
-    thousands where the others differ by a few units."""
-    import matplotlib.pyplot as plt
-
-    k = len(comparison.specs)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 0.45 * k + 2.0))
-    for ax, df, title in ((axes[0], comparison.heldout_compare, "held-out points"),
-                          (axes[1], comparison.loo_compare, "LOO over training rows")):
-        rows = _table(df)
-        y = np.arange(len(rows))[::-1]
-        diff = -np.array([r["elpd_diff"] for r in rows])
-        dse = np.array([r["dse"] for r in rows])
-        paper = [next(s for s in comparison.specs if s.name == r["model"]).paper for r in rows]
-        for yi, d, e, p in zip(y, diff, dse, paper, strict=True):
-            ax.errorbar(d, yi, xerr=e, fmt="s" if p else "o", color="C1" if p else "C0",
-                        capsize=3)
-        ax.axvline(0.0, color="0.5", lw=0.8, ls="--")
-        ax.set_xscale("symlog", linthresh=10.0)
-        ax.set_xlim(min(-5.0, float(np.min(diff - dse))) * 1.5,
-                    max(5.0, float(np.max(diff + dse))) * 1.5)
-        ax.set_yticks(y, [f"{r['model']}  ({r['elpd']:.0f} \u00b1 {r['se']:.0f})"
-                          for r in rows])
-        ax.set_xlabel("elpd difference to the best model (nats, \u00b1 dse)")
-        ax.set_ylabel("model (elpd \u00b1 se, nats)")
-        n = int(comparison.heldout_pointwise(rows[0]["model"]).size) if title.startswith(
-            "held") else int(comparison.loo[rows[0]["model"]].size)
-        ax.set_title(f"{title}, n = {n}")
-    # a 3-D rig's densities are per mm^3; the marker key only where a paper model is drawn
-    key = ("circles improved, squares paper-faithful; " if any(s.paper for s in comparison.specs)
-           else "")
-    fig.suptitle(f"{comparison.rig.name}: elpd, the summed log predictive density of the "
-                 f"observed end points (nats; density per mm$^{comparison.rig.robot.dim}$)\n"
-                 f"{key}higher is better")
-    fig.tight_layout()
-    return fig

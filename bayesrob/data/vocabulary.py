@@ -30,5 +30,6 @@ ALL_GROUPS = GROUPS + OPTIONAL_GROUPS
 MASS_SOURCES = ("fitted", "description")
 
 # How linked arms share their end point.
-FUSIONS = ("product", "equilibrium")
-DEFAULT_FUSION = "equilibrium"
+EQUILIBRIUM = "equilibrium"  # the stiffnesses' balance (bayesrob.predict.fusion)
+FUSIONS = ("product", EQUILIBRIUM)
+DEFAULT_FUSION = EQUILIBRIUM

@@ -214,40 +214,6 @@ class DesignResult:
         """``design.json``: the name every result's JSON goes by (bayesrob.__all__)."""
         return self.document
 
-    def format(self, top: int = 10) -> str:
-        from bayesrob.report.tables import format_table
-
-        d = self.design
-        q = f"q{round(100 * d.quantile)}"
-        rows = [[str(c["rank"]), c["config"],
-                 _bases_text(c["bases"]),
-                 f"{c['overall']['error_quantile_mm']:.3f}",
-                 f"{c['overall']['worst_target_quantile_mm']:.3f}",
-                 f"{c['overall']['expected_error_mm']:.3f}",
-                 f"{c['overall']['assured_error_mm']:.3f}", "yes" if c["meets"] else "no"]
-                for c in self.candidates[:top]]
-        head = (f"{len(self.candidates)} candidate assemblies ({self.n_reachable} of "
-                f"{self.n_placements} module placements reach all {len(self.targets)} "
-                f"targets), requirement {d.error_mm:g} mm at {d.quantile:g}, fusion "
-                f"{d.fusion}, {self.workers} worker(s), {self.seconds:.1f} s")
-        table = format_table(["rank", "assembly", "bases (mm)", f"{q} mm", f"worst {q} mm",
-                              "E error mm", f"{q} in {d.confidence:.0%} mm", "meets"], rows)
-        best = self.best
-        if best is None:
-            tail = "no candidate"
-        elif best["meets"]:
-            tail = (f"best: {best['config']} at " + _bases_text(best["bases"])
-                    + f", predicted {q} {best['overall']['error_quantile_mm']:.3f} mm")
-        else:
-            tail = (f"no candidate meets {d.error_mm:g} mm at {d.quantile:g} in "
-                    f"{d.confidence:.0%} of builds; the closest is {best['config']}, within "
-                    f"{best['overall']['assured_error_mm']:.3f} mm in {d.confidence:.0%}")
-        return "\n".join([head, table, *self.notes, tail])
-
-
-def _bases_text(bases: Sequence[Sequence[float]]) -> str:
-    return "; ".join("(" + ", ".join(f"{v:.0f}" for v in b) + ")" for b in bases)
-
 
 def _rank_key(c: dict) -> tuple:
     # those that meet: fewest modules first; those that miss: closest to meeting first

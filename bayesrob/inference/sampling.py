@@ -51,13 +51,12 @@ from bayesrob.predict.grid import (
     zoomed_grid,
 )
 from bayesrob.progress import FIRST_LINE_S, Progress
-from bayesrob.report.tables import grouped_notes
 
 __all__ = ["SAMPLERS", "CheckTolerances", "NutsSampler", "SamplerResult",
            "SampleReport", "arm_model", "prior_predictive", "linked_model",
            "linked_log_density", "prior_spread", "initial_points", "check_pulse_limits",
            "check_reach", "run_nuts", "run_emcee", "cross_check", "cov_rel_error",
-           "emcee_density", "sample_linked", "format_sample"]
+           "emcee_density", "sample_linked"]
 
 SAMPLERS = ("nuts", "emcee", "grid")
 
@@ -756,50 +755,3 @@ def _sample_markers(rig: Rig, config: str, target: Sequence[float], model: str, 
         tol, burn, sampler, [f"calibrated with --params {','.join(cal.groups)}; each arm aimed "
                              "by its calibrated inverse kinematics"])
     return SampleReport(doc, grid, results)
-
-
-def format_sample(report: SampleReport) -> str:
-    """Terminal summary: arviz diagnostics per sampler, moments side by side, the check."""
-    from bayesrob.report.tables import format_table
-
-    doc = report.document
-    dim = len(doc["target"])
-    parts = [f"{doc['config']} aimed at ({', '.join(f'{v:.2f}' for v in doc['target'])}) mm, "
-             f"model {doc['model']}"]
-    for name, res in report.results.items():
-        parts.append(f"\n{name}: az.summary ({res.seconds:.1f} s sampling, "
-                     f"{res.compile_seconds:.1f} s compiling)")
-        parts.append(res.summary.round(4).to_string())
-    rows = []
-    for name, s in doc["samplers"].items():
-        sd = np.sqrt(np.diag(np.asarray(s["cov"])))
-        # a plane's one correlation; in 3-D the three would crowd the table
-        corr = [f"{s['cov'][0][1] / (sd[0] * sd[1]):+.3f}"] if dim == 2 else []
-        rows.append([name, *(f"{v:.3f}" for v in s["mean"]), *(f"{v:.3f}" for v in sd), *corr,
-                     f"{s['ess_bulk']:.0f}" if "ess_bulk" in s else "-",
-                     f"{s['r_hat']:.4f}" if "r_hat" in s else "-", f"{s['seconds']:.2f}"])
-    parts.append("")
-    axes = "xyz"[:dim]
-    parts.append(format_table(["sampler", *(f"mean {a}" for a in axes),
-                               *(f"sd {a}" for a in axes), *(["corr"] if dim == 2 else []),
-                               "ess_bulk", "r_hat", "seconds"], rows))
-    g = doc["samplers"]["grid"]
-    half = g.get("box_half_width_mm", 30)
-    parts.append(f"grid: zoomed {'x'.join([str(g['n'])] * dim)} cells of "
-                 f"{' x '.join(f'{c:.4f}' for c in g['cell_mm'])} mm; mass on the +-{half:g} mm "
-                 f"box edge {g['edge_mass']:.1e}")
-    check = doc["check"]
-    if not check["passed"]:
-        parts.append("check FAILED:")
-        parts += [f"  {f}" for f in check["failures"]]
-    elif not check["compared"]:
-        parts.append(f"check: no sampler ran; the grid's box holds the posterior (edge mass "
-                     f"<= {check['tolerances']['edge_mass']:g})")
-    else:
-        t = check["tolerances"]
-        verb = "agrees" if len(check["compared"]) == 1 else "agree"
-        parts.append(f"check PASSED: {', '.join(check['compared'])} {verb} with the grid "
-                     f"(mean within {t['mean_mm']} mm, covariance within {t['cov_rel']:.0%}, "
-                     f"r_hat <= {t['r_hat']}, bulk ESS >= {t['ess_bulk']:.0f})")
-    parts += grouped_notes([], doc.get("notes", []))
-    return "\n".join(parts)

@@ -24,7 +24,6 @@ from bayesrob.errors.noise_models import (
     joint_errors,
 )
 from bayesrob.predict.grid import Grid, Prediction, accuracy_document, predict, setup_rows, setups
-from bayesrob.report.tables import format_table
 
 FIGURES = (
     "fig3_workspace_errors.png",
@@ -136,16 +135,3 @@ def bound_notes(rep: Reproduction) -> list[str]:
                 out.append(f"note: {spec.name} / {arm}: bandwidth on the bound of its search "
                            f"range [{lo:g}, {hi:g}] (in data standard deviations){why}")
     return out
-
-
-def format_accuracy(doc: dict) -> str:
-    """The accuracy table: observed error per setup and each model's predicted error."""
-    rows = []
-    for config, s in doc["setups"].items():
-        obs = s["observed"]
-        lo, hi = obs["ci95_mm"]
-        rows.append([config, "observed", f"{obs['mean_mm']:.2f}", f"[{lo:.2f}, {hi:.2f}]", ""])
-        for model, p in s["predicted"].items():
-            rows.append(["", model, f"{p['expected_error_mm']:.2f}", "",
-                         f"{p['ratio']:.2f}"])
-    return format_table(["setup", "observed / model", "error mm", "95% CI", "pred/obs"], rows)

@@ -106,18 +106,6 @@ class Plan:
                 "omitted": list(self.omitted), "omitted_sd": self.omitted_sd,
                 "prior_sd": self.prior_sd}
 
-    def summary(self) -> str:
-        bias = (f" (with the bias of the omitted {', '.join(self.omitted)})"
-                if self.omitted else "")
-        what = {"accuracy": "predicted end-point error over the task region" + bias,
-                "identify": "log det of the parameters' information",
-                "discriminate": "summed log det of the effects' own information"}[
-            self.criterion]
-        return (f"{self.criterion}: {what}: {self.before:.4g} {self.unit} before "
-                f"({self.n_measured} rows measured), {self.after:.4g} {self.unit} after the "
-                f"{len(self.selection.order)} planned poses (from {len(self.pool)} "
-                f"candidates, {self.seconds:.1f} s)")
-
 
 def resolve_groups(rig: Rig, groups: tuple[str, ...] | None, criterion: str
                    ) -> tuple[tuple[str, ...], list[str]]:

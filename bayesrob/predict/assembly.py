@@ -13,7 +13,7 @@ import csv
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -23,14 +23,11 @@ from bayesrob.errors.latent_errors import LATENT_MODELS
 from bayesrob.errors.noise_models import joint_errors_observed
 from bayesrob.predict.draws import fit_modules, fit_paper_modules
 from bayesrob.predict.fusion import DEFAULT_FUSION, DRAWS, FUSIONS
-from bayesrob.predict.regions import hdr_levels, hdr_sizes
+from bayesrob.predict.regions import hdr_sizes
 from bayesrob.predict.stiffness import STIFFNESS_SOURCES
 
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
 __all__ = ["AssemblyPrediction", "predict_assembly", "grid_targets", "read_targets",
-           "assembly_figure", "beyond_train_range", "stiffness_note"]
+           "beyond_train_range", "stiffness_note"]
 
 
 @dataclass
@@ -114,36 +111,6 @@ class AssemblyPrediction:
         return (f"note: {n} of {len(self.targets)} targets need commands beyond the range of "
                 f"the train rows ({'; '.join(parts)}): the calibration extrapolates there, and "
                 "the prediction may be too narrow")
-
-    def format(self) -> str:
-        from bayesrob.report.tables import format_table
-
-        rows = [[", ".join(f"{v:.1f}" for v in t), ", ".join(f"{v:.2f}" for v in p), f"{e:.2f}",
-                 f"{a50:.3g}", f"{a90:.3g}"]
-                for t, p, e, a50, a90 in zip(self.targets, self.expected_point,
-                                             self.expected_error_mm, self.hdr50,
-                                             self.hdr90, strict=True)]
-        head = (f"{self.config} on {self.rig}: model {self.model}, fusion {self.fusion}, "
-                f"{len(self.targets)} targets (from single-arm train rows only)")
-        s = self.document["summary"]
-        u = self.size_key
-        unit = f"mm^{u[-1]}"
-        tail = (f"mean expected error {s['mean_expected_error_mm']:.2f} mm (max "
-                f"{s['max_expected_error_mm']:.2f}); mean 50% / 90% region "
-                f"{s[f'mean_hdr50_{u}']:.3g} / {s[f'mean_hdr90_{u}']:.3g} {unit}")
-        note = self.extrapolation_note()
-        springs = [f"joint stiffness of {a}, from {v['from']} ("
-                   + ("N mm/rad, median): " if "nmm_per_rad" in v else "relative to its first "
-                      "joint): ")
-                   + " ".join(f"{k:.3g}" for k in v.get("nmm_per_rad", v.get("relative")))
-                   + (f"; the arm {np.exp(v['arm_log_centre']):.3g} times as stiff as the "
-                      "linked arms' geometric mean, by its fitted sag"
-                      if v.get("arm_log_centre") else "")
-                   for a, v in self.stiffness.items()]
-        return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
-                                              f"50% {unit}", f"90% {unit}"], rows), tail,
-                          *springs, *([note] if note else []),
-                          *([self.stiffness_note] if self.stiffness_note else [])])
 
 
 def grid_targets(rig: Rig, n: int) -> np.ndarray:
@@ -278,78 +245,3 @@ def stiffness_note(robot: kin.Robot, sources: dict[str, str]) -> str | None:
             "--masses description to read them from compliances fitted under those masses "
             "(each joint's own, where the prior gives the arms' profile; on the simulated "
             "report rigs that route met every coverage target: docs/fusion.md)")
-
-
-def assembly_figure(pred: AssemblyPrediction, rig: Rig) -> Figure:
-    """The targets coloured by expected error (from above and, in 3-D, the side, on one scale)
-    with each arm's base; then the least accurate target's draws by region, on those planes."""
-    import matplotlib.pyplot as plt
-
-    t = pred.targets
-    planes = [(0, 1), (0, 2)] if t.shape[1] == 3 else [(0, 1)]
-    x = rig.robot.layout.nominal
-    arms = pred.config.split("+")
-    # a planar arm's base is its chain's first joint origin, not an instrument pose
-    bases = np.asarray([np.asarray(rig.arms[a].base, float)
-                        if getattr(rig.arms[a], "base", None) is not None
-                        else np.asarray(rig.robot.instrument_pose(x, a))[:3, 3][:t.shape[1]]
-                        for a in arms])
-    shown = np.vstack([t, bases])
-    lo, hi = shown.min(axis=0), shown.max(axis=0)
-    pad = np.maximum(0.1 * (hi - lo).max(), 30.0)  # room for markers and the arms' names
-    lo, hi = lo - pad, hi + pad
-    # one scale for the views: the same x range, and vertical ranges of one length (the longer
-    # of y's and z's) centred on each view's points, so both panels take the same shape
-    tall = max(hi[j] - lo[j] for _, j in planes)
-    for _, j in planes:
-        centre = (hi[j] + lo[j]) / 2
-        lo[j], hi[j] = centre - tall / 2, centre + tall / 2
-    fig = plt.figure(figsize=(4.3 * 2 * len(planes) + 0.8, 4.6), layout="constrained")
-    axs = fig.subplots(1, 2 * len(planes))
-    maps, clouds = axs[:len(planes)], axs[len(planes):]
-    names = "xyz"
-    how = f"{pred.model}, {pred.fusion}" if "+" in pred.config else pred.model
-    vmin, vmax = float(pred.expected_error_mm.min()), float(pred.expected_error_mm.max())
-    for ax, (i, j) in zip(maps, planes, strict=True):
-        sc = ax.scatter(t[:, i], t[:, j], c=pred.expected_error_mm, cmap="viridis", s=60,
-                        vmin=vmin, vmax=vmax)
-        # bases one behind the other in this view share one marker and one label (drawn
-        # apart, "left" over "right" read "lefight" in the x-z view of a symmetric pair)
-        marks: list[tuple[np.ndarray, list[str]]] = []
-        for a, base in zip(arms, bases, strict=True):
-            point = np.array([base[i], base[j]])
-            near = [m for m in marks if np.hypot(*(m[0] - point)) < 0.03 * tall]
-            if near:
-                near[0][1].append(a)
-            else:
-                marks.append((point, [a]))
-        for point, at in marks:
-            ax.plot(*point, "k^")
-            ax.annotate(", ".join(at), tuple(point), textcoords="offset points",
-                        xytext=(4, 4), fontsize=8)
-        ax.set_xlim(lo[i], hi[i])
-        ax.set_ylim(lo[j], hi[j])
-        ax.set_aspect("equal")  # the views share one scale: distances read alike in both
-        ax.set_xlabel(f"{names[i]} (mm)")
-        ax.set_ylabel(f"{names[j]} (mm)")
-        ax.set_title(f"targets, {names[i]}-{names[j]} view", fontsize=9)
-    fig.colorbar(sc, ax=list(maps), label="expected error (mm)", shrink=0.8)
-    worst = int(np.argmax(pred.expected_error_mm))
-    draws = pred.draws[:, worst: worst + 1]
-    sub = draws[:1500]
-    level = hdr_levels(draws, sub)[:, 0]
-    dev = sub[:, 0] - t[worst]
-    for ax, (i, j) in zip(clouds, planes, strict=True):
-        for low, high, colour, label in ((0.9, 1.01, "0.8", "outside 90%"),
-                                         (0.5, 0.9, "C0", "50-90%"), (0.0, 0.5, "C3", "50%")):
-            m = (level >= low) & (level < high)
-            ax.scatter(dev[m, i], dev[m, j], s=3, color=colour, label=label)
-        ax.plot(0, 0, "k+", ms=12)
-        ax.set_aspect("equal")
-        ax.set_xlabel(f"{names[i]} - target (mm)")
-        ax.set_ylabel(f"{names[j]} - target (mm)")
-        ax.set_title(f"least accurate target's draws, {names[i]}-{names[j]}", fontsize=9)
-    clouds[0].legend(fontsize=7, markerscale=3)
-    fig.suptitle(f"{pred.config}: expected error ({how}); least accurate target "
-                 f"({', '.join(f'{v:.0f}' for v in t[worst])})", fontsize=10)
-    return fig

@@ -3,8 +3,18 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from bayesrob.data.vocabulary import EQUILIBRIUM
 from bayesrob.robot import PARAM_NAMES
+
+if TYPE_CHECKING:
+    from bayesrob.design.search import DesignResult
+    from bayesrob.inference.sampling import SampleReport
+    from bayesrob.plan.planner import Plan
+    from bayesrob.predict.assembly import AssemblyPrediction
 
 
 def _fmt(x: float | None, nd: int = 2) -> str:
@@ -191,3 +201,180 @@ def format_group_diagnosis(doc: dict) -> str:
 def _ladder_cells(row: dict) -> list[str]:
     return [f"{row[k]:.2f}" for k in ("heldout_error_mm", "heldout_error_sd_mm",
                                        "heldout_error_max_mm")]
+
+
+def format_accuracy(doc: dict) -> str:
+    """The accuracy table: observed error per setup and each model's predicted error."""
+    rows = []
+    for config, s in doc["setups"].items():
+        obs = s["observed"]
+        lo, hi = obs["ci95_mm"]
+        rows.append([config, "observed", f"{obs['mean_mm']:.2f}", f"[{lo:.2f}, {hi:.2f}]", ""])
+        for model, p in s["predicted"].items():
+            rows.append(["", model, f"{p['expected_error_mm']:.2f}", "",
+                         f"{p['ratio']:.2f}"])
+    return format_table(["setup", "observed / model", "error mm", "95% CI", "pred/obs"], rows)
+
+
+def format_comparison(doc: dict) -> str:
+    """Terminal tables of a comparison document."""
+    parts = []
+    unit = "mm^3" if "mm^3" in doc["score"] else "mm^2"
+    tables = [("heldout_compare", "heldout", "held-out points"),
+              ("loo_compare", "loo_train", "leave-one-out over training rows")]
+    if doc.get("holdout_compare"):
+        tables.append(("holdout_compare", "holdout", "holdout points (new poses and targets)"))
+    for key, summary, title in tables:
+        rows = [[r["model"], str(r["rank"]), f"{r['elpd']:.1f}", f"{r['se']:.1f}",
+                 f"{r['elpd_diff']:.1f}", f"{r['dse']:.1f}", f"{r['weight']:.2f}"]
+                for r in doc[key]]
+        n = next(iter(doc["models"].values()))[summary]["n"]
+        parts.append(f"{title} (n = {n}; elpd = sum of log density per {unit})")
+        parts.append(format_table(["model", "rank", "elpd", "se", "elpd_diff", "dse", "weight"],
+                                  rows))
+        parts.append("")
+    rows = []
+    for name, m in doc["models"].items():
+        sets = [("heldout", "")]
+        if m.get("holdout"):
+            sets.append(("holdout", " (holdout)"))
+        for key, label in sets:
+            for config, s in m[key]["by_setup"].items():
+                if m.get("fusion") == EQUILIBRIUM and "+" not in config:
+                    continue  # one arm: the same prediction as the product's row
+                rows.append([name, config + label, str(s["n"]), f"{s['mean_lpd']:.2f}",
+                             f"{s['coverage50']:.2f}", f"{s['coverage90']:.2f}",
+                             f"{s['mean_hdr_level']:.2f}"])
+    parts.append("held-out points by setup (coverage of the 50% / 90% regions; a calibrated "
+                 "model has mean HDR level 0.5)")
+    parts.append(format_table(["model", "setup", "n", "mean lpd", "cov50", "cov90",
+                               "HDR level"], rows))
+    w = doc["winner"]
+    if w["over"] is not None:
+        parts.append(f"\nwinner on held-out points: {w['model']}, ahead of {w['over']} by "
+                     f"{w['elpd_diff']:.1f} elpd (dse {w['dse']:.1f})")
+    return "\n".join(parts)
+
+
+def format_sample(report: SampleReport) -> str:
+    """Terminal summary: arviz diagnostics per sampler, moments side by side, the check."""
+    doc = report.document
+    dim = len(doc["target"])
+    parts = [f"{doc['config']} aimed at ({', '.join(f'{v:.2f}' for v in doc['target'])}) mm, "
+             f"model {doc['model']}"]
+    for name, res in report.results.items():
+        parts.append(f"\n{name}: az.summary ({res.seconds:.1f} s sampling, "
+                     f"{res.compile_seconds:.1f} s compiling)")
+        parts.append(res.summary.round(4).to_string())
+    rows = []
+    for name, s in doc["samplers"].items():
+        sd = np.sqrt(np.diag(np.asarray(s["cov"])))
+        # a plane's one correlation; in 3-D the three would crowd the table
+        corr = [f"{s['cov'][0][1] / (sd[0] * sd[1]):+.3f}"] if dim == 2 else []
+        rows.append([name, *(f"{v:.3f}" for v in s["mean"]), *(f"{v:.3f}" for v in sd), *corr,
+                     f"{s['ess_bulk']:.0f}" if "ess_bulk" in s else "-",
+                     f"{s['r_hat']:.4f}" if "r_hat" in s else "-", f"{s['seconds']:.2f}"])
+    parts.append("")
+    axes = "xyz"[:dim]
+    parts.append(format_table(["sampler", *(f"mean {a}" for a in axes),
+                               *(f"sd {a}" for a in axes), *(["corr"] if dim == 2 else []),
+                               "ess_bulk", "r_hat", "seconds"], rows))
+    g = doc["samplers"]["grid"]
+    half = g.get("box_half_width_mm", 30)
+    parts.append(f"grid: zoomed {'x'.join([str(g['n'])] * dim)} cells of "
+                 f"{' x '.join(f'{c:.4f}' for c in g['cell_mm'])} mm; mass on the +-{half:g} mm "
+                 f"box edge {g['edge_mass']:.1e}")
+    check = doc["check"]
+    if not check["passed"]:
+        parts.append("check FAILED:")
+        parts += [f"  {f}" for f in check["failures"]]
+    elif not check["compared"]:
+        parts.append(f"check: no sampler ran; the grid's box holds the posterior (edge mass "
+                     f"<= {check['tolerances']['edge_mass']:g})")
+    else:
+        t = check["tolerances"]
+        verb = "agrees" if len(check["compared"]) == 1 else "agree"
+        parts.append(f"check PASSED: {', '.join(check['compared'])} {verb} with the grid "
+                     f"(mean within {t['mean_mm']} mm, covariance within {t['cov_rel']:.0%}, "
+                     f"r_hat <= {t['r_hat']}, bulk ESS >= {t['ess_bulk']:.0f})")
+    parts += grouped_notes([], doc.get("notes", []))
+    return "\n".join(parts)
+
+
+def format_prediction(pred: AssemblyPrediction) -> str:
+    """``bayesrob predict``'s table: each target's expected point, error and regions, then the
+    summary, the linked arms' stiffnesses and the notes."""
+    rows = [[", ".join(f"{v:.1f}" for v in t), ", ".join(f"{v:.2f}" for v in p), f"{e:.2f}",
+             f"{a50:.3g}", f"{a90:.3g}"]
+            for t, p, e, a50, a90 in zip(pred.targets, pred.expected_point,
+                                         pred.expected_error_mm, pred.hdr50,
+                                         pred.hdr90, strict=True)]
+    head = (f"{pred.config} on {pred.rig}: model {pred.model}, fusion {pred.fusion}, "
+            f"{len(pred.targets)} targets (from single-arm train rows only)")
+    s = pred.document["summary"]
+    u = pred.size_key
+    unit = f"mm^{u[-1]}"
+    tail = (f"mean expected error {s['mean_expected_error_mm']:.2f} mm (max "
+            f"{s['max_expected_error_mm']:.2f}); mean 50% / 90% region "
+            f"{s[f'mean_hdr50_{u}']:.3g} / {s[f'mean_hdr90_{u}']:.3g} {unit}")
+    note = pred.extrapolation_note()
+    springs = [f"joint stiffness of {a}, from {v['from']} ("
+               + ("N mm/rad, median): " if "nmm_per_rad" in v else "relative to its first "
+                  "joint): ")
+               + " ".join(f"{k:.3g}" for k in v.get("nmm_per_rad", v.get("relative")))
+               + (f"; the arm {np.exp(v['arm_log_centre']):.3g} times as stiff as the "
+                  "linked arms' geometric mean, by its fitted sag"
+                  if v.get("arm_log_centre") else "")
+               for a, v in pred.stiffness.items()]
+    return "\n".join([head, format_table(["target (mm)", "expected point", "E error mm",
+                                          f"50% {unit}", f"90% {unit}"], rows), tail,
+                      *springs, *([note] if note else []),
+                      *([pred.stiffness_note] if pred.stiffness_note else [])])
+
+
+def _bases_text(bases: Sequence[Sequence[float]]) -> str:
+    return "; ".join("(" + ", ".join(f"{v:.0f}" for v in b) + ")" for b in bases)
+
+
+def format_design(result: DesignResult, top: int = 10) -> str:
+    """``bayesrob design``'s table: the ``top`` ranked candidates and the verdict."""
+    d = result.design
+    q = f"q{round(100 * d.quantile)}"
+    rows = [[str(c["rank"]), c["config"],
+             _bases_text(c["bases"]),
+             f"{c['overall']['error_quantile_mm']:.3f}",
+             f"{c['overall']['worst_target_quantile_mm']:.3f}",
+             f"{c['overall']['expected_error_mm']:.3f}",
+             f"{c['overall']['assured_error_mm']:.3f}", "yes" if c["meets"] else "no"]
+            for c in result.candidates[:top]]
+    head = (f"{len(result.candidates)} candidate assemblies ({result.n_reachable} of "
+            f"{result.n_placements} module placements reach all {len(result.targets)} "
+            f"targets), requirement {d.error_mm:g} mm at {d.quantile:g}, fusion "
+            f"{d.fusion}, {result.workers} worker(s), {result.seconds:.1f} s")
+    table = format_table(["rank", "assembly", "bases (mm)", f"{q} mm", f"worst {q} mm",
+                          "E error mm", f"{q} in {d.confidence:.0%} mm", "meets"], rows)
+    best = result.best
+    if best is None:
+        tail = "no candidate"
+    elif best["meets"]:
+        tail = (f"best: {best['config']} at " + _bases_text(best["bases"])
+                + f", predicted {q} {best['overall']['error_quantile_mm']:.3f} mm")
+    else:
+        tail = (f"no candidate meets {d.error_mm:g} mm at {d.quantile:g} in "
+                f"{d.confidence:.0%} of builds; the closest is {best['config']}, within "
+                f"{best['overall']['assured_error_mm']:.3f} mm in {d.confidence:.0%}")
+    return "\n".join([head, table, *result.notes, tail])
+
+
+def format_plan(plan: Plan) -> str:
+    """``bayesrob plan``'s line: the criterion before and after the planned poses."""
+    bias = (f" (with the bias of the omitted {', '.join(plan.omitted)})"
+            if plan.omitted else "")
+    what = {"accuracy": "predicted end-point error over the task region" + bias,
+            "identify": "log det of the parameters' information",
+            "discriminate": "summed log det of the effects' own information"}[
+        plan.criterion]
+    return (f"{plan.criterion}: {what}: {plan.before:.4g} {plan.unit} before "
+            f"({plan.n_measured} rows measured), {plan.after:.4g} {plan.unit} after the "
+            f"{len(plan.selection.order)} planned poses (from {len(plan.pool)} "
+            f"candidates, {plan.seconds:.1f} s)")
