@@ -60,3 +60,23 @@ def test_no_module_of_the_package_is_in_an_import_cycle():
                     seen.add(nxt)
                     stack.append((nxt, (*trail, nxt)))
     assert cycles == [], "\n".join(sorted(set(cycles), key=len)[:5])
+
+
+def test_only_the_reports_lay_out_tables_and_figures():
+    """The compute stages return results; their tables and figures are report/'s (and the
+    CLI prints them): no module outside bayesrob/report/ and cli.py imports bayesrob.report or
+    matplotlib (matplotlib.path's polygon test, geometry, aside)."""
+    modules = _modules()
+    offenders = []
+    for name, path in modules.items():
+        if name.startswith("bayesrob.report") or name == "bayesrob.cli":
+            continue
+        if any(m.startswith("bayesrob.report") for m in _imports(name, path, modules)):
+            offenders.append(f"{name} imports bayesrob.report")
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{name} imports {n}" for n in names
+                          if n.split(".")[0] == "matplotlib" and n != "matplotlib.path"]
+    assert len(modules) > 30
+    assert offenders == []

@@ -38,6 +38,7 @@ __all__ = ["Candidate", "Job", "DesignResult", "task_targets", "reach_table",
 BATCH = 25  # candidates per Dask task: enough to hide a task's overhead, small to spread well
 MAX_CANDIDATES = 200_000
 
+
 def task_targets(region: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """``n`` targets inside the polygon (or 3-D box) ``region``: a scrambled Halton sequence
     over its bounding box, keeping the points inside."""
