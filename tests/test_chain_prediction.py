@@ -545,7 +545,7 @@ def test_linked_draws_put_the_tracker_noise_back(monkeypatch):
 
     asked = []
 
-    def free(mods, a, u, xs, key, side=None, measured=True):
+    def free(mods, a, u, xs, key, side=None, measured=True, drawn=None):
         asked.append(measured)
         return np.zeros((xs.shape[0], len(u), 3))
 
@@ -617,3 +617,92 @@ def test_predict_points_from_the_prior_to_the_described_masses(forearm_unweighed
     assert "yet left, right took" in stiffness_note(weighed, {"left": scaled, "right": scaled})
     assert stiffness_note(weighed, {"left": fitted, "right": fitted}) is None
     assert stiffness_note(robot(forearm_unweighed), {"left": prior, "right": prior}) is None
+
+
+TREE_RIG = """
+name = "two hands on a torso"
+[arms.torso]
+dh = [[0.0, 0.0, 0.0, 0.0]]
+origin = [0.0, 0.0, 300.0, 0.0, 0.0, 0.0]
+[arms.left]
+mount = "torso"
+origin = [0.0, 200.0, 0.0, 0.0, 0.0, 0.0]
+dh = [[0.0, 0.0, 0.0, 1.5707963267948966], [0.0, 0.0, 300.0, 0.0]]
+tool = [250.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+marker = [0.0, 0.0, 0.0]
+[arms.right]
+mount = "torso"
+origin = [0.0, -200.0, 0.0, 0.0, 0.0, 0.0]
+dh = [[0.0, 0.0, 0.0, 1.5707963267948966], [0.0, 0.0, 300.0, 0.0]]
+tool = [250.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+marker = [0.0, 0.0, 0.0]
+"""
+
+
+def test_linked_hands_of_one_torso_share_one_population(tmp_path, monkeypatch):
+    """Two hands on one torso, linked: one joint-error population of all five joints, fitted
+    on both hands' rows, so the torso's error is one value for both hands (not averaged away
+    as two independent torsos' would be) and the config's order does not choose whose torso
+    estimate counts. Each hand alone keeps its own rows' population. The rows' torso joint
+    errs by 5 mrad, the arms' by 1 mrad: the pooled torso sd lies within a factor 1.6 of 5
+    mrad (80 rows, 240 coordinates: its posterior median is good to about 15%)."""
+    import jax
+
+    (tmp_path / "rig.toml").write_text(TREE_RIG)
+    header = "config,set,x,y,z,torso_u1,left_u1,left_u2,right_u1,right_u2"
+    # one placeholder row to read the robot from, before its rows are made
+    (tmp_path / "measurements.csv").write_text(f"{header}\nleft,train,0,0,0,0,0,0,,\n")
+    robot = load_rig(tmp_path, min_train_rows=0).robot
+    x = np.asarray(robot.layout.nominal)
+    rng = np.random.default_rng(7)
+    lines = [header]
+    for hand in ("left", "right"):
+        for k in range(50):
+            u = np.r_[rng.uniform(-0.6, 0.6), rng.uniform(-1.0, 0.2), rng.uniform(0.3, 1.5)]
+            e = rng.normal(0.0, [5e-3, 1e-3, 1e-3])
+            p = np.asarray(robot.marker_points(x, hand, (u + e)[None]))[0]
+            p = p + rng.normal(0.0, 0.1, 3)
+            cols = [f"{u[0]:.6f}", *([f"{v:.6f}" for v in u[1:]] if hand == "left" else
+                                     ["", ""]),
+                    *([f"{v:.6f}" for v in u[1:]] if hand == "right" else ["", ""])]
+            lines.append(",".join([hand, "train" if k < 40 else "validation",
+                                   *(f"{v:.4f}" for v in p), *cols]))
+    (tmp_path / "measurements.csv").write_text("\n".join(lines) + "\n")
+    rig = load_rig(tmp_path)
+    from dataclasses import replace
+
+    from bayesrob.calibrate.least_squares import calibrate
+    from bayesrob.errors.latent_errors import fit_latent_errors
+
+    cal = calibrate(rig, ("frames",))
+    # fewer draws than a prediction takes: the test's questions need no more
+    pops: dict = {}
+    left, right = (fit_latent_errors(rig, cal.robot, cal.x, hand, "ind",
+                                     int(cal.ident.free.sum()), seed=0, warmup=200,
+                                     samples=200, chains=1, populations=pops)
+                   for hand in ("left", "right"))
+    assert left.population is right.population is not None and len(pops) == 1
+    assert left.joints[0] == right.joints[0] == "torso.j1"
+    torso_sd = float(np.median(left.population.joint_sd[:, 0]))
+    assert 5e-3 / 1.6 < torso_sd < 5e-3 * 1.6
+    u = np.zeros((3, 3))
+    mods = SimpleNamespace(errors={"left": left, "right": right})
+    (el, _), (er, _) = cp._linked_joint_errors(mods, ["left", "right"], [u, u],
+                                               jax.random.PRNGKey(0), 200)
+    np.testing.assert_array_equal(np.asarray(el)[..., 0], np.asarray(er)[..., 0])
+    assert np.abs(np.asarray(el)[..., 1:] - np.asarray(er)[..., 1:]).max() > 0
+    # predict's fits: one population where the hands are linked, each hand's own alone
+    asked = []
+
+    def fit(*args, populations=None, **kwargs):
+        asked.append(populations)
+        return left
+
+    monkeypatch.setattr(cp, "fit_latent_errors", fit)
+    fit_modules(rig, ["left", "right"], "ind", calibration=cal, latent=True, linked=True)
+    fit_modules(rig, ["left", "right"], "ind", calibration=cal, latent=True)
+    assert isinstance(asked[0], dict) and asked[1] is asked[0] and asked[2:] == [None, None]
+    alone = SimpleNamespace(errors={"left": replace(left, population=None),
+                                    "right": replace(right, population=None)})
+    assert cp._linked_joint_errors(alone, ["left", "right"], [u, u], jax.random.PRNGKey(0),
+                                   5) == [None, None]

@@ -33,7 +33,7 @@ from bayesrob.calibrate.least_squares import side_rows
 from bayesrob.data.rig import Rig, RigError
 
 __all__ = ["LATENT_MODELS", "LatentJointErrors", "check_latent_model", "fit_latent_errors",
-           "joint_jacobian", "joint_names", "scaled_train_residuals"]
+           "joint_jacobian", "joint_names", "scaled_train_residuals", "sharing_arms"]
 
 LATENT_MODELS = ("ind", "corr")
 # Prior scale of a joint's error sd (rad, or mm for prismatic joints): weakly informative,
@@ -137,6 +137,24 @@ class LatentJointErrors:
     dof_scale: float
     diagnostics: dict = field(default_factory=dict)  # arviz r_hat / ess of the parameters
     seconds: float = 0.0
+    # Where the arm shares joints with other measured arms (a tree's hands share its torso):
+    # the population of all their joints, fitted on all their rows, and the arm's joints'
+    # columns in it; None where the arm shares none.
+    population: LatentJointErrors | None = field(default=None, repr=False)
+    columns: np.ndarray | None = None
+
+    def view_of(self, robot: kin.Robot, arm: str) -> LatentJointErrors:
+        """``arm``'s part of this population (of ``robot``'s arms sharing joints): its
+        joints' sds and correlations."""
+        joints = joint_names(robot, arm)
+        columns = np.array([self.joints.index(j) for j in joints])
+        chol = None
+        if self.corr_chol is not None:
+            corr = np.einsum("sik,sjk->sij", self.corr_chol, self.corr_chol)
+            chol = np.linalg.cholesky(corr[:, columns][:, :, columns])
+        return LatentJointErrors(arm, self.model, joints, self.joint_sd[:, columns], chol,
+                                 self.noise_sd, self.n_rows, self.dof_scale, self.diagnostics,
+                                 self.seconds, self, columns)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -191,22 +209,50 @@ def _posterior(key: jax.Array, jac: jax.Array, res: jax.Array, structure: str, w
             mcmc.get_extra_fields(group_by_chain=True)["diverging"])
 
 
+def sharing_arms(robot: kin.Robot, arm: str) -> list[str]:
+    """The measured arms whose paths share a chain with ``arm``'s (``arm`` among them, in the
+    robot's order): their rows all see the shared joints' errors."""
+    mine = {c.name for c in robot.path(arm) if c.n_joints}
+    return [a for a in robot.measured_arms()
+            if a == arm or mine & {c.name for c in robot.path(a) if c.n_joints}]
+
+
 def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model: str = "ind",
                       n_free: int = 0, seed: int = 0, warmup: int = WARMUP,
-                      samples: int = SAMPLES, chains: int = CHAINS) -> LatentJointErrors:
+                      samples: int = SAMPLES, chains: int = CHAINS,
+                      populations: dict | None = None) -> LatentJointErrors:
     """Fit ``arm``'s joint-error population to its train residuals under parameters x.
 
     ``n_free``: how many parameters the calibration fitted (over every arm's rows), for the
-    degrees-of-freedom scaling of the residuals.
+    degrees-of-freedom scaling of the residuals. Given ``populations`` (a dict the caller
+    keeps), where other measured arms share joints with ``arm`` (:func:`sharing_arms`), the
+    population is of all their joints, fitted once on all their rows (a torso's errors seen
+    from both hands), and the arm's part of it is returned: linked hands of one tree. Without
+    it each arm's population is its own rows' (what a single arm is predicted and compared
+    with).
     """
     import arviz as az
 
     check_latent_model(model)
+    arms = sharing_arms(robot, arm) if populations is not None else [arm]
+    key = (tuple(arms), model)
+    if populations is not None and key in populations:
+        return populations[key].view_of(robot, arm)
     t0 = time.perf_counter()
-    u, res, scale, side = scaled_train_residuals(rig, robot, x, arm, n_free)
-    jac = joint_jacobian(robot, jnp.asarray(x), arm, jnp.asarray(u), side)
-    by_chain, diverging = _posterior(jax.random.PRNGKey(seed), jac, jnp.asarray(res), model,
-                                     warmup, samples, chains)
+    names = list(dict.fromkeys(j for a in arms for j in joint_names(robot, a)))
+    jacs, residuals, n_rows = [], [], 0
+    for a in arms:
+        u, res, scale, side = scaled_train_residuals(rig, robot, x, a, n_free)
+        jac = joint_jacobian(robot, jnp.asarray(x), a, jnp.asarray(u), side)
+        if len(arms) > 1:  # the arm's joints at their columns of the shared population
+            cols = [names.index(j) for j in joint_names(robot, a)]
+            jac = jnp.zeros((*jac.shape[:2], len(names))).at[..., cols].set(jac)
+        jacs.append(jac)
+        residuals.append(jnp.asarray(res))
+        n_rows += len(u)
+    by_chain, diverging = _posterior(jax.random.PRNGKey(seed), jnp.concatenate(jacs),
+                                     jnp.concatenate(residuals), model, warmup, samples,
+                                     chains)
     by_chain = {k: np.asarray(v) for k, v in by_chain.items()}
     draws = {k: v.reshape(-1, *v.shape[2:]) for k, v in by_chain.items()}
     if model == "corr" and "joint_corr_chol" not in draws:  # one joint: its correlation is 1
@@ -216,8 +262,13 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
     diagnostics = {"max_r_hat": float(summ["r_hat"].max()),
                    "min_ess_bulk": float(summ["ess_bulk"].min()),
                    "divergences": int(np.asarray(diverging).sum())}
-    return LatentJointErrors(
-        arm, model, joint_names(robot, arm), np.asarray(draws["joint_sd"]),
+    whole = LatentJointErrors(
+        arm if len(arms) == 1 else "+".join(arms), model, names,
+        np.asarray(draws["joint_sd"]),
         np.asarray(draws["joint_corr_chol"]) if model == "corr" else None,
-        np.asarray(draws["noise_sd"]), len(u), scale, diagnostics,
-        time.perf_counter() - t0)
+        np.asarray(draws["noise_sd"]), n_rows, scale, diagnostics, time.perf_counter() - t0)
+    if len(arms) == 1:
+        return whole
+    if populations is not None:
+        populations[key] = whole
+    return whole.view_of(robot, arm)

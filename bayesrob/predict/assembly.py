@@ -212,7 +212,7 @@ def predict_assembly(rig: Rig, config: str, targets: np.ndarray, model: str | No
         mods = (fit_paper_modules(rig, members, model, models_dir, targets) if paper
                 else fit_modules(rig, members, model, groups or kin.GROUPS, seed=seed,
                                  masses=masses, targets=targets, models_dir=models_dir,
-                                 latent=not kernel))
+                                 latent=not kernel, linked=len(members) > 1))
     except RigError:
         raise
     except ValueError as e:

@@ -33,6 +33,7 @@ from bayesrob.errors.latent_errors import (
     check_latent_model,
     fit_latent_errors,
     joint_jacobian,
+    sharing_arms,
 )
 from bayesrob.errors.noise_models import (
     FittedNoiseModel,
@@ -158,13 +159,14 @@ def check_module_arms(rig: Rig, arms: Sequence[str], model: str, models_dir: Any
 
 
 def fit_joint_errors(rig: Rig, cal: Calibration, arm: str, model: str, seed: int = 0,
-                     models_dir: Any = None, latent: bool = False
-                     ) -> LatentJointErrors | KernelJointErrors:
+                     models_dir: Any = None, latent: bool = False,
+                     populations: dict | None = None) -> LatentJointErrors | KernelJointErrors:
     """``arm``'s joint-error model fitted to its train residuals under ``cal``: a Parzen
-    density where the rows observe its joint errors, else (or ``latent``) the population."""
+    density where the rows observe its joint errors, else (or ``latent``) the population
+    (one for the arms of a tree, kept in ``populations``: :func:`fit_latent_errors`)."""
     if latent or not joint_errors_observed(cal.robot, [arm]):
         return fit_latent_errors(rig, cal.robot, cal.x, arm, model, int(cal.ident.free.sum()),
-                                 seed=seed)
+                                 seed=seed, populations=populations)
     spec = discover_models(models_dir, [model])[0]
     u, errors = observed_joint_errors(rig, cal.robot, cal.x, arm)
     return KernelJointErrors(arm, spec.fit(errors, u))
@@ -175,8 +177,10 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
                 calibration: Calibration | None = None,
                 parameter_uncertainty: bool = False, masses: str = "fitted",
                 sag_steps: int = 1, targets: np.ndarray | None = None,
-                models_dir: Any = None, latent: bool = False) -> CalibratedModules:
-    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors.
+                models_dir: Any = None, latent: bool = False,
+                linked: bool = False) -> CalibratedModules:
+    """Calibrate the rig on single-arm train rows and fit each of ``arms``' joint errors
+    (``linked``: the arms are one assembly, so those sharing joints take one population).
 
     ``parameter_uncertainty``: also draw the parameters from their covariance
     (:func:`parameter_covariance`). Off by default: on the tuning rigs (arm6 seeds 11, 12) it
@@ -192,7 +196,13 @@ def fit_modules(rig: Rig, arms: Sequence[str], model: str = "ind",
            else calibrate(rig, groups, masses=masses, sag_steps=sag_steps))
     commands = ({} if targets is None
                 else {a: aim(rig, cal.robot, cal.x, a, targets) for a in arms})
-    errors = {a: fit_joint_errors(rig, cal, a, model, seed + i, models_dir, latent)
+    # Linked hands of one tree take one population of all their joints, so the torso errs
+    # alike for both (docs/fusion.md); an arm alone keeps its own rows' population.
+    shared = linked and any(len(set(sharing_arms(cal.robot, a)) & set(arms)) > 1
+                            for a in arms)
+    populations: dict | None = {} if shared else None
+    errors = {a: fit_joint_errors(rig, cal, a, model, seed + i, models_dir, latent,
+                                  populations)
               for i, a in enumerate(arms)}
     stiffness = stiffness_priors(rig, arms, cal)
     cov = parameter_covariance(rig, cal) if parameter_uncertainty else None
@@ -215,13 +225,13 @@ def parameter_draws(mods: CalibratedModules, key: jax.Array, n: int) -> jax.Arra
 
 
 def free_draws(mods: CalibratedModules, arm: str, u: np.ndarray, xs: jax.Array, key: jax.Array,
-                side: dict[str, np.ndarray] | None = None, measured: bool = True
-                ) -> np.ndarray:
+                side: dict[str, np.ndarray] | None = None, measured: bool = True,
+                drawn: tuple[jax.Array, jax.Array] | None = None) -> np.ndarray:
     """Draws (S, T, dim) of the arm's free end point at columns u (T, c), a parameter vector
     of xs (S, P) per draw (``side``: the rest of each pose), with the tracker's noise if
-    ``measured``."""
+    ``measured``; ``drawn``: its joint errors and noise sds, where drawn already."""
     n = xs.shape[0]
-    e, noise = mods.errors[arm].draw(key, (n, len(u)), u)
+    e, noise = drawn if drawn is not None else mods.errors[arm].draw(key, (n, len(u)), u)
     # the rest of the pose weighs only where the model has gravity in it
     rest = (None if side is None or mods.robot.gravity is None
             else {b: jnp.asarray(v) for b, v in side.items()})
@@ -278,11 +288,12 @@ def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Seque
     # Linked, the free points are drawn without the tracker's noise and the balance is
     # measured once, with all of it (below): the balance would average the noise each free
     # point carried.
-    free = [free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1),
-                        None if linked else side, measured=not linked)
-            for i, (a, u) in enumerate(zip(arms, commands, strict=True))]
     if not linked:
-        return free[0]
+        return free_draws(mods, arms[0], commands[0], xs, jax.random.fold_in(key, 1), side)
+    drawn = _linked_joint_errors(mods, arms, commands, key, num_samples)
+    free = [free_draws(mods, a, u, xs, jax.random.fold_in(key, i + 1), measured=False,
+                       drawn=d)
+            for i, (a, u, d) in enumerate(zip(arms, commands, drawn, strict=True))]
     jacs = [joint_jacobian(mods.robot, jnp.asarray(mods.x), a, jnp.asarray(u))
             for a, u in zip(arms, commands, strict=True)]
     # The joint Jacobian at the commanded pose serves every draw: joint errors of a few mrad
@@ -295,6 +306,20 @@ def assembly_draws(mods: CalibratedModules, arms: Sequence[str], commands: Seque
     # a key of the parameters' branch: the arms' own keys are 1, 2, ... for any number of arms
     eps = jax.random.normal(jax.random.fold_in(jax.random.fold_in(key, 99), 1), d.shape)
     return np.asarray(d + noise * eps)
+
+
+def _linked_joint_errors(mods: CalibratedModules, arms: Sequence[str],
+                         commands: Sequence[np.ndarray], key: jax.Array, n: int
+                         ) -> list[tuple[jax.Array, jax.Array] | None]:
+    """Linked arms' joint errors where they share joints (a tree's hands on one torso: one
+    population, drawn once, each arm its columns of it, so the torso errs alike for both), else
+    None (each arm draws its own with its own key, as alone)."""
+    pops = [getattr(mods.errors[a], "population", None) for a in arms]
+    if pops[0] is None or any(p is not pops[0] for p in pops):
+        return [None] * len(arms)
+    t = len(commands[0])
+    e, noise = pops[0].draw(jax.random.fold_in(key, 1), (n, t))
+    return [(e[..., mods.errors[a].columns], noise) for a in arms]
 
 
 def _product_model(commands, robot, x, arms, covs, noises, start) -> None:
