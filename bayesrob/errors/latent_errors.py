@@ -269,6 +269,5 @@ def fit_latent_errors(rig: Rig, robot: kin.Robot, x: np.ndarray, arm: str, model
         np.asarray(draws["noise_sd"]), n_rows, scale, diagnostics, time.perf_counter() - t0)
     if len(arms) == 1:
         return whole
-    if populations is not None:
-        populations[key] = whole
+    populations[key] = whole  # more than one arm: asked for with populations
     return whole.view_of(robot, arm)
