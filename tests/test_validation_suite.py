@@ -4,12 +4,13 @@ running them in order gives, in the order they were named."""
 from __future__ import annotations
 
 import io
+import re
 import sys
 import time
 import types
 
 import pytest
-from bayesrob.validation.study import FAIL, PASS, Study, Target
+from bayesrob.validation.study import FAIL, PASS, Study, Target, discover_studies, repository
 from bayesrob.validation.suite import markdown, run_suite
 
 FAKE = "bayesrob.validation._fake_studies"
@@ -73,3 +74,14 @@ def test_studies_side_by_side_report_what_in_order_reports(fake_studies, capsys)
     assert "validate: [2/3] broken: fail in" in lines and "would not settle" in lines
     assert "2 studies at a time" in markdown(side)
     assert "studies at a time" not in markdown(in_order)
+
+
+def test_ci_runs_a_study_of_every_study_module():
+    """CI runs one study of each module on its quick seeds, not all of them: a module added
+    without one of its studies in that list would never run before a full validation."""
+    script = (repository() / ".ci" / "run").read_text()
+    (listed,) = re.findall(r"ci_studies=\(([^)]*)\)", script)
+    names = listed.split()
+    ran = {s.module for s in discover_studies(names)}  # an unknown name raises StudyError
+    assert ran == {s.module for s in discover_studies()}
+    assert '"${ci_studies[@]}"' in script
