@@ -65,16 +65,19 @@ def wrap_angle(a: jax.Array) -> jax.Array:
     return jnp.pi - jnp.mod(jnp.pi - a, 2 * jnp.pi)
 
 
+@jax.jit
 def servo(params: ArmParams, u: jax.Array) -> jax.Array:
     """g(u): pulse widths (..., 2) in microseconds to joint angles (..., 2)."""
     return params.gain * u + params.offset
 
 
+@jax.jit
 def servo_inverse(params: ArmParams, theta: jax.Array) -> jax.Array:
     """g^-1(theta): the pulse widths that command the joint angles."""
     return (theta - params.offset) / params.gain
 
 
+@jax.jit
 def forward(params: ArmParams, theta: jax.Array) -> jax.Array:
     """f(theta): end point (..., 2) in mm."""
     t12 = theta[..., 0] + theta[..., 1]
@@ -82,6 +85,7 @@ def forward(params: ArmParams, theta: jax.Array) -> jax.Array:
     return elbow_point(params, theta) + params.links[..., 1:2] * c12
 
 
+@jax.jit
 def elbow_point(params: ArmParams, theta: jax.Array) -> jax.Array:
     t1 = theta[..., 0]
     return params.base + params.links[..., 0:1] * jnp.stack([jnp.cos(t1), jnp.sin(t1)], -1)
@@ -92,6 +96,7 @@ def forward_u(params: ArmParams, u: jax.Array) -> jax.Array:
     return forward(params, servo(params, u))
 
 
+@jax.jit
 def inverse(params: ArmParams, d: jax.Array, elbow: int | jax.Array) -> tuple[jax.Array, jax.Array]:
     """f^-1(d) by the law of cosines on the ``elbow`` branch (+1: theta2 >= 0): ``(theta,
     reachable)``, unreachable points clamped to the nearest reachable configuration."""
@@ -107,6 +112,7 @@ def inverse(params: ArmParams, d: jax.Array, elbow: int | jax.Array) -> tuple[ja
     return jnp.stack([wrap_angle(t1), t2], -1), reachable
 
 
+@jax.jit
 def jacobian(params: ArmParams, theta: jax.Array) -> jax.Array:
     """df/dtheta (..., 2, 2), analytic."""
     t1 = theta[..., 0]
@@ -160,16 +166,29 @@ class Arm:
 
     def inverse(self, d: jax.Array) -> jax.Array:
         """Joint angles for end points d, on the turn nearest the servo's mid range."""
-        theta, _ = inverse(self.params, jnp.asarray(d), self.elbow)
-        ref = servo(self.params, jnp.asarray(self.mid_pulse))
-        return ref + wrap_angle(theta - ref)
+        return _nearest_turn(self.params, jnp.asarray(d), self.elbow, self.mid_pulse)
 
     def reachable(self, d: jax.Array) -> jax.Array:
         return inverse(self.params, jnp.asarray(d), self.elbow)[1]
 
     def command(self, d: jax.Array) -> jax.Array:
         """Pulse widths aiming at end points d (not rounded, not limit-checked)."""
-        return servo_inverse(self.params, self.inverse(d))
+        return _command(self.params, jnp.asarray(d), self.elbow, self.mid_pulse)
+
+
+# One compiled program each: called eagerly, their dozen small operations compiled one by one
+# (about 2 s of every simulated rig).
+@jax.jit
+def _nearest_turn(params: ArmParams, d: jax.Array, elbow: int, mid_pulse: jax.Array
+                  ) -> jax.Array:
+    theta, _ = inverse(params, d, elbow)
+    ref = servo(params, mid_pulse)
+    return ref + wrap_angle(theta - ref)
+
+
+@jax.jit
+def _command(params: ArmParams, d: jax.Array, elbow: int, mid_pulse: jax.Array) -> jax.Array:
+    return servo_inverse(params, _nearest_turn(params, d, elbow, mid_pulse))
 
 
 def planar_chain(name: str, params: ArmParams) -> Chain:

@@ -32,11 +32,16 @@ from bayesrob.sim.truth import GRAVITY, TRUTH_FILE, ArmTruth, Truth
 
 
 def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
-    theta = kin.servo(arm.params, u)
-    if "servo_nonlinearity" in effects:
-        theta = theta + servo_ripple(u, arm.u_mid, arm.nonlinearity_rad,
-                                     arm.nonlinearity_period_us)
-    return theta
+    ripple = (arm.u_mid, arm.nonlinearity_rad, arm.nonlinearity_period_us)
+    return _commanded(arm.params, u, *(jnp.asarray(v, float) for v in ripple),
+                      "servo_nonlinearity" in effects)
+
+
+@partial(jax.jit, static_argnames=("ripple",))
+def _commanded(params: kin.ArmParams, u: jax.Array, u_mid: jax.Array, amplitude: jax.Array,
+               period: jax.Array, ripple: bool) -> jax.Array:
+    theta = kin.servo(params, u)
+    return theta + servo_ripple(u, u_mid, amplitude, period) if ripple else theta
 
 
 class _ArmArrays(NamedTuple):
