@@ -65,6 +65,11 @@ def share(client: Any, value: Any) -> Any:
     return value if _inside_a_task() else client.scatter(value, broadcast=True)
 
 
+# How long an unreachable scheduler is retried before the one-line error: a cluster's scheduler
+# may be starting as the command does.
+CONNECT_TIMEOUT = "10s"
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]:
     """A ``dask.distributed`` client: on an existing scheduler, or on a ``LocalCluster`` of
@@ -78,7 +83,7 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
 
     if scheduler:
         try:
-            client = Client(scheduler, timeout="10s")
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
         except (OSError, TimeoutError) as e:
             raise ClusterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
                                f"({type(e).__name__}: {e})") from None

@@ -244,7 +244,11 @@ def test_no_reachable_mount_is_one_line(tmp_path, capsys):
     assert rc == 2 and "no module reaches every target" in err
 
 
-def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
+def test_unreachable_scheduler_is_one_line(tmp_path, capsys, monkeypatch):
+    import bayesrob.cluster
+
+    # a shorter wait than the command's 10 s for the same error: nothing listens on port 9
+    monkeypatch.setattr(bayesrob.cluster, "CONNECT_TIMEOUT", "1s")
     path = _small_design(tmp_path)
     rc = main(["design", str(path), "--scheduler", "tcp://127.0.0.1:9", "--no-progress"])
     err = capsys.readouterr().err.strip()
