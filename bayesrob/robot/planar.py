@@ -173,22 +173,17 @@ class Arm:
 
     def command(self, d: jax.Array) -> jax.Array:
         """Pulse widths aiming at end points d (not rounded, not limit-checked)."""
-        return _command(self.params, jnp.asarray(d), self.elbow, self.mid_pulse)
+        return servo_inverse(self.params, self.inverse(d))
 
 
-# One compiled program each: called eagerly, their dozen small operations compiled one by one
-# (about 2 s of every simulated rig).
+# One compiled program: called eagerly, its small operations were compiled one by one (with
+# the closed forms above, about 2 s of every simulated rig).
 @jax.jit
 def _nearest_turn(params: ArmParams, d: jax.Array, elbow: int, mid_pulse: jax.Array
                   ) -> jax.Array:
     theta, _ = inverse(params, d, elbow)
     ref = servo(params, mid_pulse)
     return ref + wrap_angle(theta - ref)
-
-
-@jax.jit
-def _command(params: ArmParams, d: jax.Array, elbow: int, mid_pulse: jax.Array) -> jax.Array:
-    return servo_inverse(params, _nearest_turn(params, d, elbow, mid_pulse))
 
 
 def planar_chain(name: str, params: ArmParams) -> Chain:

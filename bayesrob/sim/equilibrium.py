@@ -33,7 +33,7 @@ from bayesrob.sim.truth import GRAVITY, TRUTH_FILE, ArmTruth, Truth
 
 def commanded_angles(arm: ArmTruth, u: jax.Array, effects: Sequence[str]) -> jax.Array:
     ripple = (arm.u_mid, arm.nonlinearity_rad, arm.nonlinearity_period_us)
-    return _commanded(arm.params, u, *(jnp.asarray(v, float) for v in ripple),
+    return _commanded(arm.params, u, *(np.asarray(v, float) for v in ripple),
                       "servo_nonlinearity" in effects)
 
 
