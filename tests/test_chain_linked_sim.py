@@ -24,7 +24,7 @@ from bayesrob.calibrate.least_squares import calibrate
 from bayesrob.cli import main
 from bayesrob.data.rig import MEASUREMENTS_FILE, RigError, load_rig
 from bayesrob.sim.equilibrium import linked_energy, linked_equilibrium
-from bayesrob.sim.physics import gravity_deflection
+from bayesrob.sim.physics import gravity_torques
 from bayesrob.sim.rigs import simulate_linked_arm6_rig
 from bayesrob.sim.truth import (
     GRAVITY,
@@ -135,15 +135,17 @@ def test_truth_reproduces_the_linked_points(rig_dir, world):
     assert np.abs(observed - eq.point).max() < 0.5
 
 
-def test_free_equilibria_agree_with_gravity_deflection(world):
-    """Two implementations of one physics: Newton on the energy with closed-form
-    derivatives, and the fixed point of gravity torques over stiffness (12 steps leave
+def test_free_equilibria_are_the_fixed_point_of_gravity_over_stiffness(world):
+    """Two solvers of one physics: the simulator's Newton steps on the energy with
+    closed-form derivatives, and the fixed point of gravity torques over stiffness (12 steps leave
     ~1e-15 rad). 1e-10 rad is far above their rounding and far below any physical effect."""
     rig = world["rig"]
     eq = linked_equilibrium(rig.robot, world["x"], world["u0"], world["k"], world["masses"])
     for a in LINKED_ARMS:
-        dq = gravity_deflection(rig.robot, world["x"], a, world["u0"][a], world["masses"][a],
-                                world["k"][a], np.asarray(GRAVITY), iterations=12)
+        dq = np.zeros_like(world["u0"][a])
+        for _ in range(12):
+            dq = gravity_torques(rig.robot, world["x"], a, world["u0"][a] + dq,
+                                 world["masses"][a], np.asarray(GRAVITY)) / world["k"][a]
         assert np.abs(dq).max() > 1e-3  # the sag is real: milliradians
         np.testing.assert_allclose(eq.free_joints[a], world["u0"][a] + dq, rtol=0, atol=1e-10)
 

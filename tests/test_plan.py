@@ -336,7 +336,7 @@ def test_simulate_poses_measures_each_planned_arm_of_a_linked_arm6_rig(tmp_path,
         previous = np.array([float(last[f"{arm}_u{k + 1}"]) for k in range(6)])
         d = np.array([[float(r[f"{arm}_d{k + 1}"]) for k in range(6)] for r in mine])
         np.testing.assert_array_equal(d, np.sign(np.diff(np.vstack([previous, u]), axis=0)))
-    from bayesrob.sim import physics
+    from bayesrob.sim.equilibrium import gravity_settled
     from bayesrob.sim.truth import GRAVITY
 
     loaded = load_rig(rig)
@@ -346,9 +346,8 @@ def test_simulate_poses_measures_each_planned_arm_of_a_linked_arm6_rig(tmp_path,
     for arm in ("left", "right"):
         rows = np.flatnonzero(m.config == arm)[-sum(r["config"] == arm for r in added):]
         u = m.commands[arm][rows]
-        q = u + physics.gravity_deflection(
-            robot, x, arm, u, np.asarray(truth["drawn_masses_kg"][arm]),
-            np.asarray(truth["stiffness_nmm_per_rad"][arm]), np.asarray(GRAVITY), iterations=8)
+        q = gravity_settled(robot, x, arm, u, np.asarray(truth["drawn_masses_kg"][arm]),
+                            np.asarray(truth["stiffness_nmm_per_rad"][arm]), GRAVITY)
         miss = np.linalg.norm(np.asarray(robot.marker_points(x, arm, q)) - m.observed[rows],
                               axis=1)
         nominal = np.linalg.norm(np.asarray(robot.marker_points(robot.layout.nominal, arm, q))

@@ -25,7 +25,7 @@ import numpy as np
 
 from bayesrob import robot as kin
 from bayesrob.data.rig import Rig, load_rig
-from bayesrob.sim.physics import gravity_deflection
+from bayesrob.sim.equilibrium import gravity_settled
 from bayesrob.sim.rigs import simulate_arm6_rig
 from bayesrob.sim.truth import Arm6Truth, arm6_urdf_path, load_true_params
 
@@ -93,10 +93,10 @@ def noise_floor(rig: Rig, x_true: np.ndarray, truth: Arm6Truth, u: np.ndarray,
     x_base = x_true.copy()
     # the sag is computed in the robot's own frame: the instrument's pose plays no part
     x_base[base.layout.slices[("arm", "instrument")]] = 0.0
-    dq = gravity_deflection(base, x_base, "arm", u, np.asarray(truth.masses_kg),
-                            np.asarray(truth.stiffness_nmm_per_rad), np.array([0.0, 0.0, -1.0]))
+    q = gravity_settled(base, x_base, "arm", u, np.asarray(truth.masses_kg),
+                        np.asarray(truth.stiffness_nmm_per_rad), (0.0, 0.0, -1.0))
     # the compiled program: an eager call compiles its loop anew for every rig
-    points = rig.robot.compiled_points("arm")(x_true, u + dq)
+    points = rig.robot.compiled_points("arm")(x_true, q)
     return float(np.linalg.norm(np.asarray(points) - obs, axis=1).mean())
 
 

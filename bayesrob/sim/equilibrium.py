@@ -19,7 +19,7 @@ import numpy as np
 import scipy.optimize
 
 from bayesrob import robot as kin
-from bayesrob.robot import Robot, RobotStructure
+from bayesrob.robot import Robot, RobotStructure, on_row_buckets
 from bayesrob.sim import physics
 from bayesrob.sim.physics import (
     G_N_PER_KG,
@@ -194,8 +194,9 @@ class ChainPlant:
     marker points out (for ``bayesrob simulate --robot arm6``, its linked rigs' single-arm rows
     and planned poses alike). A row's draws, in order: the joint noise; the encoders'
     eccentricity (no draw); the side of each joint's play (``approach_rng``, where neither its
-    gravity torque nor a recorded approach decides it); gravity's deflection, by fixed-point
-    steps on :func:`~bayesrob.sim.physics.arm_energy`'s torques; the tracker's noise. Gravity
+    gravity torque nor a recorded approach decides it); where gravity against the springs
+    settles it (:func:`gravity_settled`, the Newton steps of linked equilibria's arms); the
+    tracker's noise. Gravity
     acts along ``gravity`` in the frames of ``torque_robot`` at ``torque_x``: a single arm6's
     base at the identity, so gravity is its -z; a linked rig's instrument frame."""
 
@@ -208,7 +209,6 @@ class ChainPlant:
     masses_kg: Mapping[str, np.ndarray]  # per arm: each link's mass, halfway along it
     stiffness: Mapping[str, np.ndarray] | None = None  # per arm, N mm / rad; None: rigid
     gravity: Sequence[float] = GRAVITY
-    deflection_steps: int = 4
     encoder_eccentricity: float = 0.0
     encoder_phase: np.ndarray | None = None  # (n,) rad, where eccentric
     play_rad: float = 0.0  # each joint's play, whole width
@@ -230,9 +230,8 @@ class ChainPlant:
                                          approach_rng if approach_rng is not None else rng,
                                          approach)
         if self.stiffness is not None:
-            q = q + physics.gravity_deflection(*on_torques, q, self.masses_kg[arm],
-                                               self.stiffness[arm], gravity,
-                                               iterations=self.deflection_steps)
+            q = gravity_settled(*on_torques, q, self.masses_kg[arm], self.stiffness[arm],
+                                gravity)
         p = np.asarray(self.robot.compiled_points(arm)(jnp.asarray(self.x_true),
                                                        jnp.asarray(q)))
         return p + rng.normal(0, self.measurement_noise_mm, p.shape)
@@ -270,9 +269,41 @@ def _arm_program(robot: Robot, arm: str) -> Callable:
 def _arm_states(robot: Robot, arms: Sequence[str], x: jax.Array, us: Sequence[np.ndarray],
                 u0s: Sequence[np.ndarray], ks: Sequence[jax.Array],
                 weights: Sequence[jax.Array]) -> list[dict[str, np.ndarray]]:
-    return [{key: np.asarray(v) for key, v in _arm_program(robot, a)(
-        x, jnp.asarray(u), jnp.asarray(u0), k, w, *_middles(robot, a)).items()}
-        for a, u, u0, k, w in zip(arms, us, u0s, ks, weights, strict=True)]
+    out = []
+    for a, u, u0, k, w in zip(arms, us, u0s, ks, weights, strict=True):
+        program, middles = _arm_program(robot, a), _middles(robot, a)
+
+        def rows(x: jax.Array, u: jax.Array, side: dict, program=program, k=k, w=w,
+                 middles=middles) -> dict:
+            return program(x, u, side["u0"], k, w, *middles)
+        # row buckets: one compiled program serves every row count of its bucket
+        out.append(on_row_buckets(rows, x, np.asarray(u, float),
+                                  {"u0": np.asarray(u0, float)}))
+    return out
+
+
+def _free_equilibria(robot: Robot, arms: Sequence[str], x: jax.Array,
+                     u0s: Sequence[np.ndarray], ks: Sequence[jax.Array],
+                     weights: Sequence[jax.Array], max_iter: int = 40) -> list[np.ndarray]:
+    """Each arm's own equilibrium (N, n), springs holding it at ``u0s``, by Newton steps."""
+    us = [u.copy() for u in u0s]
+    for _ in range(max_iter):
+        steps = [-np.linalg.solve(s["hess"], s["grad"][..., None])[..., 0]
+                 for s in _arm_states(robot, arms, x, us, u0s, ks, weights)]
+        us = [u + d for u, d in zip(us, steps, strict=True)]
+        if max(np.abs(d).max() for d in steps) < 1e-12:
+            return us
+    raise LinkedSimulationError(f"free equilibrium did not converge in {max_iter} Newton steps")
+
+
+def gravity_settled(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
+                    masses_kg: np.ndarray, stiffness: np.ndarray,
+                    gravity: Sequence[float] = GRAVITY) -> np.ndarray:
+    """Where an arm's joints (N, n) settle from their commands ``q`` under its links' weights
+    (``masses_kg`` at their middles, ``gravity`` in the frames of ``robot`` at ``x``)."""
+    ks, weights = _physics_arguments(robot, [arm], {arm: stiffness}, {arm: masses_kg}, gravity)
+    return _free_equilibria(robot, [arm], jnp.asarray(x, float),
+                            [np.atleast_2d(np.asarray(q, float))], ks, weights)[0]
 
 
 def _middles(robot: Robot, arm: str) -> tuple[jax.Array, jax.Array]:
@@ -350,14 +381,7 @@ def linked_equilibrium(robot: Robot, x: np.ndarray, u0: Mapping[str, np.ndarray]
     def states(us):
         return _arm_states(robot, arms, xj, us, u0s, ks, weights)
 
-    us = [u.copy() for u in u0s]
-    for _ in range(max_iter):
-        steps = [-np.linalg.solve(s["hess"], s["grad"][..., None])[..., 0] for s in states(us)]
-        us = [u + d for u, d in zip(us, steps, strict=True)]
-        if max(np.abs(d).max() for d in steps) < 1e-12:
-            break
-    else:
-        raise LinkedSimulationError(f"free equilibrium did not converge in {max_iter} Newton steps")
+    us = _free_equilibria(robot, arms, xj, u0s, ks, weights, max_iter)
     free = states(us)
     free_joints = [u.copy() for u in us]
     cuts = np.cumsum([0, *(u.shape[1] for u in us)])

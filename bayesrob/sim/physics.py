@@ -117,17 +117,6 @@ def gravity_torques(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
         np.asarray(q, float))))
 
 
-def gravity_deflection(robot: Robot, x: np.ndarray, arm: str, q: np.ndarray,
-                       masses_kg: np.ndarray, stiffness: np.ndarray,
-                       gravity: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Joint deflections (N, n) at equilibrium, dq = tau(q + dq) / k, by fixed-point steps:
-    at arm6's masses four leave about 1e-6 rad, eight about 1e-12 rad."""
-    dq = np.zeros_like(q)
-    for _ in range(iterations):
-        dq = gravity_torques(robot, x, arm, q + dq, masses_kg, gravity) / stiffness
-    return dq
-
-
 def link_weights(masses_kg: np.ndarray | None, gravity: Sequence[float] | None,
                  n: int) -> np.ndarray:
     """Weights (n, 3) in N of the links' point masses; zero without gravity."""

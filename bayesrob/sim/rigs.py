@@ -285,8 +285,7 @@ def arm6_plant(truth: Arm6Truth, rng: np.random.Generator) -> ChainPlant:
 def linked_plant(robot: Robot, x_true: np.ndarray, truth: Mapping[str, Any]) -> ChainPlant:
     """The arms of a linked arm6 rig as they really are, each measured alone: ``truth`` as its
     truth.toml table has it (the drawn masses and stiffnesses recorded). Gravity is the
-    instrument's -z; eight deflection steps, as four leave the softer arm's fixed point up to
-    6e-6 rad off."""
+    instrument's -z."""
     compliant = bool(truth["compliance"])
     return ChainPlant(
         robot, np.asarray(x_true, float), truth["joint_noise_rad"],
@@ -294,7 +293,7 @@ def linked_plant(robot: Robot, x_true: np.ndarray, truth: Mapping[str, Any]) -> 
         {a: np.asarray(truth["drawn_masses_kg"][a], float) for a in truth["arms"]}
         if compliant else {},
         {a: np.asarray(truth["stiffness_nmm_per_rad"][a], float) for a in truth["arms"]}
-        if compliant else None, deflection_steps=8)
+        if compliant else None)
 
 
 def simulate_arm6_rig(out_dir: str | Path, truth: Arm6Truth) -> Path:
