@@ -1190,15 +1190,60 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _read_files(actions: list[argparse.Action], args: argparse.Namespace) -> dict[Path, str]:
+    """The files the command reads, each with what names it: the rig's own (its measurements,
+    rig.toml, truth.toml and the URDFs rig.toml names) and every existing file an input
+    option gives."""
+    found: dict[Path, str] = {}
+    rig = getattr(args, "rig", None)
+    if isinstance(rig, str) and Path(rig).is_dir():
+        import tomllib
+
+        from bayesrob.data.rig import MEASUREMENTS_FILE, RIG_FILE
+        from bayesrob.sim.truth import TRUTH_FILE
+
+        d = Path(rig)
+        for name in (MEASUREMENTS_FILE, RIG_FILE, TRUTH_FILE):
+            found[(d / name).resolve()] = f"the rig's {name}"
+        try:
+            arms = tomllib.loads((d / RIG_FILE).read_text()).get("arms", {})
+        except (OSError, ValueError):
+            arms = {}  # the command's own loading says what is wrong with it
+        for table in arms.values() if isinstance(arms, dict) else ():
+            if isinstance(table, dict) and isinstance(table.get("urdf"), str):
+                found[(d / table["urdf"]).resolve()] = f"the rig's {table['urdf']}"
+    for action in actions:
+        value = getattr(args, action.dest, None)
+        if hasattr(action, "output_kind") or not action.option_strings:
+            continue
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v != "-" and Path(v).is_file():
+                found[Path(v).resolve()] = f"{action.option_strings[0]}'s input"
+    return found
+
+
 def _check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Every output path of the command, checked before any work (see :func:`_output`)."""
+    """Every output path of the command, checked before any work (see :func:`_output`): one
+    it can write, none of the files it reads, no two the same."""
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    for action in sub.choices[args.command]._actions:
+    actions = sub.choices[args.command]._actions
+    read = _read_files(actions, args)
+    written: dict[Path, str] = {}
+    for action in actions:
         value = getattr(args, action.dest, None)
         if hasattr(action, "output_kind") and value not in (None, "-"):
-            check_output(value, action.output_kind,
-                         action.option_strings[0] if action.option_strings
-                         else action.dest.upper())
+            option = action.option_strings[0] if action.option_strings else action.dest.upper()
+            check_output(value, action.output_kind, option)
+            if action.output_kind != FILE:
+                continue
+            path = Path(value).resolve()
+            if path in read:
+                raise OutputPathError(f"{option} {value}: is {read[path]}, which this command "
+                                      "reads; give another path")
+            if path in written:
+                raise OutputPathError(f"{option} {value}: {written[path]} writes there too; "
+                                      "give each output its own path")
+            written[path] = option
 
 
 def _user_errors() -> tuple[type[Exception], ...]:

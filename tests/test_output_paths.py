@@ -86,3 +86,31 @@ def test_a_staged_directory_is_replaced_whole_or_not_at_all(tmp_path):
     assert (out / "a.json").read_text() == "new a"
     assert [p.name for p in (out / "best").iterdir()] == ["measurements.csv"]
     assert (out / "mine.txt").read_text() == "the user's"
+
+
+def test_no_output_may_be_a_file_the_command_reads_nor_another_output(tmp_path, capsys):
+    """Refused before any work, in one line, exit 2, the file untouched: an output onto the
+    rig's own files, onto an input option's file, or two outputs onto one path."""
+    import shutil
+
+    from bayesrob.cli import main
+    from bayesrob.data.rig import default_rig_dir
+
+    rig = tmp_path / "rig"
+    shutil.copytree(default_rig_dir(), rig)
+    targets = tmp_path / "targets.csv"
+    targets.write_text("x,y\n150,200\n")
+    before = {p: p.read_bytes() for p in (*rig.iterdir(), targets)}
+    for argv, words in (
+            (["calibrate", str(rig), "--json", str(rig / "measurements.csv")],
+             "the rig's measurements.csv"),
+            (["calibrate", str(rig), "--json", str(rig / "rig.toml")], "the rig's rig.toml"),
+            (["predict", str(rig), "--config", "top", "--targets", str(targets),
+              "--json", str(targets)], "--targets's input"),
+            (["compare", str(rig), "--json", str(tmp_path / "same"),
+              "--plot", str(tmp_path / "same")], "--json writes there too")):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (argv, err)
+    assert {p: p.read_bytes() for p in before} == before
+    assert not (tmp_path / "same").exists()
