@@ -727,8 +727,8 @@ def _sim_device_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--serial-mode", choices=["usb", "uart-detect"], default="usb",
                    help="Maestro: uart-detect ignores everything before a 0xAA baud rate "
                         "indication byte (default usb)")
-    p.add_argument("--byte-log", metavar="FILE",
-                   help="append every byte received on the servo port to FILE")
+    _output(p.add_argument("--byte-log", metavar="FILE",
+                           help="append every byte received on the servo port to FILE"), FILE)
 
 
 @command("sim-device", "serve a simulated rig on pseudo-terminals as a servo controller and "
@@ -799,6 +799,11 @@ def _diagnose(args: argparse.Namespace) -> int:
     published = None
     if rig.is_chain:
         published = parse_published(args.published) if args.published else None
+        if args.plan is not None and args.pool is not None:
+            from bayesrob.plan.pool import command_limits, read_pool
+
+            # the pool's errors before the diagnosis, not after its report is written
+            read_pool(args.pool, rig, command_limits(rig))
         diag = diagnose_groups(rig, args.effects, seed=args.seed, progress=_progress(args),
                                sag_steps=args.sag_steps)
     else:
@@ -1236,6 +1241,13 @@ def _check_outputs(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
             check_output(value, action.output_kind, option)
             if action.output_kind != FILE:
                 continue
+            if option == "--plot":
+                from matplotlib.backend_bases import FigureCanvasBase
+
+                kinds = FigureCanvasBase.get_supported_filetypes()
+                if Path(value).suffix.lower().lstrip(".") not in kinds:
+                    raise OutputPathError(f"--plot {value}: a figure's name ends in its format, "
+                                          f"one of {', '.join(sorted(kinds))}")
             path = Path(value).resolve()
             if path in read:
                 raise OutputPathError(f"{option} {value}: is {read[path]}, which this command "

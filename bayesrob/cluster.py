@@ -87,6 +87,9 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Any]
         except (OSError, TimeoutError) as e:
             raise ClusterError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
                                f"({type(e).__name__}: {e})") from None
+        except ValueError as e:  # not an address at all: no port, an unknown protocol
+            raise ClusterError(f"--scheduler {scheduler}: not a scheduler address "
+                               f"(tcp://HOST:PORT): {e}") from None
         try:
             yield client
         finally:

@@ -90,7 +90,8 @@ def test_a_staged_directory_is_replaced_whole_or_not_at_all(tmp_path):
 
 def test_no_output_may_be_a_file_the_command_reads_nor_another_output(tmp_path, capsys):
     """Refused before any work, in one line, exit 2, the file untouched: an output onto the
-    rig's own files, onto an input option's file, or two outputs onto one path."""
+    rig's own files, onto an input option's file, or two outputs onto one path; a figure
+    whose name gives no format matplotlib writes; a scheduler address that is none."""
     import shutil
 
     from bayesrob.cli import main
@@ -107,10 +108,14 @@ def test_no_output_may_be_a_file_the_command_reads_nor_another_output(tmp_path, 
             (["calibrate", str(rig), "--json", str(rig / "rig.toml")], "the rig's rig.toml"),
             (["predict", str(rig), "--config", "top", "--targets", str(targets),
               "--json", str(targets)], "--targets's input"),
-            (["compare", str(rig), "--json", str(tmp_path / "same"),
-              "--plot", str(tmp_path / "same")], "--json writes there too")):
+            (["compare", str(rig), "--json", str(tmp_path / "same.png"),
+              "--plot", str(tmp_path / "same.png")], "--json writes there too"),
+            (["compare", str(rig), "--plot", str(tmp_path / "same.xyz")],
+             "ends in its format, one of"),
+            (["validate", "plan_sim", "--scheduler", "nonsense", "--out",
+              str(tmp_path / "same")], "not a scheduler address")):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (argv, err)
     assert {p: p.read_bytes() for p in before} == before
-    assert not (tmp_path / "same").exists()
+    assert not any(tmp_path.glob("same*"))
