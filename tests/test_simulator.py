@@ -367,3 +367,21 @@ def test_a_chain_arm_rests_in_its_play_as_gravity_or_its_approach_decides():
     # no friction: gravity alone decides, whatever the approach
     np.testing.assert_allclose(measured(0.0), at(0.5 * play * np.sign(tau)), rtol=0, atol=1e-9)
     assert np.abs(measured(2000.0) - measured(0.0)).max() > 0.1  # the sides move the marker
+
+
+def test_a_truth_file_that_is_no_planar_rigs_is_one_line(tmp_path, capsys):
+    """A truth.toml that does not parse, or an arm6's where planar arms are needed: the
+    file named in one line, exit 2 (no traceback)."""
+    from bayesrob.cli import main
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / TRUTH_FILE).write_text("garbage=\n")
+    arm6 = tmp_path / "arm6"
+    arm6.mkdir()
+    (arm6 / TRUTH_FILE).write_text("[chain_truth]\nseed = 1\n")
+    for rig, words in ((bad, "cannot read the simulated rig's truth"),
+                       (arm6, "a 6-joint arm's truth")):
+        assert main(["simulate", str(rig), "--planned"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(rig / TRUTH_FILE) in err[0] and words in err[0], err

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesrob import robot as kin
-from bayesrob.data.rig import dump_toml
+from bayesrob.data.rig import RigError, dump_toml
 from bayesrob.data.vocabulary import EFFECTS
 from bayesrob.robot.planar import ArmGeometry
 from bayesrob.sim.physics import draw_stiffnesses
@@ -111,10 +111,21 @@ class Truth:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> Truth:
-        doc = tomllib.loads(Path(path).read_text())
-        arms = {n: ArmTruth(**_tuples(a)) for n, a in doc.pop("arms").items()}
-        doc = _tuples(doc)
-        return cls(arms=arms, **doc)
+        """A planar rig's truth.toml; RigError (one line, naming the file) where it is none."""
+        try:
+            doc = tomllib.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
+            raise RigError(f"{path}: cannot read the simulated rig's truth: {e}") from None
+        if not isinstance(doc.get("arms"), dict):
+            kind = ("a 6-joint arm's" if {"chain_truth", "linked_chain_truth"} & set(doc)
+                    else "no planar rig's")
+            raise RigError(f"{path}: is {kind} truth (no [arms] tables); this needs the "
+                           "paper's planar arms, simulated by 'bayesrob simulate'")
+        try:
+            arms = {n: ArmTruth(**_tuples(a)) for n, a in doc.pop("arms").items()}
+            return cls(arms=arms, **_tuples(doc))
+        except (TypeError, ValueError) as e:
+            raise RigError(f"{path}: not a simulated rig's truth as written: {e}") from None
 
 
 def _tuples(x):
